@@ -1,0 +1,220 @@
+//! Posed-image datasets: one in-memory representation for the three formats
+//! users have (Blender `transforms_*.json`, instant-ngp/nerfstudio
+//! `transforms.json`, LLFF `poses_bounds.npy`).
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use super::camera::Camera;
+use super::math::{Aabb, Vec3};
+
+mod blender;
+mod images;
+mod llff;
+mod ngp;
+mod npy;
+mod validate;
+
+pub use npy::{NpyArray, parse_npy};
+
+/// Which on-disk format a dataset came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DatasetFormat {
+    /// NeRF synthetic: `transforms_{train,val,test}.json`.
+    Blender,
+    /// instant-ngp / nerfstudio: one `transforms.json`.
+    Ngp,
+    /// LLFF: `poses_bounds.npy` + `images_N/`.
+    Llff,
+}
+
+impl fmt::Display for DatasetFormat {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::Blender => "blender",
+            Self::Ngp => "transforms",
+            Self::Llff => "llff",
+        })
+    }
+}
+
+/// A dataset split.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Split {
+    Train,
+    Val,
+    Test,
+}
+
+impl Split {
+    pub const ALL: [Split; 3] = [Split::Train, Split::Val, Split::Test];
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Val => "val",
+            Split::Test => "test",
+        }
+    }
+}
+
+impl std::str::FromStr for Split {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "train" => Ok(Split::Train),
+            "val" => Ok(Split::Val),
+            "test" => Ok(Split::Test),
+            _ => Err(format!("unknown split '{s}' (expected train, val or test)")),
+        }
+    }
+}
+
+/// An 8-bit RGBA image, row-major, straight (not premultiplied) alpha.
+/// Images without alpha have alpha 255 everywhere.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub rgba: Vec<u8>,
+    /// Whether the source had an alpha channel.
+    pub has_alpha: bool,
+}
+
+impl Image {
+    /// The pixel at `(i, j)` as f32 RGB composited on `background`.
+    pub fn rgb_on(&self, i: u32, j: u32, background: [f32; 3]) -> [f32; 3] {
+        let k = 4 * (j as usize * self.width as usize + i as usize);
+        let p = &self.rgba[k..k + 4];
+        let a = p[3] as f32 / 255.0;
+        let c = |v: u8, b: f32| v as f32 / 255.0 * a + b * (1.0 - a);
+        [c(p[0], background[0]), c(p[1], background[1]), c(p[2], background[2])]
+    }
+
+    /// The pixel at `(i, j)` as straight f32 RGBA in [0, 1].
+    pub fn rgba_f32(&self, i: u32, j: u32) -> [f32; 4] {
+        let k = 4 * (j as usize * self.width as usize + i as usize);
+        let p = &self.rgba[k..k + 4];
+        [p[0] as f32 / 255.0, p[1] as f32 / 255.0, p[2] as f32 / 255.0, p[3] as f32 / 255.0]
+    }
+}
+
+/// One posed view.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    /// The image file's stem (`./test/r_7` -> `r_7`): renders are named by it.
+    pub name: String,
+    /// The image file.
+    pub path: PathBuf,
+    pub camera: Camera,
+    pub image: Image,
+}
+
+/// Options for loading.
+#[derive(Clone, Debug)]
+pub struct LoadOptions {
+    /// Background RGBA images are composited on (white by default).
+    pub background: [f32; 3],
+    /// For Blender datasets: which split files to read (all that exist by
+    /// default). Other formats always load every frame.
+    pub splits: Vec<Split>,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self { background: [1.0; 3], splits: Split::ALL.to_vec() }
+    }
+}
+
+/// A loaded dataset in world units.
+#[derive(Clone, Debug)]
+pub struct Dataset {
+    pub format: DatasetFormat,
+    pub root: PathBuf,
+    pub frames: Vec<Frame>,
+    /// Frame indices of each split. Formats without a split hold out every
+    /// 8th frame (index % 8 == 0) as both `val` and `test`.
+    pub train: Vec<usize>,
+    pub val: Vec<usize>,
+    pub test: Vec<usize>,
+    /// Ray interval in world units.
+    pub near: f32,
+    pub far: f32,
+    /// The scene's bounding box in world units: rays are clipped to it.
+    pub aabb: Aabb,
+    /// Background that RGBA images are composited on for evaluation.
+    pub background: [f32; 3],
+    /// Non-fatal observations (few views, ...).
+    pub warnings: Vec<String>,
+}
+
+impl Dataset {
+    /// Detects the format of the dataset at `root` and loads it.
+    pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
+        match detect_format(root)? {
+            DatasetFormat::Blender => blender::load(root, opts),
+            DatasetFormat::Ngp => ngp::load(root, opts),
+            DatasetFormat::Llff => llff::load(root, opts),
+        }
+    }
+
+    pub fn split(&self, s: Split) -> &[usize] {
+        match s {
+            Split::Train => &self.train,
+            Split::Val => &self.val,
+            Split::Test => &self.test,
+        }
+    }
+
+    /// The frames of a split.
+    pub fn split_frames(&self, s: Split) -> impl Iterator<Item = &Frame> {
+        self.split(s).iter().map(|&i| &self.frames[i])
+    }
+
+    /// Centre of the scene box.
+    pub fn centre(&self) -> Vec3 {
+        self.aabb.centre()
+    }
+}
+
+/// Finds which format the folder holds.
+pub fn detect_format(root: &Path) -> Result<DatasetFormat, DatasetError> {
+    if !root.is_dir() {
+        return Err(DatasetError::NotFound(root.to_path_buf()));
+    }
+    if Split::ALL.iter().any(|s| root.join(format!("transforms_{}.json", s.name())).is_file()) {
+        Ok(DatasetFormat::Blender)
+    } else if root.join("transforms.json").is_file() {
+        Ok(DatasetFormat::Ngp)
+    } else if root.join("poses_bounds.npy").is_file() {
+        Ok(DatasetFormat::Llff)
+    } else {
+        Err(DatasetError::UnknownFormat(root.to_path_buf()))
+    }
+}
+
+/// Why a dataset could not be loaded. Every variant names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    #[error("dataset folder {0} does not exist")]
+    NotFound(PathBuf),
+    #[error(
+        "{0}: unknown dataset format (expected transforms_train.json, transforms.json or poses_bounds.npy)"
+    )]
+    UnknownFormat(PathBuf),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: invalid JSON: {message}")]
+    Json { path: PathBuf, message: String },
+    #[error("{path}: {message}")]
+    Invalid { path: PathBuf, message: String },
+    #[error("{path}: image is missing (referenced by {referenced_by})")]
+    MissingImage { path: PathBuf, referenced_by: PathBuf },
+    #[error("{path}: image does not decode: {message}")]
+    BadImage { path: PathBuf, message: String },
+    #[error("{path}: image is {got_w}x{got_h}, expected {want_w}x{want_h}")]
+    SizeMismatch { path: PathBuf, got_w: u32, got_h: u32, want_w: u32, want_h: u32 },
+    #[error("{path}: frame {frame}: {message}")]
+    BadPose { path: PathBuf, frame: usize, message: String },
+}

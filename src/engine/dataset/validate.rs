@@ -1,0 +1,1 @@
+//! Pose and image validation (being written).
