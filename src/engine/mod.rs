@@ -7,3 +7,6 @@
 pub mod camera;
 pub mod dataset;
 pub mod math;
+pub mod fsio;
+pub mod metrics;
+pub mod checkpoint;
