@@ -10,9 +10,12 @@ use super::math::{Aabb, Vec3};
 
 mod blender;
 mod images;
+mod json;
 mod llff;
 mod ngp;
 mod npy;
+#[cfg(test)]
+mod testutil;
 mod validate;
 
 pub use npy::{NpyArray, parse_npy};
