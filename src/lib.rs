@@ -1,3 +1,11 @@
 //! radiance: train Neural Radiance Fields on CPUs and render novel views.
+//!
+//! `engine` knows nothing of HTTP or async; `media` encodes what the engine
+//! renders; `cli` drives both from the command line.
 
+// Index loops over small fixed-size arrays read more clearly in numeric code.
+#![allow(clippy::needless_range_loop)]
+
+pub mod cli;
 pub mod engine;
+pub mod media;

@@ -1,3 +1,9 @@
+use clap::Parser;
+
 fn main() {
-    println!("radiance");
+    let cli = radiance::cli::Cli::parse();
+    if let Err(e) = radiance::cli::run(cli) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
 }

@@ -42,7 +42,12 @@ impl Distortion {
             return (xd, yd);
         }
         let (mut x, mut y) = (xd as f64, yd as f64);
-        let (k1, k2, p1, p2) = (self.k1 as f64, self.k2 as f64, self.p1 as f64, self.p2 as f64);
+        let (k1, k2, p1, p2) = (
+            self.k1 as f64,
+            self.k2 as f64,
+            self.p1 as f64,
+            self.p2 as f64,
+        );
         for _ in 0..10 {
             let r2 = x * x + y * y;
             let radial = 1.0 + r2 * (k1 + r2 * k2);
@@ -125,7 +130,10 @@ impl Camera {
         // Image y grows downwards, camera y upwards; the camera looks down -z.
         let d = self.rotate(Vec3::new(x, -y, -1.0));
         let dir = d.normalized().unwrap_or(Vec3::new(0.0, 0.0, -1.0));
-        Ray { origin: self.origin(), dir }
+        Ray {
+            origin: self.origin(),
+            dir,
+        }
     }
 
     /// The ray through the centre of pixel `(i, j)`.
@@ -169,17 +177,29 @@ mod tests {
 
     #[test]
     fn undistort_inverts_distort() {
-        let d = Distortion { k1: 0.0578, k2: -0.0805, p1: -0.00098, p2: 0.000156 };
+        let d = Distortion {
+            k1: 0.0578,
+            k2: -0.0805,
+            p1: -0.00098,
+            p2: 0.000156,
+        };
         for &(x, y) in &[(0.0f32, 0.0f32), (0.3, -0.2), (-0.5, 0.6), (0.7, 0.7)] {
             let (xd, yd) = d.distort(x, y);
             let (xu, yu) = d.undistort(xd, yd);
-            assert!((xu - x).abs() < 1e-5 && (yu - y).abs() < 1e-5, "{x},{y} -> {xu},{yu}");
+            assert!(
+                (xu - x).abs() < 1e-5 && (yu - y).abs() < 1e-5,
+                "{x},{y} -> {xu},{yu}"
+            );
         }
     }
 
     #[test]
     fn centre_ray_looks_down_minus_z() {
-        let c2w = [[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 2.0], [0.0, 0.0, 1.0, 3.0]];
+        let c2w = [
+            [1.0, 0.0, 0.0, 1.0],
+            [0.0, 1.0, 0.0, 2.0],
+            [0.0, 0.0, 1.0, 3.0],
+        ];
         let cam = Camera::from_fov(100, 80, 1.0, c2w);
         let r = cam.ray(50.0, 40.0);
         assert_eq!(r.origin, Vec3::new(1.0, 2.0, 3.0));

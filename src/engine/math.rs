@@ -141,13 +141,25 @@ mod tests {
 
     #[test]
     fn clip_hits_and_misses() {
-        let b = Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) };
-        let r = Ray { origin: Vec3::new(0.0, 0.0, -5.0), dir: Vec3::new(0.0, 0.0, 1.0) };
+        let b = Aabb {
+            min: Vec3::splat(-1.0),
+            max: Vec3::splat(1.0),
+        };
+        let r = Ray {
+            origin: Vec3::new(0.0, 0.0, -5.0),
+            dir: Vec3::new(0.0, 0.0, 1.0),
+        };
         assert_eq!(b.clip(&r, 0.0, 100.0), Some((4.0, 6.0)));
         assert_eq!(b.clip(&r, 4.5, 5.0), Some((4.5, 5.0)));
-        let miss = Ray { origin: Vec3::new(2.0, 0.0, -5.0), dir: Vec3::new(0.0, 0.0, 1.0) };
+        let miss = Ray {
+            origin: Vec3::new(2.0, 0.0, -5.0),
+            dir: Vec3::new(0.0, 0.0, 1.0),
+        };
         assert_eq!(b.clip(&miss, 0.0, 100.0), None);
-        let inside = Ray { origin: Vec3::ZERO_TEST, dir: Vec3::new(1.0, 0.0, 0.0) };
+        let inside = Ray {
+            origin: Vec3::ZERO_TEST,
+            dir: Vec3::new(1.0, 0.0, 0.0),
+        };
         assert_eq!(b.clip(&inside, 0.0, 100.0), Some((0.0, 1.0)));
     }
 

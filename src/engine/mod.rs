@@ -4,9 +4,23 @@
 //! No async, no HTTP, no global state: progress is reported through callbacks
 //! and long work stops when a cancel flag is set.
 
+pub mod adam;
 pub mod camera;
-pub mod dataset;
-pub mod math;
-pub mod fsio;
-pub mod metrics;
 pub mod checkpoint;
+pub mod dataset;
+pub mod encoding;
+pub mod fsio;
+pub mod linear;
+pub mod math;
+pub mod metrics;
+pub mod model;
+pub mod nerf;
+pub mod nerf_net;
+pub mod persist;
+pub mod render;
+pub mod rng;
+pub mod sampler;
+pub mod scene;
+pub mod synthetic;
+pub mod trainer;
+pub mod volume;

@@ -1,0 +1,73 @@
+//! The command line: `radiance train | render | eval`.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+mod eval;
+mod train;
+
+pub use eval::{EvalArgs, RenderArgs};
+pub use train::TrainArgs;
+
+/// Train Neural Radiance Fields on CPUs and render novel views.
+#[derive(Parser, Debug)]
+#[command(name = "radiance", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Train a model on a dataset's training views.
+    Train(TrainArgs),
+    /// Render every view of a split to PNG files named by the frames' file stems.
+    Render(RenderArgs),
+    /// Render a split and print PSNR and SSIM against its ground truth.
+    Eval(EvalArgs),
+}
+
+/// Options every command takes.
+#[derive(Args, Debug, Clone)]
+pub struct Common {
+    /// Worker threads (default: all cores, or RAYON_NUM_THREADS when set).
+    #[arg(long, global = true)]
+    pub threads: Option<usize>,
+}
+
+impl Common {
+    /// Sizes the global rayon pool.
+    pub fn init_threads(&self) -> anyhow::Result<usize> {
+        let mut b = rayon::ThreadPoolBuilder::new();
+        if let Some(n) = self.threads {
+            anyhow::ensure!(n > 0, "--threads must be at least 1");
+            b = b.num_threads(n);
+        }
+        // Fails only if the pool was already built (e.g. twice in tests).
+        let _ = b.build_global();
+        Ok(rayon::current_num_threads())
+    }
+}
+
+/// Dataset location and the split to use.
+#[derive(Args, Debug, Clone)]
+pub struct DataArgs {
+    /// Dataset folder (Blender transforms_*.json, transforms.json, or LLFF poses_bounds.npy).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Which split to use.
+    #[arg(long, default_value = "test")]
+    pub split: crate::engine::dataset::Split,
+    /// Use only the first N frames of the split.
+    #[arg(long)]
+    pub limit: Option<usize>,
+}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Train(a) => train::run(a),
+        Command::Render(a) => eval::render(a),
+        Command::Eval(a) => eval::eval(a),
+    }
+}

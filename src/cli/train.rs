@@ -1,0 +1,227 @@
+//! `radiance train`.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use super::Common;
+use crate::engine::adam::{Adam, AdamConfig};
+use crate::engine::dataset::{Dataset, LoadOptions, Split};
+use crate::engine::model::Model;
+use crate::engine::nerf::{NerfConfig, NerfModel};
+use crate::engine::persist;
+use crate::engine::scene::Scene;
+use crate::engine::trainer::{Budget, StopReason, TrainConfig, TrainState, Trainer};
+
+#[derive(Args, Debug)]
+pub struct TrainArgs {
+    /// Dataset folder.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Model kind: `nerf` (the classic model of the paper).
+    #[arg(long, default_value = "nerf")]
+    pub model: String,
+    /// Training time budget in seconds (training only, not saving).
+    #[arg(long, conflicts_with = "steps")]
+    pub seconds: Option<f64>,
+    /// Number of optimisation steps (default 1000 when no --seconds).
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Random seed: same seed, data and thread count give the same model.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Rays per optimisation step.
+    #[arg(long, default_value_t = 1024)]
+    pub batch_rays: usize,
+    /// Initial learning rate (decays exponentially to a tenth of it).
+    #[arg(long)]
+    pub lr: Option<f32>,
+    /// Save a checkpoint every this many seconds of training.
+    #[arg(long, default_value_t = 60.0)]
+    pub checkpoint_every: f64,
+    /// Continue training from this checkpoint (its model and optimiser
+    /// state; the budget given here is the new total).
+    #[arg(long)]
+    pub resume: Option<PathBuf>,
+    /// Where to write the model checkpoint.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub common: Common,
+}
+
+fn new_model(kind: &str, scene: Scene, seed: u64) -> anyhow::Result<Box<dyn Model>> {
+    match kind {
+        "nerf" => Ok(Box::new(NerfModel::new(NerfConfig::default(), scene, seed))),
+        other => anyhow::bail!("unknown model '{other}' (available: nerf)"),
+    }
+}
+
+fn fmt_secs(s: f64) -> String {
+    let s = s.max(0.0).round() as u64;
+    format!("{}:{:02}", s / 60, s % 60)
+}
+
+pub fn run(a: TrainArgs) -> anyhow::Result<()> {
+    let threads = a.common.init_threads()?;
+    anyhow::ensure!(a.batch_rays > 0, "--batch-rays must be at least 1");
+    if let Some(s) = a.seconds {
+        anyhow::ensure!(
+            s.is_finite() && s > 0.0,
+            "--seconds must be a positive number"
+        );
+    }
+    let budget = match (a.seconds, a.steps) {
+        (None, None) => Budget {
+            steps: Some(1000),
+            seconds: None,
+        },
+        (s, n) => Budget {
+            steps: n,
+            seconds: s,
+        },
+    };
+    let opts = LoadOptions {
+        splits: vec![Split::Train],
+        ..Default::default()
+    };
+    let ds =
+        Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
+    anyhow::ensure!(
+        !ds.train.is_empty(),
+        "{}: the dataset has no training views",
+        a.data.display()
+    );
+    for w in &ds.warnings {
+        eprintln!("warning: {w}");
+    }
+    let config = TrainConfig {
+        seed: a.seed,
+        batch_rays: a.batch_rays,
+        budget,
+    };
+    let (model, adam, state) = match &a.resume {
+        Some(p) => {
+            let r = persist::load(p)?;
+            anyhow::ensure!(
+                r.model.kind() == a.model,
+                "{} holds a '{}' model, not '{}'",
+                p.display(),
+                r.model.kind(),
+                a.model
+            );
+            (r.model, r.adam, r.state)
+        }
+        None => {
+            let model = new_model(&a.model, Scene::from_dataset(&ds), a.seed)?;
+            let mut cfg = AdamConfig::default();
+            if let Some(lr) = a.lr {
+                anyhow::ensure!(lr.is_finite() && lr > 0.0, "--lr must be positive");
+                cfg.lr_end = lr * cfg.lr_end / cfg.lr;
+                cfg.lr = lr;
+            }
+            let n = model.params().len();
+            (model, Adam::new(cfg, n), TrainState::default())
+        }
+    };
+    eprintln!(
+        "training '{}' on {} ({} views, {}x{}), {} parameters, {} threads",
+        model.kind(),
+        a.data.display(),
+        ds.train.len(),
+        ds.frames[ds.train[0]].camera.width,
+        ds.frames[ds.train[0]].camera.height,
+        model.params().len(),
+        threads
+    );
+    let cancel = Arc::new(AtomicBool::new(false));
+    {
+        let c = cancel.clone();
+        ctrlc::set_handler(move || c.store(true, Ordering::SeqCst))
+            .context("installing the Ctrl-C handler")?;
+    }
+    let mut trainer = Trainer::new(model, adam, config, state, &ds);
+    let bar = match budget.steps {
+        Some(n) if budget.seconds.is_none() => ProgressBar::new(n),
+        _ => ProgressBar::new((budget.seconds.unwrap_or(0.0) * 10.0) as u64),
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let by_time = budget.seconds.is_some() && budget.steps.is_none();
+    let wall = Instant::now();
+    let start_state = trainer.state.clone();
+    let mut last_save = trainer.state.elapsed;
+    let mut save_error = None;
+    let out = a.out.clone();
+    let reason = trainer.run(&cancel, |t, p| {
+        bar.set_position(if by_time {
+            (p.elapsed * 10.0) as u64
+        } else {
+            p.step
+        });
+        if p.step % 5 == 0 || p.step < 5 {
+            bar.set_message(format!(
+                "step {} loss {:.5} train PSNR {:.2} dB elapsed {} ETA {}",
+                p.step,
+                p.loss,
+                p.train_psnr,
+                fmt_secs(p.elapsed),
+                p.eta.map_or("?".into(), fmt_secs)
+            ));
+        }
+        if p.elapsed - last_save >= a.checkpoint_every {
+            last_save = p.elapsed;
+            if let Err(e) = persist::save(&out, &*t.model, &t.adam, &t.config, &t.state) {
+                save_error = Some(e);
+                return false;
+            }
+        }
+        true
+    });
+    bar.finish_and_clear();
+    if let Some(e) = save_error {
+        return Err(e).context("saving a checkpoint");
+    }
+    persist::save(
+        &a.out,
+        &*trainer.model,
+        &trainer.adam,
+        &trainer.config,
+        &trainer.state,
+    )
+    .with_context(|| format!("saving {}", a.out.display()))?;
+    let s = &trainer.state;
+    let secs = (s.elapsed - start_state.elapsed).max(1e-9);
+    let rays = s.rays - start_state.rays;
+    let samples = s.samples - start_state.samples;
+    let p = trainer.progress(f64::NAN);
+    match reason {
+        StopReason::Cancelled => eprintln!("interrupted: saved the model at step {}", s.step),
+        StopReason::Budget | StopReason::Callback => {}
+    }
+    println!("steps          {}", s.step - start_state.step);
+    println!(
+        "training time  {:.1} s (wall {:.1} s)",
+        secs,
+        wall.elapsed().as_secs_f64()
+    );
+    println!("rays/s         {:.1}", rays as f64 / secs);
+    println!("samples/s      {:.0}", samples as f64 / secs);
+    println!("samples/ray    {:.1}", samples as f64 / rays.max(1) as f64);
+    println!("train PSNR     {:.2} dB", p.train_psnr);
+    if s.diverged_steps > 0 {
+        println!(
+            "skipped steps  {} (non-finite loss or gradient)",
+            s.diverged_steps
+        );
+    }
+    println!("model          {}", a.out.display());
+    Ok(())
+}

@@ -1,0 +1,72 @@
+//! What every model offers the trainer and the renderer.
+
+use super::math::Ray;
+use super::scene::Scene;
+
+/// A training ray in model space with its target colour.
+#[derive(Clone, Copy, Debug)]
+pub struct TrainRay {
+    pub ray: Ray,
+    pub target: [f32; 3],
+    pub background: [f32; 3],
+    /// Position in the batch: seeds this ray's random stream.
+    pub index: u64,
+}
+
+/// Per-step context for a batch.
+#[derive(Clone, Copy, Debug)]
+pub struct StepCtx {
+    pub seed: u64,
+    pub step: u64,
+    /// Rays in the whole batch (losses are means over it).
+    pub batch_rays: usize,
+}
+
+/// Sums over a part of a batch.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct BatchStats {
+    /// Sum over rays of the mean squared colour error of the final pass.
+    pub sq_err: f64,
+    /// The loss summed over passes (coarse + fine for NeRF).
+    pub loss: f64,
+    /// Network evaluations.
+    pub samples: u64,
+    /// Samples a dense marcher would have taken but that were skipped.
+    pub skipped: u64,
+    pub rays: u64,
+}
+
+impl BatchStats {
+    pub fn add(&mut self, o: &BatchStats) {
+        self.sq_err += o.sq_err;
+        self.loss += o.loss;
+        self.samples += o.samples;
+        self.skipped += o.skipped;
+        self.rays += o.rays;
+    }
+}
+
+/// What rendering one ray gives.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RayOutput {
+    pub rgb: [f32; 3],
+    /// Expected distance along the ray in model units.
+    pub depth: f32,
+    pub opacity: f32,
+}
+
+/// A trainable radiance field.
+pub trait Model: Send + Sync {
+    /// "nerf" or "instant".
+    fn kind(&self) -> &'static str;
+    fn scene(&self) -> &Scene;
+    fn params(&self) -> &[f32];
+    fn params_mut(&mut self) -> &mut [f32];
+    /// The model's configuration, saved in checkpoints.
+    fn config_json(&self) -> serde_json::Value;
+    /// Accumulates the gradient of the batch loss over `rays` (one part of a
+    /// batch) into `grads` and returns the part's statistics.
+    fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
+    /// Renders model-space rays.
+    fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats;
+}

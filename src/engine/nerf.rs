@@ -1,0 +1,379 @@
+//! The classic NeRF model: a coarse and a fine network, stratified coarse
+//! samples and fine samples drawn from the coarse weights, both trained with
+//! an L2 loss on colour.
+
+use super::linear::ParamLayout;
+use super::math::Ray;
+use super::model::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
+use super::nerf_net::{NerfNet, NetConfig, NetCtx};
+use super::rng::Rng;
+use super::sampler::{deltas, edges, merge_sorted, sample_pdf, stratified};
+use super::scene::Scene;
+use super::volume::{composite, composite_backward};
+
+/// The classic model's configuration. `Default` is the paper's.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct NerfConfig {
+    pub net: NetConfig,
+    /// Stratified samples per ray for the coarse network (64).
+    pub coarse_samples: usize,
+    /// Extra samples per ray from the coarse weights (128); the fine network
+    /// sees these and the coarse ones.
+    pub fine_samples: usize,
+    /// Rays processed together through the networks by one thread.
+    pub chunk_rays: usize,
+    /// Transmittance below which rendering stops marching a ray (1e-4).
+    pub min_transmittance: f32,
+}
+
+impl Default for NerfConfig {
+    fn default() -> Self {
+        Self {
+            net: NetConfig::default(),
+            coarse_samples: 64,
+            fine_samples: 128,
+            chunk_rays: 8,
+            min_transmittance: 1e-4,
+        }
+    }
+}
+
+/// The classic NeRF.
+pub struct NerfModel {
+    pub config: NerfConfig,
+    scene: Scene,
+    coarse: NerfNet,
+    fine: NerfNet,
+    params: Vec<f32>,
+}
+
+/// Reusable buffers of one thread.
+#[derive(Default)]
+struct Work {
+    ctx: NetCtx,
+    pts: Vec<f32>,
+    dirs: Vec<f32>,
+    /// per ray: offset into the sample arrays and sample count
+    spans: Vec<(usize, usize)>,
+    delta: Vec<f32>,
+    weights: Vec<f32>,
+    dsigma: Vec<f32>,
+    drgb: Vec<f32>,
+    tmp: Vec<f32>,
+    ed: Vec<f32>,
+}
+
+/// One ray of a chunk that hits the scene box.
+struct Hit {
+    ray: Ray,
+    near: f32,
+    far: f32,
+    target: [f32; 3],
+    background: [f32; 3],
+}
+
+impl NerfModel {
+    pub fn new(config: NerfConfig, scene: Scene, seed: u64) -> Self {
+        let mut layout = ParamLayout::default();
+        let coarse = NerfNet::new(&mut layout, "coarse", config.net.clone());
+        let fine = NerfNet::new(&mut layout, "fine", config.net.clone());
+        let mut params = vec![0.0; layout.len];
+        let mut rng = Rng::new(seed);
+        coarse.init(&mut params, &mut rng);
+        fine.init(&mut params, &mut rng);
+        Self {
+            config,
+            scene,
+            coarse,
+            fine,
+            params,
+        }
+    }
+
+    /// Rebuilds a model from saved parts.
+    pub fn from_parts(config: NerfConfig, scene: Scene, params: Vec<f32>) -> Result<Self, String> {
+        let m = Self::new(config, scene, 0);
+        if params.len() != m.params.len() {
+            return Err(format!(
+                "expected {} parameters, found {}",
+                m.params.len(),
+                params.len()
+            ));
+        }
+        Ok(Self { params, ..m })
+    }
+
+    pub fn macs_per_sample(&self) -> usize {
+        self.coarse.macs_per_sample()
+    }
+
+    /// Lays the samples `t` of each hit ray out as points and directions.
+    fn gather(w: &mut Work, hits: &[Hit], ts: &[Vec<f32>]) {
+        w.pts.clear();
+        w.dirs.clear();
+        w.spans.clear();
+        for (h, t) in hits.iter().zip(ts) {
+            w.spans.push((w.pts.len() / 3, t.len()));
+            for &ti in t {
+                let p = h.ray.at(ti);
+                w.pts.extend_from_slice(&[p.x, p.y, p.z]);
+                w.dirs
+                    .extend_from_slice(&[h.ray.dir.x, h.ray.dir.y, h.ray.dir.z]);
+            }
+        }
+    }
+
+    /// Composites every ray of the last forward pass; with `train`, also
+    /// writes dL/dsigma and dL/drgb for an L2 loss scaled by `loss_scale`.
+    /// Returns per-ray composites and the summed squared error.
+    fn composite_all(
+        w: &mut Work,
+        hits: &[Hit],
+        ts: &[Vec<f32>],
+        min_t: f32,
+        grad_scale: Option<f32>,
+        out: &mut Vec<super::volume::Composite>,
+    ) -> f64 {
+        let total = w.pts.len() / 3;
+        w.weights.resize(total, 0.0);
+        if grad_scale.is_some() {
+            w.dsigma.resize(total, 0.0);
+            w.drgb.resize(total * 3, 0.0);
+        }
+        out.clear();
+        let mut sq = 0.0f64;
+        for (k, (h, t)) in hits.iter().zip(ts).enumerate() {
+            let (o, n) = w.spans[k];
+            deltas(t, h.near, h.far, &mut w.delta);
+            let sigma = &w.ctx.sigma[o..o + n];
+            let rgb = &w.ctx.rgb[3 * o..3 * (o + n)];
+            let c = composite(
+                sigma,
+                rgb,
+                t,
+                &w.delta,
+                h.background,
+                min_t,
+                &mut w.weights[o..o + n],
+            );
+            let err = [
+                c.rgb[0] - h.target[0],
+                c.rgb[1] - h.target[1],
+                c.rgb[2] - h.target[2],
+            ];
+            sq += err.iter().map(|e| (*e as f64) * (*e as f64)).sum::<f64>() / 3.0;
+            if let Some(s) = grad_scale {
+                let g = [2.0 * s * err[0], 2.0 * s * err[1], 2.0 * s * err[2]];
+                composite_backward(
+                    sigma,
+                    rgb,
+                    t,
+                    &w.delta,
+                    &w.weights[o..o + n],
+                    h.background,
+                    c.used,
+                    g,
+                    0.0,
+                    &mut w.dsigma[o..o + n],
+                    &mut w.drgb[3 * o..3 * (o + n)],
+                );
+            }
+            out.push(c);
+        }
+        sq
+    }
+
+    /// Fine sample positions for each ray from the coarse weights.
+    fn fine_samples(
+        &self,
+        w: &mut Work,
+        hits: &[Hit],
+        coarse_t: &[Vec<f32>],
+        rngs: &mut [Option<Rng>],
+    ) -> Vec<Vec<f32>> {
+        let mut out = Vec::with_capacity(hits.len());
+        for (k, (h, t)) in hits.iter().zip(coarse_t).enumerate() {
+            let (o, n) = w.spans[k];
+            edges(t, h.near, h.far, &mut w.ed);
+            w.tmp.clear();
+            sample_pdf(
+                &w.ed,
+                &w.weights[o..o + n],
+                self.config.fine_samples,
+                rngs[k].as_mut(),
+                &mut w.tmp,
+            );
+            let mut merged = Vec::new();
+            merge_sorted(t, &w.tmp, &mut merged);
+            out.push(merged);
+        }
+        out
+    }
+
+    /// Runs the coarse and fine passes over a chunk of hit rays; with
+    /// `grads`, also backpropagates the L2 loss scaled by `grad_scale`.
+    fn run_chunk(
+        &self,
+        w: &mut Work,
+        hits: &[Hit],
+        mut rngs: Vec<Option<Rng>>,
+        mut grads: Option<(&mut [f32], f32)>,
+        min_t: f32,
+    ) -> (Vec<super::volume::Composite>, BatchStats) {
+        let mut stats = BatchStats::default();
+        let coarse_t: Vec<Vec<f32>> = hits
+            .iter()
+            .zip(rngs.iter_mut())
+            .map(|(h, r)| {
+                let mut t = Vec::new();
+                stratified(
+                    h.near,
+                    h.far,
+                    self.config.coarse_samples,
+                    r.as_mut(),
+                    &mut t,
+                );
+                t
+            })
+            .collect();
+        let scale = grads.as_ref().map(|g| g.1);
+        let mut comps = Vec::new();
+        // Coarse pass.
+        Self::gather(w, hits, &coarse_t);
+        let n = w.pts.len() / 3;
+        self.coarse
+            .forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
+        let sq_c = Self::composite_all(w, hits, &coarse_t, min_t, scale, &mut comps);
+        stats.samples += n as u64;
+        if let Some((g, _)) = grads.as_mut() {
+            self.coarse
+                .backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
+        }
+        // Fine pass.
+        let fine_t = self.fine_samples(w, hits, &coarse_t, &mut rngs);
+        Self::gather(w, hits, &fine_t);
+        let n = w.pts.len() / 3;
+        self.fine
+            .forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
+        let sq_f = Self::composite_all(w, hits, &fine_t, min_t, scale, &mut comps);
+        stats.samples += n as u64;
+        if let Some((g, _)) = grads.as_mut() {
+            self.fine
+                .backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
+        }
+        stats.sq_err = sq_f;
+        stats.loss = sq_c + sq_f;
+        (comps, stats)
+    }
+}
+
+impl Model for NerfModel {
+    fn kind(&self) -> &'static str {
+        "nerf"
+    }
+    fn scene(&self) -> &Scene {
+        &self.scene
+    }
+    fn params(&self) -> &[f32] {
+        &self.params
+    }
+    fn params_mut(&mut self) -> &mut [f32] {
+        &mut self.params
+    }
+    fn config_json(&self) -> serde_json::Value {
+        serde_json::to_value(&self.config).unwrap_or(serde_json::Value::Null)
+    }
+
+    fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
+        let mut w = Work::default();
+        let mut stats = BatchStats::default();
+        let scale = 1.0 / (ctx.batch_rays.max(1) as f32 * 3.0);
+        for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
+            let mut hits = Vec::with_capacity(chunk.len());
+            let mut rngs = Vec::with_capacity(chunk.len());
+            for r in chunk {
+                stats.rays += 1;
+                match self.scene.clip(&r.ray) {
+                    Some((near, far)) => {
+                        hits.push(Hit {
+                            ray: r.ray,
+                            near,
+                            far,
+                            target: r.target,
+                            background: r.background,
+                        });
+                        rngs.push(Some(Rng::stream(ctx.seed, ctx.step, r.index)));
+                    }
+                    None => {
+                        // The ray sees only the background: no gradient, but it counts in the loss.
+                        let e: f64 = (0..3)
+                            .map(|k| ((r.background[k] - r.target[k]) as f64).powi(2))
+                            .sum::<f64>()
+                            / 3.0;
+                        stats.sq_err += e;
+                        stats.loss += 2.0 * e;
+                    }
+                }
+            }
+            if hits.is_empty() {
+                continue;
+            }
+            let (_, s) = self.run_chunk(&mut w, &hits, rngs, Some((grads, scale)), 0.0);
+            stats.add(&BatchStats { rays: 0, ..s });
+        }
+        stats
+    }
+
+    fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
+        let mut w = Work::default();
+        let mut stats = BatchStats::default();
+        let dense = (self.config.coarse_samples
+            + self.config.coarse_samples
+            + self.config.fine_samples) as u64;
+        for (chunk, outc) in rays
+            .chunks(self.config.chunk_rays.max(1) * 8)
+            .zip(out.chunks_mut(self.config.chunk_rays.max(1) * 8))
+        {
+            let mut hits = Vec::new();
+            let mut idx = Vec::new();
+            for (i, r) in chunk.iter().enumerate() {
+                stats.rays += 1;
+                match self.scene.clip(r) {
+                    Some((near, far)) => {
+                        hits.push(Hit {
+                            ray: *r,
+                            near,
+                            far,
+                            target: [0.0; 3],
+                            background,
+                        });
+                        idx.push(i);
+                    }
+                    None => {
+                        outc[i] = RayOutput {
+                            rgb: background,
+                            depth: 0.0,
+                            opacity: 0.0,
+                        };
+                        stats.skipped += dense;
+                    }
+                }
+            }
+            if hits.is_empty() {
+                continue;
+            }
+            let rngs = vec![None; hits.len()];
+            let (comps, s) =
+                self.run_chunk(&mut w, &hits, rngs, None, self.config.min_transmittance);
+            stats.samples += s.samples;
+            for (&i, c) in idx.iter().zip(comps) {
+                outc[i] = RayOutput {
+                    rgb: c.rgb,
+                    depth: c.depth,
+                    opacity: c.opacity,
+                };
+            }
+        }
+        stats
+    }
+}

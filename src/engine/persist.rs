@@ -1,0 +1,119 @@
+//! Saving and restoring a model with its optimiser and trainer state, on top
+//! of the generic checkpoint container.
+
+use std::path::Path;
+
+use serde_json::json;
+
+use super::adam::{Adam, AdamConfig};
+use super::checkpoint::{Checkpoint, CheckpointError, Tensor};
+use super::model::Model;
+use super::nerf::{NerfConfig, NerfModel};
+use super::scene::Scene;
+use super::trainer::{TrainConfig, TrainState};
+
+/// A model restored from a checkpoint, ready to render or to train on.
+pub struct Restored {
+    pub model: Box<dyn Model>,
+    pub adam: Adam,
+    pub train: TrainConfig,
+    pub state: TrainState,
+}
+
+/// Builds the checkpoint of a training run.
+pub fn to_checkpoint(
+    model: &dyn Model,
+    adam: &Adam,
+    train: &TrainConfig,
+    state: &TrainState,
+) -> Checkpoint {
+    let mut c = Checkpoint::new(model.kind(), state.step);
+    c.meta = json!({
+        "model": model.config_json(),
+        "scene": model.scene(),
+        "train": train,
+        "state": state,
+        "adam": adam.config,
+    });
+    c.insert("params", Tensor::F32(model.params().to_vec()));
+    c.insert("adam.m", Tensor::F32(adam.m.clone()));
+    c.insert("adam.v", Tensor::F32(adam.v.clone()));
+    c.insert("adam.t", Tensor::U64(vec![adam.t]));
+    c
+}
+
+/// Saves atomically. Refuses to write parameters that are not finite.
+pub fn save(
+    path: &Path,
+    model: &dyn Model,
+    adam: &Adam,
+    train: &TrainConfig,
+    state: &TrainState,
+) -> Result<(), CheckpointError> {
+    if let Some(i) = model.params().iter().position(|p| !p.is_finite()) {
+        return Err(CheckpointError::Header {
+            path: Some(path.to_path_buf()),
+            message: format!("refusing to save a model with a non-finite parameter (index {i})"),
+        });
+    }
+    to_checkpoint(model, adam, train, state).save(path)
+}
+
+fn field<T: serde::de::DeserializeOwned>(
+    meta: &serde_json::Value,
+    key: &str,
+    path: &Path,
+) -> Result<T, CheckpointError> {
+    serde_json::from_value(meta.get(key).cloned().unwrap_or(serde_json::Value::Null)).map_err(|e| {
+        CheckpointError::Header {
+            path: Some(path.to_path_buf()),
+            message: format!("meta.{key}: {e}"),
+        }
+    })
+}
+
+/// Restores a checkpoint written by [`save`].
+pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
+    let mut c = Checkpoint::load(path)?;
+    let bad = |message: String| CheckpointError::Header {
+        path: Some(path.to_path_buf()),
+        message,
+    };
+    let scene: Scene = field(&c.meta, "scene", path)?;
+    let params = c.take_f32("params").map_err(|e| e.with_path(path))?;
+    let nparams = params.len();
+    let model: Box<dyn Model> = match c.kind.as_str() {
+        "nerf" => {
+            let cfg: NerfConfig = field(&c.meta, "model", path)?;
+            Box::new(NerfModel::from_parts(cfg, scene, params).map_err(bad)?)
+        }
+        other => return Err(bad(format!("unknown model kind '{other}'"))),
+    };
+    let adam_cfg: AdamConfig = field(&c.meta, "adam", path)?;
+    let m = c.take_f32("adam.m").map_err(|e| e.with_path(path))?;
+    let v = c.take_f32("adam.v").map_err(|e| e.with_path(path))?;
+    let t = c
+        .u64("adam.t")
+        .map_err(|e| e.with_path(path))?
+        .first()
+        .copied()
+        .unwrap_or(0);
+    if m.len() != nparams || v.len() != nparams {
+        return Err(bad(format!(
+            "optimizer state has {} / {} values for {nparams} parameters",
+            m.len(),
+            v.len()
+        )));
+    }
+    Ok(Restored {
+        model,
+        adam: Adam {
+            config: adam_cfg,
+            m,
+            v,
+            t,
+        },
+        train: field(&c.meta, "train", path)?,
+        state: field(&c.meta, "state", path)?,
+    })
+}

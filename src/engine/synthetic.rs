@@ -1,0 +1,113 @@
+//! Tiny procedurally generated scenes for tests and examples: an analytic
+//! radiance field rendered exactly into posed images around the origin.
+
+use super::camera::{Camera, look_at};
+use super::dataset::{Dataset, DatasetFormat, Frame, Image};
+use super::math::{Aabb, Ray, Vec3};
+
+/// A coloured ball (red on +x, green on +y, blue on +z) in an otherwise empty
+/// box, seen from `views` cameras on a ring; images are RGBA with a
+/// transparent background.
+pub struct BallScene {
+    pub radius: f32,
+    pub size: u32,
+    pub views: usize,
+    /// World units per unit of the canonical scene (tests of scale invariance).
+    pub scale: f32,
+}
+
+impl Default for BallScene {
+    fn default() -> Self {
+        Self {
+            radius: 0.6,
+            size: 24,
+            views: 16,
+            scale: 1.0,
+        }
+    }
+}
+
+impl BallScene {
+    /// Colour and coverage of the ray, in canonical units.
+    fn shade(&self, ray: &Ray) -> Option<[f32; 3]> {
+        let b = ray.origin.dot(ray.dir);
+        let c = ray.origin.dot(ray.origin) - self.radius * self.radius;
+        let disc = b * b - c;
+        if disc < 0.0 {
+            return None;
+        }
+        let t = -b - disc.sqrt();
+        let p = ray.at(t) * (1.0 / self.radius);
+        Some([0.5 + 0.45 * p.x, 0.5 + 0.45 * p.y, 0.5 + 0.45 * p.z])
+    }
+
+    fn camera(&self, k: usize, n: usize) -> Camera {
+        let a = k as f32 / n as f32 * std::f32::consts::TAU;
+        let elev = if (k / 2).is_multiple_of(2) { 0.5 } else { -0.3 };
+        let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 3.0 * elev);
+        let pose =
+            look_at(eye, Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap_or([[0.0; 4]; 3]);
+        Camera::from_fov(self.size, self.size, 0.9, pose)
+    }
+
+    /// Renders the dataset: `views` training views and 4 test views between them.
+    pub fn dataset(&self) -> Dataset {
+        let mut frames = Vec::new();
+        let test_views = 4;
+        let total = self.views + test_views;
+        for k in 0..total {
+            // test cameras sit half way between training cameras
+            let cam = if k < self.views {
+                self.camera(2 * k, 2 * self.views)
+            } else {
+                self.camera(
+                    2 * (k - self.views) * self.views / test_views + 1,
+                    2 * self.views,
+                )
+            };
+            let mut rgba = Vec::with_capacity((self.size * self.size * 4) as usize);
+            for j in 0..self.size {
+                for i in 0..self.size {
+                    match self.shade(&cam.pixel_ray(i, j)) {
+                        Some(c) => {
+                            rgba.extend(c.iter().map(|v| (v * 255.0).round() as u8).chain([255]))
+                        }
+                        None => rgba.extend([0, 0, 0, 0]),
+                    }
+                }
+            }
+            let mut cam = cam;
+            for row in &mut cam.c2w {
+                row[3] *= self.scale;
+            }
+            frames.push(Frame {
+                name: format!("r_{k}"),
+                path: format!("r_{k}.png").into(),
+                camera: cam,
+                image: Image {
+                    width: self.size,
+                    height: self.size,
+                    rgba,
+                    has_alpha: true,
+                },
+            });
+        }
+        let s = self.scale;
+        Dataset {
+            format: DatasetFormat::Blender,
+            root: ".".into(),
+            frames,
+            train: (0..self.views).collect(),
+            val: (self.views..total).collect(),
+            test: (self.views..total).collect(),
+            near: 1.0 * s,
+            far: 5.0 * s,
+            aabb: Aabb {
+                min: Vec3::splat(-s),
+                max: Vec3::splat(s),
+            },
+            background: [1.0; 3],
+            warnings: Vec::new(),
+        }
+    }
+}

@@ -1,0 +1,3 @@
+//! Encoding rendered views for people: PNG images (videos come later).
+
+pub mod png;
