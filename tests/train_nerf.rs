@@ -32,42 +32,18 @@ fn test_psnr(model: &dyn Model, ds: &radiance::engine::dataset::Dataset) -> f64 
 fn classic_nerf_learns_a_tiny_scene() {
     let ds = BallScene::default().dataset();
     let config = NerfConfig {
-        net: NetConfig {
-            pos_freqs: 4,
-            dir_freqs: 2,
-            width: 32,
-            depth: 4,
-            skip: 2,
-            dir_width: 16,
-        },
+        net: NetConfig { pos_freqs: 4, dir_freqs: 2, width: 32, depth: 4, skip: 2, dir_width: 16 },
         coarse_samples: 16,
         fine_samples: 16,
         ..Default::default()
     };
     let model = NerfModel::new(config, Scene::from_dataset(&ds), 1);
     let before = test_psnr(&model, &ds);
-    let adam = Adam::new(
-        AdamConfig {
-            lr: 5e-3,
-            lr_end: 5e-4,
-            ..Default::default()
-        },
-        model.params().len(),
-    );
-    let cfg = TrainConfig {
-        seed: 1,
-        batch_rays: 256,
-        budget: Budget {
-            steps: Some(300),
-            seconds: None,
-        },
-    };
+    let adam = Adam::new(AdamConfig { lr: 5e-3, lr_end: 5e-4, ..Default::default() }, model.params().len());
+    let cfg = TrainConfig { seed: 1, batch_rays: 256, budget: Budget { steps: Some(300), seconds: None } };
     let mut trainer = Trainer::new(Box::new(model), adam, cfg, TrainState::default(), &ds);
     trainer.run(&AtomicBool::new(false), |_, _| true);
     let after = test_psnr(&*trainer.model, &ds);
     eprintln!("test PSNR before {before:.2} dB, after {after:.2} dB");
-    assert!(
-        after > 28.0 && after > before + 15.0,
-        "before {before:.2}, after {after:.2}"
-    );
+    assert!(after > 28.0 && after > before + 15.0, "before {before:.2}, after {after:.2}");
 }

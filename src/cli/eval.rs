@@ -45,24 +45,12 @@ pub struct EvalArgs {
 }
 
 /// Loads the model and the split's frames.
-fn setup(
-    model: &std::path::Path,
-    data: &DataArgs,
-) -> anyhow::Result<(persist::Restored, Dataset, Vec<usize>)> {
+fn setup(model: &std::path::Path, data: &DataArgs) -> anyhow::Result<(persist::Restored, Dataset, Vec<usize>)> {
     let restored = persist::load(model)?;
-    let opts = LoadOptions {
-        splits: vec![data.split],
-        ..Default::default()
-    };
-    let ds = Dataset::load(&data.data, &opts)
-        .with_context(|| format!("loading {}", data.data.display()))?;
+    let opts = LoadOptions { splits: vec![data.split], ..Default::default() };
+    let ds = Dataset::load(&data.data, &opts).with_context(|| format!("loading {}", data.data.display()))?;
     let mut idx = ds.split(data.split).to_vec();
-    anyhow::ensure!(
-        !idx.is_empty(),
-        "{}: the {} split is empty",
-        data.data.display(),
-        data.split.name()
-    );
+    anyhow::ensure!(!idx.is_empty(), "{}: the {} split is empty", data.data.display(), data.split.name());
     if let Some(n) = data.limit {
         idx.truncate(n);
     }
@@ -83,8 +71,7 @@ pub fn render(a: RenderArgs) -> anyhow::Result<()> {
         let f = &ds.frames[i];
         let (v, secs) = render_one(&r, f, ds.background);
         let path = a.out.join(format!("{}.png", f.name));
-        png::write_rgb(&path, v.width, v.height, &v.rgb)
-            .with_context(|| format!("writing {}", path.display()))?;
+        png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
         if a.depth {
             let p = a.out.join(format!("{}_depth.png", f.name));
             png::write_depth(&p, v.width, v.height, &v.depth, ds.far)
@@ -107,40 +94,24 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
         let (v, secs) = render_one(&r, f, ds.background);
         // Score the 8-bit image that `render` writes, so the numbers match
         // an independent check of the PNG files.
-        let ours: Vec<f32> = png::quantise_rgb(&v.rgb)
-            .iter()
-            .map(|&b| b as f32 / 255.0)
-            .collect();
+        let ours: Vec<f32> = png::quantise_rgb(&v.rgb).iter().map(|&b| b as f32 / 255.0).collect();
         let gt: Vec<f32> = (0..f.camera.height)
             .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
             .flat_map(|(i, j)| f.image.rgb_on(i, j, ds.background))
             .collect();
         let p = psnr(&ours, &gt);
-        let s = ssim(&ours, &gt, v.width as usize, v.height as usize, 3)
-            .with_context(|| format!("SSIM of {}", f.name))?;
+        let s =
+            ssim(&ours, &gt, v.width as usize, v.height as usize, 3).with_context(|| format!("SSIM of {}", f.name))?;
         if let Some(o) = &a.out {
             let path = o.join(format!("{}.png", f.name));
-            png::write_rgb(&path, v.width, v.height, &v.rgb)
-                .with_context(|| format!("writing {}", path.display()))?;
+            png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
         }
-        println!(
-            "{:<12} PSNR {:6.2} dB  SSIM {:.4}  {:.0} ms",
-            f.name,
-            p,
-            s,
-            secs * 1000.0
-        );
+        println!("{:<12} PSNR {:6.2} dB  SSIM {:.4}  {:.0} ms", f.name, p, s, secs * 1000.0);
         sum_p += p;
         sum_s += s;
         sum_t += secs;
     }
     let n = idx.len() as f64;
-    println!(
-        "{} views  PSNR {:.2} dB  SSIM {:.4}  {:.0} ms/view",
-        idx.len(),
-        sum_p / n,
-        sum_s / n,
-        sum_t / n * 1000.0
-    );
+    println!("{} views  PSNR {:.2} dB  SSIM {:.4}  {:.0} ms/view", idx.len(), sum_p / n, sum_s / n, sum_t / n * 1000.0);
     Ok(())
 }

@@ -48,6 +48,10 @@ pub struct TrainArgs {
     /// state; the budget given here is the new total).
     #[arg(long)]
     pub resume: Option<PathBuf>,
+    /// Sample the whole clipped ray, without the occupancy grid (the paper's
+    /// sampling; for speed comparisons).
+    #[arg(long)]
+    pub no_skip: bool,
     /// Where to write the model checkpoint.
     #[arg(long)]
     pub out: PathBuf,
@@ -55,9 +59,15 @@ pub struct TrainArgs {
     pub common: Common,
 }
 
-fn new_model(kind: &str, scene: Scene, seed: u64) -> anyhow::Result<Box<dyn Model>> {
+fn new_model(kind: &str, scene: Scene, seed: u64, skip: bool) -> anyhow::Result<Box<dyn Model>> {
     match kind {
-        "nerf" => Ok(Box::new(NerfModel::new(NerfConfig::default(), scene, seed))),
+        "nerf" => {
+            let mut cfg = NerfConfig::default();
+            if !skip {
+                cfg.occupancy = None;
+            }
+            Ok(Box::new(NerfModel::new(cfg, scene, seed)))
+        }
         other => anyhow::bail!("unknown model '{other}' (available: nerf)"),
     }
 }
@@ -71,40 +81,19 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     let threads = a.common.init_threads()?;
     anyhow::ensure!(a.batch_rays > 0, "--batch-rays must be at least 1");
     if let Some(s) = a.seconds {
-        anyhow::ensure!(
-            s.is_finite() && s > 0.0,
-            "--seconds must be a positive number"
-        );
+        anyhow::ensure!(s.is_finite() && s > 0.0, "--seconds must be a positive number");
     }
     let budget = match (a.seconds, a.steps) {
-        (None, None) => Budget {
-            steps: Some(1000),
-            seconds: None,
-        },
-        (s, n) => Budget {
-            steps: n,
-            seconds: s,
-        },
+        (None, None) => Budget { steps: Some(1000), seconds: None },
+        (s, n) => Budget { steps: n, seconds: s },
     };
-    let opts = LoadOptions {
-        splits: vec![Split::Train],
-        ..Default::default()
-    };
-    let ds =
-        Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
-    anyhow::ensure!(
-        !ds.train.is_empty(),
-        "{}: the dataset has no training views",
-        a.data.display()
-    );
+    let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
+    let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
+    anyhow::ensure!(!ds.train.is_empty(), "{}: the dataset has no training views", a.data.display());
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
-    let config = TrainConfig {
-        seed: a.seed,
-        batch_rays: a.batch_rays,
-        budget,
-    };
+    let config = TrainConfig { seed: a.seed, batch_rays: a.batch_rays, budget };
     let (model, adam, state) = match &a.resume {
         Some(p) => {
             let r = persist::load(p)?;
@@ -118,7 +107,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
             (r.model, r.adam, r.state)
         }
         None => {
-            let model = new_model(&a.model, Scene::from_dataset(&ds), a.seed)?;
+            let model = new_model(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip)?;
             let mut cfg = AdamConfig::default();
             if let Some(lr) = a.lr {
                 anyhow::ensure!(lr.is_finite() && lr > 0.0, "--lr must be positive");
@@ -142,18 +131,14 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     let cancel = Arc::new(AtomicBool::new(false));
     {
         let c = cancel.clone();
-        ctrlc::set_handler(move || c.store(true, Ordering::SeqCst))
-            .context("installing the Ctrl-C handler")?;
+        ctrlc::set_handler(move || c.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
     }
     let mut trainer = Trainer::new(model, adam, config, state, &ds);
     let bar = match budget.steps {
         Some(n) if budget.seconds.is_none() => ProgressBar::new(n),
         _ => ProgressBar::new((budget.seconds.unwrap_or(0.0) * 10.0) as u64),
     };
-    bar.set_style(
-        ProgressStyle::with_template("{bar:30} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    bar.set_style(ProgressStyle::with_template("{bar:30} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()));
     let by_time = budget.seconds.is_some() && budget.steps.is_none();
     let wall = Instant::now();
     let start_state = trainer.state.clone();
@@ -161,11 +146,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     let mut save_error = None;
     let out = a.out.clone();
     let reason = trainer.run(&cancel, |t, p| {
-        bar.set_position(if by_time {
-            (p.elapsed * 10.0) as u64
-        } else {
-            p.step
-        });
+        bar.set_position(if by_time { (p.elapsed * 10.0) as u64 } else { p.step });
         if p.step % 5 == 0 || p.step < 5 {
             bar.set_message(format!(
                 "step {} loss {:.5} train PSNR {:.2} dB elapsed {} ETA {}",
@@ -189,14 +170,8 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     if let Some(e) = save_error {
         return Err(e).context("saving a checkpoint");
     }
-    persist::save(
-        &a.out,
-        &*trainer.model,
-        &trainer.adam,
-        &trainer.config,
-        &trainer.state,
-    )
-    .with_context(|| format!("saving {}", a.out.display()))?;
+    persist::save(&a.out, &*trainer.model, &trainer.adam, &trainer.config, &trainer.state)
+        .with_context(|| format!("saving {}", a.out.display()))?;
     let s = &trainer.state;
     let secs = (s.elapsed - start_state.elapsed).max(1e-9);
     let rays = s.rays - start_state.rays;
@@ -207,20 +182,13 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
         StopReason::Budget | StopReason::Callback => {}
     }
     println!("steps          {}", s.step - start_state.step);
-    println!(
-        "training time  {:.1} s (wall {:.1} s)",
-        secs,
-        wall.elapsed().as_secs_f64()
-    );
+    println!("training time  {:.1} s (wall {:.1} s)", secs, wall.elapsed().as_secs_f64());
     println!("rays/s         {:.1}", rays as f64 / secs);
     println!("samples/s      {:.0}", samples as f64 / secs);
     println!("samples/ray    {:.1}", samples as f64 / rays.max(1) as f64);
     println!("train PSNR     {:.2} dB", p.train_psnr);
     if s.diverged_steps > 0 {
-        println!(
-            "skipped steps  {} (non-finite loss or gradient)",
-            s.diverged_steps
-        );
+        println!("skipped steps  {} (non-finite loss or gradient)", s.diverged_steps);
     }
     println!("model          {}", a.out.display());
     Ok(())

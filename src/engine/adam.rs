@@ -16,13 +16,7 @@ pub struct AdamConfig {
 
 impl Default for AdamConfig {
     fn default() -> Self {
-        Self {
-            lr: 5e-4,
-            lr_end: 5e-5,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-7,
-        }
+        Self { lr: 5e-4, lr_end: 5e-5, beta1: 0.9, beta2: 0.999, eps: 1e-7 }
     }
 }
 
@@ -45,12 +39,7 @@ pub struct Adam {
 
 impl Adam {
     pub fn new(config: AdamConfig, len: usize) -> Self {
-        Self {
-            config,
-            m: vec![0.0; len],
-            v: vec![0.0; len],
-            t: 0,
-        }
+        Self { config, m: vec![0.0; len], v: vec![0.0; len], t: 0 }
     }
 
     /// One update of `params` with gradient `grads` at learning rate `lr`.
@@ -105,21 +94,12 @@ mod tests {
 
     #[test]
     fn minimises_a_quadratic() {
-        let mut a = Adam::new(
-            AdamConfig {
-                lr: 0.05,
-                ..Default::default()
-            },
-            2,
-        );
+        let mut a = Adam::new(AdamConfig { lr: 0.05, ..Default::default() }, 2);
         let mut p = vec![3.0f32, -2.0];
         for _ in 0..2000 {
             let g = vec![2.0 * (p[0] - 1.0), 8.0 * (p[1] + 0.5)];
             a.step(&mut p, &g, 0.05);
         }
-        assert!(
-            (p[0] - 1.0).abs() < 1e-2 && (p[1] + 0.5).abs() < 1e-2,
-            "{p:?}"
-        );
+        assert!((p[0] - 1.0).abs() < 1e-2 && (p[1] + 0.5).abs() < 1e-2, "{p:?}");
     }
 }

@@ -42,12 +42,7 @@ impl Distortion {
             return (xd, yd);
         }
         let (mut x, mut y) = (xd as f64, yd as f64);
-        let (k1, k2, p1, p2) = (
-            self.k1 as f64,
-            self.k2 as f64,
-            self.p1 as f64,
-            self.p2 as f64,
-        );
+        let (k1, k2, p1, p2) = (self.k1 as f64, self.k2 as f64, self.p1 as f64, self.p2 as f64);
         for _ in 0..10 {
             let r2 = x * x + y * y;
             let radial = 1.0 + r2 * (k1 + r2 * k2);
@@ -130,10 +125,7 @@ impl Camera {
         // Image y grows downwards, camera y upwards; the camera looks down -z.
         let d = self.rotate(Vec3::new(x, -y, -1.0));
         let dir = d.normalized().unwrap_or(Vec3::new(0.0, 0.0, -1.0));
-        Ray {
-            origin: self.origin(),
-            dir,
-        }
+        Ray { origin: self.origin(), dir }
     }
 
     /// The ray through the centre of pixel `(i, j)`.
@@ -146,15 +138,7 @@ impl Camera {
     pub fn resized(&self, width: u32, height: u32) -> Self {
         let sx = width as f32 / self.width as f32;
         let sy = height as f32 / self.height as f32;
-        Self {
-            width,
-            height,
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: self.cx * sx,
-            cy: self.cy * sy,
-            ..self.clone()
-        }
+        Self { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy, ..self.clone() }
     }
 }
 
@@ -164,11 +148,7 @@ pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Option<[[f32; 4]; 3]> {
     let back = (eye - target).normalized()?; // camera +z points away from target
     let right = up.cross(back).normalized()?;
     let up = back.cross(right);
-    Some([
-        [right.x, up.x, back.x, eye.x],
-        [right.y, up.y, back.y, eye.y],
-        [right.z, up.z, back.z, eye.z],
-    ])
+    Some([[right.x, up.x, back.x, eye.x], [right.y, up.y, back.y, eye.y], [right.z, up.z, back.z, eye.z]])
 }
 
 #[cfg(test)]
@@ -177,29 +157,17 @@ mod tests {
 
     #[test]
     fn undistort_inverts_distort() {
-        let d = Distortion {
-            k1: 0.0578,
-            k2: -0.0805,
-            p1: -0.00098,
-            p2: 0.000156,
-        };
+        let d = Distortion { k1: 0.0578, k2: -0.0805, p1: -0.00098, p2: 0.000156 };
         for &(x, y) in &[(0.0f32, 0.0f32), (0.3, -0.2), (-0.5, 0.6), (0.7, 0.7)] {
             let (xd, yd) = d.distort(x, y);
             let (xu, yu) = d.undistort(xd, yd);
-            assert!(
-                (xu - x).abs() < 1e-5 && (yu - y).abs() < 1e-5,
-                "{x},{y} -> {xu},{yu}"
-            );
+            assert!((xu - x).abs() < 1e-5 && (yu - y).abs() < 1e-5, "{x},{y} -> {xu},{yu}");
         }
     }
 
     #[test]
     fn centre_ray_looks_down_minus_z() {
-        let c2w = [
-            [1.0, 0.0, 0.0, 1.0],
-            [0.0, 1.0, 0.0, 2.0],
-            [0.0, 0.0, 1.0, 3.0],
-        ];
+        let c2w = [[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 2.0], [0.0, 0.0, 1.0, 3.0]];
         let cam = Camera::from_fov(100, 80, 1.0, c2w);
         let r = cam.ray(50.0, 40.0);
         assert_eq!(r.origin, Vec3::new(1.0, 2.0, 3.0));

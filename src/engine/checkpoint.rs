@@ -195,29 +195,17 @@ pub enum CheckpointError {
     /// `expected` is the size implied by what could be read; when the cut
     /// falls inside the preamble or header it is a lower bound.
     #[error("{}truncated: expected {expected} bytes, found {found}", Prefix(.path))]
-    Truncated {
-        path: Option<PathBuf>,
-        expected: u64,
-        found: u64,
-    },
+    Truncated { path: Option<PathBuf>, expected: u64, found: u64 },
     #[error("{}checksum mismatch: file is corrupted", Prefix(.path))]
     ChecksumMismatch { path: Option<PathBuf> },
     #[error("{}invalid checkpoint header: {message}", Prefix(.path))]
-    Header {
-        path: Option<PathBuf>,
-        message: String,
-    },
+    Header { path: Option<PathBuf>, message: String },
     #[error("{}{extra} unexpected bytes after the end of the checkpoint", Prefix(.path))]
     TrailingBytes { path: Option<PathBuf>, extra: u64 },
     #[error("{}checkpoint has no tensor named {name:?}", Prefix(.path))]
     MissingTensor { path: Option<PathBuf>, name: String },
     #[error("{}tensor {name:?} has dtype {found}, expected {expected}", Prefix(.path))]
-    WrongType {
-        path: Option<PathBuf>,
-        name: String,
-        expected: &'static str,
-        found: &'static str,
-    },
+    WrongType { path: Option<PathBuf>, name: String, expected: &'static str, found: &'static str },
 }
 
 impl CheckpointError {
@@ -272,13 +260,9 @@ impl fmt::Display for Prefix<'_> {
 
 fn version_message(found: u32) -> String {
     if found > FORMAT_VERSION {
-        format!(
-            "checkpoint format version {found} is newer than this build supports ({FORMAT_VERSION})"
-        )
+        format!("checkpoint format version {found} is newer than this build supports ({FORMAT_VERSION})")
     } else {
-        format!(
-            "checkpoint format version {found} is not supported (this build reads version {FORMAT_VERSION})"
-        )
+        format!("checkpoint format version {found} is not supported (this build reads version {FORMAT_VERSION})")
     }
 }
 
@@ -331,11 +315,7 @@ impl<W: Write> Write for CrcWriter<W> {
 }
 
 /// Writes `values` little-endian through a bounded scratch buffer.
-fn write_le<T: Copy, const N: usize>(
-    w: &mut impl Write,
-    values: &[T],
-    to_le: impl Fn(T) -> [u8; N],
-) -> io::Result<()> {
+fn write_le<T: Copy, const N: usize>(w: &mut impl Write, values: &[T], to_le: impl Fn(T) -> [u8; N]) -> io::Result<()> {
     let mut buf = Vec::with_capacity(WRITE_CHUNK.min(values.len()) * N);
     for chunk in values.chunks(WRITE_CHUNK) {
         buf.clear();
@@ -350,12 +330,7 @@ fn write_le<T: Copy, const N: usize>(
 impl Checkpoint {
     /// An empty checkpoint with `null` metadata.
     pub fn new(kind: impl Into<String>, step: u64) -> Self {
-        Checkpoint {
-            kind: kind.into(),
-            step,
-            meta: serde_json::Value::Null,
-            tensors: Vec::new(),
-        }
+        Checkpoint { kind: kind.into(), step, meta: serde_json::Value::Null, tensors: Vec::new() }
     }
 
     /// Adds a tensor, replacing any tensor of the same name in place.
@@ -376,11 +351,7 @@ impl Checkpoint {
             tensors: self
                 .tensors
                 .iter()
-                .map(|(name, t)| EntryOut {
-                    name,
-                    dtype: t.dtype(),
-                    len: t.len() as u64,
-                })
+                .map(|(name, t)| EntryOut { name, dtype: t.dtype(), len: t.len() as u64 })
                 .collect(),
         };
         // Serialising strings, integers and a `Value` cannot fail.
@@ -391,16 +362,9 @@ impl Checkpoint {
     /// made). Fails with `InvalidInput` if the JSON header exceeds 4 GiB.
     pub fn write_to<W: Write>(&self, w: W) -> io::Result<()> {
         let header = self.header_json();
-        let header_len = u32::try_from(header.len()).map_err(|_| {
-            io::Error::new(
-                io::ErrorKind::InvalidInput,
-                "checkpoint header exceeds 4 GiB",
-            )
-        })?;
-        let mut w = CrcWriter {
-            inner: w,
-            hasher: crc32fast::Hasher::new(),
-        };
+        let header_len = u32::try_from(header.len())
+            .map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "checkpoint header exceeds 4 GiB"))?;
+        let mut w = CrcWriter { inner: w, hasher: crc32fast::Hasher::new() };
         w.write_all(&MAGIC)?;
         w.write_all(&FORMAT_VERSION.to_le_bytes())?;
         w.write_all(&header_len.to_le_bytes())?;
@@ -424,8 +388,7 @@ impl Checkpoint {
     pub fn to_bytes(&self) -> Vec<u8> {
         let payload: u64 = self.tensors.iter().map(|(_, t)| t.byte_len()).sum();
         let mut out = Vec::with_capacity(usize::try_from(payload + 4096).unwrap_or(0));
-        self.write_to(&mut out)
-            .expect("checkpoint header exceeds 4 GiB");
+        self.write_to(&mut out).expect("checkpoint header exceeds 4 GiB");
         out
     }
 
@@ -437,18 +400,13 @@ impl Checkpoint {
     /// Writes the checkpoint atomically (temporary file, fsync, rename), so
     /// a crash never leaves a half-written checkpoint at `path`.
     pub fn save(&self, path: &Path) -> Result<(), CheckpointError> {
-        fsio::write_atomic_with(path, |w| self.write_to(w)).map_err(|source| CheckpointError::Io {
-            path: path.to_path_buf(),
-            source,
-        })
+        fsio::write_atomic_with(path, |w| self.write_to(w))
+            .map_err(|source| CheckpointError::Io { path: path.to_path_buf(), source })
     }
 
     /// Reads and validates a checkpoint; every error names `path`.
     pub fn load(path: &Path) -> Result<Self, CheckpointError> {
-        let bytes = fs::read(path).map_err(|source| CheckpointError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let bytes = fs::read(path).map_err(|source| CheckpointError::Io { path: path.to_path_buf(), source })?;
         parse(&bytes, Some(path))
     }
 
@@ -459,26 +417,15 @@ impl Checkpoint {
 
     /// Mutable access to the first tensor named `name`.
     pub fn tensor_mut(&mut self, name: &str) -> Option<&mut Tensor> {
-        self.tensors
-            .iter_mut()
-            .find(|(n, _)| n == name)
-            .map(|(_, t)| t)
+        self.tensors.iter_mut().find(|(n, _)| n == name).map(|(_, t)| t)
     }
 
     fn missing(name: &str) -> CheckpointError {
-        CheckpointError::MissingTensor {
-            path: None,
-            name: name.to_string(),
-        }
+        CheckpointError::MissingTensor { path: None, name: name.to_string() }
     }
 
     fn wrong_type<T: Element>(name: &str, t: &Tensor) -> CheckpointError {
-        CheckpointError::WrongType {
-            path: None,
-            name: name.to_string(),
-            expected: T::DTYPE.name(),
-            found: t.dtype(),
-        }
+        CheckpointError::WrongType { path: None, name: name.to_string(), expected: T::DTYPE.name(), found: t.dtype() }
     }
 
     fn view<T: Element>(&self, name: &str) -> Result<&[T], CheckpointError> {
@@ -487,11 +434,7 @@ impl Checkpoint {
     }
 
     fn take<T: Element>(&mut self, name: &str) -> Result<Vec<T>, CheckpointError> {
-        let i = self
-            .tensors
-            .iter()
-            .position(|(n, _)| n == name)
-            .ok_or_else(|| Self::missing(name))?;
+        let i = self.tensors.iter().position(|(n, _)| n == name).ok_or_else(|| Self::missing(name))?;
         let (n, t) = self.tensors.remove(i);
         match T::into_vec(t) {
             Ok(v) => Ok(v),
@@ -548,19 +491,11 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
     use CheckpointError as E;
     let p = || path.map(Path::to_path_buf);
     let found = bytes.len() as u64;
-    let truncated = |expected: u64| E::Truncated {
-        path: p(),
-        expected,
-        found,
-    };
+    let truncated = |expected: u64| E::Truncated { path: p(), expected, found };
 
     if bytes.len() < MAGIC.len() {
         // A prefix of the magic (including an empty file) is a cut-off checkpoint.
-        return Err(if MAGIC.starts_with(bytes) {
-            truncated(MIN_LEN)
-        } else {
-            E::NotACheckpoint { path: p() }
-        });
+        return Err(if MAGIC.starts_with(bytes) { truncated(MIN_LEN) } else { E::NotACheckpoint { path: p() } });
     }
     if bytes[..8] != MAGIC {
         return Err(E::NotACheckpoint { path: p() });
@@ -570,10 +505,7 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
     }
     let version = read_u32(bytes, 8);
     if version != FORMAT_VERSION {
-        return Err(E::UnsupportedVersion {
-            path: p(),
-            found: version,
-        });
+        return Err(E::UnsupportedVersion { path: p(), found: version });
     }
     if bytes.len() < PREAMBLE as usize {
         return Err(truncated(MIN_LEN));
@@ -587,24 +519,16 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
     // A header that does not make sense is most likely corruption: report it
     // as such unless the whole file's checksum is intact.
     let bad_header = |message: String| {
-        if crc_ok(bytes) {
-            E::Header { path: p(), message }
-        } else {
-            E::ChecksumMismatch { path: p() }
-        }
+        if crc_ok(bytes) { E::Header { path: p(), message } } else { E::ChecksumMismatch { path: p() } }
     };
-    let header: HeaderIn = serde_json::from_slice(&bytes[PREAMBLE as usize..header_end])
-        .map_err(|e| bad_header(e.to_string()))?;
+    let header: HeaderIn =
+        serde_json::from_slice(&bytes[PREAMBLE as usize..header_end]).map_err(|e| bad_header(e.to_string()))?;
 
     let mut entries = Vec::with_capacity(header.tensors.len());
     let mut total = header_end as u64;
     for e in header.tensors {
-        let dtype = DType::parse(&e.dtype).ok_or_else(|| {
-            bad_header(format!(
-                "tensor {:?} has unknown dtype {:?}",
-                e.name, e.dtype
-            ))
-        })?;
+        let dtype = DType::parse(&e.dtype)
+            .ok_or_else(|| bad_header(format!("tensor {:?} has unknown dtype {:?}", e.name, e.dtype)))?;
         total = total.saturating_add(e.len.saturating_mul(dtype.size()));
         entries.push((e.name, dtype, e.len));
     }
@@ -614,10 +538,7 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
     }
     if total < found {
         return Err(if crc_ok(&bytes[..total as usize]) {
-            E::TrailingBytes {
-                path: p(),
-                extra: found - total,
-            }
+            E::TrailingBytes { path: p(), extra: found - total }
         } else {
             E::ChecksumMismatch { path: p() }
         });
@@ -634,11 +555,9 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
         let raw = &bytes[at..at + n];
         at += n;
         let tensor = match dtype {
-            DType::F32 => Tensor::F32(
-                raw.chunks_exact(4)
-                    .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                    .collect(),
-            ),
+            DType::F32 => {
+                Tensor::F32(raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+            }
             DType::U8 => Tensor::U8(raw.to_vec()),
             DType::U64 => Tensor::U64(
                 raw.chunks_exact(8)
@@ -648,12 +567,7 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
         };
         tensors.push((name, tensor));
     }
-    Ok(Checkpoint {
-        kind: header.kind,
-        step: header.step,
-        meta: header.meta,
-        tensors,
-    })
+    Ok(Checkpoint { kind: header.kind, step: header.step, meta: header.meta, tensors })
 }
 
 #[cfg(test)]
@@ -667,16 +581,7 @@ mod tests {
         c.meta = json!({"config": {"levels": 16, "lr": 0.01}, "scene": {"scale": 0.33, "offset": [0.5, 0.5, 0.5]}, "note": "ünïcode"});
         c.insert(
             "params",
-            vec![
-                1.0f32,
-                -2.5,
-                0.0,
-                -0.0,
-                f32::NAN,
-                f32::INFINITY,
-                f32::NEG_INFINITY,
-                f32::MIN_POSITIVE / 2.0,
-            ],
+            vec![1.0f32, -2.5, 0.0, -0.0, f32::NAN, f32::INFINITY, f32::NEG_INFINITY, f32::MIN_POSITIVE / 2.0],
         );
         c.insert("adam.m", vec![0.125f32; 5]);
         c.insert("grid", vec![0u8, 1, 255, 7]);
@@ -736,18 +641,8 @@ mod tests {
 
         // Larger than one write chunk, so the chunked writer is exercised.
         let mut c = Checkpoint::new("nerf", u64::MAX);
-        c.insert(
-            "params",
-            (0..100_003)
-                .map(|i| i as f32 * 0.5 - 7.0)
-                .collect::<Vec<f32>>(),
-        );
-        c.insert(
-            "ids",
-            (0..40_001u64)
-                .map(|i| i.wrapping_mul(0x9E37_79B9_7F4A_7C15))
-                .collect::<Vec<u64>>(),
-        );
+        c.insert("params", (0..100_003).map(|i| i as f32 * 0.5 - 7.0).collect::<Vec<f32>>());
+        c.insert("ids", (0..40_001u64).map(|i| i.wrapping_mul(0x9E37_79B9_7F4A_7C15)).collect::<Vec<u64>>());
         let bytes = c.to_bytes();
         let expected_len = 16 + c.header_json().len() + 100_003 * 4 + 40_001 * 8 + 4;
         assert_eq!(bytes.len(), expected_len);
@@ -789,11 +684,7 @@ mod tests {
         let hl = read_u32(&bytes, 12) as u64;
         for cut in 0..bytes.len() {
             match Checkpoint::from_bytes(&bytes[..cut]) {
-                Err(CheckpointError::Truncated {
-                    expected,
-                    found,
-                    path: None,
-                }) => {
+                Err(CheckpointError::Truncated { expected, found, path: None }) => {
                     assert_eq!(found, cut as u64);
                     assert!(expected > found, "cut {cut}: expected {expected}");
                     if cut as u64 >= 16 + hl + 4 {
@@ -803,17 +694,8 @@ mod tests {
                 other => panic!("cut at {cut}: {other:?}"),
             }
         }
-        let msg = Checkpoint::from_bytes(&bytes[..bytes.len() - 1])
-            .unwrap_err()
-            .to_string();
-        assert_eq!(
-            msg,
-            format!(
-                "truncated: expected {} bytes, found {}",
-                bytes.len(),
-                bytes.len() - 1
-            )
-        );
+        let msg = Checkpoint::from_bytes(&bytes[..bytes.len() - 1]).unwrap_err().to_string();
+        assert_eq!(msg, format!("truncated: expected {} bytes, found {}", bytes.len(), bytes.len() - 1));
     }
 
     #[test]
@@ -829,11 +711,7 @@ mod tests {
                 // a size check.
                 if i >= 16 {
                     assert!(
-                        matches!(
-                            r,
-                            Err(CheckpointError::ChecksumMismatch { .. }
-                                | CheckpointError::Truncated { .. })
-                        ),
+                        matches!(r, Err(CheckpointError::ChecksumMismatch { .. } | CheckpointError::Truncated { .. })),
                         "byte {i} bit {bit}: {r:?}"
                     );
                 }
@@ -844,10 +722,7 @@ mod tests {
         // A payload flip is a checksum error.
         let last_payload = bytes.len() - 5;
         corrupt[last_payload] ^= 0x10;
-        assert_eq!(
-            Checkpoint::from_bytes(&corrupt).unwrap_err().to_string(),
-            "checksum mismatch: file is corrupted"
-        );
+        assert_eq!(Checkpoint::from_bytes(&corrupt).unwrap_err().to_string(), "checksum mismatch: file is corrupted");
     }
 
     #[test]
@@ -857,10 +732,7 @@ mod tests {
         let err = Checkpoint::from_bytes(&bytes).unwrap_err();
         assert!(matches!(err, CheckpointError::NotACheckpoint { .. }));
         assert_eq!(err.to_string(), "not a radiance checkpoint");
-        assert!(matches!(
-            Checkpoint::from_bytes(b"PK\x03\x04"),
-            Err(CheckpointError::NotACheckpoint { .. })
-        ));
+        assert!(matches!(Checkpoint::from_bytes(b"PK\x03\x04"), Err(CheckpointError::NotACheckpoint { .. })));
         assert!(matches!(
             Checkpoint::from_bytes(b"{\"kind\": \"nerf\", \"step\": 1}"),
             Err(CheckpointError::NotACheckpoint { .. })
@@ -872,14 +744,8 @@ mod tests {
         let mut bytes = sample().to_bytes();
         bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
         let err = Checkpoint::from_bytes(&bytes).unwrap_err();
-        assert!(matches!(
-            err,
-            CheckpointError::UnsupportedVersion { found: 7, .. }
-        ));
-        assert_eq!(
-            err.to_string(),
-            "checkpoint format version 7 is newer than this build supports (1)"
-        );
+        assert!(matches!(err, CheckpointError::UnsupportedVersion { found: 7, .. }));
+        assert_eq!(err.to_string(), "checkpoint format version 7 is newer than this build supports (1)");
         // Only the preamble is needed to tell.
         assert!(matches!(
             Checkpoint::from_bytes(&bytes[..12]),
@@ -887,10 +753,7 @@ mod tests {
         ));
         bytes[8..12].copy_from_slice(&0u32.to_le_bytes());
         let err = Checkpoint::from_bytes(&bytes).unwrap_err();
-        assert_eq!(
-            err.to_string(),
-            "checkpoint format version 0 is not supported (this build reads version 1)"
-        );
+        assert_eq!(err.to_string(), "checkpoint format version 0 is not supported (this build reads version 1)");
     }
 
     #[test]
@@ -898,9 +761,7 @@ mod tests {
         let mut bytes = sample().to_bytes();
         bytes[12..16].copy_from_slice(&u32::MAX.to_le_bytes());
         match Checkpoint::from_bytes(&bytes) {
-            Err(CheckpointError::Truncated {
-                expected, found, ..
-            }) => {
+            Err(CheckpointError::Truncated { expected, found, .. }) => {
                 assert_eq!(expected, 16 + u32::MAX as u64 + 4);
                 assert_eq!(found, bytes.len() as u64);
             }
@@ -922,9 +783,7 @@ mod tests {
             );
             let bytes = craft(1, header.as_bytes(), &[0u8; 64]);
             match Checkpoint::from_bytes(&bytes) {
-                Err(CheckpointError::Truncated {
-                    expected, found, ..
-                }) => {
+                Err(CheckpointError::Truncated { expected, found, .. }) => {
                     assert!(expected > found, "{dtype} {len}");
                 }
                 other => panic!("{dtype} {len}: {other:?}"),
@@ -953,11 +812,7 @@ mod tests {
             assert!(msg.contains(needle), "{msg} lacks {needle}");
         }
         // Unknown extra header fields are tolerated (forward-compatible additions).
-        let ok = craft(
-            1,
-            br#"{"kind":"x","step":3,"meta":{},"tensors":[],"extra":1}"#,
-            &[],
-        );
+        let ok = craft(1, br#"{"kind":"x","step":3,"meta":{},"tensors":[],"extra":1}"#, &[]);
         assert_eq!(Checkpoint::from_bytes(&ok).unwrap().step, 3);
     }
 
@@ -966,14 +821,8 @@ mod tests {
         let mut bytes = sample().to_bytes();
         bytes.extend_from_slice(b"junk");
         let err = Checkpoint::from_bytes(&bytes).unwrap_err();
-        assert!(
-            matches!(err, CheckpointError::TrailingBytes { extra: 4, .. }),
-            "{err:?}"
-        );
-        assert_eq!(
-            err.to_string(),
-            "4 unexpected bytes after the end of the checkpoint"
-        );
+        assert!(matches!(err, CheckpointError::TrailingBytes { extra: 4, .. }), "{err:?}");
+        assert_eq!(err.to_string(), "4 unexpected bytes after the end of the checkpoint");
         // Two checkpoints back to back.
         let one = sample().to_bytes();
         let two = [one.clone(), one.clone()].concat();
@@ -993,27 +842,11 @@ mod tests {
         assert!(matches!(&err, CheckpointError::MissingTensor { name, .. } if name == "nope"));
         assert_eq!(err.to_string(), "checkpoint has no tensor named \"nope\"");
         let err = c.u64("grid").unwrap_err();
-        assert!(matches!(
-            err,
-            CheckpointError::WrongType {
-                expected: "u64",
-                found: "u8",
-                ..
-            }
-        ));
-        assert_eq!(
-            err.to_string(),
-            "tensor \"grid\" has dtype u8, expected u64"
-        );
-        assert!(matches!(
-            c.u8("params"),
-            Err(CheckpointError::WrongType { .. })
-        ));
+        assert!(matches!(err, CheckpointError::WrongType { expected: "u64", found: "u8", .. }));
+        assert_eq!(err.to_string(), "tensor \"grid\" has dtype u8, expected u64");
+        assert!(matches!(c.u8("params"), Err(CheckpointError::WrongType { .. })));
         let err = c.u8("params").unwrap_err().with_path(Path::new("m.ckpt"));
-        assert_eq!(
-            err.to_string(),
-            "m.ckpt: tensor \"params\" has dtype f32, expected u8"
-        );
+        assert_eq!(err.to_string(), "m.ckpt: tensor \"params\" has dtype f32, expected u8");
         assert_eq!(err.path(), Some(Path::new("m.ckpt")));
 
         // take_f32 moves the buffer out without copying and removes the entry.
@@ -1021,25 +854,12 @@ mod tests {
         let names_before: Vec<String> = c.tensors.iter().map(|(n, _)| n.clone()).collect();
         let m = c.take_f32("adam.m").unwrap();
         assert_eq!(m.as_ptr(), ptr);
-        assert!(matches!(
-            c.f32("adam.m"),
-            Err(CheckpointError::MissingTensor { .. })
-        ));
-        assert!(matches!(
-            c.take_f32("adam.m"),
-            Err(CheckpointError::MissingTensor { .. })
-        ));
+        assert!(matches!(c.f32("adam.m"), Err(CheckpointError::MissingTensor { .. })));
+        assert!(matches!(c.take_f32("adam.m"), Err(CheckpointError::MissingTensor { .. })));
         // A wrong-type take leaves the tensor where it was.
-        assert!(matches!(
-            c.take_f32("grid"),
-            Err(CheckpointError::WrongType { .. })
-        ));
+        assert!(matches!(c.take_f32("grid"), Err(CheckpointError::WrongType { .. })));
         let names_after: Vec<&str> = c.tensors.iter().map(|(n, _)| n.as_str()).collect();
-        let expected: Vec<&str> = names_before
-            .iter()
-            .map(String::as_str)
-            .filter(|n| *n != "adam.m")
-            .collect();
+        let expected: Vec<&str> = names_before.iter().map(String::as_str).filter(|n| *n != "adam.m").collect();
         assert_eq!(names_after, expected);
         assert_eq!(c.take_u8("grid").unwrap(), vec![0, 1, 255, 7]);
         assert_eq!(c.take_u64("rng").unwrap()[3], 0x0123_4567_89ab_cdef);
@@ -1071,10 +891,8 @@ mod tests {
         c2.save(&path).unwrap();
         assert_eq!(Checkpoint::load(&path).unwrap().step, c.step + 1);
 
-        let entries: Vec<_> = std::fs::read_dir(dir.path())
-            .unwrap()
-            .map(|e| e.unwrap().file_name().into_string().unwrap())
-            .collect();
+        let entries: Vec<_> =
+            std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
         assert_eq!(entries, vec!["model.ckpt"]);
     }
 
@@ -1088,37 +906,20 @@ mod tests {
         std::fs::write(&path, &bytes).unwrap();
         let err = Checkpoint::load(&path).unwrap_err();
         assert_eq!(err.path(), Some(path.as_path()));
-        assert_eq!(
-            err.to_string(),
-            format!("{}: checksum mismatch: file is corrupted", path.display())
-        );
+        assert_eq!(err.to_string(), format!("{}: checksum mismatch: file is corrupted", path.display()));
 
         std::fs::write(&path, &bytes[..n - 3]).unwrap();
         let msg = Checkpoint::load(&path).unwrap_err().to_string();
-        assert!(
-            msg.starts_with(&format!(
-                "{}: truncated: expected {n} bytes",
-                path.display()
-            )),
-            "{msg}"
-        );
+        assert!(msg.starts_with(&format!("{}: truncated: expected {n} bytes", path.display())), "{msg}");
 
         std::fs::write(&path, b"").unwrap();
         let msg = Checkpoint::load(&path).unwrap_err().to_string();
-        assert_eq!(
-            msg,
-            format!("{}: truncated: expected 20 bytes, found 0", path.display())
-        );
+        assert_eq!(msg, format!("{}: truncated: expected 20 bytes, found 0", path.display()));
 
         let missing = dir.path().join("missing.ckpt");
         let err = Checkpoint::load(&missing).unwrap_err();
-        assert!(
-            matches!(&err, CheckpointError::Io { source, .. } if source.kind() == io::ErrorKind::NotFound)
-        );
-        assert!(
-            err.to_string()
-                .starts_with(&format!("{}: ", missing.display()))
-        );
+        assert!(matches!(&err, CheckpointError::Io { source, .. } if source.kind() == io::ErrorKind::NotFound));
+        assert!(err.to_string().starts_with(&format!("{}: ", missing.display())));
     }
 
     #[test]

@@ -33,11 +33,7 @@ pub fn encode(x: &[f32], dims: usize, freqs: usize, out: &mut [f32]) {
 /// Backward of [`encode`] with respect to the input: `dx += J^T dout`.
 pub fn encode_backward(x: &[f32], dims: usize, freqs: usize, dout: &[f32], dx: &mut [f32]) {
     let w = encoded_width(dims, freqs);
-    for ((p, g), d) in x
-        .chunks_exact(dims)
-        .zip(dout.chunks_exact(w))
-        .zip(dx.chunks_exact_mut(dims))
-    {
+    for ((p, g), d) in x.chunks_exact(dims).zip(dout.chunks_exact(w)).zip(dx.chunks_exact_mut(dims)) {
         for i in 0..dims {
             d[i] += g[i];
         }
@@ -73,9 +69,7 @@ mod tests {
         let x = [0.3f32, -0.7, 0.11, 0.9, 0.2, -0.4];
         let freqs = 4;
         let w = encoded_width(3, freqs);
-        let g: Vec<f32> = (0..2 * w)
-            .map(|i| ((i * 37 % 11) as f32 - 5.0) / 5.0)
-            .collect();
+        let g: Vec<f32> = (0..2 * w).map(|i| ((i * 37 % 11) as f32 - 5.0) / 5.0).collect();
         let mut dx = vec![0.0f32; 6];
         encode_backward(&x, 3, freqs, &g, &mut dx);
         // f64 reference objective sum(gamma(x) * g)

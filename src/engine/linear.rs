@@ -45,34 +45,13 @@ pub fn gemm(
     let span = |rows: usize, cols: usize, rs: isize, cs: isize| {
         (rows.saturating_sub(1)) * rs as usize + (cols.saturating_sub(1)) * cs as usize + 1
     };
-    assert!(
-        a.len() >= span(m, k, rsa, csa) || k == 0,
-        "gemm: a too short"
-    );
-    assert!(
-        b.len() >= span(k, n, rsb, csb) || k == 0,
-        "gemm: b too short"
-    );
+    assert!(a.len() >= span(m, k, rsa, csa) || k == 0, "gemm: a too short");
+    assert!(b.len() >= span(k, n, rsb, csb) || k == 0, "gemm: b too short");
     assert!(c.len() >= span(m, n, rsc, csc), "gemm: c too short");
     // SAFETY: the asserts above guarantee every index the kernel touches
     // lies inside the slices; strides are positive.
     unsafe {
-        matrixmultiply::sgemm(
-            m,
-            k,
-            n,
-            1.0,
-            a.as_ptr(),
-            rsa,
-            csa,
-            b.as_ptr(),
-            rsb,
-            csb,
-            beta,
-            c.as_mut_ptr(),
-            rsc,
-            csc,
-        );
+        matrixmultiply::sgemm(m, k, n, 1.0, a.as_ptr(), rsa, csa, b.as_ptr(), rsb, csb, beta, c.as_mut_ptr(), rsc, csc);
     }
 }
 
@@ -89,12 +68,7 @@ impl Linear {
     pub fn new(layout: &mut ParamLayout, name: &str, inputs: usize, outputs: usize) -> Self {
         let w = layout.add(&format!("{name}.w"), inputs * outputs);
         let b = layout.add(&format!("{name}.b"), outputs);
-        Self {
-            inputs,
-            outputs,
-            w,
-            b,
-        }
+        Self { inputs, outputs, w, b }
     }
 
     /// He-uniform weights (for ReLU networks), zero bias.
@@ -120,18 +94,7 @@ impl Linear {
         let mut row0 = 0;
         for &(x, width) in xs {
             let wi = &w[row0 * out..(row0 + width) * out];
-            gemm(
-                n,
-                width,
-                out,
-                x,
-                (width as isize, 1),
-                wi,
-                (out as isize, 1),
-                1.0,
-                y,
-                (out as isize, 1),
-            );
+            gemm(n, width, out, x, (width as isize, 1), wi, (out as isize, 1), 1.0, y, (out as isize, 1));
             row0 += width;
         }
     }
@@ -162,33 +125,11 @@ impl Linear {
         for (bi, &(x, width)) in xs.iter().enumerate() {
             let gw = &mut grads[self.w.start + row0 * out..self.w.start + (row0 + width) * out];
             // dW_i[width x out] += x_i^T[width x n] dy[n x out]
-            gemm(
-                width,
-                n,
-                out,
-                x,
-                (1, width as isize),
-                dy,
-                (out as isize, 1),
-                1.0,
-                gw,
-                (out as isize, 1),
-            );
+            gemm(width, n, out, x, (1, width as isize), dy, (out as isize, 1), 1.0, gw, (out as isize, 1));
             if let Some(Some(dx)) = dxs.get_mut(bi) {
                 let wi = &w[row0 * out..(row0 + width) * out];
                 // dx_i[n x width] = dy[n x out] W_i^T[out x width]
-                gemm(
-                    n,
-                    out,
-                    width,
-                    dy,
-                    (out as isize, 1),
-                    wi,
-                    (1, out as isize),
-                    0.0,
-                    dx,
-                    (width as isize, 1),
-                );
+                gemm(n, out, width, dy, (out as isize, 1), wi, (1, out as isize), 0.0, dx, (width as isize, 1));
             }
             row0 += width;
         }
@@ -240,14 +181,7 @@ mod tests {
     use crate::engine::rng::Rng;
 
     /// f64 reference of `sum(y * g)` for the layer, used for finite differences.
-    fn objective(
-        l: &Linear,
-        p: &[f64],
-        xs: &[Vec<f64>],
-        widths: &[usize],
-        n: usize,
-        g: &[f64],
-    ) -> f64 {
+    fn objective(l: &Linear, p: &[f64], xs: &[Vec<f64>], widths: &[usize], n: usize, g: &[f64]) -> f64 {
         let mut total = 0.0;
         for r in 0..n {
             for o in 0..l.outputs {
@@ -281,31 +215,17 @@ mod tests {
         let mut y = vec![0.0; n * 4];
         l.forward(&params, &[(&x0, 3), (&x1, 2)], n, &mut y);
         let p64: Vec<f64> = params.iter().map(|&v| v as f64).collect();
-        let xs64 = vec![
-            x0.iter().map(|&v| v as f64).collect::<Vec<_>>(),
-            x1.iter().map(|&v| v as f64).collect(),
-        ];
+        let xs64 = vec![x0.iter().map(|&v| v as f64).collect::<Vec<_>>(), x1.iter().map(|&v| v as f64).collect()];
         let g64: Vec<f64> = g.iter().map(|&v| v as f64).collect();
         // Forward agrees with the f64 reference.
         let f = objective(&l, &p64, &xs64, &widths, n, &g64);
-        let fy: f64 = y
-            .iter()
-            .zip(&g)
-            .map(|(a, b)| (*a as f64) * (*b as f64))
-            .sum();
+        let fy: f64 = y.iter().zip(&g).map(|(a, b)| (*a as f64) * (*b as f64)).sum();
         assert!((f - fy).abs() < 1e-4, "{f} vs {fy}");
 
         let mut grads = vec![0.0f32; layout.len];
         let mut dx0 = vec![0.0f32; n * 3];
         let mut dx1 = vec![0.0f32; n * 2];
-        l.backward(
-            &params,
-            &[(&x0, 3), (&x1, 2)],
-            &g,
-            n,
-            &mut grads,
-            &mut [Some(&mut dx0), Some(&mut dx1)],
-        );
+        l.backward(&params, &[(&x0, 3), (&x1, 2)], &g, n, &mut grads, &mut [Some(&mut dx0), Some(&mut dx1)]);
         assert!(grads[..3].iter().all(|&v| v == 0.0), "padding untouched");
         let h = 1e-6;
         for i in 3..layout.len {
@@ -315,11 +235,7 @@ mod tests {
             pp[i] -= 2.0 * h;
             let fm = objective(&l, &pp, &xs64, &widths, n, &g64);
             let num = (fp - fm) / (2.0 * h);
-            assert!(
-                (num - grads[i] as f64).abs() < 1e-3 * (1.0 + num.abs()),
-                "param {i}: {num} vs {}",
-                grads[i]
-            );
+            assert!((num - grads[i] as f64).abs() < 1e-3 * (1.0 + num.abs()), "param {i}: {num} vs {}", grads[i]);
         }
         for (bi, dx) in [dx0, dx1].iter().enumerate() {
             for i in 0..dx.len() {
@@ -329,10 +245,7 @@ mod tests {
                 xs[bi][i] -= 2.0 * h;
                 let fm = objective(&l, &p64, &xs, &widths, n, &g64);
                 let num = (fp - fm) / (2.0 * h);
-                assert!(
-                    (num - dx[i] as f64).abs() < 1e-3 * (1.0 + num.abs()),
-                    "x{bi}[{i}]"
-                );
+                assert!((num - dx[i] as f64).abs() < 1e-3 * (1.0 + num.abs()), "x{bi}[{i}]");
             }
         }
     }

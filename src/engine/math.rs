@@ -21,11 +21,7 @@ impl Vec3 {
         self.x * o.x + self.y * o.y + self.z * o.z
     }
     pub fn cross(self, o: Self) -> Self {
-        Self::new(
-            self.y * o.z - self.z * o.y,
-            self.z * o.x - self.x * o.z,
-            self.x * o.y - self.y * o.x,
-        )
+        Self::new(self.y * o.z - self.z * o.y, self.z * o.x - self.x * o.z, self.x * o.y - self.y * o.x)
     }
     pub fn norm(self) -> f32 {
         self.dot(self).sqrt()
@@ -33,11 +29,7 @@ impl Vec3 {
     /// Unit vector in the same direction; `None` for zero or non-finite input.
     pub fn normalized(self) -> Option<Self> {
         let n = self.norm();
-        if n.is_finite() && n > 0.0 {
-            Some(self * (1.0 / n))
-        } else {
-            None
-        }
+        if n.is_finite() && n > 0.0 { Some(self * (1.0 / n)) } else { None }
     }
     pub fn is_finite(self) -> bool {
         self.x.is_finite() && self.y.is_finite() && self.z.is_finite()
@@ -141,25 +133,13 @@ mod tests {
 
     #[test]
     fn clip_hits_and_misses() {
-        let b = Aabb {
-            min: Vec3::splat(-1.0),
-            max: Vec3::splat(1.0),
-        };
-        let r = Ray {
-            origin: Vec3::new(0.0, 0.0, -5.0),
-            dir: Vec3::new(0.0, 0.0, 1.0),
-        };
+        let b = Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) };
+        let r = Ray { origin: Vec3::new(0.0, 0.0, -5.0), dir: Vec3::new(0.0, 0.0, 1.0) };
         assert_eq!(b.clip(&r, 0.0, 100.0), Some((4.0, 6.0)));
         assert_eq!(b.clip(&r, 4.5, 5.0), Some((4.5, 5.0)));
-        let miss = Ray {
-            origin: Vec3::new(2.0, 0.0, -5.0),
-            dir: Vec3::new(0.0, 0.0, 1.0),
-        };
+        let miss = Ray { origin: Vec3::new(2.0, 0.0, -5.0), dir: Vec3::new(0.0, 0.0, 1.0) };
         assert_eq!(b.clip(&miss, 0.0, 100.0), None);
-        let inside = Ray {
-            origin: Vec3::ZERO_TEST,
-            dir: Vec3::new(1.0, 0.0, 0.0),
-        };
+        let inside = Ray { origin: Vec3::ZERO_TEST, dir: Vec3::new(1.0, 0.0, 0.0) };
         assert_eq!(b.clip(&inside, 0.0, 100.0), Some((0.0, 1.0)));
     }
 

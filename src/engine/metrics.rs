@@ -23,20 +23,9 @@ const C2: f64 = 0.03 * 0.03;
 /// Why a metric could not be computed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum MetricsError {
-    #[error(
-        "image buffers have {a} and {b} values, expected {expected} ({width}x{height}x{channels})"
-    )]
-    SizeMismatch {
-        a: usize,
-        b: usize,
-        expected: usize,
-        width: usize,
-        height: usize,
-        channels: usize,
-    },
-    #[error(
-        "image is {width}x{height}, SSIM needs at least 11x11 pixels (11x11 Gaussian window, no padding)"
-    )]
+    #[error("image buffers have {a} and {b} values, expected {expected} ({width}x{height}x{channels})")]
+    SizeMismatch { a: usize, b: usize, expected: usize, width: usize, height: usize, channels: usize },
+    #[error("image is {width}x{height}, SSIM needs at least 11x11 pixels (11x11 Gaussian window, no padding)")]
     TooSmall { width: usize, height: usize },
     #[error("image has no channels")]
     NoChannels,
@@ -45,11 +34,7 @@ pub enum MetricsError {
 /// Converts a mean squared error (of values in `[0, 1]`) to PSNR in dB;
 /// `mse == 0` gives `+inf`.
 pub fn mse_to_psnr(mse: f64) -> f64 {
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        -10.0 * mse.log10()
-    }
+    if mse == 0.0 { f64::INFINITY } else { -10.0 * mse.log10() }
 }
 
 /// Mean squared error over all elements, accumulated in f64.
@@ -99,19 +84,11 @@ fn gaussian_kernel() -> [f64; SSIM_WINDOW] {
 /// Errors if the buffers do not match the given shape, if `channels` is 0,
 /// or if either dimension is smaller than the 11-pixel window (the reference
 /// uses 'valid' filtering, which has no output for such images).
-pub fn ssim(
-    a: &[f32],
-    b: &[f32],
-    width: usize,
-    height: usize,
-    channels: usize,
-) -> Result<f64, MetricsError> {
+pub fn ssim(a: &[f32], b: &[f32], width: usize, height: usize, channels: usize) -> Result<f64, MetricsError> {
     if channels == 0 {
         return Err(MetricsError::NoChannels);
     }
-    let expected = width
-        .checked_mul(height)
-        .and_then(|n| n.checked_mul(channels));
+    let expected = width.checked_mul(height).and_then(|n| n.checked_mul(channels));
     if expected != Some(a.len()) || expected != Some(b.len()) {
         return Err(MetricsError::SizeMismatch {
             a: a.len(),
@@ -126,9 +103,7 @@ pub fn ssim(
         return Err(MetricsError::TooSmall { width, height });
     }
     let k = gaussian_kernel();
-    let total: f64 = (0..channels)
-        .map(|c| ssim_channel(a, b, width, height, channels, c, &k))
-        .sum();
+    let total: f64 = (0..channels).map(|c| ssim_channel(a, b, width, height, channels, c, &k)).sum();
     Ok(total / channels as f64)
 }
 
@@ -213,9 +188,7 @@ mod tests {
 
     /// A deterministic pseudo-random stream in [0, 1).
     fn lcg(seed: &mut u64) -> f32 {
-        *seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
+        *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         ((*seed >> 40) as f32) / (1u64 << 24) as f32
     }
 
@@ -234,9 +207,7 @@ mod tests {
 
     fn add_noise(img: &[f32], amp: f32, seed: u64) -> Vec<f32> {
         let mut s = seed;
-        img.iter()
-            .map(|&v| (v + amp * (lcg(&mut s) - 0.5)).clamp(0.0, 1.0))
-            .collect()
+        img.iter().map(|&v| (v + amp * (lcg(&mut s) - 0.5)).clamp(0.0, 1.0)).collect()
     }
 
     #[test]
@@ -334,38 +305,13 @@ mod tests {
     #[test]
     fn ssim_errors() {
         let a = vec![0.0f32; 10 * 20];
-        assert_eq!(
-            ssim(&a, &a, 10, 20, 1),
-            Err(MetricsError::TooSmall {
-                width: 10,
-                height: 20
-            })
-        );
-        assert_eq!(
-            ssim(&a, &a, 20, 10, 1),
-            Err(MetricsError::TooSmall {
-                width: 20,
-                height: 10
-            })
-        );
-        assert!(matches!(
-            ssim(&a, &a[1..], 10, 20, 1),
-            Err(MetricsError::SizeMismatch { .. })
-        ));
-        assert!(matches!(
-            ssim(&a, &a, 10, 10, 1),
-            Err(MetricsError::SizeMismatch { .. })
-        ));
-        assert!(matches!(
-            ssim(&a, &a, usize::MAX, 3, 1),
-            Err(MetricsError::SizeMismatch { .. })
-        ));
+        assert_eq!(ssim(&a, &a, 10, 20, 1), Err(MetricsError::TooSmall { width: 10, height: 20 }));
+        assert_eq!(ssim(&a, &a, 20, 10, 1), Err(MetricsError::TooSmall { width: 20, height: 10 }));
+        assert!(matches!(ssim(&a, &a[1..], 10, 20, 1), Err(MetricsError::SizeMismatch { .. })));
+        assert!(matches!(ssim(&a, &a, 10, 10, 1), Err(MetricsError::SizeMismatch { .. })));
+        assert!(matches!(ssim(&a, &a, usize::MAX, 3, 1), Err(MetricsError::SizeMismatch { .. })));
         assert_eq!(ssim(&[], &[], 11, 11, 0), Err(MetricsError::NoChannels));
-        let msg = MetricsError::TooSmall {
-            width: 8,
-            height: 8,
-        }
-        .to_string();
+        let msg = MetricsError::TooSmall { width: 8, height: 8 }.to_string();
         assert!(msg.contains("8x8") && msg.contains("11x11"), "{msg}");
     }
 
@@ -434,10 +380,7 @@ mod tests {
             .map(std::path::PathBuf::from)
             .unwrap_or_else(|| "/work/shared/tools/nerf_eval.py".into());
         if !script.is_file() {
-            eprintln!(
-                "note: {} not found, skipping the cross-check",
-                script.display()
-            );
+            eprintln!("note: {} not found, skipping the cross-check", script.display());
             return;
         }
         let have_deps = std::process::Command::new("python3")
@@ -446,17 +389,14 @@ mod tests {
             .map(|o| o.status.success())
             .unwrap_or(false);
         if !have_deps {
-            eprintln!(
-                "note: python3 with numpy and Pillow not available, skipping the cross-check"
-            );
+            eprintln!("note: python3 with numpy and Pillow not available, skipping the cross-check");
             return;
         }
 
         let (w, h) = (37u32, 29u32);
         let gt_f = smooth_image(w as usize, h as usize, 3);
         let out_f = add_noise(&gt_f, 0.25, 7);
-        let to_u8 =
-            |v: &[f32]| -> Vec<u8> { v.iter().map(|&x| (x * 255.0).round() as u8).collect() };
+        let to_u8 = |v: &[f32]| -> Vec<u8> { v.iter().map(|&x| (x * 255.0).round() as u8).collect() };
         let (gt8, out8) = (to_u8(&gt_f), to_u8(&out_f));
 
         let dir = tempfile::tempdir().unwrap();
@@ -468,14 +408,8 @@ mod tests {
             r#"{"camera_angle_x": 0.69, "frames": [{"file_path": "./test/r_0"}]}"#,
         )
         .unwrap();
-        image::RgbImage::from_raw(w, h, gt8.clone())
-            .unwrap()
-            .save(root.join("test/r_0.png"))
-            .unwrap();
-        image::RgbImage::from_raw(w, h, out8.clone())
-            .unwrap()
-            .save(root.join("renders/r_0.png"))
-            .unwrap();
+        image::RgbImage::from_raw(w, h, gt8.clone()).unwrap().save(root.join("test/r_0.png")).unwrap();
+        image::RgbImage::from_raw(w, h, out8.clone()).unwrap().save(root.join("renders/r_0.png")).unwrap();
 
         let out = std::process::Command::new("python3")
             .arg(&script)
@@ -484,11 +418,7 @@ mod tests {
             .arg("--json")
             .output()
             .unwrap();
-        assert!(
-            out.status.success(),
-            "script failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        assert!(out.status.success(), "script failed: {}", String::from_utf8_lossy(&out.stderr));
         let res: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         let py_psnr = res["psnr"].as_f64().unwrap();
         let py_ssim = res["ssim"].as_f64().unwrap();
@@ -504,14 +434,8 @@ mod tests {
             (rs_psnr - py_psnr).abs(),
             (rs_ssim - py_ssim).abs()
         );
-        assert!(
-            (rs_psnr - py_psnr).abs() < 0.01,
-            "psnr {rs_psnr} vs {py_psnr}"
-        );
-        assert!(
-            (rs_ssim - py_ssim).abs() < 1e-4,
-            "ssim {rs_ssim} vs {py_ssim}"
-        );
+        assert!((rs_psnr - py_psnr).abs() < 0.01, "psnr {rs_psnr} vs {py_psnr}");
+        assert!((rs_ssim - py_ssim).abs() < 1e-4, "ssim {rs_ssim} vs {py_ssim}");
         // In practice they agree far more closely (only the f32 inputs differ).
         assert!((rs_psnr - py_psnr).abs() < 1e-5 && (rs_ssim - py_ssim).abs() < 1e-6);
     }

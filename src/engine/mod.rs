@@ -16,6 +16,7 @@ pub mod metrics;
 pub mod model;
 pub mod nerf;
 pub mod nerf_net;
+pub mod occupancy;
 pub mod persist;
 pub mod render;
 pub mod rng;

@@ -67,6 +67,13 @@ pub trait Model: Send + Sync {
     /// Accumulates the gradient of the batch loss over `rays` (one part of a
     /// batch) into `grads` and returns the part's statistics.
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
+    /// Runs after each optimisation step (`step` is the number of steps
+    /// done), e.g. to update an occupancy grid.
+    fn after_step(&mut self, _step: u64, _seed: u64) {}
+    /// Non-parameter state saved with checkpoints (e.g. the occupancy grid).
+    fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
+        Vec::new()
+    }
     /// Renders model-space rays.
     fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats;
 }

@@ -6,6 +6,7 @@ use super::linear::ParamLayout;
 use super::math::Ray;
 use super::model::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
 use super::nerf_net::{NerfNet, NetConfig, NetCtx};
+use super::occupancy::{OccupancyConfig, OccupancyGrid, Segments};
 use super::rng::Rng;
 use super::sampler::{deltas, edges, merge_sorted, sample_pdf, stratified};
 use super::scene::Scene;
@@ -24,6 +25,9 @@ pub struct NerfConfig {
     pub chunk_rays: usize,
     /// Transmittance below which rendering stops marching a ray (1e-4).
     pub min_transmittance: f32,
+    /// Skip empty space with an occupancy grid (`None`: sample the whole
+    /// clipped ray, as the paper does).
+    pub occupancy: Option<OccupancyConfig>,
 }
 
 impl Default for NerfConfig {
@@ -34,6 +38,7 @@ impl Default for NerfConfig {
             fine_samples: 128,
             chunk_rays: 8,
             min_transmittance: 1e-4,
+            occupancy: Some(OccupancyConfig::default()),
         }
     }
 }
@@ -45,6 +50,7 @@ pub struct NerfModel {
     coarse: NerfNet,
     fine: NerfNet,
     params: Vec<f32>,
+    grid: Option<OccupancyGrid>,
 }
 
 /// Reusable buffers of one thread.
@@ -53,6 +59,8 @@ struct Work {
     ctx: NetCtx,
     pts: Vec<f32>,
     dirs: Vec<f32>,
+    /// distance along the ray of each sample (for depth)
+    tr: Vec<f32>,
     /// per ray: offset into the sample arrays and sample count
     spans: Vec<(usize, usize)>,
     delta: Vec<f32>,
@@ -63,9 +71,12 @@ struct Work {
     ed: Vec<f32>,
 }
 
-/// One ray of a chunk that hits the scene box.
+/// One ray of a chunk that has something to sample. Samples are placed in
+/// occupied-length coordinates `s` in `[near, far] = [0, length]` and mapped
+/// to distances along the ray through `segs`.
 struct Hit {
     ray: Ray,
+    segs: Segments,
     near: f32,
     far: f32,
     target: [f32; 3],
@@ -81,26 +92,63 @@ impl NerfModel {
         let mut rng = Rng::new(seed);
         coarse.init(&mut params, &mut rng);
         fine.init(&mut params, &mut rng);
-        Self {
-            config,
-            scene,
-            coarse,
-            fine,
-            params,
-        }
+        let grid = config.occupancy.clone().map(|c| OccupancyGrid::new(c, scene.aabb()));
+        Self { config, scene, coarse, fine, params, grid }
     }
 
     /// Rebuilds a model from saved parts.
     pub fn from_parts(config: NerfConfig, scene: Scene, params: Vec<f32>) -> Result<Self, String> {
         let m = Self::new(config, scene, 0);
         if params.len() != m.params.len() {
-            return Err(format!(
-                "expected {} parameters, found {}",
-                m.params.len(),
-                params.len()
-            ));
+            return Err(format!("expected {} parameters, found {}", m.params.len(), params.len()));
         }
         Ok(Self { params, ..m })
+    }
+
+    /// The occupied part of a ray, or `None` when it has nothing to sample.
+    fn hit(&self, ray: &Ray, target: [f32; 3], background: [f32; 3]) -> Option<Hit> {
+        let (t0, t1) = self.scene.clip(ray)?;
+        let segs = match &self.grid {
+            Some(g) => g.segments(ray, t0, t1),
+            None => Segments::single(t0, t1),
+        };
+        let far = segs.length();
+        (far > 0.0).then_some(Hit { ray: *ray, segs, near: 0.0, far, target, background })
+    }
+
+    /// The occupancy grid, when the model skips empty space.
+    pub fn grid(&self) -> Option<&OccupancyGrid> {
+        self.grid.as_ref()
+    }
+
+    /// Replaces the grid's running densities (from a checkpoint).
+    pub fn set_grid_state(&mut self, density: Vec<f32>, step: u64) -> Result<(), String> {
+        let Some(g) = self.grid.as_mut() else { return Ok(()) };
+        if density.len() != g.density.len() {
+            return Err(format!("occupancy grid has {} cells, expected {}", density.len(), g.density.len()));
+        }
+        g.density = density;
+        g.apply(step, &[], &[]);
+        Ok(())
+    }
+
+    /// Densities of both networks (their maximum) at model-space points.
+    fn max_density(&self, pts: &[f32]) -> Vec<f32> {
+        use rayon::prelude::*;
+        const CHUNK: usize = 1024;
+        let mut out = vec![0.0f32; pts.len() / 3];
+        out.par_chunks_mut(CHUNK).zip(pts.par_chunks(3 * CHUNK)).for_each(|(o, p)| {
+            let n = o.len();
+            let dirs = [0.0f32, 0.0, 1.0].repeat(n);
+            let mut ctx = NetCtx::default();
+            self.coarse.forward(&self.params, p, &dirs, n, &mut ctx);
+            o.copy_from_slice(&ctx.sigma);
+            self.fine.forward(&self.params, p, &dirs, n, &mut ctx);
+            for (a, b) in o.iter_mut().zip(&ctx.sigma) {
+                *a = a.max(*b);
+            }
+        });
+        out
     }
 
     pub fn macs_per_sample(&self) -> usize {
@@ -112,13 +160,15 @@ impl NerfModel {
         w.pts.clear();
         w.dirs.clear();
         w.spans.clear();
+        w.tr.clear();
         for (h, t) in hits.iter().zip(ts) {
             w.spans.push((w.pts.len() / 3, t.len()));
-            for &ti in t {
+            for &si in t {
+                let ti = h.segs.to_t(si);
+                w.tr.push(ti);
                 let p = h.ray.at(ti);
                 w.pts.extend_from_slice(&[p.x, p.y, p.z]);
-                w.dirs
-                    .extend_from_slice(&[h.ray.dir.x, h.ray.dir.y, h.ray.dir.z]);
+                w.dirs.extend_from_slice(&[h.ray.dir.x, h.ray.dir.y, h.ray.dir.z]);
             }
         }
     }
@@ -147,27 +197,16 @@ impl NerfModel {
             deltas(t, h.near, h.far, &mut w.delta);
             let sigma = &w.ctx.sigma[o..o + n];
             let rgb = &w.ctx.rgb[3 * o..3 * (o + n)];
-            let c = composite(
-                sigma,
-                rgb,
-                t,
-                &w.delta,
-                h.background,
-                min_t,
-                &mut w.weights[o..o + n],
-            );
-            let err = [
-                c.rgb[0] - h.target[0],
-                c.rgb[1] - h.target[1],
-                c.rgb[2] - h.target[2],
-            ];
+            let tr = &w.tr[o..o + n];
+            let c = composite(sigma, rgb, tr, &w.delta, h.background, min_t, &mut w.weights[o..o + n]);
+            let err = [c.rgb[0] - h.target[0], c.rgb[1] - h.target[1], c.rgb[2] - h.target[2]];
             sq += err.iter().map(|e| (*e as f64) * (*e as f64)).sum::<f64>() / 3.0;
             if let Some(s) = grad_scale {
                 let g = [2.0 * s * err[0], 2.0 * s * err[1], 2.0 * s * err[2]];
                 composite_backward(
                     sigma,
                     rgb,
-                    t,
+                    tr,
                     &w.delta,
                     &w.weights[o..o + n],
                     h.background,
@@ -196,13 +235,7 @@ impl NerfModel {
             let (o, n) = w.spans[k];
             edges(t, h.near, h.far, &mut w.ed);
             w.tmp.clear();
-            sample_pdf(
-                &w.ed,
-                &w.weights[o..o + n],
-                self.config.fine_samples,
-                rngs[k].as_mut(),
-                &mut w.tmp,
-            );
+            sample_pdf(&w.ed, &w.weights[o..o + n], self.config.fine_samples, rngs[k].as_mut(), &mut w.tmp);
             let mut merged = Vec::new();
             merge_sorted(t, &w.tmp, &mut merged);
             out.push(merged);
@@ -226,13 +259,7 @@ impl NerfModel {
             .zip(rngs.iter_mut())
             .map(|(h, r)| {
                 let mut t = Vec::new();
-                stratified(
-                    h.near,
-                    h.far,
-                    self.config.coarse_samples,
-                    r.as_mut(),
-                    &mut t,
-                );
+                stratified(h.near, h.far, self.config.coarse_samples, r.as_mut(), &mut t);
                 t
             })
             .collect();
@@ -241,25 +268,21 @@ impl NerfModel {
         // Coarse pass.
         Self::gather(w, hits, &coarse_t);
         let n = w.pts.len() / 3;
-        self.coarse
-            .forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
+        self.coarse.forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
         let sq_c = Self::composite_all(w, hits, &coarse_t, min_t, scale, &mut comps);
         stats.samples += n as u64;
         if let Some((g, _)) = grads.as_mut() {
-            self.coarse
-                .backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
+            self.coarse.backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
         }
         // Fine pass.
         let fine_t = self.fine_samples(w, hits, &coarse_t, &mut rngs);
         Self::gather(w, hits, &fine_t);
         let n = w.pts.len() / 3;
-        self.fine
-            .forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
+        self.fine.forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
         let sq_f = Self::composite_all(w, hits, &fine_t, min_t, scale, &mut comps);
         stats.samples += n as u64;
         if let Some((g, _)) = grads.as_mut() {
-            self.fine
-                .backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
+            self.fine.backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
         }
         stats.sq_err = sq_f;
         stats.loss = sq_c + sq_f;
@@ -293,23 +316,15 @@ impl Model for NerfModel {
             let mut rngs = Vec::with_capacity(chunk.len());
             for r in chunk {
                 stats.rays += 1;
-                match self.scene.clip(&r.ray) {
-                    Some((near, far)) => {
-                        hits.push(Hit {
-                            ray: r.ray,
-                            near,
-                            far,
-                            target: r.target,
-                            background: r.background,
-                        });
+                match self.hit(&r.ray, r.target, r.background) {
+                    Some(h) => {
+                        hits.push(h);
                         rngs.push(Some(Rng::stream(ctx.seed, ctx.step, r.index)));
                     }
                     None => {
                         // The ray sees only the background: no gradient, but it counts in the loss.
-                        let e: f64 = (0..3)
-                            .map(|k| ((r.background[k] - r.target[k]) as f64).powi(2))
-                            .sum::<f64>()
-                            / 3.0;
+                        let e: f64 =
+                            (0..3).map(|k| ((r.background[k] - r.target[k]) as f64).powi(2)).sum::<f64>() / 3.0;
                         stats.sq_err += e;
                         stats.loss += 2.0 * e;
                     }
@@ -321,59 +336,61 @@ impl Model for NerfModel {
             let (_, s) = self.run_chunk(&mut w, &hits, rngs, Some((grads, scale)), 0.0);
             stats.add(&BatchStats { rays: 0, ..s });
         }
+        stats.skipped = (stats.rays * self.dense_samples()).saturating_sub(stats.samples);
         stats
+    }
+
+    fn after_step(&mut self, step: u64, seed: u64) {
+        let Some(g) = self.grid.as_ref() else { return };
+        if !g.due(step) {
+            return;
+        }
+        let (cells, pts) = g.update_points(step, seed);
+        let sigma = self.max_density(&pts);
+        if let Some(g) = self.grid.as_mut() {
+            g.apply(step, &cells, &sigma);
+        }
+    }
+
+    fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
+        self.grid.iter().map(|g| ("occupancy.density".to_string(), g.density.clone())).collect()
     }
 
     fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
         let mut w = Work::default();
         let mut stats = BatchStats::default();
-        let dense = (self.config.coarse_samples
-            + self.config.coarse_samples
-            + self.config.fine_samples) as u64;
-        for (chunk, outc) in rays
-            .chunks(self.config.chunk_rays.max(1) * 8)
-            .zip(out.chunks_mut(self.config.chunk_rays.max(1) * 8))
-        {
+        let per_chunk = self.config.chunk_rays.max(1) * 8;
+        for (chunk, outc) in rays.chunks(per_chunk).zip(out.chunks_mut(per_chunk)) {
             let mut hits = Vec::new();
             let mut idx = Vec::new();
             for (i, r) in chunk.iter().enumerate() {
                 stats.rays += 1;
-                match self.scene.clip(r) {
-                    Some((near, far)) => {
-                        hits.push(Hit {
-                            ray: *r,
-                            near,
-                            far,
-                            target: [0.0; 3],
-                            background,
-                        });
+                match self.hit(r, [0.0; 3], background) {
+                    Some(h) => {
+                        hits.push(h);
                         idx.push(i);
                     }
-                    None => {
-                        outc[i] = RayOutput {
-                            rgb: background,
-                            depth: 0.0,
-                            opacity: 0.0,
-                        };
-                        stats.skipped += dense;
-                    }
+                    None => outc[i] = RayOutput { rgb: background, depth: 0.0, opacity: 0.0 },
                 }
             }
             if hits.is_empty() {
                 continue;
             }
             let rngs = vec![None; hits.len()];
-            let (comps, s) =
-                self.run_chunk(&mut w, &hits, rngs, None, self.config.min_transmittance);
+            let (comps, s) = self.run_chunk(&mut w, &hits, rngs, None, self.config.min_transmittance);
             stats.samples += s.samples;
             for (&i, c) in idx.iter().zip(comps) {
-                outc[i] = RayOutput {
-                    rgb: c.rgb,
-                    depth: c.depth,
-                    opacity: c.opacity,
-                };
+                outc[i] = RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity };
             }
         }
+        stats.skipped = (stats.rays * self.dense_samples()).saturating_sub(stats.samples);
         stats
+    }
+}
+
+impl NerfModel {
+    /// Network evaluations per ray without skipping (coarse + fine + coarse again).
+    pub fn dense_samples(&self) -> u64 {
+        (2 * self.config.coarse_samples + self.config.fine_samples) as u64
     }
 }

@@ -28,14 +28,7 @@ pub struct NetConfig {
 
 impl Default for NetConfig {
     fn default() -> Self {
-        Self {
-            pos_freqs: 10,
-            dir_freqs: 4,
-            width: 256,
-            depth: 8,
-            skip: 4,
-            dir_width: 128,
-        }
+        Self { pos_freqs: 10, dir_freqs: 4, width: 256, depth: 8, skip: 4, dir_width: 128 }
     }
 }
 
@@ -88,54 +81,24 @@ impl NerfNet {
             } else {
                 config.width
             };
-            trunk.push(Linear::new(
-                layout,
-                &format!("{prefix}.trunk{i}"),
-                inputs,
-                config.width,
-            ));
+            trunk.push(Linear::new(layout, &format!("{prefix}.trunk{i}"), inputs, config.width));
         }
         let sigma = Linear::new(layout, &format!("{prefix}.sigma"), config.width, 1);
-        let feature = Linear::new(
-            layout,
-            &format!("{prefix}.feature"),
-            config.width,
-            config.width,
-        );
-        let dir = Linear::new(
-            layout,
-            &format!("{prefix}.dir"),
-            config.width + dw,
-            config.dir_width,
-        );
+        let feature = Linear::new(layout, &format!("{prefix}.feature"), config.width, config.width);
+        let dir = Linear::new(layout, &format!("{prefix}.dir"), config.width + dw, config.dir_width);
         let rgb = Linear::new(layout, &format!("{prefix}.rgb"), config.dir_width, 3);
-        Self {
-            config,
-            trunk,
-            sigma,
-            feature,
-            dir,
-            rgb,
-        }
+        Self { config, trunk, sigma, feature, dir, rgb }
     }
 
     pub fn init(&self, params: &mut [f32], rng: &mut Rng) {
-        for l in self
-            .trunk
-            .iter()
-            .chain([&self.sigma, &self.feature, &self.dir, &self.rgb])
-        {
+        for l in self.trunk.iter().chain([&self.sigma, &self.feature, &self.dir, &self.rgb]) {
             l.init(params, rng);
         }
     }
 
     /// Multiply-adds per sample (forward).
     pub fn macs_per_sample(&self) -> usize {
-        self.trunk
-            .iter()
-            .chain([&self.sigma, &self.feature, &self.dir, &self.rgb])
-            .map(|l| l.inputs * l.outputs)
-            .sum()
+        self.trunk.iter().chain([&self.sigma, &self.feature, &self.dir, &self.rgb]).map(|l| l.inputs * l.outputs).sum()
     }
 
     fn xw(&self) -> usize {
@@ -172,17 +135,14 @@ impl NerfNet {
         }
         let last = &ctx.h[self.config.depth - 1];
         resize(&mut ctx.sigma_raw, n);
-        self.sigma
-            .forward(params, &[(last, w)], n, &mut ctx.sigma_raw);
+        self.sigma.forward(params, &[(last, w)], n, &mut ctx.sigma_raw);
         resize(&mut ctx.feat, n * w);
         self.feature.forward(params, &[(last, w)], n, &mut ctx.feat);
         resize(&mut ctx.hd, n * self.config.dir_width);
-        self.dir
-            .forward(params, &[(&ctx.feat, w), (&ctx.denc, dw)], n, &mut ctx.hd);
+        self.dir.forward(params, &[(&ctx.feat, w), (&ctx.denc, dw)], n, &mut ctx.hd);
         relu(&mut ctx.hd);
         resize(&mut ctx.rgb, n * 3);
-        self.rgb
-            .forward(params, &[(&ctx.hd, self.config.dir_width)], n, &mut ctx.rgb);
+        self.rgb.forward(params, &[(&ctx.hd, self.config.dir_width)], n, &mut ctx.rgb);
         for v in &mut ctx.rgb {
             *v = sigmoid(*v);
         }
@@ -194,37 +154,14 @@ impl NerfNet {
 
     /// Accumulates parameter gradients into `grads` given dL/dsigma and
     /// dL/drgb (`[n x 3]`) for the samples of the last forward pass.
-    pub fn backward(
-        &self,
-        params: &[f32],
-        ctx: &mut NetCtx,
-        dsigma: &[f32],
-        drgb: &[f32],
-        grads: &mut [f32],
-    ) {
+    pub fn backward(&self, params: &[f32], ctx: &mut NetCtx, dsigma: &[f32], drgb: &[f32], grads: &mut [f32]) {
         let n = ctx.n;
-        let (xw, dw, w, dwid) = (
-            self.xw(),
-            self.dw(),
-            self.config.width,
-            self.config.dir_width,
-        );
+        let (xw, dw, w, dwid) = (self.xw(), self.dw(), self.config.width, self.config.dir_width);
         let depth = self.config.depth;
         // RGB head: d(raw) = drgb * s (1 - s)
-        let mut draw: Vec<f32> = drgb[..n * 3]
-            .iter()
-            .zip(&ctx.rgb)
-            .map(|(&g, &s)| g * s * (1.0 - s))
-            .collect();
+        let mut draw: Vec<f32> = drgb[..n * 3].iter().zip(&ctx.rgb).map(|(&g, &s)| g * s * (1.0 - s)).collect();
         resize(&mut ctx.dhd, n * dwid);
-        self.rgb.backward(
-            params,
-            &[(&ctx.hd, dwid)],
-            &draw,
-            n,
-            grads,
-            &mut [Some(&mut ctx.dhd)],
-        );
+        self.rgb.backward(params, &[(&ctx.hd, dwid)], &draw, n, grads, &mut [Some(&mut ctx.dhd)]);
         relu_backward(&ctx.hd, &mut ctx.dhd);
         resize(&mut ctx.dfeat, n * w);
         self.dir.backward(
@@ -237,31 +174,12 @@ impl NerfNet {
         );
         let last = &ctx.h[depth - 1];
         resize(&mut ctx.dh, n * w);
-        self.feature.backward(
-            params,
-            &[(last, w)],
-            &ctx.dfeat,
-            n,
-            grads,
-            &mut [Some(&mut ctx.dh)],
-        );
+        self.feature.backward(params, &[(last, w)], &ctx.dfeat, n, grads, &mut [Some(&mut ctx.dh)]);
         // density head: dh += dsigma_raw * w_sigma^T
         draw.clear();
-        draw.extend(
-            dsigma[..n]
-                .iter()
-                .zip(&ctx.sigma_raw)
-                .map(|(&g, &r)| g * softplus_grad(r)),
-        );
+        draw.extend(dsigma[..n].iter().zip(&ctx.sigma_raw).map(|(&g, &r)| g * softplus_grad(r)));
         resize(&mut ctx.dh2, n * w);
-        self.sigma.backward(
-            params,
-            &[(last, w)],
-            &draw,
-            n,
-            grads,
-            &mut [Some(&mut ctx.dh2)],
-        );
+        self.sigma.backward(params, &[(last, w)], &draw, n, grads, &mut [Some(&mut ctx.dh2)]);
         for (a, b) in ctx.dh.iter_mut().zip(&ctx.dh2) {
             *a += b;
         }
@@ -283,14 +201,7 @@ impl NerfNet {
                         &mut [Some(&mut ctx.dh2), None],
                     );
                 } else {
-                    l.backward(
-                        params,
-                        &[(prev, w)],
-                        &ctx.dh,
-                        n,
-                        grads,
-                        &mut [Some(&mut ctx.dh2)],
-                    );
+                    l.backward(params, &[(prev, w)], &ctx.dh, n, grads, &mut [Some(&mut ctx.dh2)]);
                 }
                 std::mem::swap(&mut ctx.dh, &mut ctx.dh2);
             }
@@ -304,12 +215,7 @@ mod tests {
 
     fn dense(l: &Linear, p: &[f64], x: &[f64]) -> Vec<f64> {
         (0..l.outputs)
-            .map(|o| {
-                p[l.b.start + o]
-                    + (0..l.inputs)
-                        .map(|i| x[i] * p[l.w.start + i * l.outputs + o])
-                        .sum::<f64>()
-            })
+            .map(|o| p[l.b.start + o] + (0..l.inputs).map(|i| x[i] * p[l.w.start + i * l.outputs + o]).sum::<f64>())
             .collect()
     }
 
@@ -347,14 +253,7 @@ mod tests {
 
     #[test]
     fn network_matches_f64_reference_and_finite_differences() {
-        let cfg = NetConfig {
-            pos_freqs: 2,
-            dir_freqs: 1,
-            width: 8,
-            depth: 4,
-            skip: 1,
-            dir_width: 6,
-        };
+        let cfg = NetConfig { pos_freqs: 2, dir_freqs: 1, width: 8, depth: 4, skip: 1, dir_width: 6 };
         let mut layout = ParamLayout::default();
         let net = NerfNet::new(&mut layout, "t", cfg);
         let mut rng = Rng::new(11);
@@ -373,8 +272,7 @@ mod tests {
         let objective = |p: &[f64]| -> f64 {
             (0..n)
                 .map(|i| {
-                    let (s, c) =
-                        reference(&net, p, &pts64[3 * i..3 * i + 3], &dirs64[3 * i..3 * i + 3]);
+                    let (s, c) = reference(&net, p, &pts64[3 * i..3 * i + 3], &dirs64[3 * i..3 * i + 3]);
                     s * gs[i] as f64 + (0..3).map(|k| c[k] * gc[3 * i + k] as f64).sum::<f64>()
                 })
                 .sum()
@@ -384,12 +282,7 @@ mod tests {
         let p64 = to64(&params);
         // The f32 forward agrees with the f64 reference.
         for i in 0..n {
-            let (s, c) = reference(
-                &net,
-                &p64,
-                &pts64[3 * i..3 * i + 3],
-                &dirs64[3 * i..3 * i + 3],
-            );
+            let (s, c) = reference(&net, &p64, &pts64[3 * i..3 * i + 3], &dirs64[3 * i..3 * i + 3]);
             assert!((s - ctx.sigma[i] as f64).abs() < 1e-5 * (1.0 + s.abs()));
             for k in 0..3 {
                 assert!((c[k] - ctx.rgb[3 * i + k] as f64).abs() < 1e-5);
@@ -408,10 +301,7 @@ mod tests {
                 let fm = objective(&p);
                 let num = (fp - fm) / (2.0 * h);
                 let ana = grads[i] as f64;
-                assert!(
-                    (num - ana).abs() < 1e-4 * (1.0 + num.abs()),
-                    "{name}[{i}]: numeric {num}, analytic {ana}"
-                );
+                assert!((num - ana).abs() < 1e-4 * (1.0 + num.abs()), "{name}[{i}]: numeric {num}, analytic {ana}");
             }
         }
     }

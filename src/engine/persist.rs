@@ -21,12 +21,7 @@ pub struct Restored {
 }
 
 /// Builds the checkpoint of a training run.
-pub fn to_checkpoint(
-    model: &dyn Model,
-    adam: &Adam,
-    train: &TrainConfig,
-    state: &TrainState,
-) -> Checkpoint {
+pub fn to_checkpoint(model: &dyn Model, adam: &Adam, train: &TrainConfig, state: &TrainState) -> Checkpoint {
     let mut c = Checkpoint::new(model.kind(), state.step);
     c.meta = json!({
         "model": model.config_json(),
@@ -39,6 +34,9 @@ pub fn to_checkpoint(
     c.insert("adam.m", Tensor::F32(adam.m.clone()));
     c.insert("adam.v", Tensor::F32(adam.v.clone()));
     c.insert("adam.t", Tensor::U64(vec![adam.t]));
+    for (name, data) in model.state_tensors() {
+        c.insert(name, Tensor::F32(data));
+    }
     c
 }
 
@@ -64,55 +62,39 @@ fn field<T: serde::de::DeserializeOwned>(
     key: &str,
     path: &Path,
 ) -> Result<T, CheckpointError> {
-    serde_json::from_value(meta.get(key).cloned().unwrap_or(serde_json::Value::Null)).map_err(|e| {
-        CheckpointError::Header {
-            path: Some(path.to_path_buf()),
-            message: format!("meta.{key}: {e}"),
-        }
-    })
+    serde_json::from_value(meta.get(key).cloned().unwrap_or(serde_json::Value::Null))
+        .map_err(|e| CheckpointError::Header { path: Some(path.to_path_buf()), message: format!("meta.{key}: {e}") })
 }
 
 /// Restores a checkpoint written by [`save`].
 pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
     let mut c = Checkpoint::load(path)?;
-    let bad = |message: String| CheckpointError::Header {
-        path: Some(path.to_path_buf()),
-        message,
-    };
+    let bad = |message: String| CheckpointError::Header { path: Some(path.to_path_buf()), message };
     let scene: Scene = field(&c.meta, "scene", path)?;
     let params = c.take_f32("params").map_err(|e| e.with_path(path))?;
     let nparams = params.len();
     let model: Box<dyn Model> = match c.kind.as_str() {
         "nerf" => {
             let cfg: NerfConfig = field(&c.meta, "model", path)?;
-            Box::new(NerfModel::from_parts(cfg, scene, params).map_err(bad)?)
+            let mut m = NerfModel::from_parts(cfg, scene, params).map_err(&bad)?;
+            if m.grid().is_some() {
+                let density = c.take_f32("occupancy.density").map_err(|e| e.with_path(path))?;
+                m.set_grid_state(density, c.step).map_err(&bad)?;
+            }
+            Box::new(m)
         }
         other => return Err(bad(format!("unknown model kind '{other}'"))),
     };
     let adam_cfg: AdamConfig = field(&c.meta, "adam", path)?;
     let m = c.take_f32("adam.m").map_err(|e| e.with_path(path))?;
     let v = c.take_f32("adam.v").map_err(|e| e.with_path(path))?;
-    let t = c
-        .u64("adam.t")
-        .map_err(|e| e.with_path(path))?
-        .first()
-        .copied()
-        .unwrap_or(0);
+    let t = c.u64("adam.t").map_err(|e| e.with_path(path))?.first().copied().unwrap_or(0);
     if m.len() != nparams || v.len() != nparams {
-        return Err(bad(format!(
-            "optimizer state has {} / {} values for {nparams} parameters",
-            m.len(),
-            v.len()
-        )));
+        return Err(bad(format!("optimizer state has {} / {} values for {nparams} parameters", m.len(), v.len())));
     }
     Ok(Restored {
         model,
-        adam: Adam {
-            config: adam_cfg,
-            m,
-            v,
-            t,
-        },
+        adam: Adam { config: adam_cfg, m, v, t },
         train: field(&c.meta, "train", path)?,
         state: field(&c.meta, "state", path)?,
     })

@@ -25,16 +25,8 @@ pub fn deltas(t: &[f32], near: f32, far: f32, delta: &mut Vec<f32>) {
     delta.clear();
     let n = t.len();
     for i in 0..n {
-        let lo = if i == 0 {
-            near
-        } else {
-            0.5 * (t[i - 1] + t[i])
-        };
-        let hi = if i + 1 == n {
-            far
-        } else {
-            0.5 * (t[i] + t[i + 1])
-        };
+        let lo = if i == 0 { near } else { 0.5 * (t[i - 1] + t[i]) };
+        let hi = if i + 1 == n { far } else { 0.5 * (t[i] + t[i + 1]) };
         delta.push((hi - lo).max(0.0));
     }
 }
@@ -45,13 +37,7 @@ pub fn deltas(t: &[f32], near: f32, far: f32, delta: &mut Vec<f32>) {
 /// Stratified `u` (jittered with `rng`, or at bin centres without it).
 /// All-zero, tiny or non-finite weights fall back to a uniform density, so
 /// the samples are always sorted, finite and inside `[edges[0], edges[last]]`.
-pub fn sample_pdf(
-    edges: &[f32],
-    weights: &[f32],
-    n: usize,
-    rng: Option<&mut Rng>,
-    out: &mut Vec<f32>,
-) {
+pub fn sample_pdf(edges: &[f32], weights: &[f32], n: usize, rng: Option<&mut Rng>, out: &mut Vec<f32>) {
     let bins = weights.len();
     debug_assert_eq!(edges.len(), bins + 1);
     if bins == 0 || n == 0 {
@@ -82,11 +68,7 @@ pub fn sample_pdf(
             j += 1;
         }
         let span = cdf[j + 1] - cdf[j];
-        let frac = if span > 0.0 {
-            ((u - cdf[j]) / span).clamp(0.0, 1.0)
-        } else {
-            0.5
-        };
+        let frac = if span > 0.0 { ((u - cdf[j]) / span).clamp(0.0, 1.0) } else { 0.5 };
         let s = edges[j] + frac * (edges[j + 1] - edges[j]);
         let prev = out.last().copied().filter(|_| i > 0).unwrap_or(lo);
         out.push(s.clamp(prev, hi));
@@ -136,10 +118,7 @@ mod tests {
         }
         let mut d = Vec::new();
         deltas(&t, 2.0, 6.0, &mut d);
-        assert!(
-            (d.iter().sum::<f32>() - 4.0).abs() < 1e-5,
-            "intervals tile [near, far]"
-        );
+        assert!((d.iter().sum::<f32>() - 4.0).abs() < 1e-5, "intervals tile [near, far]");
     }
 
     #[test]
@@ -158,19 +137,11 @@ mod tests {
     fn degenerate_weights_give_sorted_finite_samples() {
         let edges = [2.0, 3.0, 4.0, 5.0];
         let mut rng = Rng::new(4);
-        for w in [
-            [0.0f32; 3],
-            [1e-30; 3],
-            [0.0, 1.0, 0.0],
-            [f32::NAN, f32::INFINITY, -1.0],
-        ] {
+        for w in [[0.0f32; 3], [1e-30; 3], [0.0, 1.0, 0.0], [f32::NAN, f32::INFINITY, -1.0]] {
             let mut out = Vec::new();
             sample_pdf(&edges, &w, 17, Some(&mut rng), &mut out);
             assert_eq!(out.len(), 17);
-            assert!(
-                out.iter().all(|s| s.is_finite() && (2.0..=5.0).contains(s)),
-                "{w:?}: {out:?}"
-            );
+            assert!(out.iter().all(|s| s.is_finite() && (2.0..=5.0).contains(s)), "{w:?}: {out:?}");
             assert!(out.windows(2).all(|p| p[0] <= p[1]));
         }
     }

@@ -29,11 +29,7 @@ impl Scene {
         let c = aabb.centre();
         let h = aabb.half_extent();
         let ext = h.x.max(h.y).max(h.z);
-        let scale = if ext.is_finite() && ext > 0.0 {
-            1.0 / ext
-        } else {
-            1.0
-        };
+        let scale = if ext.is_finite() && ext > 0.0 { 1.0 / ext } else { 1.0 };
         let lo = (aabb.min - c) * scale;
         let hi = (aabb.max - c) * scale;
         Self {
@@ -47,18 +43,12 @@ impl Scene {
     }
 
     pub fn aabb(&self) -> Aabb {
-        Aabb {
-            min: Vec3::from_array(self.aabb_min),
-            max: Vec3::from_array(self.aabb_max),
-        }
+        Aabb { min: Vec3::from_array(self.aabb_min), max: Vec3::from_array(self.aabb_max) }
     }
 
     /// A world ray in model coordinates (same direction; distances scale).
     pub fn to_model(&self, ray: &Ray) -> Ray {
-        Ray {
-            origin: (ray.origin - Vec3::from_array(self.centre)) * self.scale,
-            dir: ray.dir,
-        }
+        Ray { origin: (ray.origin - Vec3::from_array(self.centre)) * self.scale, dir: ray.dir }
     }
 
     /// The part of a model-space ray inside the box and `[near, far]`.

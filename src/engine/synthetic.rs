@@ -18,12 +18,7 @@ pub struct BallScene {
 
 impl Default for BallScene {
     fn default() -> Self {
-        Self {
-            radius: 0.6,
-            size: 24,
-            views: 16,
-            scale: 1.0,
-        }
+        Self { radius: 0.6, size: 24, views: 16, scale: 1.0 }
     }
 }
 
@@ -45,8 +40,7 @@ impl BallScene {
         let a = k as f32 / n as f32 * std::f32::consts::TAU;
         let elev = if (k / 2).is_multiple_of(2) { 0.5 } else { -0.3 };
         let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 3.0 * elev);
-        let pose =
-            look_at(eye, Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap_or([[0.0; 4]; 3]);
+        let pose = look_at(eye, Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap_or([[0.0; 4]; 3]);
         Camera::from_fov(self.size, self.size, 0.9, pose)
     }
 
@@ -60,18 +54,13 @@ impl BallScene {
             let cam = if k < self.views {
                 self.camera(2 * k, 2 * self.views)
             } else {
-                self.camera(
-                    2 * (k - self.views) * self.views / test_views + 1,
-                    2 * self.views,
-                )
+                self.camera(2 * (k - self.views) * self.views / test_views + 1, 2 * self.views)
             };
             let mut rgba = Vec::with_capacity((self.size * self.size * 4) as usize);
             for j in 0..self.size {
                 for i in 0..self.size {
                     match self.shade(&cam.pixel_ray(i, j)) {
-                        Some(c) => {
-                            rgba.extend(c.iter().map(|v| (v * 255.0).round() as u8).chain([255]))
-                        }
+                        Some(c) => rgba.extend(c.iter().map(|v| (v * 255.0).round() as u8).chain([255])),
                         None => rgba.extend([0, 0, 0, 0]),
                     }
                 }
@@ -84,12 +73,7 @@ impl BallScene {
                 name: format!("r_{k}"),
                 path: format!("r_{k}.png").into(),
                 camera: cam,
-                image: Image {
-                    width: self.size,
-                    height: self.size,
-                    rgba,
-                    has_alpha: true,
-                },
+                image: Image { width: self.size, height: self.size, rgba, has_alpha: true },
             });
         }
         let s = self.scale;
@@ -102,12 +86,36 @@ impl BallScene {
             test: (self.views..total).collect(),
             near: 1.0 * s,
             far: 5.0 * s,
-            aabb: Aabb {
-                min: Vec3::splat(-s),
-                max: Vec3::splat(s),
-            },
+            aabb: Aabb { min: Vec3::splat(-s), max: Vec3::splat(s) },
             background: [1.0; 3],
             warnings: Vec::new(),
         }
+    }
+}
+
+impl BallScene {
+    /// Writes the scene as a Blender-format dataset (`transforms_train.json`,
+    /// `transforms_test.json`, RGBA PNGs) into `dir`.
+    pub fn write_blender(&self, dir: &std::path::Path) -> std::io::Result<()> {
+        let ds = self.dataset();
+        for (split, idx) in [("train", &ds.train), ("test", &ds.test)] {
+            std::fs::create_dir_all(dir.join(split))?;
+            let mut frames = Vec::new();
+            for &i in idx.iter() {
+                let f = &ds.frames[i];
+                let img = image::RgbaImage::from_raw(f.image.width, f.image.height, f.image.rgba.clone())
+                    .ok_or_else(|| std::io::Error::other("image size"))?;
+                img.save(dir.join(split).join(format!("{}.png", f.name))).map_err(std::io::Error::other)?;
+                let m = &f.camera.c2w;
+                frames.push(serde_json::json!({
+                    "file_path": format!("./{split}/{}", f.name),
+                    "transform_matrix": [m[0], m[1], m[2], [0.0, 0.0, 0.0, 1.0]],
+                }));
+            }
+            let fov = 2.0 * (0.5 * self.size as f32 / ds.frames[0].camera.fx).atan();
+            let json = serde_json::json!({ "camera_angle_x": fov, "near": ds.near, "far": ds.far, "frames": frames });
+            std::fs::write(dir.join(format!("transforms_{split}.json")), serde_json::to_vec_pretty(&json)?)?;
+        }
+        Ok(())
     }
 }

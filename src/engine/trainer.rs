@@ -46,14 +46,7 @@ pub struct TrainConfig {
 
 impl Default for TrainConfig {
     fn default() -> Self {
-        Self {
-            seed: 0,
-            batch_rays: 1024,
-            budget: Budget {
-                steps: Some(1000),
-                seconds: None,
-            },
-        }
+        Self { seed: 0, batch_rays: 1024, budget: Budget { steps: Some(1000), seconds: None } }
     }
 }
 
@@ -128,15 +121,7 @@ impl<'a> Trainer<'a> {
                 total
             })
             .collect();
-        Self {
-            model,
-            adam,
-            config,
-            state,
-            dataset,
-            cumulative,
-            part_grads: Vec::new(),
-        }
+        Self { model, adam, config, state, dataset, cumulative, part_grads: Vec::new() }
     }
 
     /// The training rays of a step: uniform over all training pixels.
@@ -175,11 +160,7 @@ impl<'a> Trainer<'a> {
         let nparams = self.model.params().len();
         self.part_grads.resize_with(parts, Vec::new);
         let per = rays.len().div_ceil(parts).max(1);
-        let ctx = StepCtx {
-            seed: self.config.seed,
-            step,
-            batch_rays: rays.len(),
-        };
+        let ctx = StepCtx { seed: self.config.seed, step, batch_rays: rays.len() };
         let model = &*self.model;
         let stats: Vec<BatchStats> = self
             .part_grads
@@ -200,10 +181,7 @@ impl<'a> Trainer<'a> {
         let (first, rest) = self.part_grads.split_at_mut(1);
         let grads = &mut first[0];
         for g in rest.iter() {
-            grads
-                .par_iter_mut()
-                .zip(g.par_iter())
-                .for_each(|(a, b)| *a += b);
+            grads.par_iter_mut().zip(g.par_iter()).for_each(|(a, b)| *a += b);
         }
         self.state.step += 1;
         self.state.rays += total.rays;
@@ -214,32 +192,20 @@ impl<'a> Trainer<'a> {
             self.state.diverged_steps += 1;
             return None;
         }
-        let lr = self
-            .adam
-            .config
-            .lr_at(self.config.budget.progress(step, self.state.elapsed));
+        let lr = self.adam.config.lr_at(self.config.budget.progress(step, self.state.elapsed));
         self.adam.step(self.model.params_mut(), grads, lr);
+        self.model.after_step(self.state.step, self.config.seed);
         let mse = total.sq_err / total.rays.max(1) as f64;
-        self.state.smoothed_mse = if self.state.smoothed_mse == 0.0 {
-            mse
-        } else {
-            0.9 * self.state.smoothed_mse + 0.1 * mse
-        };
+        self.state.smoothed_mse =
+            if self.state.smoothed_mse == 0.0 { mse } else { 0.9 * self.state.smoothed_mse + 0.1 * mse };
         Some(total)
     }
 
     pub fn progress(&self, loss: f64) -> Progress {
         let s = &self.state;
         let b = &self.config.budget;
-        let rate = if s.elapsed > 0.0 {
-            s.step as f64 / s.elapsed
-        } else {
-            0.0
-        };
-        let by_steps = b
-            .steps
-            .filter(|_| rate > 0.0)
-            .map(|n| n.saturating_sub(s.step) as f64 / rate);
+        let rate = if s.elapsed > 0.0 { s.step as f64 / s.elapsed } else { 0.0 };
+        let by_steps = b.steps.filter(|_| rate > 0.0).map(|n| n.saturating_sub(s.step) as f64 / rate);
         let by_time = b.seconds.map(|t| (t - s.elapsed).max(0.0));
         let eta = match (by_steps, by_time) {
             (Some(a), Some(b)) => Some(a.min(b)),
@@ -248,11 +214,7 @@ impl<'a> Trainer<'a> {
         Progress {
             step: s.step,
             loss,
-            train_psnr: if s.smoothed_mse > 0.0 {
-                -10.0 * s.smoothed_mse.log10()
-            } else {
-                0.0
-            },
+            train_psnr: if s.smoothed_mse > 0.0 { -10.0 * s.smoothed_mse.log10() } else { 0.0 },
             elapsed: s.elapsed,
             eta,
             lr: self.adam.config.lr_at(b.progress(s.step, s.elapsed)),
@@ -266,11 +228,7 @@ impl<'a> Trainer<'a> {
     /// Trains until the budget is spent, `cancel` is set, or `on_step`
     /// returns false. `on_step` runs after every step; its time does not
     /// count as training time.
-    pub fn run(
-        &mut self,
-        cancel: &AtomicBool,
-        mut on_step: impl FnMut(&mut Self, &Progress) -> bool,
-    ) -> StopReason {
+    pub fn run(&mut self, cancel: &AtomicBool, mut on_step: impl FnMut(&mut Self, &Progress) -> bool) -> StopReason {
         loop {
             if self.config.budget.done(self.state.step, self.state.elapsed) {
                 return StopReason::Budget;

@@ -15,11 +15,7 @@
 /// Optical depth of one interval, safe for infinite density and zero length.
 #[inline]
 pub fn optical_depth(sigma: f32, delta: f32) -> f32 {
-    if delta <= 0.0 || sigma <= 0.0 || sigma.is_nan() {
-        0.0
-    } else {
-        sigma * delta
-    }
+    if delta <= 0.0 || sigma <= 0.0 || sigma.is_nan() { 0.0 } else { sigma * delta }
 }
 
 /// What compositing one ray produced.
@@ -48,10 +44,7 @@ pub fn composite(
     weights: &mut [f32],
 ) -> Composite {
     let n = sigma.len();
-    let mut out = Composite {
-        used: n,
-        ..Default::default()
-    };
+    let mut out = Composite { used: n, ..Default::default() };
     let mut tau = 0.0f32; // optical depth so far
     let mut trans = 1.0f32;
     for i in 0..n {
@@ -130,13 +123,7 @@ pub fn composite_backward(
 mod tests {
     use super::*;
 
-    fn reference(
-        sigma: &[f64],
-        rgb: &[f64],
-        t: &[f64],
-        delta: &[f64],
-        bg: [f64; 3],
-    ) -> ([f64; 3], f64) {
+    fn reference(sigma: &[f64], rgb: &[f64], t: &[f64], delta: &[f64], bg: [f64; 3]) -> ([f64; 3], f64) {
         let mut trans = 1.0;
         let mut c = [0.0; 3];
         let mut d = 0.0;
@@ -176,26 +163,10 @@ mod tests {
     #[test]
     fn empty_ray_shows_background_and_opaque_ray_hides_it() {
         let mut w = [0.0; 3];
-        let c = composite(
-            &[0.0; 3],
-            &[0.5; 9],
-            &[1.0, 2.0, 3.0],
-            &[1.0; 3],
-            [0.2, 0.3, 0.4],
-            0.0,
-            &mut w,
-        );
+        let c = composite(&[0.0; 3], &[0.5; 9], &[1.0, 2.0, 3.0], &[1.0; 3], [0.2, 0.3, 0.4], 0.0, &mut w);
         assert_eq!(c.rgb, [0.2, 0.3, 0.4]);
         assert_eq!(c.opacity, 0.0);
-        let c = composite(
-            &[f32::INFINITY; 3],
-            &[0.5; 9],
-            &[1.0, 2.0, 3.0],
-            &[1.0; 3],
-            [0.2, 0.3, 0.4],
-            0.0,
-            &mut w,
-        );
+        let c = composite(&[f32::INFINITY; 3], &[0.5; 9], &[1.0, 2.0, 3.0], &[1.0; 3], [0.2, 0.3, 0.4], 0.0, &mut w);
         assert_eq!(c.rgb, [0.5; 3]);
         assert_eq!(w, [1.0, 0.0, 0.0]);
         assert_eq!(c.opacity, 1.0);
@@ -214,9 +185,7 @@ mod tests {
         let c = composite(&sigma, &rgb, &t, &delta, bg, 0.0, &mut w);
         let mut ds = [0.0; 5];
         let mut dc = [0.0; 15];
-        composite_backward(
-            &sigma, &rgb, &t, &delta, &w, bg, c.used, g, gd, &mut ds, &mut dc,
-        );
+        composite_backward(&sigma, &rgb, &t, &delta, &w, bg, c.used, g, gd, &mut ds, &mut dc);
         let f64v = |v: &[f32]| v.iter().map(|&x| x as f64).collect::<Vec<_>>();
         let (s64, c64, t64, d64) = (f64v(&sigma), f64v(&rgb), f64v(&t), f64v(&delta));
         let bg64 = [bg[0] as f64, bg[1] as f64, bg[2] as f64];
@@ -237,11 +206,7 @@ mod tests {
             let mut b = s64.clone();
             b[i] -= h;
             let num = (obj(&a, &c64) - obj(&b, &c64)) / (2.0 * h);
-            assert!(
-                (num - ds[i] as f64).abs() < 1e-5,
-                "sigma {i}: {num} vs {}",
-                ds[i]
-            );
+            assert!((num - ds[i] as f64).abs() < 1e-5, "sigma {i}: {num} vs {}", ds[i]);
         }
         for i in 0..15 {
             let mut a = c64.clone();
@@ -266,12 +231,7 @@ mod tests {
         let cut = composite(&sigma, &rgb, &t, &delta, [1.0; 3], eps, &mut w);
         assert!(cut.used < n, "terminated early");
         for k in 0..3 {
-            assert!(
-                (full.rgb[k] - cut.rgb[k]).abs() <= eps,
-                "{:?} {:?}",
-                full.rgb,
-                cut.rgb
-            );
+            assert!((full.rgb[k] - cut.rgb[k]).abs() <= eps, "{:?} {:?}", full.rgb, cut.rgb);
         }
     }
 }

@@ -9,11 +9,7 @@ use crate::engine::fsio::write_atomic;
 
 /// Quantises a value in [0, 1] to 8 bits (NaN becomes 0).
 pub fn to_u8(v: f32) -> u8 {
-    if v.is_nan() {
-        0
-    } else {
-        (v.clamp(0.0, 1.0) * 255.0).round() as u8
-    }
+    if v.is_nan() { 0 } else { (v.clamp(0.0, 1.0) * 255.0).round() as u8 }
 }
 
 /// 8-bit RGB of an `[h x w x 3]` float image.
@@ -37,27 +33,13 @@ pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[f32]) -> io::Resul
 }
 
 /// Writes a depth map as a 16-bit greyscale PNG, `max_depth` mapping to white.
-pub fn write_depth(
-    path: &Path,
-    width: u32,
-    height: u32,
-    depth: &[f32],
-    max_depth: f32,
-) -> io::Result<()> {
-    let scale = if max_depth > 0.0 {
-        65535.0 / max_depth
-    } else {
-        0.0
-    };
-    let px: Vec<u16> = depth
-        .iter()
-        .map(|&d| (d * scale).clamp(0.0, 65535.0) as u16)
-        .collect();
-    let img: ImageBuffer<Luma<u16>, Vec<u16>> = ImageBuffer::from_raw(width, height, px)
-        .ok_or_else(|| io::Error::other("depth buffer size mismatch"))?;
+pub fn write_depth(path: &Path, width: u32, height: u32, depth: &[f32], max_depth: f32) -> io::Result<()> {
+    let scale = if max_depth > 0.0 { 65535.0 / max_depth } else { 0.0 };
+    let px: Vec<u16> = depth.iter().map(|&d| (d * scale).clamp(0.0, 65535.0) as u16).collect();
+    let img: ImageBuffer<Luma<u16>, Vec<u16>> =
+        ImageBuffer::from_raw(width, height, px).ok_or_else(|| io::Error::other("depth buffer size mismatch"))?;
     let mut out = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut out, image::ImageFormat::Png)
-        .map_err(io::Error::other)?;
+    img.write_to(&mut out, image::ImageFormat::Png).map_err(io::Error::other)?;
     write_atomic(path, out.get_ref())
 }
 

@@ -27,10 +27,8 @@ pub fn split_file(root: &Path, split: Split) -> PathBuf {
 /// Loads the split files listed in `opts.splits` (an empty list means all)
 /// that exist; at least one must. Frames are ordered train, val, test.
 pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
-    let wanted: Vec<Split> = Split::ALL
-        .into_iter()
-        .filter(|s| opts.splits.is_empty() || opts.splits.contains(s))
-        .collect();
+    let wanted: Vec<Split> =
+        Split::ALL.into_iter().filter(|s| opts.splits.is_empty() || opts.splits.contains(s)).collect();
     let mut docs: Vec<(Split, PathBuf, Obj)> = Vec::new();
     for &split in &wanted {
         let path = split_file(root, split);
@@ -40,16 +38,10 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         }
     }
     if docs.is_empty() {
-        let names: Vec<String> = wanted
-            .iter()
-            .map(|s| format!("transforms_{}.json", s.name()))
-            .collect();
+        let names: Vec<String> = wanted.iter().map(|s| format!("transforms_{}.json", s.name())).collect();
         return Err(DatasetError::Invalid {
             path: root.to_path_buf(),
-            message: format!(
-                "none of the requested split files exists ({})",
-                names.join(", ")
-            ),
+            message: format!("none of the requested split files exists ({})", names.join(", ")),
         });
     }
 
@@ -70,14 +62,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             let c2w = json::pose(frame, index, path)?;
             let fp = json::file_path(frame, index, path)?;
             paths.push((json::image_path(root, fp), path.clone()));
-            entries.push(Entry {
-                split: *split,
-                json: path,
-                top,
-                frame,
-                index,
-                c2w,
-            });
+            entries.push(Entry { split: *split, json: path, top, frame, index, c2w });
         }
         near = near.or(json::opt_number(top, "near", "near", path)?);
         far = far.or(json::opt_number(top, "far", "far", path)?);
@@ -102,10 +87,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         test: Vec::new(),
         near,
         far,
-        aabb: Aabb {
-            min: Vec3::splat(-HALF_EXTENT),
-            max: Vec3::splat(HALF_EXTENT),
-        },
+        aabb: Aabb { min: Vec3::splat(-HALF_EXTENT), max: Vec3::splat(HALF_EXTENT) },
         background: opts.background,
         warnings: Vec::new(),
     };
@@ -117,21 +99,14 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             Split::Val => ds.val.push(k),
             Split::Test => ds.test.push(k),
         }
-        ds.frames.push(Frame {
-            name: json::frame_name(&path),
-            path,
-            camera,
-            image,
-        });
+        ds.frames.push(Frame { name: json::frame_name(&path), path, camera, image });
     }
-    check_shared_size(ds.frames.iter().zip(&entries).map(|(f, e)| {
-        (
-            f.path.as_path(),
-            f.image.width,
-            f.image.height,
-            json::has_frame_intrinsics(e.frame),
-        )
-    }))?;
+    check_shared_size(
+        ds.frames
+            .iter()
+            .zip(&entries)
+            .map(|(f, e)| (f.path.as_path(), f.image.width, f.image.height, json::has_frame_intrinsics(e.frame))),
+    )?;
     ds.warnings = warnings(&ds);
     Ok(ds)
 }
@@ -143,11 +118,7 @@ mod tests {
     use serde_json::json;
 
     fn write_split(root: &Path, split: Split, v: serde_json::Value) {
-        std::fs::write(
-            split_file(root, split),
-            serde_json::to_string_pretty(&v).unwrap(),
-        )
-        .unwrap();
+        std::fs::write(split_file(root, split), serde_json::to_string_pretty(&v).unwrap()).unwrap();
     }
 
     fn frames(dir: &str, n: usize) -> Vec<serde_json::Value> {
@@ -166,18 +137,9 @@ mod tests {
     fn synthetic(root: &Path) {
         for (split, n) in [(Split::Train, 3), (Split::Val, 2), (Split::Test, 2)] {
             for i in 0..n {
-                write_png(
-                    &root.join(split.name()).join(format!("r_{i}.png")),
-                    4,
-                    3,
-                    true,
-                );
+                write_png(&root.join(split.name()).join(format!("r_{i}.png")), 4, 3, true);
             }
-            write_split(
-                root,
-                split,
-                json!({ "camera_angle_x": 0.69, "frames": frames(split.name(), n) }),
-            );
+            write_split(root, split, json!({ "camera_angle_x": 0.69, "frames": frames(split.name(), n) }));
         }
     }
 
@@ -189,10 +151,7 @@ mod tests {
         let ds = Dataset::load(root, &LoadOptions::default()).unwrap();
         assert_eq!(ds.format, DatasetFormat::Blender);
         assert_eq!(ds.frames.len(), 7);
-        assert_eq!(
-            (ds.train.clone(), ds.val.clone(), ds.test.clone()),
-            (vec![0, 1, 2], vec![3, 4], vec![5, 6])
-        );
+        assert_eq!((ds.train.clone(), ds.val.clone(), ds.test.clone()), (vec![0, 1, 2], vec![3, 4], vec![5, 6]));
         let f = &ds.frames[5];
         assert_eq!(f.name, "r_0");
         assert_eq!(f.path, root.join("test").join("r_0.png"));
@@ -209,34 +168,16 @@ mod tests {
         assert_eq!((ds.near, ds.far), (2.0, 6.0));
         assert_eq!(ds.aabb.max, Vec3::splat(1.5));
         assert_eq!(ds.background, [1.0; 3]);
-        assert!(
-            ds.warnings
-                .iter()
-                .any(|w| w.contains("only 3 training views")),
-            "{:?}",
-            ds.warnings
-        );
+        assert!(ds.warnings.iter().any(|w| w.contains("only 3 training views")), "{:?}", ds.warnings);
 
         // Only the requested splits; a missing split file is skipped.
         std::fs::remove_file(split_file(root, Split::Val)).unwrap();
-        let opts = LoadOptions {
-            background: [0.0; 3],
-            splits: vec![Split::Test, Split::Val],
-        };
+        let opts = LoadOptions { background: [0.0; 3], splits: vec![Split::Test, Split::Val] };
         let ds = Dataset::load(root, &opts).unwrap();
-        assert_eq!(
-            (ds.frames.len(), ds.train.len(), ds.test.clone()),
-            (2, 0, vec![0, 1])
-        );
+        assert_eq!((ds.frames.len(), ds.train.len(), ds.test.clone()), (2, 0, vec![0, 1]));
         assert_eq!(ds.background, [0.0; 3]);
-        let opts = LoadOptions {
-            splits: vec![Split::Val],
-            ..Default::default()
-        };
-        assert!(matches!(
-            Dataset::load(root, &opts),
-            Err(DatasetError::Invalid { .. })
-        ));
+        let opts = LoadOptions { splits: vec![Split::Val], ..Default::default() };
+        assert!(matches!(Dataset::load(root, &opts), Err(DatasetError::Invalid { .. })));
     }
 
     #[test]
@@ -281,10 +222,7 @@ mod tests {
         // Missing image names the image and the JSON.
         std::fs::remove_file(root.join("val/r_1.png")).unwrap();
         match load() {
-            Err(DatasetError::MissingImage {
-                path,
-                referenced_by,
-            }) => {
+            Err(DatasetError::MissingImage { path, referenced_by }) => {
                 assert_eq!(path, root.join("val/r_1.png"));
                 assert_eq!(referenced_by, split_file(root, Split::Val));
             }
@@ -294,30 +232,15 @@ mod tests {
 
         // Images sharing intrinsics must share a size.
         write_png(&root.join("test/r_1.png"), 5, 3, true);
-        assert!(matches!(
-            load(),
-            Err(DatasetError::SizeMismatch {
-                got_w: 5,
-                want_w: 4,
-                ..
-            })
-        ));
+        assert!(matches!(load(), Err(DatasetError::SizeMismatch { got_w: 5, want_w: 4, .. })));
         write_png(&root.join("test/r_1.png"), 4, 3, true);
         assert!(load().is_ok());
 
         // JSON size keys must match the image.
-        let mut v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&train).unwrap()).unwrap();
+        let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&train).unwrap()).unwrap();
         v["w"] = json!(8);
         write_split(root, Split::Train, v.clone());
-        assert!(matches!(
-            load(),
-            Err(DatasetError::SizeMismatch {
-                want_w: 8,
-                got_w: 4,
-                ..
-            })
-        ));
+        assert!(matches!(load(), Err(DatasetError::SizeMismatch { want_w: 8, got_w: 4, .. })));
 
         // Malformed JSON.
         std::fs::write(&train, "{ \"camera_angle_x\": 0.6, \"frames\": [ ").unwrap();
@@ -340,15 +263,9 @@ mod tests {
                 json!({ "camera_angle_x": 0.69, "frames": [{ "transform_matrix": mat4(&orbit_pose(0.0, 4.0)) }] }),
                 "file_path",
             ),
-            (
-                json!({ "camera_angle_x": 0.69, "frames": [{ "file_path": "./train/r_0" }] }),
-                "transform_matrix",
-            ),
+            (json!({ "camera_angle_x": 0.69, "frames": [{ "file_path": "./train/r_0" }] }), "transform_matrix"),
             (json!({ "camera_angle_x": 0.69, "frames": [] }), "empty"),
-            (
-                json!({ "camera_angle_x": "wide", "frames": frames("train", 3) }),
-                "camera_angle_x",
-            ),
+            (json!({ "camera_angle_x": "wide", "frames": frames("train", 3) }), "camera_angle_x"),
             (
                 json!({ "camera_angle_x": 0.69, "frames": [{ "file_path": "./train/r_0", "transform_matrix": [[1, 0], [0, 1]] }] }),
                 "transform_matrix",
@@ -369,11 +286,7 @@ mod tests {
         v["frames"][2]["transform_matrix"][0][0] = json!(2.0);
         write_split(root, Split::Train, v);
         match load() {
-            Err(DatasetError::BadPose {
-                frame: 2,
-                path,
-                message,
-            }) => {
+            Err(DatasetError::BadPose { frame: 2, path, message }) => {
                 assert_eq!(path, train);
                 assert!(message.contains("orthonormal"));
             }
@@ -382,11 +295,7 @@ mod tests {
         // A number too large for f64 is a JSON error, not a panic.
         std::fs::write(
             &train,
-            serde_json::to_string(&base).unwrap().replacen(
-                "\"rotation\":0.1",
-                "\"rotation\":1e999",
-                1,
-            ),
+            serde_json::to_string(&base).unwrap().replacen("\"rotation\":0.1", "\"rotation\":1e999", 1),
         )
         .unwrap();
         assert!(matches!(load(), Err(DatasetError::Json { .. })));

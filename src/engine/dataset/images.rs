@@ -23,31 +23,20 @@ pub(super) fn has_image_extension(path: &Path) -> bool {
 /// (for the error when it is missing).
 pub(super) fn decode_image(path: &Path, referenced_by: &Path) -> Result<Image, DatasetError> {
     let bytes = std::fs::read(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => DatasetError::MissingImage {
-            path: path.to_path_buf(),
-            referenced_by: referenced_by.to_path_buf(),
-        },
-        _ => DatasetError::Io {
-            path: path.to_path_buf(),
-            source: e,
-        },
+        std::io::ErrorKind::NotFound => {
+            DatasetError::MissingImage { path: path.to_path_buf(), referenced_by: referenced_by.to_path_buf() }
+        }
+        _ => DatasetError::Io { path: path.to_path_buf(), source: e },
     })?;
     decode_bytes(&bytes, path)
 }
 
 /// Decodes an in-memory image; `path` names it in errors.
 pub(super) fn decode_bytes(bytes: &[u8], path: &Path) -> Result<Image, DatasetError> {
-    let bad = |message: String| DatasetError::BadImage {
-        path: path.to_path_buf(),
-        message,
-    };
-    let reader = image::ImageReader::new(Cursor::new(bytes))
-        .with_guessed_format()
-        .map_err(|e| bad(e.to_string()))?;
+    let bad = |message: String| DatasetError::BadImage { path: path.to_path_buf(), message };
+    let reader = image::ImageReader::new(Cursor::new(bytes)).with_guessed_format().map_err(|e| bad(e.to_string()))?;
     if reader.format().is_none() {
-        return Err(bad(
-            "unrecognised image format (expected PNG or JPEG)".into()
-        ));
+        return Err(bad("unrecognised image format (expected PNG or JPEG)".into()));
     }
     let img = reader.decode().map_err(|e| bad(e.to_string()))?;
     let has_alpha = img.color().has_alpha();
@@ -56,22 +45,14 @@ pub(super) fn decode_bytes(bytes: &[u8], path: &Path) -> Result<Image, DatasetEr
     if width == 0 || height == 0 {
         return Err(bad("image is empty".into()));
     }
-    Ok(Image {
-        width,
-        height,
-        rgba: rgba.into_raw(),
-        has_alpha,
-    })
+    Ok(Image { width, height, rgba: rgba.into_raw(), has_alpha })
 }
 
 /// Decodes `(image, referenced_by)` pairs in parallel. The result is in input
 /// order, and on failure the error is the one of the first failing image in
 /// that order, so loading is deterministic.
 pub(super) fn decode_all(paths: &[(PathBuf, PathBuf)]) -> Result<Vec<Image>, DatasetError> {
-    let results: Vec<Result<Image, DatasetError>> = paths
-        .par_iter()
-        .map(|(p, by)| decode_image(p, by))
-        .collect();
+    let results: Vec<Result<Image, DatasetError>> = paths.par_iter().map(|(p, by)| decode_image(p, by)).collect();
     results.into_iter().collect()
 }
 
@@ -84,25 +65,17 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let by = dir.path().join("t.json");
         let rgb = dir.path().join("rgb.png");
-        image::RgbImage::from_pixel(4, 3, image::Rgb([10, 20, 30]))
-            .save(&rgb)
-            .unwrap();
+        image::RgbImage::from_pixel(4, 3, image::Rgb([10, 20, 30])).save(&rgb).unwrap();
         let rgba = dir.path().join("rgba.PNG");
         image::RgbaImage::from_pixel(4, 3, image::Rgba([1, 2, 3, 4]))
             .save_with_format(&rgba, image::ImageFormat::Png)
             .unwrap();
         let wide = dir.path().join("16.png");
-        image::ImageBuffer::<image::Rgb<u16>, _>::from_pixel(
-            2,
-            2,
-            image::Rgb([65535u16, 0, 32896]),
-        )
-        .save(&wide)
-        .unwrap();
-        let jpg = dir.path().join("a.jpg");
-        image::RgbImage::from_pixel(4, 3, image::Rgb([200, 200, 200]))
-            .save(&jpg)
+        image::ImageBuffer::<image::Rgb<u16>, _>::from_pixel(2, 2, image::Rgb([65535u16, 0, 32896]))
+            .save(&wide)
             .unwrap();
+        let jpg = dir.path().join("a.jpg");
+        image::RgbImage::from_pixel(4, 3, image::Rgb([200, 200, 200])).save(&jpg).unwrap();
 
         let imgs = decode_all(&[
             (rgb.clone(), by.clone()),
@@ -111,10 +84,7 @@ mod tests {
             (jpg.clone(), by.clone()),
         ])
         .unwrap();
-        assert_eq!(
-            (imgs[0].width, imgs[0].height, imgs[0].has_alpha),
-            (4, 3, false)
-        );
+        assert_eq!((imgs[0].width, imgs[0].height, imgs[0].has_alpha), (4, 3, false));
         assert_eq!(&imgs[0].rgba[..4], &[10, 20, 30, 255]);
         assert_eq!(imgs[0].rgba.len(), 4 * 4 * 3);
         assert!(imgs[1].has_alpha);
@@ -138,24 +108,15 @@ mod tests {
         std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
         let missing = dir.path().join("missing.png");
         for _ in 0..4 {
-            let r = decode_all(&[
-                (ok.clone(), by.clone()),
-                (missing.clone(), by.clone()),
-                (garbage.clone(), by.clone()),
-            ]);
+            let r =
+                decode_all(&[(ok.clone(), by.clone()), (missing.clone(), by.clone()), (garbage.clone(), by.clone())]);
             assert!(
                 matches!(&r, Err(DatasetError::MissingImage { path, referenced_by })
                     if path == &missing && referenced_by == &by),
                 "{r:?}"
             );
         }
-        assert!(matches!(
-            decode_image(&garbage, &by),
-            Err(DatasetError::BadImage { .. })
-        ));
-        assert!(matches!(
-            decode_image(&truncated, &by),
-            Err(DatasetError::BadImage { .. })
-        ));
+        assert!(matches!(decode_image(&garbage, &by), Err(DatasetError::BadImage { .. })));
+        assert!(matches!(decode_image(&truncated, &by), Err(DatasetError::BadImage { .. })));
     }
 }

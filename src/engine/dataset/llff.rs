@@ -39,14 +39,8 @@ type Pose = [[f64; 4]; 3];
 
 pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let npy_path = root.join("poses_bounds.npy");
-    let invalid = |message: String| DatasetError::Invalid {
-        path: npy_path.clone(),
-        message,
-    };
-    let bytes = std::fs::read(&npy_path).map_err(|e| DatasetError::Io {
-        path: npy_path.clone(),
-        source: e,
-    })?;
+    let invalid = |message: String| DatasetError::Invalid { path: npy_path.clone(), message };
+    let bytes = std::fs::read(&npy_path).map_err(|e| DatasetError::Io { path: npy_path.clone(), source: e })?;
     let arr = parse_npy(&bytes, &npy_path)?;
     let n = match arr.shape[..] {
         [0, 17] => return Err(invalid("no rows: the dataset has no frames".into())),
@@ -55,22 +49,15 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     };
 
     // Image folder and files.
-    let dir = IMAGE_DIRS
-        .iter()
-        .map(|d| root.join(d))
-        .find(|p| p.is_dir())
-        .ok_or_else(|| DatasetError::Invalid {
-            path: root.to_path_buf(),
-            message: format!("no image folder (looked for {})", IMAGE_DIRS.join(", ")),
-        })?;
+    let dir = IMAGE_DIRS.iter().map(|d| root.join(d)).find(|p| p.is_dir()).ok_or_else(|| DatasetError::Invalid {
+        path: root.to_path_buf(),
+        message: format!("no image folder (looked for {})", IMAGE_DIRS.join(", ")),
+    })?;
     let files = list_images(&dir)?;
     if files.len() != n {
         return Err(DatasetError::Invalid {
             path: dir.clone(),
-            message: format!(
-                "{} images (png/jpg/jpeg) but poses_bounds.npy has {n} rows",
-                files.len()
-            ),
+            message: format!("{} images (png/jpg/jpeg) but poses_bounds.npy has {n} rows", files.len()),
         });
     }
 
@@ -79,21 +66,14 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let mut hwf = Vec::with_capacity(n);
     let (mut bmin, mut bmax) = (f64::INFINITY, f64::NEG_INFINITY);
     for i in 0..n {
-        let row = arr
-            .row(i)
-            .ok_or_else(|| invalid(format!("row {i} is missing")))?;
-        let (pose, h, w, f, b0, b1) =
-            parse_row(row).ok_or_else(|| invalid(format!("row {i} is short")))?;
+        let row = arr.row(i).ok_or_else(|| invalid(format!("row {i} is missing")))?;
+        let (pose, h, w, f, b0, b1) = parse_row(row).ok_or_else(|| invalid(format!("row {i} is short")))?;
         check_pose(&pose, &npy_path, i)?;
         if !(h > 0.0 && w > 0.0 && f > 0.0 && h.is_finite() && w.is_finite() && f.is_finite()) {
-            return Err(invalid(format!(
-                "row {i}: [H, W, focal] = [{h}, {w}, {f}] is not positive"
-            )));
+            return Err(invalid(format!("row {i}: [H, W, focal] = [{h}, {w}, {f}] is not positive")));
         }
         if !(b0 > 0.0 && b1 >= b0 && b1.is_finite()) {
-            return Err(invalid(format!(
-                "row {i}: bounds [{b0}, {b1}] are not 0 < near <= far"
-            )));
+            return Err(invalid(format!("row {i}: bounds [{b0}, {b1}] are not 0 < near <= far")));
         }
         bmin = bmin.min(b0);
         bmax = bmax.max(b1);
@@ -107,9 +87,8 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         }
     }
     let (bmin, bmax) = (bmin * sc, bmax * sc);
-    let poses = recenter(&poses).ok_or_else(|| {
-        invalid("cannot recentre the poses: the average camera orientation is degenerate".into())
-    })?;
+    let poses = recenter(&poses)
+        .ok_or_else(|| invalid("cannot recentre the poses: the average camera orientation is degenerate".into()))?;
 
     let paths: Vec<(PathBuf, PathBuf)> = files.into_iter().map(|p| (p, npy_path.clone())).collect();
     let images = decode_all(&paths)?;
@@ -136,30 +115,16 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             distortion: Distortion::default(),
             c2w,
         };
-        let name = path
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        frames.push(Frame {
-            name,
-            path,
-            camera,
-            image,
-        });
+        let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        frames.push(Frame { name, path, camera, image });
     }
-    check_shared_size(
-        frames
-            .iter()
-            .map(|f| (f.path.as_path(), f.image.width, f.image.height, false)),
-    )?;
+    check_shared_size(frames.iter().map(|f| (f.path.as_path(), f.image.width, f.image.height, false)))?;
 
     let near = (0.9 * bmin) as f32;
     let far = bmax as f32;
     let aabb = frustum_box(&frames, near, far);
     if !(aabb.min.is_finite() && aabb.max.is_finite() && near > 0.0 && far > near) {
-        return Err(invalid(format!(
-            "degenerate scene bounds (near {near}, far {far})"
-        )));
+        return Err(invalid(format!("degenerate scene bounds (near {near}, far {far})")));
     }
     let (held, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|i| i % HOLDOUT == 0);
     let mut ds = Dataset {
@@ -182,10 +147,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
 
 /// The image files of `dir` sorted by name.
 fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
-    let io = |e| DatasetError::Io {
-        path: dir.to_path_buf(),
-        source: e,
-    };
+    let io = |e| DatasetError::Io { path: dir.to_path_buf(), source: e };
     let mut files = Vec::new();
     for entry in std::fs::read_dir(dir).map_err(io)? {
         let p = entry.map_err(io)?.path();
@@ -216,11 +178,7 @@ fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 fn normalize(v: [f64; 3]) -> Option<[f64; 3]> {
     let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
@@ -247,11 +205,7 @@ fn poses_avg(poses: &[Pose]) -> Option<Pose> {
     let z = normalize(z)?;
     let x = normalize(cross(up, z))?;
     let y = normalize(cross(z, x))?;
-    Some([
-        [x[0], y[0], z[0], centre[0]],
-        [x[1], y[1], z[1], centre[1]],
-        [x[2], y[2], z[2], centre[2]],
-    ])
+    Some([[x[0], y[0], z[0], centre[0]], [x[1], y[1], z[1], centre[1]], [x[2], y[2], z[2], centre[2]]])
 }
 
 /// NeRF's `recenter_poses`: every pose expressed in the frame of the average
@@ -288,12 +242,7 @@ fn frustum_box(frames: &[Frame], near: f32, far: f32) -> Aabb {
         let o = c.origin();
         lo = lo.min(o);
         hi = hi.max(o);
-        for (u, v) in [
-            (0.0, 0.0),
-            (c.width as f32, 0.0),
-            (0.0, c.height as f32),
-            (c.width as f32, c.height as f32),
-        ] {
+        for (u, v) in [(0.0, 0.0), (c.width as f32, 0.0), (0.0, c.height as f32), (c.width as f32, c.height as f32)] {
             let d = c.rotate(Vec3::new((u - c.cx) / c.fx, -(v - c.cy) / c.fy, -1.0));
             for depth in [near, far] {
                 let p = o + d * depth;
@@ -303,10 +252,7 @@ fn frustum_box(frames: &[Frame], near: f32, far: f32) -> Aabb {
         }
     }
     let m = (hi - lo) * BOX_MARGIN;
-    Aabb {
-        min: lo - m,
-        max: hi + m,
-    }
+    Aabb { min: lo - m, max: hi + m }
 }
 
 #[cfg(test)]
@@ -332,40 +278,20 @@ mod tests {
 
     fn write_llff(root: &Path, dir: &str, rows: &[Vec<f64>], w: u32, h: u32) {
         for i in 0..rows.len() {
-            write_png(
-                &root.join(dir).join(format!("image{i:03}.png")),
-                w,
-                h,
-                false,
-            );
+            write_png(&root.join(dir).join(format!("image{i:03}.png")), w, h, false);
         }
         let data: Vec<f64> = rows.iter().flatten().copied().collect();
-        std::fs::write(
-            root.join("poses_bounds.npy"),
-            npy_bytes(&[rows.len(), 17], &data, 1),
-        )
-        .unwrap();
+        std::fs::write(root.join("poses_bounds.npy"), npy_bytes(&[rows.len(), 17], &data, 1)).unwrap();
     }
 
     #[test]
     fn llff_reorder_axes() {
         // Raw columns down = +x, right = +y, back = +z.
-        let r = row(
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            [1.0, 2.0, 3.0],
-            [30.0, 40.0, 50.0],
-            [2.0, 8.0],
-        );
+        let r =
+            row([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], [1.0, 2.0, 3.0], [30.0, 40.0, 50.0], [2.0, 8.0]);
         let (p, h, w, f, b0, b1) = parse_row(&r).unwrap();
         // New columns: right = old col1, up = -old col0, back = old col2.
-        assert_eq!(
-            p,
-            [
-                [0.0, -1.0, 0.0, 1.0],
-                [1.0, 0.0, 0.0, 2.0],
-                [0.0, 0.0, 1.0, 3.0]
-            ]
-        );
+        assert_eq!(p, [[0.0, -1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 2.0], [0.0, 0.0, 1.0, 3.0]]);
         assert_eq!((h, w, f, b0, b1), (30.0, 40.0, 50.0, 2.0, 8.0));
         assert!(parse_row(&r[..16]).is_none());
         // Recentring two cameras with that rotation gives identity rotations
@@ -391,10 +317,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path();
         let hwf = [30.0, 40.0, 50.0];
-        let rows = vec![
-            row(IDENT, [3.0, 0.0, 0.0], hwf, [2.0, 8.0]),
-            row(IDENT, [0.0, 6.0, 0.0], hwf, [4.0, 10.0]),
-        ];
+        let rows = vec![row(IDENT, [3.0, 0.0, 0.0], hwf, [2.0, 8.0]), row(IDENT, [0.0, 6.0, 0.0], hwf, [4.0, 10.0])];
         write_llff(root, "images_4", &rows, 4, 3);
         // A less preferred folder is ignored; a non-image file too.
         write_png(&root.join("images/zzz.png"), 8, 6, false);
@@ -402,30 +325,18 @@ mod tests {
         let ds = Dataset::load(root, &LoadOptions::default()).unwrap();
         assert_eq!(ds.format, DatasetFormat::Llff);
         assert_eq!(ds.frames.len(), 2);
-        assert_eq!(
-            (ds.val.clone(), ds.test.clone(), ds.train.clone()),
-            (vec![0], vec![0], vec![1])
-        );
+        assert_eq!((ds.val.clone(), ds.test.clone(), ds.train.clone()), (vec![0], vec![0], vec![1]));
         let c0 = &ds.frames[0].camera;
         // focal 50 at W = 40 -> 5 at 4 pixels wide.
-        assert_eq!(
-            (c0.width, c0.height, c0.fx, c0.fy, c0.cx, c0.cy),
-            (4, 3, 5.0, 5.0, 2.0, 1.5)
-        );
+        assert_eq!((c0.width, c0.height, c0.fx, c0.fy, c0.cx, c0.cy), (4, 3, 5.0, 5.0, 2.0, 1.5));
         assert_eq!(ds.frames[1].name, "image001");
         assert_eq!(ds.frames[1].path, root.join("images_4/image001.png"));
         // sc = 1 / (2 * 0.75) = 2/3: positions (2, 0, 0) and (0, 4, 0), mean
         // (1, 2, 0), so recentred (1, -2, 0) and (-1, 2, 0).
         let want = [Vec3::new(1.0, -2.0, 0.0), Vec3::new(-1.0, 2.0, 0.0)];
         for (f, w) in ds.frames.iter().zip(want) {
-            assert!(
-                (f.camera.origin() - w).norm() < 1e-5,
-                "{:?}",
-                f.camera.origin()
-            );
-            assert!(
-                (f.camera.c2w[0][0] - 1.0).abs() < 1e-6 && (f.camera.c2w[2][2] - 1.0).abs() < 1e-6
-            );
+            assert!((f.camera.origin() - w).norm() < 1e-5, "{:?}", f.camera.origin());
+            assert!((f.camera.c2w[0][0] - 1.0).abs() < 1e-6 && (f.camera.c2w[2][2] - 1.0).abs() < 1e-6);
         }
         assert!((ds.near - 0.9 * 2.0 * 2.0 / 3.0).abs() < 1e-5);
         assert!((ds.far - 10.0 * 2.0 / 3.0).abs() < 1e-5);
@@ -434,9 +345,7 @@ mod tests {
         let far = ds.far;
         let (lo_x, hi_x) = (-1.0 - far * 0.4, 1.0 + far * 0.4);
         let m = (hi_x - lo_x) * BOX_MARGIN;
-        assert!(
-            (ds.aabb.min.x - (lo_x - m)).abs() < 1e-4 && (ds.aabb.max.x - (hi_x + m)).abs() < 1e-4
-        );
+        assert!((ds.aabb.min.x - (lo_x - m)).abs() < 1e-4 && (ds.aabb.max.x - (hi_x + m)).abs() < 1e-4);
         assert!((ds.aabb.max.z - far * BOX_MARGIN).abs() < 1e-4);
         assert!((ds.aabb.min.z - (-far - far * BOX_MARGIN)).abs() < 1e-4);
         assert!(ds.warnings.iter().any(|w| w.contains("training view")));
@@ -446,16 +355,8 @@ mod tests {
     fn llff_folder_preference_and_holdout() {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path();
-        let rows: Vec<Vec<f64>> = (0..17)
-            .map(|i| {
-                row(
-                    IDENT,
-                    [i as f64 * 0.1, 0.0, 0.0],
-                    [24.0, 32.0, 40.0],
-                    [1.0, 5.0],
-                )
-            })
-            .collect();
+        let rows: Vec<Vec<f64>> =
+            (0..17).map(|i| row(IDENT, [i as f64 * 0.1, 0.0, 0.0], [24.0, 32.0, 40.0], [1.0, 5.0])).collect();
         write_llff(root, "images", &rows, 8, 6);
         write_llff(root, "images_2", &rows, 4, 3);
         let ds = Dataset::load(root, &LoadOptions::default()).unwrap();
@@ -476,9 +377,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path();
         let hwf = [30.0, 40.0, 50.0];
-        let good: Vec<Vec<f64>> = (0..3)
-            .map(|i| row(IDENT, [i as f64, 0.0, 0.0], hwf, [2.0, 8.0]))
-            .collect();
+        let good: Vec<Vec<f64>> = (0..3).map(|i| row(IDENT, [i as f64, 0.0, 0.0], hwf, [2.0, 8.0])).collect();
         write_llff(root, "images_8", &good, 4, 3);
         let load = || Dataset::load(root, &LoadOptions::default());
         let npy = root.join("poses_bounds.npy");
@@ -489,11 +388,7 @@ mod tests {
         bad[1][3] = f64::NAN;
         write_llff(root, "images_8", &bad, 4, 3);
         match load() {
-            Err(DatasetError::BadPose {
-                frame: 1,
-                message,
-                path,
-            }) => {
+            Err(DatasetError::BadPose { frame: 1, message, path }) => {
                 assert_eq!((message.as_str(), path), ("non-finite pose", npy.clone()))
             }
             other => panic!("{other:?}"),
@@ -502,17 +397,12 @@ mod tests {
         let mut bad = good.clone();
         bad[2][0] = 0.5;
         write_llff(root, "images_8", &bad, 4, 3);
-        assert!(matches!(
-            load(),
-            Err(DatasetError::BadPose { frame: 2, .. })
-        ));
+        assert!(matches!(load(), Err(DatasetError::BadPose { frame: 2, .. })));
         // Bad bounds and intrinsics.
         let mut bad = good.clone();
         bad[0][15] = 0.0;
         write_llff(root, "images_8", &bad, 4, 3);
-        assert!(
-            matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("bounds"))
-        );
+        assert!(matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("bounds")));
         let mut bad = good.clone();
         bad[0][9] = -1.0;
         write_llff(root, "images_8", &bad, 4, 3);
@@ -531,51 +421,30 @@ mod tests {
         assert!(matches!(load(), Err(DatasetError::Invalid { .. })));
         // Wrong shape, empty array.
         std::fs::write(&npy, npy_bytes(&[3, 15], &[0.0; 45], 1)).unwrap();
-        assert!(
-            matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("(N, 17)"))
-        );
+        assert!(matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("(N, 17)")));
         std::fs::write(&npy, npy_bytes(&[0, 17], &[], 1)).unwrap();
-        assert!(
-            matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("no rows"))
-        );
+        assert!(matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("no rows")));
 
         // Image count must match the rows; image sizes must agree.
         write_llff(root, "images_8", &good, 4, 3);
         std::fs::remove_file(root.join("images_8/image002.png")).unwrap();
-        assert!(
-            matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("2 images"))
-        );
+        assert!(matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("2 images")));
         write_png(&root.join("images_8/image002.png"), 5, 3, false);
-        assert!(matches!(
-            load(),
-            Err(DatasetError::SizeMismatch {
-                got_w: 5,
-                want_w: 4,
-                ..
-            })
-        ));
+        assert!(matches!(load(), Err(DatasetError::SizeMismatch { got_w: 5, want_w: 4, .. })));
         std::fs::write(root.join("images_8/image002.png"), b"corrupt").unwrap();
         assert!(matches!(load(), Err(DatasetError::BadImage { .. })));
 
         // No image folder at all.
         std::fs::remove_dir_all(root.join("images_8")).unwrap();
-        assert!(
-            matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("images_8"))
-        );
+        assert!(matches!(load(), Err(DatasetError::Invalid { message, .. }) if message.contains("images_8")));
     }
 
     #[test]
     fn unknown_format_and_missing_root() {
         let dir = tempfile::tempdir().unwrap();
-        assert!(matches!(
-            Dataset::load(dir.path(), &LoadOptions::default()),
-            Err(DatasetError::UnknownFormat(_))
-        ));
+        assert!(matches!(Dataset::load(dir.path(), &LoadOptions::default()), Err(DatasetError::UnknownFormat(_))));
         std::fs::write(dir.path().join("transforms_train.txt"), "{}").unwrap();
-        assert!(matches!(
-            Dataset::load(dir.path(), &LoadOptions::default()),
-            Err(DatasetError::UnknownFormat(_))
-        ));
+        assert!(matches!(Dataset::load(dir.path(), &LoadOptions::default()), Err(DatasetError::UnknownFormat(_))));
         assert!(matches!(
             Dataset::load(&dir.path().join("nope"), &LoadOptions::default()),
             Err(DatasetError::NotFound(_))

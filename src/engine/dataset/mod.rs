@@ -92,23 +92,14 @@ impl Image {
         let p = &self.rgba[k..k + 4];
         let a = p[3] as f32 / 255.0;
         let c = |v: u8, b: f32| v as f32 / 255.0 * a + b * (1.0 - a);
-        [
-            c(p[0], background[0]),
-            c(p[1], background[1]),
-            c(p[2], background[2]),
-        ]
+        [c(p[0], background[0]), c(p[1], background[1]), c(p[2], background[2])]
     }
 
     /// The pixel at `(i, j)` as straight f32 RGBA in [0, 1].
     pub fn rgba_f32(&self, i: u32, j: u32) -> [f32; 4] {
         let k = 4 * (j as usize * self.width as usize + i as usize);
         let p = &self.rgba[k..k + 4];
-        [
-            p[0] as f32 / 255.0,
-            p[1] as f32 / 255.0,
-            p[2] as f32 / 255.0,
-            p[3] as f32 / 255.0,
-        ]
+        [p[0] as f32 / 255.0, p[1] as f32 / 255.0, p[2] as f32 / 255.0, p[3] as f32 / 255.0]
     }
 }
 
@@ -135,10 +126,7 @@ pub struct LoadOptions {
 
 impl Default for LoadOptions {
     fn default() -> Self {
-        Self {
-            background: [1.0; 3],
-            splits: Split::ALL.to_vec(),
-        }
+        Self { background: [1.0; 3], splits: Split::ALL.to_vec() }
     }
 }
 
@@ -198,10 +186,7 @@ pub fn detect_format(root: &Path) -> Result<DatasetFormat, DatasetError> {
     if !root.is_dir() {
         return Err(DatasetError::NotFound(root.to_path_buf()));
     }
-    if Split::ALL
-        .iter()
-        .any(|s| root.join(format!("transforms_{}.json", s.name())).is_file())
-    {
+    if Split::ALL.iter().any(|s| root.join(format!("transforms_{}.json", s.name())).is_file()) {
         Ok(DatasetFormat::Blender)
     } else if root.join("transforms.json").is_file() {
         Ok(DatasetFormat::Ngp)
@@ -217,38 +202,20 @@ pub fn detect_format(root: &Path) -> Result<DatasetFormat, DatasetError> {
 pub enum DatasetError {
     #[error("dataset folder {0} does not exist")]
     NotFound(PathBuf),
-    #[error(
-        "{0}: unknown dataset format (expected transforms_train.json, transforms.json or poses_bounds.npy)"
-    )]
+    #[error("{0}: unknown dataset format (expected transforms_train.json, transforms.json or poses_bounds.npy)")]
     UnknownFormat(PathBuf),
     #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Io { path: PathBuf, source: std::io::Error },
     #[error("{path}: invalid JSON: {message}")]
     Json { path: PathBuf, message: String },
     #[error("{path}: {message}")]
     Invalid { path: PathBuf, message: String },
     #[error("{path}: image is missing (referenced by {referenced_by})")]
-    MissingImage {
-        path: PathBuf,
-        referenced_by: PathBuf,
-    },
+    MissingImage { path: PathBuf, referenced_by: PathBuf },
     #[error("{path}: image does not decode: {message}")]
     BadImage { path: PathBuf, message: String },
     #[error("{path}: image is {got_w}x{got_h}, expected {want_w}x{want_h}")]
-    SizeMismatch {
-        path: PathBuf,
-        got_w: u32,
-        got_h: u32,
-        want_w: u32,
-        want_h: u32,
-    },
+    SizeMismatch { path: PathBuf, got_w: u32, got_h: u32, want_w: u32, want_h: u32 },
     #[error("{path}: frame {frame}: {message}")]
-    BadPose {
-        path: PathBuf,
-        frame: usize,
-        message: String,
-    },
+    BadPose { path: PathBuf, frame: usize, message: String },
 }

@@ -34,21 +34,12 @@ pub const DEFAULT_AABB_SCALE: f64 = 1.0;
 pub const HOLDOUT: usize = 8;
 
 /// Camera models with a pinhole projection that `k1 k2 p1 p2` describe.
-const PINHOLE_MODELS: [&str; 5] = [
-    "OPENCV",
-    "PINHOLE",
-    "SIMPLE_PINHOLE",
-    "PERSPECTIVE",
-    "SIMPLE_RADIAL",
-];
+const PINHOLE_MODELS: [&str; 5] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE", "SIMPLE_RADIAL"];
 
 pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let path = root.join("transforms.json");
     let top = json::read_object(&path)?;
-    let invalid = |message: String| DatasetError::Invalid {
-        path: path.clone(),
-        message,
-    };
+    let invalid = |message: String| DatasetError::Invalid { path: path.clone(), message };
     let mut extra_warnings = Vec::new();
 
     match top.get("camera_model") {
@@ -61,9 +52,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         }
     }
     if top.get("is_fisheye").and_then(Value::as_bool) == Some(true) {
-        return Err(invalid(
-            "fisheye cameras (is_fisheye) are not supported".into(),
-        ));
+        return Err(invalid("fisheye cameras (is_fisheye) are not supported".into()));
     }
 
     let aabb_scale = json::opt_positive(&top, "aabb_scale", &path)?.unwrap_or(DEFAULT_AABB_SCALE);
@@ -108,21 +97,13 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let mut out = Vec::with_capacity(frames.len());
     for (i, ((frame, image), (image_path, _))) in frames.iter().zip(images).zip(paths).enumerate() {
         let camera = json::camera(&top, frame, i, &image, &image_path, &path, poses[i], true)?;
-        out.push(Frame {
-            name: json::frame_name(&image_path),
-            path: image_path,
-            camera,
-            image,
-        });
+        out.push(Frame { name: json::frame_name(&image_path), path: image_path, camera, image });
     }
-    check_shared_size(out.iter().zip(&frames).map(|(f, fr)| {
-        (
-            f.path.as_path(),
-            f.image.width,
-            f.image.height,
-            json::has_frame_intrinsics(fr),
-        )
-    }))?;
+    check_shared_size(
+        out.iter()
+            .zip(&frames)
+            .map(|(f, fr)| (f.path.as_path(), f.image.width, f.image.height, json::has_frame_intrinsics(fr))),
+    )?;
 
     let centre = Vec3::new(
         ((0.5 - offset[0]) / scale) as f32,
@@ -130,19 +111,11 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         ((0.5 - offset[2]) / scale) as f32,
     );
     let half = Vec3::splat((0.5 * aabb_scale / scale) as f32);
-    let aabb = Aabb {
-        min: centre - half,
-        max: centre + half,
-    };
+    let aabb = Aabb { min: centre - half, max: centre + half };
     if !(aabb.min.is_finite() && aabb.max.is_finite()) {
-        return Err(invalid(format!(
-            "scene box is not finite (aabb_scale {aabb_scale}, scale {scale})"
-        )));
+        return Err(invalid(format!("scene box is not finite (aabb_scale {aabb_scale}, scale {scale})")));
     }
-    let cam_dist = out
-        .iter()
-        .map(|f| (f.camera.origin() - centre).norm())
-        .fold(0.0f32, f32::max);
+    let cam_dist = out.iter().map(|f| (f.camera.origin() - centre).norm()).fold(0.0f32, f32::max);
     let far = (aabb.max - aabb.min).norm() + cam_dist;
 
     let (held, train): (Vec<usize>, Vec<usize>) = (0..out.len()).partition(|i| i % HOLDOUT == 0);
@@ -171,28 +144,22 @@ mod tests {
     use serde_json::json;
 
     fn write(root: &Path, v: &serde_json::Value) {
-        std::fs::write(
-            root.join("transforms.json"),
-            serde_json::to_string(v).unwrap(),
-        )
-        .unwrap();
+        std::fs::write(root.join("transforms.json"), serde_json::to_string(v).unwrap()).unwrap();
     }
 
     /// 10 frames of 4x3 JPEGs / PNGs with global intrinsics and distortion.
     fn fox_like(root: &Path) -> serde_json::Value {
         let mut frames = Vec::new();
         for i in 0..10 {
-            let name = if i % 2 == 0 {
-                format!("images/{i:04}.jpg")
-            } else {
-                format!("images/{i:04}.png")
-            };
+            let name = if i % 2 == 0 { format!("images/{i:04}.jpg") } else { format!("images/{i:04}.png") };
             if i % 2 == 0 {
                 write_jpg(&root.join(&name), 4, 3);
             } else {
                 write_png(&root.join(&name), 4, 3, false);
             }
-            frames.push(json!({ "file_path": name, "sharpness": 30.0, "transform_matrix": mat4(&orbit_pose(i as f64, 3.0)) }));
+            frames.push(
+                json!({ "file_path": name, "sharpness": 30.0, "transform_matrix": mat4(&orbit_pose(i as f64, 3.0)) }),
+            );
         }
         let v = json!({
             "camera_angle_x": 0.7, "camera_angle_y": 1.2,
@@ -220,29 +187,12 @@ mod tests {
         assert_eq!(f.name, "0003");
         assert_eq!(f.path, root.join("images/0003.png"));
         let c = &f.camera;
-        assert_eq!(
-            (c.width, c.height, c.fx, c.fy, c.cx, c.cy),
-            (4, 3, 3.5, 3.25, 1.75, 1.25)
-        );
-        assert_eq!(
-            c.distortion,
-            crate::engine::camera::Distortion {
-                k1: 0.05,
-                k2: -0.08,
-                p1: -0.001,
-                p2: 0.0002
-            }
-        );
-        assert_eq!(
-            c.origin(),
-            Vec3::new((3.0 * 3f64.cos()) as f32, (3.0 * 3f64.sin()) as f32, 1.0)
-        );
+        assert_eq!((c.width, c.height, c.fx, c.fy, c.cx, c.cy), (4, 3, 3.5, 3.25, 1.75, 1.25));
+        assert_eq!(c.distortion, crate::engine::camera::Distortion { k1: 0.05, k2: -0.08, p1: -0.001, p2: 0.0002 });
+        assert_eq!(c.origin(), Vec3::new((3.0 * 3f64.cos()) as f32, (3.0 * 3f64.sin()) as f32, 1.0));
         // Default scale 0.33 and offset 0.5: box centred on the origin.
         let half = 0.5 * 4.0 / 0.33;
-        assert!(
-            (ds.aabb.max.x - half as f32).abs() < 1e-4
-                && (ds.aabb.min.z + half as f32).abs() < 1e-4
-        );
+        assert!((ds.aabb.max.x - half as f32).abs() < 1e-4 && (ds.aabb.min.z + half as f32).abs() < 1e-4);
         let cam_dist = (9.0f32 + 1.0).sqrt();
         let diag = 2.0 * half as f32 * 3f32.sqrt();
         assert_eq!(ds.near, 0.0);
@@ -278,10 +228,7 @@ mod tests {
         assert!((c0.fx - fx).abs() < 1e-5 && (c0.fy - fy).abs() < 1e-5);
         assert_eq!((c0.cx, c0.cy), (2.0, 1.5));
         let c1 = &ds.frames[1].camera;
-        assert_eq!(
-            (c1.fx, c1.distortion.k1, c1.distortion.k2),
-            (9.0, 0.3, -0.08)
-        );
+        assert_eq!((c1.fx, c1.distortion.k1, c1.distortion.k2), (9.0, 0.3, -0.08));
         assert!((c1.fy - fy).abs() < 1e-5);
         assert_eq!(ds.frames[2].camera.cx, 0.5);
         let c5 = &ds.frames[5].camera;
@@ -316,13 +263,7 @@ mod tests {
         // Global w/h must match each image.
         write_png(&root.join("images/0003.png"), 3, 4, false);
         match load() {
-            Err(DatasetError::SizeMismatch {
-                path,
-                got_w: 3,
-                got_h: 4,
-                want_w: 4,
-                want_h: 3,
-            }) => {
+            Err(DatasetError::SizeMismatch { path, got_w: 3, got_h: 4, want_w: 4, want_h: 3 }) => {
                 assert_eq!(path, root.join("images/0003.png"))
             }
             other => panic!("{other:?}"),
@@ -332,28 +273,15 @@ mod tests {
         v.as_object_mut().unwrap().remove("w");
         v.as_object_mut().unwrap().remove("h");
         write(root, &v);
-        assert!(matches!(
-            load(),
-            Err(DatasetError::SizeMismatch {
-                got_w: 3,
-                want_w: 4,
-                ..
-            })
-        ));
+        assert!(matches!(load(), Err(DatasetError::SizeMismatch { got_w: 3, want_w: 4, .. })));
         write_png(&root.join("images/0003.png"), 4, 3, false);
         assert!(load().is_ok());
 
         // Missing image.
         std::fs::remove_file(root.join("images/0004.jpg")).unwrap();
         match load() {
-            Err(DatasetError::MissingImage {
-                path,
-                referenced_by,
-            }) => {
-                assert_eq!(
-                    (path, referenced_by),
-                    (root.join("images/0004.jpg"), tj.clone())
-                );
+            Err(DatasetError::MissingImage { path, referenced_by }) => {
+                assert_eq!((path, referenced_by), (root.join("images/0004.jpg"), tj.clone()));
             }
             other => panic!("{other:?}"),
         }
@@ -386,17 +314,11 @@ mod tests {
         }
         // A mirrored pose.
         let mut v = base.clone();
-        v["frames"][7]["transform_matrix"][2][2] =
-            json!(-v["frames"][7]["transform_matrix"][2][2].as_f64().unwrap());
-        v["frames"][7]["transform_matrix"][2][0] =
-            json!(-v["frames"][7]["transform_matrix"][2][0].as_f64().unwrap());
-        v["frames"][7]["transform_matrix"][2][1] =
-            json!(-v["frames"][7]["transform_matrix"][2][1].as_f64().unwrap());
+        v["frames"][7]["transform_matrix"][2][2] = json!(-v["frames"][7]["transform_matrix"][2][2].as_f64().unwrap());
+        v["frames"][7]["transform_matrix"][2][0] = json!(-v["frames"][7]["transform_matrix"][2][0].as_f64().unwrap());
+        v["frames"][7]["transform_matrix"][2][1] = json!(-v["frames"][7]["transform_matrix"][2][1].as_f64().unwrap());
         write(root, &v);
-        assert!(matches!(
-            load(),
-            Err(DatasetError::BadPose { frame: 7, .. })
-        ));
+        assert!(matches!(load(), Err(DatasetError::BadPose { frame: 7, .. })));
         // Truncated JSON.
         let text = serde_json::to_string(&base).unwrap();
         std::fs::write(&tj, &text[..text.len() / 2]).unwrap();

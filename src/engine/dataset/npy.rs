@@ -35,10 +35,7 @@ const MAGIC: &[u8] = b"\x93NUMPY";
 
 /// Parses the bytes of a `.npy` file. `path` is only used in error messages.
 pub fn parse_npy(bytes: &[u8], path: &Path) -> Result<NpyArray, DatasetError> {
-    let err = |message: String| DatasetError::Invalid {
-        path: path.to_path_buf(),
-        message,
-    };
+    let err = |message: String| DatasetError::Invalid { path: path.to_path_buf(), message };
     if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
         return Err(err("not a .npy file (bad magic string)".into()));
     }
@@ -56,9 +53,7 @@ pub fn parse_npy(bytes: &[u8], path: &Path) -> Result<NpyArray, DatasetError> {
             None => return Err(err("truncated .npy header".into())),
         },
         _ => {
-            return Err(err(format!(
-                "unsupported .npy format version {major}.{minor}"
-            )));
+            return Err(err(format!("unsupported .npy format version {major}.{minor}")));
         }
     };
     let header_end = header_start
@@ -69,9 +64,7 @@ pub fn parse_npy(bytes: &[u8], path: &Path) -> Result<NpyArray, DatasetError> {
     // Versions 1 and 2 use latin-1 headers, version 3 UTF-8; the keys and
     // values we accept are ASCII either way.
     let header: String = if major == 3 {
-        std::str::from_utf8(raw)
-            .map_err(|_| err("npy header is not UTF-8".into()))?
-            .to_owned()
+        std::str::from_utf8(raw).map_err(|_| err("npy header is not UTF-8".into()))?.to_owned()
     } else {
         raw.iter().map(|&b| b as char).collect()
     };
@@ -83,9 +76,7 @@ pub fn parse_npy(bytes: &[u8], path: &Path) -> Result<NpyArray, DatasetError> {
         )));
     }
     if h.fortran_order {
-        return Err(err(
-            "Fortran-ordered .npy arrays are not supported (need C order)".into(),
-        ));
+        return Err(err("Fortran-ordered .npy arrays are not supported (need C order)".into()));
     }
     let count = h
         .shape
@@ -93,30 +84,19 @@ pub fn parse_npy(bytes: &[u8], path: &Path) -> Result<NpyArray, DatasetError> {
         .try_fold(1usize, |acc, &d| acc.checked_mul(d))
         .ok_or_else(|| err(format!("shape {:?} is too large", h.shape)))?;
     let body = &bytes[header_end..];
-    let want = count
-        .checked_mul(8)
-        .ok_or_else(|| err(format!("shape {:?} is too large", h.shape)))?;
+    let want = count.checked_mul(8).ok_or_else(|| err(format!("shape {:?} is too large", h.shape)))?;
     if body.len() != want {
         return Err(err(format!(
             "{} data bytes for shape {:?} ({} expected){}",
             body.len(),
             h.shape,
             want,
-            if body.len() < want {
-                ": file is truncated"
-            } else {
-                ""
-            }
+            if body.len() < want { ": file is truncated" } else { "" }
         )));
     }
-    let data = body
-        .chunks_exact(8)
-        .map(|c| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
-        .collect();
-    Ok(NpyArray {
-        shape: h.shape,
-        data,
-    })
+    let data =
+        body.chunks_exact(8).map(|c| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect();
+    Ok(NpyArray { shape: h.shape, data })
 }
 
 struct Header {
@@ -128,10 +108,7 @@ struct Header {
 /// Parses the Python dict literal of an npy header, e.g.
 /// `{'descr': '<f8', 'fortran_order': False, 'shape': (20, 17), }`.
 fn parse_header(s: &str) -> Result<Header, String> {
-    let mut p = Parser {
-        s: s.as_bytes(),
-        i: 0,
-    };
+    let mut p = Parser { s: s.as_bytes(), i: 0 };
     let (mut descr, mut fortran, mut shape) = (None, None, None);
     p.expect(b'{')?;
     loop {
@@ -187,11 +164,7 @@ impl Parser<'_> {
     }
     fn expect(&mut self, c: u8) -> Result<(), String> {
         self.ws();
-        if self.eat(c) {
-            Ok(())
-        } else {
-            Err(format!("expected '{}' at byte {}", c as char, self.i))
-        }
+        if self.eat(c) { Ok(()) } else { Err(format!("expected '{}' at byte {}", c as char, self.i)) }
     }
     fn string(&mut self) -> Result<String, String> {
         let q = match self.peek() {
@@ -235,9 +208,7 @@ impl Parser<'_> {
                 self.i += 1;
             }
             let digits = std::str::from_utf8(&self.s[start..self.i]).unwrap_or("");
-            let n = digits
-                .parse::<usize>()
-                .map_err(|_| format!("expected a dimension at byte {start}"))?;
+            let n = digits.parse::<usize>().map_err(|_| format!("expected a dimension at byte {start}"))?;
             v.push(n);
             self.ws();
             if !self.eat(b',') {
@@ -259,8 +230,7 @@ pub(crate) mod tests {
             1 => format!("({},)", dims[0]),
             _ => format!("({})", dims.join(", ")),
         };
-        let mut header =
-            format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape_s}, }}");
+        let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape_s}, }}");
         let prefix = if major == 1 { 10 } else { 12 };
         while (prefix + header.len() + 1) % 64 != 0 {
             header.push(' ');

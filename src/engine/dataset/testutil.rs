@@ -8,21 +8,14 @@ pub fn write_png(path: &Path, w: u32, h: u32, alpha: bool) {
     let fmt = image::ImageFormat::Png;
     if alpha {
         image::RgbaImage::from_fn(w, h, |i, j| {
-            image::Rgba([
-                (i as u8).wrapping_mul(40),
-                (j as u8).wrapping_mul(60),
-                7,
-                128,
-            ])
+            image::Rgba([(i as u8).wrapping_mul(40), (j as u8).wrapping_mul(60), 7, 128])
         })
         .save_with_format(path, fmt)
         .unwrap();
     } else {
-        image::RgbImage::from_fn(w, h, |i, j| {
-            image::Rgb([(i as u8).wrapping_mul(40), (j as u8).wrapping_mul(60), 7])
-        })
-        .save_with_format(path, fmt)
-        .unwrap();
+        image::RgbImage::from_fn(w, h, |i, j| image::Rgb([(i as u8).wrapping_mul(40), (j as u8).wrapping_mul(60), 7]))
+            .save_with_format(path, fmt)
+            .unwrap();
     }
 }
 
@@ -42,21 +35,12 @@ pub fn orbit_pose(angle: f64, radius: f64) -> [[f64; 4]; 3] {
         let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
         [v[0] / l, v[1] / l, v[2] / l]
     };
-    let cross = |a: [f64; 3], b: [f64; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
+    let cross =
+        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
     let back = n(eye);
     let right = n(cross([0.0, 0.0, 1.0], back));
     let up = cross(back, right);
-    [
-        [right[0], up[0], back[0], eye[0]],
-        [right[1], up[1], back[1], eye[1]],
-        [right[2], up[2], back[2], eye[2]],
-    ]
+    [[right[0], up[0], back[0], eye[0]], [right[1], up[1], back[1], eye[1]], [right[2], up[2], back[2], eye[2]]]
 }
 
 /// A 3x4 pose as the 4x4 JSON `transform_matrix`.

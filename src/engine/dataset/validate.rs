@@ -16,16 +16,8 @@ pub const MIN_TRAIN_VIEWS: usize = 10;
 /// to f32: every entry finite, rotation orthonormal within
 /// [`ORTHONORMAL_TOLERANCE`] and a proper rotation (determinant > 0).
 /// `path` is the file the pose came from, `frame` its index there.
-pub(super) fn check_pose(
-    m: &[[f64; 4]; 3],
-    path: &Path,
-    frame: usize,
-) -> Result<[[f32; 4]; 3], DatasetError> {
-    let bad = |message: String| DatasetError::BadPose {
-        path: path.to_path_buf(),
-        frame,
-        message,
-    };
+pub(super) fn check_pose(m: &[[f64; 4]; 3], path: &Path, frame: usize) -> Result<[[f32; 4]; 3], DatasetError> {
+    let bad = |message: String| DatasetError::BadPose { path: path.to_path_buf(), frame, message };
     if m.iter().flatten().any(|v| !v.is_finite()) {
         return Err(bad("non-finite pose".into()));
     }
@@ -38,17 +30,12 @@ pub(super) fn check_pose(
         }
     }
     if dev.is_nan() || dev >= ORTHONORMAL_TOLERANCE {
-        return Err(bad(format!(
-            "rotation not orthonormal (max deviation {dev:.3})"
-        )));
+        return Err(bad(format!("rotation not orthonormal (max deviation {dev:.3})")));
     }
-    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
     if det.is_nan() || det <= 0.0 {
-        return Err(bad(format!(
-            "rotation is a reflection (determinant {det:.3})"
-        )));
+        return Err(bad(format!("rotation is a reflection (determinant {det:.3})")));
     }
     let c2w = m.map(|row| row.map(|v| v as f32));
     if c2w.iter().flatten().any(|v| !v.is_finite()) {
@@ -108,10 +95,7 @@ pub(super) fn warnings(ds: &Dataset) -> Vec<String> {
     if dirs.len() >= 2 {
         let mean = dirs.iter().fold(Vec3::splat(0.0), |a, &d| a + d);
         if let Some(mean) = mean.normalized() {
-            let min_cos = dirs
-                .iter()
-                .map(|d| d.dot(mean))
-                .fold(f32::INFINITY, f32::min);
+            let min_cos = dirs.iter().map(|d| d.dot(mean)).fold(f32::INFINITY, f32::min);
             // All within 45 degrees of the mean direction.
             if min_cos > std::f32::consts::FRAC_1_SQRT_2 {
                 let spread = min_cos.clamp(-1.0, 1.0).acos().to_degrees();
@@ -128,11 +112,7 @@ pub(super) fn warnings(ds: &Dataset) -> Vec<String> {
 mod tests {
     use super::*;
 
-    const ID: [[f64; 4]; 3] = [
-        [1.0, 0.0, 0.0, 1.0],
-        [0.0, 1.0, 0.0, 2.0],
-        [0.0, 0.0, 1.0, 3.0],
-    ];
+    const ID: [[f64; 4]; 3] = [[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 2.0], [0.0, 0.0, 1.0, 3.0]];
 
     fn msg(r: Result<[[f32; 4]; 3], DatasetError>, want_frame: usize) -> String {
         match r {
@@ -178,13 +158,7 @@ mod tests {
         assert!(check_shared_size([(a, 4, 3, false), (b, 4, 3, false)]).is_ok());
         assert!(check_shared_size([(a, 4, 3, false), (b, 8, 3, true)]).is_ok());
         match check_shared_size([(a, 4, 3, false), (b, 3, 4, false)]) {
-            Err(DatasetError::SizeMismatch {
-                path,
-                got_w: 3,
-                got_h: 4,
-                want_w: 4,
-                want_h: 3,
-            }) => {
+            Err(DatasetError::SizeMismatch { path, got_w: 3, got_h: 4, want_w: 4, want_h: 3 }) => {
                 assert_eq!(path, b)
             }
             other => panic!("{other:?}"),

@@ -1,0 +1,269 @@
+//! An occupancy grid over the scene box: which cells may hold density.
+//! Rays sample only the occupied parts of their interval, so empty space
+//! costs nothing.
+//!
+//! The update is a few named steps, as in instant-ngp: evaluate the density
+//! at a random point in a share of the cells, decay the running value and
+//! take the maximum (an EMA of maxima), threshold to bits, then dilate the
+//! bits by one cell so that a ray stepping half a cell at a time can never
+//! step over a cell it crosses.
+
+use super::math::{Aabb, Ray, Vec3};
+use super::rng::Rng;
+
+/// Grid settings. `Default` suits the classic model.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct OccupancyConfig {
+    /// Cells per side.
+    pub resolution: usize,
+    /// Density (per model unit) below which a cell counts as empty.
+    pub threshold: f32,
+    /// Decay of the running density at each update of a cell.
+    pub decay: f32,
+    /// Update every this many training steps...
+    pub update_every: u64,
+    /// ... a `1 / sweep` share of the cells, so a full sweep takes
+    /// `update_every * sweep` steps.
+    pub sweep: usize,
+    /// No skipping before this many steps (the field is still noise).
+    pub warmup_steps: u64,
+}
+
+impl Default for OccupancyConfig {
+    fn default() -> Self {
+        Self { resolution: 64, threshold: 0.5, decay: 0.95, update_every: 8, sweep: 8, warmup_steps: 32 }
+    }
+}
+
+/// The grid: running densities and dilated occupancy bits.
+#[derive(Clone, Debug)]
+pub struct OccupancyGrid {
+    pub config: OccupancyConfig,
+    pub aabb: Aabb,
+    pub density: Vec<f32>,
+    pub bits: Vec<bool>,
+    /// Whether skipping is active (after warm-up).
+    pub active: bool,
+}
+
+/// Occupied parts of a ray, and a map between distance along the ray `t`
+/// and occupied length `s` (the distance counted only inside segments).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Segments {
+    pub spans: Vec<(f32, f32)>,
+    /// Occupied length before each span.
+    cum: Vec<f32>,
+}
+
+impl Segments {
+    pub fn single(t0: f32, t1: f32) -> Self {
+        Self { spans: vec![(t0, t1)], cum: vec![0.0] }
+    }
+    fn push(&mut self, t0: f32, t1: f32) {
+        if t1 <= t0 {
+            return;
+        }
+        if let Some(last) = self.spans.last_mut()
+            && last.1 >= t0
+        {
+            last.1 = last.1.max(t1);
+            return;
+        }
+        let before = self.length();
+        self.spans.push((t0, t1));
+        self.cum.push(before);
+    }
+    /// Total occupied length.
+    pub fn length(&self) -> f32 {
+        match (self.spans.last(), self.cum.last()) {
+            (Some(&(a, b)), Some(&c)) => c + (b - a),
+            _ => 0.0,
+        }
+    }
+    /// Distance along the ray of occupied length `s` (clamped to the spans).
+    pub fn to_t(&self, s: f32) -> f32 {
+        if self.spans.is_empty() {
+            return 0.0;
+        }
+        let k = self.cum.partition_point(|&c| c <= s).saturating_sub(1);
+        let (a, b) = self.spans[k];
+        (a + (s - self.cum[k])).clamp(a, b)
+    }
+}
+
+impl OccupancyGrid {
+    pub fn new(config: OccupancyConfig, aabb: Aabb) -> Self {
+        let n = config.resolution.pow(3);
+        Self { config, aabb, density: vec![f32::INFINITY; n], bits: vec![true; n], active: false }
+    }
+
+    fn cell_size(&self) -> Vec3 {
+        (self.aabb.max - self.aabb.min) * (1.0 / self.config.resolution as f32)
+    }
+
+    /// Index of the cell holding `p`, if inside the box.
+    pub fn cell_of(&self, p: Vec3) -> Option<usize> {
+        let r = self.config.resolution;
+        let rel = p - self.aabb.min;
+        let cs = self.cell_size();
+        let f = |v: f32, c: f32| {
+            let i = (v / c).floor();
+            (i >= 0.0 && i < r as f32).then_some(i as usize)
+        };
+        Some((f(rel.x, cs.x)? * r + f(rel.y, cs.y)?) * r + f(rel.z, cs.z)?)
+    }
+
+    pub fn occupied(&self, p: Vec3) -> bool {
+        !self.active || self.cell_of(p).is_some_and(|c| self.bits[c])
+    }
+
+    /// Share of occupied cells.
+    pub fn occupancy(&self) -> f64 {
+        self.bits.iter().filter(|&&b| b).count() as f64 / self.bits.len() as f64
+    }
+
+    /// Whether `step` is an update step.
+    pub fn due(&self, step: u64) -> bool {
+        step > 0 && step.is_multiple_of(self.config.update_every)
+    }
+
+    /// The cells updated at `step` and a random point in each (model space).
+    pub fn update_points(&self, step: u64, seed: u64) -> (Vec<usize>, Vec<f32>) {
+        let r = self.config.resolution;
+        let sweep = self.config.sweep.max(1);
+        let phase = (step / self.config.update_every.max(1)) as usize % sweep;
+        let mut rng = Rng::stream(seed, step, 0x0CC0);
+        let cs = self.cell_size();
+        let mut cells = Vec::with_capacity(r * r * r / sweep + 1);
+        let mut pts = Vec::with_capacity(3 * (r * r * r / sweep + 1));
+        for c in (phase..r * r * r).step_by(sweep) {
+            let (x, y, z) = (c / (r * r), (c / r) % r, c % r);
+            let p = self.aabb.min
+                + Vec3::new(
+                    (x as f32 + rng.f32()) * cs.x,
+                    (y as f32 + rng.f32()) * cs.y,
+                    (z as f32 + rng.f32()) * cs.z,
+                );
+            cells.push(c);
+            pts.extend_from_slice(&[p.x, p.y, p.z]);
+        }
+        (cells, pts)
+    }
+
+    /// Folds the densities measured at `update_points` into the grid and
+    /// rebuilds the bits. Non-finite densities count as occupied.
+    pub fn apply(&mut self, step: u64, cells: &[usize], sigma: &[f32]) {
+        for (&c, &s) in cells.iter().zip(sigma) {
+            let s = if s.is_nan() { f32::INFINITY } else { s };
+            let old = if self.density[c].is_finite() { self.density[c] * self.config.decay } else { 0.0 };
+            self.density[c] = old.max(s);
+        }
+        self.active = step >= self.config.warmup_steps;
+        self.rebuild_bits();
+    }
+
+    fn rebuild_bits(&mut self) {
+        let r = self.config.resolution as isize;
+        let thr = self.config.threshold;
+        let raw: Vec<bool> = self.density.iter().map(|&d| d >= thr || d.is_nan()).collect();
+        let idx = |x: isize, y: isize, z: isize| ((x * r + y) * r + z) as usize;
+        for x in 0..r {
+            for y in 0..r {
+                for z in 0..r {
+                    let mut any = false;
+                    'n: for dx in -1..=1 {
+                        for dy in -1..=1 {
+                            for dz in -1..=1 {
+                                let (a, b, c) = (x + dx, y + dy, z + dz);
+                                if a >= 0 && b >= 0 && c >= 0 && a < r && b < r && c < r && raw[idx(a, b, c)] {
+                                    any = true;
+                                    break 'n;
+                                }
+                            }
+                        }
+                    }
+                    self.bits[idx(x, y, z)] = any;
+                }
+            }
+        }
+    }
+
+    /// The occupied parts of `[t0, t1]` along `ray`, found by stepping half a
+    /// cell at a time (the dilated bits make this conservative).
+    pub fn segments(&self, ray: &Ray, t0: f32, t1: f32) -> Segments {
+        if !self.active {
+            return Segments::single(t0, t1);
+        }
+        let cs = self.cell_size();
+        let step = 0.5 * cs.x.min(cs.y).min(cs.z);
+        let mut segs = Segments::default();
+        let mut t = t0;
+        while t < t1 {
+            let next = (t + step).min(t1);
+            if self.occupied(ray.at(0.5 * (t + next))) {
+                segs.push(t, next);
+            }
+            t = next;
+        }
+        segs
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit() -> Aabb {
+        Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }
+    }
+
+    #[test]
+    fn segments_map_occupied_length_to_distance() {
+        let mut s = Segments::default();
+        s.push(1.0, 2.0);
+        s.push(2.0, 2.5); // merges
+        s.push(4.0, 5.0);
+        assert_eq!(s.spans, vec![(1.0, 2.5), (4.0, 5.0)]);
+        assert!((s.length() - 2.5).abs() < 1e-6);
+        assert_eq!(s.to_t(0.0), 1.0);
+        assert!((s.to_t(1.0) - 2.0).abs() < 1e-6);
+        assert!((s.to_t(2.0) - 4.5).abs() < 1e-6);
+        assert_eq!(s.to_t(9.0), 5.0);
+    }
+
+    #[test]
+    fn a_dense_ball_is_never_skipped() {
+        let cfg = OccupancyConfig { resolution: 16, warmup_steps: 0, update_every: 1, sweep: 1, ..Default::default() };
+        let mut g = OccupancyGrid::new(cfg, unit());
+        let (cells, pts) = g.update_points(1, 3);
+        let sigma: Vec<f32> =
+            pts.chunks(3).map(|p| if Vec3::new(p[0], p[1], p[2]).norm() < 0.3 { 50.0 } else { 0.0 }).collect();
+        g.apply(1, &cells, &sigma);
+        assert!(g.active);
+        assert!(g.occupancy() < 0.2, "most cells are empty: {}", g.occupancy());
+        // Every point of the ball is in an occupied cell...
+        let mut rng = Rng::new(5);
+        for _ in 0..2000 {
+            let p = Vec3::new(rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5) * 0.6;
+            if p.norm() < 0.3 {
+                assert!(g.occupied(p), "{p:?}");
+            }
+        }
+        // ... and a ray through the ball keeps the ball's whole chord.
+        let ray = Ray { origin: Vec3::new(-3.0, 0.05, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) };
+        let s = g.segments(&ray, 2.0, 4.0);
+        let chord = (0.3f32 * 0.3 - 0.05 * 0.05).sqrt();
+        assert!(s.spans.iter().any(|&(a, b)| a <= 3.0 - chord && b >= 3.0 + chord), "{:?}", s.spans);
+        assert!(s.length() < 1.5, "empty space skipped: {}", s.length());
+        // A ray that misses the ball by far has nothing to sample.
+        let miss = Ray { origin: Vec3::new(-3.0, 0.9, 0.9), dir: Vec3::new(1.0, 0.0, 0.0) };
+        assert_eq!(g.segments(&miss, 2.0, 4.0).length(), 0.0);
+    }
+
+    #[test]
+    fn before_warm_up_everything_is_sampled() {
+        let g = OccupancyGrid::new(OccupancyConfig::default(), unit());
+        let ray = Ray { origin: Vec3::new(-3.0, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) };
+        assert_eq!(g.segments(&ray, 2.0, 4.0), Segments::single(2.0, 4.0));
+    }
+}

@@ -1,0 +1,110 @@
+//! Checkpoints restore a run exactly, and training is deterministic.
+
+use std::sync::atomic::AtomicBool;
+
+use radiance::engine::adam::{Adam, AdamConfig};
+use radiance::engine::dataset::Dataset;
+use radiance::engine::model::Model;
+use radiance::engine::nerf::{NerfConfig, NerfModel};
+use radiance::engine::nerf_net::NetConfig;
+use radiance::engine::occupancy::OccupancyConfig;
+use radiance::engine::persist;
+use radiance::engine::scene::Scene;
+use radiance::engine::synthetic::BallScene;
+use radiance::engine::trainer::{Budget, TrainConfig, TrainState, Trainer};
+
+fn tiny_model(ds: &Dataset) -> NerfModel {
+    let config = NerfConfig {
+        net: NetConfig { pos_freqs: 3, dir_freqs: 1, width: 16, depth: 3, skip: 1, dir_width: 8 },
+        coarse_samples: 8,
+        fine_samples: 8,
+        occupancy: Some(OccupancyConfig {
+            resolution: 8,
+            update_every: 4,
+            sweep: 2,
+            warmup_steps: 8,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    NerfModel::new(config, Scene::from_dataset(ds), 3)
+}
+
+fn trainer(ds: &Dataset, steps: u64) -> Trainer<'_> {
+    let model = tiny_model(ds);
+    let adam = Adam::new(AdamConfig { lr: 5e-3, lr_end: 5e-4, ..Default::default() }, model.params().len());
+    let cfg = TrainConfig { seed: 9, batch_rays: 64, budget: Budget { steps: Some(steps), seconds: None } };
+    Trainer::new(Box::new(model), adam, cfg, TrainState::default(), ds)
+}
+
+#[test]
+fn resuming_from_a_checkpoint_continues_exactly() {
+    let ds = BallScene { size: 12, views: 8, ..Default::default() }.dataset();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.ckpt");
+    let no = AtomicBool::new(false);
+
+    let mut straight = trainer(&ds, 40);
+    straight.run(&no, |_, _| true);
+
+    let mut first = trainer(&ds, 40);
+    first.run(&no, |t, p| {
+        if p.step == 20 {
+            persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+            return false;
+        }
+        true
+    });
+    let r = persist::load(&path).unwrap();
+    assert_eq!(r.state.step, 20);
+    let mut resumed = Trainer::new(r.model, r.adam, r.train, r.state, &ds);
+    resumed.run(&no, |_, _| true);
+    assert_eq!(resumed.state.step, 40);
+    assert_eq!(resumed.model.params(), straight.model.params(), "parameters differ after resuming");
+    assert_eq!(resumed.adam.m, straight.adam.m);
+    assert_eq!(resumed.model.state_tensors(), straight.model.state_tensors(), "occupancy grid differs");
+}
+
+#[test]
+fn same_seed_same_model() {
+    let ds = BallScene { size: 12, views: 8, ..Default::default() }.dataset();
+    let no = AtomicBool::new(false);
+    let mut a = trainer(&ds, 15);
+    a.run(&no, |_, _| true);
+    let mut b = trainer(&ds, 15);
+    b.run(&no, |_, _| true);
+    assert_eq!(a.model.params(), b.model.params());
+    let mut c = trainer(&ds, 15);
+    c.config.seed = 10;
+    c.run(&no, |_, _| true);
+    assert_ne!(a.model.params(), c.model.params(), "another seed gives another model");
+}
+
+#[test]
+fn corrupt_checkpoints_are_clear_errors() {
+    let ds = BallScene { size: 12, views: 8, ..Default::default() }.dataset();
+    let t = trainer(&ds, 1);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.ckpt");
+    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let e = persist::load(&path).err().expect("truncated file must not load").to_string();
+    assert!(e.contains("m.ckpt") && e.contains("truncated"), "{e}");
+    let mut flipped = bytes.clone();
+    flipped[bytes.len() / 2] ^= 0x10;
+    std::fs::write(&path, &flipped).unwrap();
+    let e = persist::load(&path).err().expect("corrupted file must not load").to_string();
+    assert!(e.contains("checksum"), "{e}");
+}
+
+#[test]
+fn non_finite_parameters_are_never_saved() {
+    let ds = BallScene { size: 12, views: 8, ..Default::default() }.dataset();
+    let mut t = trainer(&ds, 1);
+    t.model.params_mut()[5] = f32::NAN;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.ckpt");
+    assert!(persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).is_err());
+    assert!(!path.exists());
+}

@@ -1,0 +1,67 @@
+//! The command line end to end on a tiny generated Blender-format scene:
+//! train, render, eval, and an independent check of eval's numbers.
+
+use std::path::Path;
+use std::process::Command;
+
+use radiance::engine::synthetic::BallScene;
+
+fn radiance(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_radiance")).args(args).env("RAYON_NUM_THREADS", "2").output().unwrap()
+}
+
+fn ok(out: &std::process::Output) -> String {
+    let s = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(out.status.success(), "stdout: {s}\nstderr: {}", String::from_utf8_lossy(&out.stderr));
+    s
+}
+
+#[test]
+fn train_render_eval() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let model = dir.path().join("m.ckpt");
+    let (d, m) = (data.to_str().unwrap(), model.to_str().unwrap());
+    let out = ok(&radiance(&["train", "--data", d, "--steps", "2", "--batch-rays", "32", "--out", m]));
+    assert!(out.contains("steps          2") && out.contains("rays/s"), "{out}");
+    assert!(model.exists());
+
+    let renders = dir.path().join("renders");
+    let r = renders.to_str().unwrap();
+    ok(&radiance(&["render", "--model", m, "--data", d, "--limit", "2", "--out", r]));
+    let mut names: Vec<_> = std::fs::read_dir(&renders).unwrap().map(|e| e.unwrap().file_name()).collect();
+    names.sort();
+    assert_eq!(names, vec!["r_8.png", "r_9.png"], "named by the frames' file stems");
+
+    let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "2"]));
+    let last = out.lines().last().unwrap();
+    let ours: f64 = last.split_whitespace().nth(3).unwrap().parse().unwrap();
+    assert!(last.starts_with("2 views"), "{last}");
+
+    // Independent check with the shared Python tool, when it can run here.
+    let tool = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/tools/nerf_eval.py");
+    let has_numpy = Command::new("python3").args(["-c", "import numpy, PIL"]).status().is_ok_and(|s| s.success());
+    if !tool.exists() || !has_numpy {
+        eprintln!("note: nerf_eval.py or numpy/Pillow unavailable; skipped the independent check");
+        return;
+    }
+    let py = Command::new("python3").arg(&tool).args([d, r, "--limit", "2", "--json"]).output().unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&py.stdout).unwrap();
+    let theirs = v["psnr"].as_f64().unwrap();
+    assert!((ours - theirs).abs() < 0.01, "eval {ours} dB vs nerf_eval.py {theirs} dB");
+}
+
+#[test]
+fn bad_input_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = dir.path().join("m.ckpt");
+    let out = radiance(&["train", "--data", "/nonexistent/x", "--steps", "1", "--out", m.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/nonexistent/x") && err.contains("does not exist"), "{err}");
+    std::fs::write(&m, b"not a checkpoint").unwrap();
+    let out = radiance(&["eval", "--model", m.to_str().unwrap(), "--data", dir.path().to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("m.ckpt"), "{err}");
+}
