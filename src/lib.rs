@@ -1,11 +1,15 @@
 //! radiance: train Neural Radiance Fields on CPUs and render novel views.
 //!
 //! `engine` knows nothing of HTTP or async; `media` encodes what the engine
-//! renders; `cli` drives both from the command line.
+//! renders; `cli` drives both from the command line; `api` serves them over
+//! HTTP, with `jobs` (the training queue) and `storage` (the data directory).
 
 // Index loops over small fixed-size arrays read more clearly in numeric code.
 #![allow(clippy::needless_range_loop)]
 
+pub mod api;
 pub mod cli;
 pub mod engine;
+pub mod jobs;
 pub mod media;
+pub mod storage;

@@ -1,13 +1,15 @@
-//! The command line: `radiance train | render | eval`.
+//! The command line: `radiance train | render | eval | serve`.
 
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
 mod eval;
+mod serve;
 mod train;
 
 pub use eval::{EvalArgs, RenderArgs};
+pub use serve::ServeArgs;
 pub use train::TrainArgs;
 
 /// Train Neural Radiance Fields on CPUs and render novel views.
@@ -26,6 +28,8 @@ pub enum Command {
     Render(RenderArgs),
     /// Render a split and print PSNR and SSIM against its ground truth.
     Eval(EvalArgs),
+    /// Run the REST service: upload scenes, train as jobs, render views.
+    Serve(ServeArgs),
 }
 
 /// Options every command takes.
@@ -69,5 +73,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(a) => train::run(a),
         Command::Render(a) => eval::render(a),
         Command::Eval(a) => eval::eval(a),
+        Command::Serve(a) => serve::run(a),
     }
 }

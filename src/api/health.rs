@@ -1,0 +1,48 @@
+//! `GET /healthz` and `GET /metrics` (Prometheus text format).
+
+use std::fmt::Write;
+use std::sync::atomic::Ordering;
+
+use axum::Json;
+use axum::extract::State;
+use axum::http::header::CONTENT_TYPE;
+use axum::response::IntoResponse;
+use serde_json::{Value, json};
+
+use super::AppState;
+use crate::jobs::Status;
+
+pub async fn healthz() -> Json<Value> {
+    Json(json!({ "status": "ok", "version": env!("CARGO_PKG_VERSION") }))
+}
+
+pub async fn metrics(State(s): State<AppState>) -> impl IntoResponse {
+    let (by_status, queue) = s.scheduler.stats();
+    let c = s.scheduler.counters();
+    let (renders, render_secs) = {
+        let r = s.renders.lock().unwrap_or_else(|e| e.into_inner());
+        (r.count, r.seconds)
+    };
+    let mut out = String::new();
+    let _ = writeln!(out, "# HELP radiance_jobs Jobs by status.\n# TYPE radiance_jobs gauge");
+    for st in Status::ALL {
+        let _ = writeln!(out, "radiance_jobs{{status=\"{}\"}} {}", st.name(), by_status.get(&st).copied().unwrap_or(0));
+    }
+    let _ = writeln!(out, "# HELP radiance_queue_depth Jobs waiting to run.\n# TYPE radiance_queue_depth gauge");
+    let _ = writeln!(out, "radiance_queue_depth {queue}");
+    let counters = [
+        ("radiance_train_steps_total", "Training steps done.", c.train_steps.load(Ordering::Relaxed) as f64),
+        ("radiance_train_rays_total", "Training rays processed.", c.train_rays.load(Ordering::Relaxed) as f64),
+        (
+            "radiance_train_seconds_total",
+            "Seconds spent training (rays_total / seconds_total is the throughput).",
+            c.train_micros.load(Ordering::Relaxed) as f64 * 1e-6,
+        ),
+    ];
+    for (name, help, v) in counters {
+        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+    }
+    let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
+    let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");
+    ([(CONTENT_TYPE, "text/plain; version=0.0.4")], out)
+}

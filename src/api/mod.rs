@@ -1,0 +1,178 @@
+//! The REST service: `app(state)` builds every route; [`Server::start`]
+//! binds it and runs the job scheduler beside it.
+//!
+//! One file per resource (`scenes`, `jobs`, `models`), one error type
+//! (`error`), archive extraction (`archive`), `/healthz` and `/metrics`
+//! (`health`). Handlers never block the runtime: extraction, dataset
+//! validation and rendering run under `spawn_blocking`, training on the
+//! scheduler's threads; the numeric work of both on the global rayon pool.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::header::AUTHORIZATION;
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+
+use crate::engine::model::Model;
+use crate::jobs::{Scheduler, SchedulerConfig};
+use crate::storage::Storage;
+
+pub mod archive;
+pub mod error;
+pub mod health;
+pub mod jobs;
+pub mod models;
+pub mod scenes;
+
+pub use error::{ApiError, ApiResult, Code};
+
+/// Service settings.
+#[derive(Clone, Debug)]
+pub struct ServiceConfig {
+    pub data_dir: PathBuf,
+    /// Largest accepted upload body.
+    pub max_upload_bytes: u64,
+    /// Largest size an archive may unpack to.
+    pub max_unpacked_bytes: u64,
+    pub max_archive_entries: usize,
+    /// Largest `width * height` of a render.
+    pub max_render_pixels: u64,
+    /// Renders running at once (others wait).
+    pub max_concurrent_renders: usize,
+    /// When set, every route but `/healthz` needs `Authorization: Bearer KEY`.
+    pub api_key: Option<String>,
+    pub scheduler: SchedulerConfig,
+}
+
+impl ServiceConfig {
+    pub fn new(data_dir: impl Into<PathBuf>) -> Self {
+        Self {
+            data_dir: data_dir.into(),
+            max_upload_bytes: 512 << 20,
+            max_unpacked_bytes: 2 << 30,
+            max_archive_entries: 100_000,
+            max_render_pixels: 1 << 20,
+            max_concurrent_renders: 2,
+            api_key: None,
+            scheduler: SchedulerConfig::default(),
+        }
+    }
+}
+
+/// Render counters for /metrics.
+#[derive(Default)]
+pub struct RenderStats {
+    pub count: u64,
+    pub seconds: f64,
+}
+
+/// Everything a handler needs.
+pub struct AppInner {
+    pub config: ServiceConfig,
+    pub storage: Storage,
+    pub scheduler: Scheduler,
+    pub renders: Mutex<RenderStats>,
+    pub render_slots: tokio::sync::Semaphore,
+    /// Recently used models, most recent first.
+    pub model_cache: Mutex<Vec<CachedModel>>,
+}
+
+/// A loaded model, valid while its record's `updated_at` is unchanged.
+pub struct CachedModel {
+    pub id: String,
+    pub updated_at: u64,
+    pub model: Arc<dyn Model>,
+}
+
+pub type AppState = Arc<AppInner>;
+
+/// Builds the router over a state.
+pub fn app(state: AppState) -> Router {
+    let upload_limit = usize::try_from(state.config.max_upload_bytes).unwrap_or(usize::MAX);
+    let v1 = Router::new()
+        .route("/v1/scenes", post(scenes::create).get(scenes::list).layer(DefaultBodyLimit::max(upload_limit)))
+        .route("/v1/scenes/{id}", get(scenes::get_one).delete(scenes::delete))
+        .route("/v1/jobs", post(jobs::create).get(jobs::list))
+        .route("/v1/jobs/{id}", get(jobs::get_one))
+        .route("/v1/jobs/{id}/cancel", post(jobs::cancel))
+        .route("/v1/models", get(models::list))
+        .route("/v1/models/{id}", get(models::get_one))
+        .route("/v1/models/{id}/render", get(models::render))
+        .route("/metrics", get(health::metrics))
+        .route_layer(middleware::from_fn_with_state(state.clone(), auth));
+    Router::new().route("/healthz", get(health::healthz)).merge(v1).fallback(not_found).with_state(state)
+}
+
+async fn not_found(req: Request) -> ApiError {
+    ApiError::new(Code::NotFound, format!("no route for {} {}", req.method(), req.uri().path()))
+}
+
+/// Bearer-token check, when an API key is configured.
+async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
+    if let Some(key) = &s.config.api_key {
+        let given =
+            req.headers().get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
+        if !given.is_some_and(|g| constant_time_eq(g.as_bytes(), key.as_bytes())) {
+            return ApiError::new(Code::Unauthorized, "missing or wrong API key (Authorization: Bearer KEY)")
+                .into_response();
+        }
+    }
+    next.run(req).await
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// A running service.
+pub struct Server {
+    pub addr: SocketAddr,
+    pub state: AppState,
+    stop: tokio::sync::oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<std::io::Result<()>>,
+}
+
+impl Server {
+    /// Opens the data directory, resumes the job queue, binds `addr` and
+    /// serves in a background task.
+    pub async fn start(config: ServiceConfig, addr: SocketAddr) -> std::io::Result<Server> {
+        let storage = Storage::open(&config.data_dir)?;
+        let scheduler = Scheduler::open(storage.clone(), config.scheduler.clone())?;
+        let state = Arc::new(AppInner {
+            render_slots: tokio::sync::Semaphore::new(config.max_concurrent_renders.max(1)),
+            config,
+            storage,
+            scheduler,
+            renders: Mutex::new(RenderStats::default()),
+            model_cache: Mutex::new(Vec::new()),
+        });
+        let listener = tokio::net::TcpListener::bind(addr).await?;
+        let addr = listener.local_addr()?;
+        let (stop, rx) = tokio::sync::oneshot::channel::<()>();
+        let router = app(state.clone());
+        let task = tokio::spawn(async move {
+            axum::serve(listener, router)
+                .with_graceful_shutdown(async move {
+                    let _ = rx.await;
+                })
+                .await
+        });
+        tracing::info!(%addr, "listening");
+        Ok(Server { addr, state, stop, task })
+    }
+
+    /// Stops accepting requests, lets running ones finish, then stops the
+    /// scheduler (running jobs checkpoint and resume at the next start).
+    pub async fn shutdown(self) -> std::io::Result<()> {
+        let _ = self.stop.send(());
+        let served = self.task.await.map_err(std::io::Error::other)?;
+        let scheduler = self.state.scheduler.clone();
+        tokio::task::spawn_blocking(move || scheduler.shutdown()).await.map_err(std::io::Error::other)?;
+        served
+    }
+}

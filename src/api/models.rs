@@ -1,0 +1,272 @@
+//! `/v1/models`: list, get, and render a novel view as PNG.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use axum::Json;
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Path, Query, State};
+use axum::http::header::CONTENT_TYPE;
+use axum::response::IntoResponse;
+use image::{ImageBuffer, ImageEncoder, Luma, codecs::png::PngEncoder};
+use serde::Deserialize;
+
+use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
+use crate::engine::camera::{Camera, look_at};
+use crate::engine::math::Vec3;
+use crate::engine::model::Model;
+use crate::engine::persist;
+use crate::engine::render::{View, render_view};
+use crate::media::png;
+use crate::storage::{ModelInfo, ViewDefaults};
+
+pub async fn list(State(s): State<AppState>) -> ApiResult<Json<Vec<ModelInfo>>> {
+    let storage = s.storage.clone();
+    Ok(Json(tokio::task::spawn_blocking(move || storage.list_models()).await??))
+}
+
+pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<Json<ModelInfo>> {
+    s.storage.load_model(&id)?.map(Json).ok_or_else(|| ApiError::not_found("model", &id))
+}
+
+/// Query of `GET /v1/models/{id}/render`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RenderQuery {
+    /// Camera-to-world matrix, 12 or 16 comma-separated numbers, row-major
+    /// (OpenGL convention: the camera looks down its -z).
+    pub c2w: Option<String>,
+    /// Orbit position in degrees around the scene's up axis...
+    pub azimuth: Option<f32>,
+    /// ... degrees above the horizon ...
+    pub elevation: Option<f32>,
+    /// ... and distance from the scene centre (default: the training cameras').
+    pub radius: Option<f32>,
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    /// Horizontal field of view in degrees.
+    pub fov: Option<f32>,
+    /// `rgb` (default), `depth` (16-bit, far plane = white) or `alpha`.
+    pub output: Option<String>,
+    /// `white` (default), `black` or `transparent` (RGBA).
+    pub background: Option<String>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Output {
+    Rgb,
+    Depth,
+    Alpha,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Background {
+    Colour([f32; 3]),
+    Transparent,
+}
+
+/// Parses a matrix of 12 or 16 numbers and checks that it is a finite
+/// rigid transform.
+pub fn parse_c2w(s: &str) -> Result<[[f32; 4]; 3], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f32>().map_err(|_| format!("c2w: '{}' is not a number", t.trim())))
+        .collect::<Result<_, _>>()?;
+    if v.len() != 12 && v.len() != 16 {
+        return Err(format!("c2w needs 12 or 16 numbers, got {}", v.len()));
+    }
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err("c2w has a non-finite number".into());
+    }
+    if v.len() == 16 && v[12..] != [0.0, 0.0, 0.0, 1.0] {
+        return Err("c2w: the last row of a 4x4 matrix must be 0,0,0,1".into());
+    }
+    let m = [[v[0], v[1], v[2], v[3]], [v[4], v[5], v[6], v[7]], [v[8], v[9], v[10], v[11]]];
+    for a in 0..3 {
+        for b in 0..3 {
+            let dot: f32 = (0..3).map(|r| m[r][a] * m[r][b]).sum();
+            let want = if a == b { 1.0 } else { 0.0 };
+            if (dot - want).abs() > 1e-3 {
+                return Err("c2w: the rotation part is not orthonormal".into());
+            }
+        }
+    }
+    Ok(m)
+}
+
+/// The camera pose of an orbit position around the scene centre.
+pub fn orbit_pose(view: &ViewDefaults, azimuth_deg: f32, elevation_deg: f32, radius: f32) -> Option<[[f32; 4]; 3]> {
+    let up = Vec3::from_array(view.up).normalized()?;
+    let centre = Vec3::from_array(view.centre);
+    // Azimuth 0 is world +x projected on the horizon (+y when up is x).
+    let x = Vec3::new(1.0, 0.0, 0.0);
+    let reference = if up.dot(x).abs() > 0.9 { Vec3::new(0.0, 1.0, 0.0) } else { x };
+    let a = (reference - up * up.dot(reference)).normalized()?;
+    let b = up.cross(a);
+    let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
+    let dir = (a * az.cos() + b * az.sin()) * el.cos() + up * el.sin();
+    look_at(centre + dir * radius, centre, up)
+}
+
+fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResult<(Camera, Output, Background)> {
+    let orbit = q.azimuth.is_some() || q.elevation.is_some() || q.radius.is_some();
+    let pose = match &q.c2w {
+        Some(_) if orbit => return Err(ApiError::bad_request("give either c2w or azimuth/elevation/radius, not both")),
+        Some(m) => parse_c2w(m).map_err(ApiError::bad_request)?,
+        None => {
+            let (az, el, r) = (q.azimuth.unwrap_or(0.0), q.elevation.unwrap_or(30.0), q.radius.unwrap_or(view.radius));
+            if !(az.is_finite() && el.is_finite() && (-90.0..=90.0).contains(&el) && r.is_finite() && r > 0.0) {
+                return Err(ApiError::bad_request("orbit needs finite azimuth, elevation in [-90, 90], radius > 0"));
+            }
+            orbit_pose(view, az, el, r)
+                .ok_or_else(|| ApiError::bad_request("this orbit position gives no well-defined camera"))?
+        }
+    };
+    let width = q.width.unwrap_or(view.width);
+    let height = q.height.unwrap_or_else(|| match q.width {
+        Some(w) => ((w as u64 * view.height as u64) / view.width.max(1) as u64).max(1) as u32,
+        None => view.height,
+    });
+    if width == 0 || height == 0 || width > 8192 || height > 8192 || width as u64 * height as u64 > max_pixels {
+        return Err(ApiError::bad_request(format!(
+            "render size {width}x{height} is out of range (at most {max_pixels} pixels, sides 1..=8192)"
+        )));
+    }
+    let fov = q.fov.unwrap_or(view.fov);
+    if !(fov.is_finite() && fov > 1.0 && fov < 179.0) {
+        return Err(ApiError::bad_request("fov must be between 1 and 179 degrees"));
+    }
+    let output = match q.output.as_deref().unwrap_or("rgb") {
+        "rgb" => Output::Rgb,
+        "depth" => Output::Depth,
+        "alpha" => Output::Alpha,
+        o => return Err(ApiError::bad_request(format!("unknown output '{o}' (expected rgb, depth or alpha)"))),
+    };
+    let background = match q.background.as_deref().unwrap_or("white") {
+        "white" => Background::Colour([1.0; 3]),
+        "black" => Background::Colour([0.0; 3]),
+        "transparent" => Background::Transparent,
+        b => {
+            return Err(ApiError::bad_request(format!(
+                "unknown background '{b}' (expected white, black or transparent)"
+            )));
+        }
+    };
+    Ok((Camera::from_fov(width, height, fov.to_radians(), pose), output, background))
+}
+
+pub async fn render(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+    q: Result<Query<RenderQuery>, QueryRejection>,
+) -> ApiResult<impl IntoResponse> {
+    let Query(q) = q?;
+    let info = s.storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id))?;
+    let (camera, output, background) = parse_query(&q, &info.view, s.config.max_render_pixels)?;
+    let _slot = s.render_slots.acquire().await.map_err(ApiError::internal)?;
+    let t0 = Instant::now();
+    let s2 = s.clone();
+    let png = tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
+        let model = cached_model(&s2, &info)?;
+        let bg = match background {
+            Background::Colour(c) => c,
+            Background::Transparent => [0.0; 3],
+        };
+        let v = render_view(&*model, &camera, bg);
+        encode(&v, output, background, info.view.far).map_err(ApiError::internal)
+    })
+    .await??;
+    let mut r = s.renders.lock().unwrap_or_else(|e| e.into_inner());
+    r.count += 1;
+    r.seconds += t0.elapsed().as_secs_f64();
+    Ok(([(CONTENT_TYPE, "image/png")], png))
+}
+
+/// Loads a model, or reuses it when its record has not changed.
+fn cached_model(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
+    {
+        let cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(c) = cache.iter().find(|c| c.id == info.id && c.updated_at == info.updated_at) {
+            return Ok(c.model.clone());
+        }
+    }
+    let restored = persist::load(&s.storage.checkpoint(&info.id)).map_err(ApiError::internal)?;
+    let model: Arc<dyn Model> = Arc::from(restored.model);
+    let mut cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
+    cache.retain(|c| c.id != info.id);
+    cache.insert(0, CachedModel { id: info.id.clone(), updated_at: info.updated_at, model: model.clone() });
+    cache.truncate(4);
+    Ok(model)
+}
+
+fn encode(v: &View, output: Output, background: Background, far: f32) -> std::io::Result<Vec<u8>> {
+    let (w, h) = (v.width, v.height);
+    match (output, background) {
+        (Output::Rgb, Background::Colour(_)) => png::encode_rgb(w, h, &png::quantise_rgb(&v.rgb)),
+        (Output::Rgb, Background::Transparent) => {
+            // Rendered on black, the colour is premultiplied: divide it out.
+            let mut rgba = Vec::with_capacity(v.opacity.len() * 4);
+            for (c, &a) in v.rgb.chunks_exact(3).zip(&v.opacity) {
+                let inv = if a > 1e-6 { 1.0 / a } else { 0.0 };
+                rgba.extend(c.iter().map(|&x| png::to_u8(x * inv)));
+                rgba.push(png::to_u8(a));
+            }
+            let mut out = Vec::new();
+            PngEncoder::new(&mut out)
+                .write_image(&rgba, w, h, image::ExtendedColorType::Rgba8)
+                .map_err(std::io::Error::other)?;
+            Ok(out)
+        }
+        (Output::Alpha, _) => {
+            let a: Vec<u8> = v.opacity.iter().map(|&x| png::to_u8(x)).collect();
+            let mut out = Vec::new();
+            PngEncoder::new(&mut out)
+                .write_image(&a, w, h, image::ExtendedColorType::L8)
+                .map_err(std::io::Error::other)?;
+            Ok(out)
+        }
+        (Output::Depth, _) => {
+            let scale = if far > 0.0 { 65535.0 / far } else { 0.0 };
+            let px: Vec<u16> = v.depth.iter().map(|&d| (d * scale).clamp(0.0, 65535.0) as u16).collect();
+            let img: ImageBuffer<Luma<u16>, Vec<u16>> =
+                ImageBuffer::from_raw(w, h, px).ok_or_else(|| std::io::Error::other("depth buffer size"))?;
+            let mut out = std::io::Cursor::new(Vec::new());
+            img.write_to(&mut out, image::ImageFormat::Png).map_err(std::io::Error::other)?;
+            Ok(out.into_inner())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn c2w_checks() {
+        assert!(parse_c2w("1,0,0,0, 0,1,0,0, 0,0,1,4").is_ok());
+        assert!(parse_c2w("1,0,0,0, 0,1,0,0, 0,0,1,4, 0,0,0,1").is_ok());
+        assert!(parse_c2w("1,0,0,0, 0,1,0,0, 0,0,1").is_err());
+        assert!(parse_c2w("2,0,0,0, 0,1,0,0, 0,0,1,4").is_err());
+        assert!(parse_c2w("NaN,0,0,0, 0,1,0,0, 0,0,1,4").is_err());
+    }
+
+    #[test]
+    fn orbit_looks_at_centre() {
+        let view = ViewDefaults {
+            width: 8,
+            height: 8,
+            fov: 50.0,
+            centre: [1.0, 2.0, 3.0],
+            up: [0.0, 0.0, 1.0],
+            radius: 4.0,
+            far: 6.0,
+        };
+        let m = orbit_pose(&view, 90.0, 30.0, 4.0).unwrap();
+        let cam = Camera::from_fov(8, 8, 1.0, m);
+        let r = cam.ray(4.0, 4.0);
+        let to_centre = (Vec3::from_array(view.centre) - cam.origin()).normalized().unwrap();
+        assert!((r.dir.dot(to_centre) - 1.0).abs() < 1e-5);
+        assert!(((cam.origin() - Vec3::from_array(view.centre)).norm() - 4.0).abs() < 1e-4);
+        assert!(cam.origin().y > 2.0 && cam.origin().z > 3.0);
+    }
+}

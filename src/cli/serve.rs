@@ -1,0 +1,102 @@
+//! `radiance serve`: the REST service.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Args;
+
+use super::Common;
+use crate::api::{Server, ServiceConfig};
+use crate::jobs::SchedulerConfig;
+
+#[derive(Args, Debug)]
+pub struct ServeArgs {
+    /// Address to listen on (port 0 picks a free port; the address is printed).
+    #[arg(long, env = "RADIANCE_ADDR", default_value = "127.0.0.1:8080")]
+    pub addr: SocketAddr,
+    /// Where scenes, models and the job store live.
+    #[arg(long, env = "RADIANCE_DATA_DIR", default_value = "./radiance-data")]
+    pub data_dir: PathBuf,
+    /// Training jobs running at once; the others wait in order.
+    #[arg(long, env = "RADIANCE_MAX_CONCURRENT_JOBS", default_value_t = 1)]
+    pub max_concurrent_jobs: usize,
+    /// Queued jobs beyond this are refused with 503.
+    #[arg(long, env = "RADIANCE_MAX_QUEUED_JOBS", default_value_t = 100)]
+    pub max_queued_jobs: usize,
+    /// Seconds of training between checkpoints of a job.
+    #[arg(long, env = "RADIANCE_CHECKPOINT_EVERY", default_value_t = 30.0)]
+    pub checkpoint_every: f64,
+    /// Largest upload, in MiB.
+    #[arg(long, env = "RADIANCE_MAX_UPLOAD_MB", default_value_t = 512)]
+    pub max_upload_mb: u64,
+    /// Largest size an uploaded archive may unpack to, in MiB.
+    #[arg(long, env = "RADIANCE_MAX_UNPACKED_MB", default_value_t = 2048)]
+    pub max_unpacked_mb: u64,
+    /// Largest render, in pixels (width * height).
+    #[arg(long, env = "RADIANCE_MAX_RENDER_PIXELS", default_value_t = 1 << 20)]
+    pub max_render_pixels: u64,
+    /// Require `Authorization: Bearer KEY` on every route but /healthz.
+    #[arg(long, env = "RADIANCE_API_KEY", hide_env_values = true)]
+    pub api_key: Option<String>,
+    #[command(flatten)]
+    pub common: Common,
+}
+
+pub fn run(a: ServeArgs) -> anyhow::Result<()> {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,tower_http=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let threads = a.common.init_threads()?;
+    anyhow::ensure!(a.checkpoint_every.is_finite() && a.checkpoint_every > 0.0, "--checkpoint-every must be positive");
+    anyhow::ensure!(a.max_concurrent_jobs > 0, "--max-concurrent-jobs must be at least 1");
+    let mut config = ServiceConfig::new(&a.data_dir);
+    config.max_upload_bytes = a.max_upload_mb << 20;
+    config.max_unpacked_bytes = a.max_unpacked_mb << 20;
+    config.max_render_pixels = a.max_render_pixels;
+    config.api_key = a.api_key.filter(|k| !k.is_empty());
+    config.scheduler = SchedulerConfig {
+        max_concurrent: a.max_concurrent_jobs,
+        max_queued: a.max_queued_jobs,
+        checkpoint_every: a.checkpoint_every,
+        ..SchedulerConfig::default()
+    };
+    // The runtime only moves bytes: the work runs on the rayon pool.
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    rt.block_on(async move {
+        let server = Server::start(config, a.addr)
+            .await
+            .with_context(|| format!("starting the service on {} with data in {}", a.addr, a.data_dir.display()))?;
+        println!("listening on http://{}", server.addr);
+        tracing::info!(data_dir = %a.data_dir.display(), threads, "radiance serve ready");
+        shutdown_signal().await;
+        tracing::info!("shutting down: checkpointing running jobs");
+        server.shutdown().await.context("shutting down")?;
+        Ok(())
+    })
+}
+
+/// Ctrl-C or SIGTERM.
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}

@@ -1,0 +1,438 @@
+//! Jobs: their records and states, the persisted store, and the scheduler
+//! that runs at most `max_concurrent` of them at once.
+//!
+//! Only the enqueued, started and final states are written to disk (one JSON
+//! file per job, written atomically): progress lives in memory. On start-up
+//! a job found `queued` or `running` is queued again in its original order;
+//! a training job whose checkpoint exists resumes from it.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::io;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+use crate::engine::nerf::NerfConfig;
+use crate::engine::trainer::Budget;
+use crate::storage::{Storage, new_id, now_ms, write_json};
+
+pub mod train;
+
+/// A job's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Status {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Canceled,
+}
+
+impl Status {
+    pub const ALL: [Status; 5] = [Status::Queued, Status::Running, Status::Succeeded, Status::Failed, Status::Canceled];
+    pub fn name(self) -> &'static str {
+        match self {
+            Status::Queued => "queued",
+            Status::Running => "running",
+            Status::Succeeded => "succeeded",
+            Status::Failed => "failed",
+            Status::Canceled => "canceled",
+        }
+    }
+    pub fn is_final(self) -> bool {
+        matches!(self, Status::Succeeded | Status::Failed | Status::Canceled)
+    }
+}
+
+impl std::str::FromStr for Status {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Status::ALL
+            .into_iter()
+            .find(|v| v.name() == s)
+            .ok_or_else(|| format!("unknown status '{s}' (expected queued, running, succeeded, failed or canceled)"))
+    }
+}
+
+/// What a training job trains.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrainSpec {
+    pub scene_id: String,
+    /// Preset name (`nerf`, `nerf-tiny`).
+    pub model: String,
+    /// The model configuration (the preset's, or the one given).
+    pub config: NerfConfig,
+    pub budget: Budget,
+    pub seed: u64,
+    pub batch_rays: usize,
+}
+
+/// Where a job is, as clients see it.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct JobProgress {
+    pub step: u64,
+    pub loss: f64,
+    pub train_psnr: f64,
+    /// Seconds of training (across restarts).
+    pub elapsed: f64,
+    pub eta: Option<f64>,
+    /// Mean PSNR on held-out views, measured at the end.
+    pub test_psnr: Option<f64>,
+    pub rays_per_second: f64,
+}
+
+/// A job record.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Job {
+    pub id: String,
+    /// Enqueue order.
+    pub seq: u64,
+    pub kind: String,
+    pub status: Status,
+    #[serde(flatten)]
+    pub spec: TrainSpec,
+    pub created_at: u64,
+    pub started_at: Option<u64>,
+    pub finished_at: Option<u64>,
+    pub error: Option<String>,
+    /// Set once a checkpoint exists.
+    pub model_id: Option<String>,
+    pub progress: JobProgress,
+    /// Times the job was started (more than one after a restart).
+    #[serde(default)]
+    pub attempts: u32,
+}
+
+impl Job {
+    /// The id its model gets: the job id with the `mdl` prefix.
+    pub fn reserved_model_id(&self) -> String {
+        format!("mdl{}", self.id.trim_start_matches("job"))
+    }
+}
+
+/// Scheduler settings.
+#[derive(Clone, Debug)]
+pub struct SchedulerConfig {
+    pub max_concurrent: usize,
+    /// Queued jobs beyond this are refused (503).
+    pub max_queued: usize,
+    /// Seconds of training between checkpoints.
+    pub checkpoint_every: f64,
+    /// Held-out views rendered to measure a finished model.
+    pub eval_views: usize,
+    /// Whether to start jobs at all (tests enqueue with it off, then restart).
+    pub run_jobs: bool,
+}
+
+impl Default for SchedulerConfig {
+    fn default() -> Self {
+        Self { max_concurrent: 1, max_queued: 100, checkpoint_every: 30.0, eval_views: 4, run_jobs: true }
+    }
+}
+
+/// Why a job could not be enqueued or a scene deleted.
+#[derive(Debug, thiserror::Error)]
+pub enum SchedError {
+    #[error("scene '{0}' not found")]
+    SceneNotFound(String),
+    #[error("the queue is full ({0} jobs waiting)")]
+    QueueFull(usize),
+    #[error("scene '{scene}' is used by job '{job}' ({status})")]
+    SceneInUse { scene: String, job: String, status: &'static str },
+    #[error("job '{0}' not found")]
+    JobNotFound(String),
+    #[error("job '{id}' is already {status}")]
+    AlreadyFinal { id: String, status: &'static str },
+    #[error("{0}")]
+    Io(#[from] io::Error),
+}
+
+/// Counters for /metrics.
+#[derive(Default)]
+pub struct Counters {
+    pub train_steps: AtomicU64,
+    pub train_rays: AtomicU64,
+    /// Training time in microseconds.
+    pub train_micros: AtomicU64,
+}
+
+struct Running {
+    cancel: Arc<AtomicBool>,
+    /// The client asked to cancel (as opposed to a shutdown).
+    user_cancel: bool,
+}
+
+#[derive(Default)]
+struct State {
+    jobs: BTreeMap<String, Job>,
+    queue: VecDeque<String>,
+    running: HashMap<String, Running>,
+    threads: Vec<JoinHandle<()>>,
+    next_seq: u64,
+    shutting_down: bool,
+}
+
+pub(crate) struct Shared {
+    state: Mutex<State>,
+    wake: Condvar,
+    storage: Storage,
+    config: SchedulerConfig,
+    pub counters: Counters,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// The job queue and its scheduler thread.
+#[derive(Clone)]
+pub struct Scheduler {
+    shared: Arc<Shared>,
+    thread: Arc<Mutex<Option<JoinHandle<()>>>>,
+}
+
+impl Scheduler {
+    /// Loads the job records and starts the scheduler thread.
+    pub fn open(storage: Storage, config: SchedulerConfig) -> io::Result<Self> {
+        let mut st = State::default();
+        let mut jobs: Vec<Job> = crate::storage::list_json(&storage.jobs_dir())?;
+        jobs.sort_by_key(|j| j.seq);
+        for mut j in jobs {
+            st.next_seq = st.next_seq.max(j.seq + 1);
+            if !j.status.is_final() {
+                // It was waiting or interrupted: run it again, in order.
+                j.status = Status::Queued;
+                st.queue.push_back(j.id.clone());
+            }
+            st.jobs.insert(j.id.clone(), j);
+        }
+        let shared = Arc::new(Shared {
+            state: Mutex::new(st),
+            wake: Condvar::new(),
+            storage,
+            config,
+            counters: Counters::default(),
+        });
+        let s2 = shared.clone();
+        let handle = std::thread::Builder::new().name("scheduler".into()).spawn(move || scheduler_loop(&s2))?;
+        Ok(Self { shared, thread: Arc::new(Mutex::new(Some(handle))) })
+    }
+
+    pub fn counters(&self) -> &Counters {
+        &self.shared.counters
+    }
+
+    /// Registers a training job and answers with its queued record.
+    pub fn enqueue(&self, spec: TrainSpec) -> Result<Job, SchedError> {
+        let mut st = self.shared.lock();
+        if self.shared.storage.load_scene(&spec.scene_id)?.is_none() {
+            return Err(SchedError::SceneNotFound(spec.scene_id));
+        }
+        if st.queue.len() >= self.shared.config.max_queued {
+            return Err(SchedError::QueueFull(st.queue.len()));
+        }
+        let job = Job {
+            id: new_id("job"),
+            seq: st.next_seq,
+            kind: "train".into(),
+            status: Status::Queued,
+            spec,
+            created_at: now_ms(),
+            started_at: None,
+            finished_at: None,
+            error: None,
+            model_id: None,
+            progress: JobProgress::default(),
+            attempts: 0,
+        };
+        write_json(&self.shared.storage.job_record(&job.id), &job)?;
+        st.next_seq += 1;
+        st.queue.push_back(job.id.clone());
+        st.jobs.insert(job.id.clone(), job.clone());
+        drop(st);
+        self.shared.wake.notify_all();
+        Ok(job)
+    }
+
+    pub fn get(&self, id: &str) -> Option<Job> {
+        self.shared.lock().jobs.get(id).cloned()
+    }
+
+    /// Jobs in enqueue order, optionally of one status.
+    pub fn list(&self, status: Option<Status>) -> Vec<Job> {
+        let st = self.shared.lock();
+        let mut v: Vec<Job> = st.jobs.values().filter(|j| status.is_none_or(|s| j.status == s)).cloned().collect();
+        v.sort_by_key(|j| j.seq);
+        v
+    }
+
+    /// Jobs per status and the queue depth.
+    pub fn stats(&self) -> (HashMap<Status, usize>, usize) {
+        let st = self.shared.lock();
+        let mut m = HashMap::new();
+        for j in st.jobs.values() {
+            *m.entry(j.status).or_insert(0) += 1;
+        }
+        (m, st.queue.len())
+    }
+
+    /// Cancels a queued job at once, or asks a running one to stop (it
+    /// checkpoints and becomes `canceled` within about a step).
+    pub fn cancel(&self, id: &str) -> Result<Job, SchedError> {
+        let mut st = self.shared.lock();
+        let Some(job) = st.jobs.get(id) else { return Err(SchedError::JobNotFound(id.into())) };
+        match job.status {
+            s if s.is_final() => Err(SchedError::AlreadyFinal { id: id.into(), status: s.name() }),
+            Status::Running => {
+                if let Some(r) = st.running.get_mut(id) {
+                    r.user_cancel = true;
+                    r.cancel.store(true, Ordering::SeqCst);
+                }
+                Ok(st.jobs[id].clone())
+            }
+            _ => {
+                st.queue.retain(|q| q != id);
+                let job = st.jobs.get_mut(id).expect("checked above");
+                job.status = Status::Canceled;
+                job.finished_at = Some(now_ms());
+                let job = job.clone();
+                write_json(&self.shared.storage.job_record(id), &job)?;
+                Ok(job)
+            }
+        }
+    }
+
+    /// Runs `delete` (which removes the scene) unless a queued or running
+    /// job uses the scene; holding the lock so no job can be enqueued on it
+    /// meanwhile.
+    pub fn delete_scene(&self, scene_id: &str, delete: impl FnOnce() -> io::Result<()>) -> Result<(), SchedError> {
+        let st = self.shared.lock();
+        if let Some(j) = st.jobs.values().find(|j| j.spec.scene_id == scene_id && !j.status.is_final()) {
+            return Err(SchedError::SceneInUse { scene: scene_id.into(), job: j.id.clone(), status: j.status.name() });
+        }
+        delete()?;
+        Ok(())
+    }
+
+    /// Stops the scheduler: running jobs checkpoint and stay `running` on
+    /// disk (they resume at the next start). Blocks until they have.
+    pub fn shutdown(&self) {
+        {
+            let mut st = self.shared.lock();
+            st.shutting_down = true;
+            for r in st.running.values() {
+                r.cancel.store(true, Ordering::SeqCst);
+            }
+        }
+        self.shared.wake.notify_all();
+        if let Some(h) = self.thread.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            let _ = h.join();
+        }
+        let threads = std::mem::take(&mut self.shared.lock().threads);
+        for t in threads {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The scheduler thread: `tick` until shutdown.
+fn scheduler_loop(shared: &Arc<Shared>) {
+    let mut st = shared.lock();
+    while !st.shutting_down {
+        tick(shared, &mut st);
+        st = shared.wake.wait_timeout(st, Duration::from_millis(500)).unwrap_or_else(|e| e.into_inner()).0;
+    }
+}
+
+/// One round of scheduling, in order:
+/// 1. forget the threads of jobs that have finished;
+/// 2. while fewer than `max_concurrent` jobs run, take the oldest queued job,
+///    mark it running (and persist that), and start it on its own thread,
+///    whose heavy work runs on the global rayon pool.
+fn tick(shared: &Arc<Shared>, st: &mut State) {
+    st.threads.retain(|t| !t.is_finished());
+    if !shared.config.run_jobs {
+        return;
+    }
+    while st.running.len() < shared.config.max_concurrent.max(1) {
+        let Some(id) = st.queue.pop_front() else { break };
+        let Some(job) = st.jobs.get_mut(&id) else { continue };
+        job.status = Status::Running;
+        job.started_at = Some(now_ms());
+        job.attempts += 1;
+        job.error = None;
+        if let Err(e) = write_json(&shared.storage.job_record(&id), &*job) {
+            tracing::error!(job = %id, error = %e, "cannot persist job start");
+        }
+        let cancel = Arc::new(AtomicBool::new(false));
+        st.running.insert(id.clone(), Running { cancel: cancel.clone(), user_cancel: false });
+        let job = job.clone();
+        let s2 = shared.clone();
+        let spawned = std::thread::Builder::new().name(format!("job-{id}")).spawn(move || run_job(&s2, job, cancel));
+        match spawned {
+            Ok(h) => st.threads.push(h),
+            Err(e) => {
+                st.running.remove(&id);
+                finish(shared, st, &id, Outcome::Failed(format!("cannot start a thread: {e}")));
+            }
+        }
+    }
+}
+
+/// How a job run ended.
+pub(crate) enum Outcome {
+    Succeeded,
+    Failed(String),
+    /// Stopped by the cancel flag: canceled by the client, or interrupted by
+    /// a shutdown (then it stays `running` on disk and resumes later).
+    Stopped,
+}
+
+fn run_job(shared: &Arc<Shared>, job: Job, cancel: Arc<AtomicBool>) {
+    let id = job.id.clone();
+    tracing::info!(job = %id, scene = %job.spec.scene_id, model = %job.spec.model, "job started");
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| train::run(shared, &job, &cancel)))
+        .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
+    let mut st = shared.lock();
+    finish(shared, &mut st, &id, outcome);
+    drop(st);
+    shared.wake.notify_all();
+}
+
+/// Records the end of a run (in memory and, unless interrupted by a
+/// shutdown, on disk).
+fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) {
+    let user_cancel = st.running.remove(id).is_some_and(|r| r.user_cancel);
+    let Some(job) = st.jobs.get_mut(id) else { return };
+    let status = match outcome {
+        Outcome::Succeeded => Status::Succeeded,
+        Outcome::Failed(e) => {
+            job.error = Some(e);
+            Status::Failed
+        }
+        Outcome::Stopped if user_cancel => Status::Canceled,
+        Outcome::Stopped => {
+            tracing::info!(job = %id, step = job.progress.step, "job interrupted by shutdown; it resumes at the next start");
+            return;
+        }
+    };
+    job.status = status;
+    job.finished_at = Some(now_ms());
+    tracing::info!(job = %id, status = status.name(), error = job.error.as_deref().unwrap_or(""), "job finished");
+    if let Err(e) = write_json(&shared.storage.job_record(id), &*job) {
+        tracing::error!(job = %id, error = %e, "cannot persist job end");
+    }
+}
+
+/// Updates a job's in-memory progress.
+pub(crate) fn set_progress(shared: &Shared, id: &str, f: impl FnOnce(&mut Job)) {
+    if let Some(j) = shared.lock().jobs.get_mut(id) {
+        f(j);
+    }
+}

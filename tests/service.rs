@@ -1,0 +1,448 @@
+//! The REST service end to end: the real server on 127.0.0.1:0 with a
+//! temporary data directory and a tiny generated scene.
+
+use std::io::Write;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use radiance::api::{Server, ServiceConfig};
+use radiance::engine::synthetic::BallScene;
+use reqwest::{Client, StatusCode};
+use serde_json::{Value, json};
+
+fn scene_dir(dir: &Path) {
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(dir).unwrap();
+}
+
+/// Every file under `dir` as (relative name, bytes), sorted.
+fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    fn walk(root: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
+        for e in std::fs::read_dir(d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                let rel = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
+                out.push((rel, std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    let mut v = Vec::new();
+    walk(dir, dir, &mut v);
+    v.sort();
+    v
+}
+
+fn zip_of(entries: &[(String, Vec<u8>)]) -> Vec<u8> {
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+    for (name, data) in entries {
+        w.start_file(name.as_str(), opts).unwrap();
+        w.write_all(data).unwrap();
+    }
+    w.finish().unwrap().into_inner()
+}
+
+/// A tar.gz whose entry names are written raw (so `..` can be tested).
+fn tar_gz_of(entries: &[(String, Vec<u8>)]) -> Vec<u8> {
+    let gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    let mut b = tar::Builder::new(gz);
+    for (name, data) in entries {
+        let mut h = tar::Header::new_gnu();
+        h.as_gnu_mut().unwrap().name[..name.len()].copy_from_slice(name.as_bytes());
+        h.set_size(data.len() as u64);
+        h.set_mode(0o644);
+        h.set_entry_type(tar::EntryType::Regular);
+        h.set_cksum();
+        b.append(&h, data.as_slice()).unwrap();
+    }
+    b.into_inner().unwrap().finish().unwrap()
+}
+
+fn ball_files() -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    scene_dir(d.path());
+    files(d.path())
+}
+
+struct Svc {
+    server: Server,
+    client: Client,
+    base: String,
+}
+
+impl Svc {
+    async fn start(config: ServiceConfig) -> Svc {
+        let server = Server::start(config, "127.0.0.1:0".parse().unwrap()).await.unwrap();
+        let base = format!("http://{}", server.addr);
+        Svc { server, client: Client::new(), base }
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    async fn get(&self, path: &str) -> (StatusCode, Value) {
+        let r = self.client.get(self.url(path)).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    async fn post_json(&self, path: &str, body: Value) -> (StatusCode, Value) {
+        let r = self.client.post(self.url(path)).json(&body).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    async fn upload(&self, content_type: &str, body: Vec<u8>) -> (StatusCode, Value) {
+        let r = self
+            .client
+            .post(self.url("/v1/scenes"))
+            .header("content-type", content_type)
+            .body(body)
+            .send()
+            .await
+            .unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    async fn upload_ball(&self) -> String {
+        let (s, v) = self.upload("application/zip", zip_of(&ball_files())).await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        v["id"].as_str().unwrap().to_string()
+    }
+
+    async fn job(&self, scene: &str, budget: Value) -> String {
+        let body = json!({ "scene_id": scene, "model": "nerf-tiny", "budget": budget, "seed": 1, "batch_rays": 256 });
+        let (s, v) = self.post_json("/v1/jobs", body).await;
+        assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+        assert_eq!(v["status"], "queued");
+        v["id"].as_str().unwrap().to_string()
+    }
+
+    /// Polls a job until `pred` holds (panics after `secs`).
+    async fn wait_job(&self, id: &str, secs: f64, pred: impl Fn(&Value) -> bool) -> Value {
+        let t0 = Instant::now();
+        loop {
+            let (s, v) = self.get(&format!("/v1/jobs/{id}")).await;
+            assert_eq!(s, StatusCode::OK);
+            if pred(&v) {
+                return v;
+            }
+            assert!(t0.elapsed().as_secs_f64() < secs, "timed out waiting for job: {v}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    async fn png(&self, path: &str) -> image::DynamicImage {
+        let r = self.client.get(self.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "{path}: {}", r.text().await.unwrap());
+        assert_eq!(r.headers()["content-type"], "image/png");
+        image::load_from_memory(&r.bytes().await.unwrap()).unwrap()
+    }
+}
+
+fn config(dir: &Path) -> ServiceConfig {
+    let mut c = ServiceConfig::new(dir);
+    c.scheduler.checkpoint_every = 0.2;
+    c
+}
+
+fn assert_error(v: &Value, code: &str) {
+    assert_eq!(v["error"]["code"], code, "{v}");
+    assert!(v["error"]["message"].as_str().is_some_and(|m| !m.is_empty()), "{v}");
+}
+
+/// Nothing left in the data directory but empty folders.
+fn assert_no_scene_files(data: &Path) {
+    for d in ["scenes", "tmp"] {
+        let left: Vec<_> = std::fs::read_dir(data.join(d)).unwrap().collect();
+        assert!(left.is_empty(), "{d}/ holds {left:?}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn upload_zip_and_tar_gz_list_get_delete() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let (s, v) = svc.get("/healthz").await;
+    assert_eq!((s, v["status"].as_str()), (StatusCode::OK, Some("ok")));
+
+    let (s, v) = svc.upload("application/zip", zip_of(&ball_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!(v["format"], "blender");
+    assert_eq!(v["images"], json!({ "train": 8, "val": 0, "test": 4 }));
+    assert_eq!(v["resolution"], json!([16, 16]));
+    assert!(v["warnings"].is_array());
+    let zip_id = v["id"].as_str().unwrap().to_string();
+
+    // A tar.gz that wraps the dataset in a folder, as `tar czf lego.tgz lego` does.
+    let wrapped: Vec<_> = ball_files().into_iter().map(|(n, d)| (format!("lego/{n}"), d)).collect();
+    let (s, v) = svc.upload("application/gzip", tar_gz_of(&wrapped)).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let tgz_id = v["id"].as_str().unwrap().to_string();
+
+    let (_, list) = svc.get("/v1/scenes").await;
+    let ids: Vec<&str> = list.as_array().unwrap().iter().map(|s| s["id"].as_str().unwrap()).collect();
+    assert_eq!(ids, [zip_id.as_str(), tgz_id.as_str()]);
+    let (s, v) = svc.get(&format!("/v1/scenes/{tgz_id}")).await;
+    assert_eq!((s, v["images"]["train"].as_u64()), (StatusCode::OK, Some(8)));
+
+    let r = svc.client.delete(svc.url(&format!("/v1/scenes/{zip_id}"))).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    let (s, v) = svc.get(&format!("/v1/scenes/{zip_id}")).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    assert_error(&v, "not_found");
+    assert!(!data.path().join("scenes").join(&zip_id).exists());
+    let (s, v) = svc.get("/v1/nothing").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    assert_error(&v, "not_found");
+    svc.server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_uploads_are_refused_and_leave_nothing() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    cfg.max_unpacked_bytes = 1 << 20;
+    let svc = Svc::start(cfg).await;
+    let good = ball_files();
+
+    // `..` in a tar entry
+    let mut evil = good.clone();
+    evil.push(("../escaped.txt".into(), b"x".to_vec()));
+    let (s, v) = svc.upload("application/gzip", tar_gz_of(&evil)).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert_error(&v, "bad_request");
+    assert!(v["error"]["message"].as_str().unwrap().contains(".."), "{v}");
+    assert!(!data.path().join("tmp").join("escaped.txt").exists());
+
+    // an absolute path in a zip
+    let mut abs = good.clone();
+    abs.push(("/tmp/radiance-abs.txt".into(), b"x".to_vec()));
+    let (s, v) = svc.upload("application/zip", zip_of(&abs)).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+
+    // a symlink in a zip
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    w.add_symlink("link", "/etc/passwd", zip::write::SimpleFileOptions::default()).unwrap();
+    let (s, v) = svc.upload("application/zip", w.finish().unwrap().into_inner()).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert!(v["error"]["message"].as_str().unwrap().contains("link"), "{v}");
+
+    // garbage and a truncated archive
+    let (s, _) = svc.upload("application/zip", b"not a zip at all".to_vec()).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    let tgz = tar_gz_of(&good);
+    let (s, v) = svc.upload("application/gzip", tgz[..tgz.len() / 2].to_vec()).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+
+    // a decompression bomb: 8 MiB of zeros in a few KiB
+    let (s, v) = svc.upload("application/zip", zip_of(&[("zeros.bin".into(), vec![0u8; 8 << 20])])).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
+    assert_error(&v, "payload_too_large");
+
+    // wrong media type
+    let (s, v) = svc.upload("text/plain", zip_of(&good)).await;
+    assert_eq!(s, StatusCode::UNSUPPORTED_MEDIA_TYPE, "{v}");
+
+    // a valid archive of an invalid dataset: a missing image, then a NaN pose
+    let missing: Vec<_> = good.iter().filter(|(n, _)| n != "train/r_3.png").cloned().collect();
+    let (s, v) = svc.upload("application/zip", zip_of(&missing)).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert_error(&v, "invalid_dataset");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("r_3") && !msg.contains(&*data.path().to_string_lossy()), "{msg}");
+    let nan: Vec<_> = good
+        .iter()
+        .map(|(n, d)| {
+            if n == "transforms_train.json" {
+                let mut j: Value = serde_json::from_slice(d).unwrap();
+                j["frames"][0]["transform_matrix"][0][3] = json!("NaN");
+                (n.clone(), serde_json::to_vec(&j).unwrap())
+            } else {
+                (n.clone(), d.clone())
+            }
+        })
+        .collect();
+    let (s, v) = svc.upload("application/zip", zip_of(&nan)).await;
+    assert!(s == StatusCode::UNPROCESSABLE_ENTITY, "{s} {v}");
+
+    assert_no_scene_files(data.path());
+    let (_, list) = svc.get("/v1/scenes").await;
+    assert_eq!(list, json!([]));
+    assert!(!Path::new("/tmp/radiance-abs.txt").exists());
+    svc.server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let scene = svc.upload_ball().await;
+    let id = svc.job(&scene, json!({ "steps": 40 })).await;
+    let job = svc.wait_job(&id, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    assert_eq!(job["status"], "succeeded", "{job}");
+    assert_eq!(job["progress"]["step"], 40);
+    assert!(job["finished_at"].as_u64().is_some());
+    let model = job["model_id"].as_str().unwrap().to_string();
+
+    let (s, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert_eq!(s, StatusCode::OK, "{m}");
+    assert_eq!(
+        (m["steps"].as_u64(), m["scene_id"].as_str(), m["complete"].as_bool()),
+        (Some(40), Some(&*scene), Some(true))
+    );
+    assert!(m["test_psnr"].as_f64().is_some_and(|p| p.is_finite()), "{m}");
+    assert!(m["size_bytes"].as_u64().unwrap() > 0);
+    let (_, list) = svc.get("/v1/models").await;
+    assert_eq!(list.as_array().unwrap().len(), 1);
+    let (_, done) = svc.get("/v1/jobs?status=succeeded").await;
+    assert_eq!(done.as_array().unwrap().len(), 1);
+    let (_, none) = svc.get("/v1/jobs?status=running").await;
+    assert_eq!(none, json!([]));
+
+    // By matrix: a camera at z = 3 looking down -z at the ball; default size.
+    let img = svc.png(&format!("/v1/models/{model}/render?c2w=1,0,0,0,0,1,0,0,0,0,1,3")).await;
+    assert_eq!((img.width(), img.height()), (16, 16));
+    // By orbit, with a size and the other outputs.
+    let img = svc.png(&format!("/v1/models/{model}/render?azimuth=45&elevation=20&width=24&height=20")).await;
+    assert_eq!((img.width(), img.height()), (24, 20));
+    let img = svc.png(&format!("/v1/models/{model}/render?azimuth=0&output=depth&background=black")).await;
+    assert_eq!(img.width(), 16);
+    let img = svc.png(&format!("/v1/models/{model}/render?background=transparent")).await;
+    assert!(img.color().has_alpha());
+
+    for bad in ["width=100000&height=100000", "c2w=1,2,3", "c2w=2,0,0,0,0,1,0,0,0,0,1,3", "output=nope", "fov=0"] {
+        let (s, v) = svc.get(&format!("/v1/models/{model}/render?{bad}")).await;
+        assert_eq!(s, StatusCode::BAD_REQUEST, "{bad}: {v}");
+        assert_error(&v, "bad_request");
+    }
+    let (s, _) = svc.get("/v1/models/mdl_missing/render").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+
+    let metrics = svc.client.get(svc.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(metrics.contains("radiance_jobs{status=\"succeeded\"} 1"), "{metrics}");
+    assert!(metrics.contains("radiance_render_seconds_count 4"), "{metrics}");
+    svc.server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn job_requests_are_checked() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let scene = svc.upload_ball().await;
+    let cases = [
+        (json!({ "scene_id": "scn_nope", "budget": { "steps": 1 } }), StatusCode::NOT_FOUND),
+        (json!({ "scene_id": scene, "budget": {} }), StatusCode::BAD_REQUEST),
+        (json!({ "scene_id": scene, "budget": { "seconds": -1 } }), StatusCode::BAD_REQUEST),
+        (json!({ "scene_id": scene, "model": "gpt", "budget": { "steps": 1 } }), StatusCode::BAD_REQUEST),
+        (json!({ "scene_id": scene, "budget": { "steps": 1 }, "surprise": 1 }), StatusCode::BAD_REQUEST),
+    ];
+    for (body, want) in cases {
+        let (s, v) = svc.post_json("/v1/jobs", body.clone()).await;
+        assert_eq!(s, want, "{body}: {v}");
+        assert!(v["error"]["code"].is_string(), "{v}");
+    }
+    let (s, v) = svc.get("/v1/jobs?status=sleeping").await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    let (s, _) = svc.post_json("/v1/jobs/job_nope/cancel", json!({})).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    svc.server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_stops_a_running_job_and_keeps_its_model() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let scene = svc.upload_ball().await;
+    let id = svc.job(&scene, json!({ "seconds": 600 })).await;
+    let queued = svc.job(&scene, json!({ "steps": 5 })).await;
+    svc.wait_job(&id, 60.0, |v| v["status"] == "running" && v["progress"]["step"].as_u64() > Some(5)).await;
+
+    // The scene is in use.
+    let r = svc.client.delete(svc.url(&format!("/v1/scenes/{scene}"))).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::CONFLICT);
+    assert_error(&r.json().await.unwrap(), "conflict");
+
+    // A queued job is canceled at once.
+    let (s, v) = svc.post_json(&format!("/v1/jobs/{queued}/cancel"), json!({})).await;
+    assert_eq!((s, v["status"].as_str()), (StatusCode::ACCEPTED, Some("canceled")), "{v}");
+
+    let t0 = Instant::now();
+    let (s, _) = svc.post_json(&format!("/v1/jobs/{id}/cancel"), json!({})).await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    let job = svc.wait_job(&id, 5.0, |v| v["status"] == "canceled").await;
+    assert!(t0.elapsed() < Duration::from_secs(2), "cancel took {:?}", t0.elapsed());
+    let (s, v) = svc.post_json(&format!("/v1/jobs/{id}/cancel"), json!({})).await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+
+    let model = job["model_id"].as_str().expect("a canceled job keeps its model");
+    let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert!(m["steps"].as_u64().unwrap() > 5, "{m}");
+    let img = svc.png(&format!("/v1/models/{model}/render?azimuth=90")).await;
+    assert_eq!(img.width(), 16);
+
+    let r = svc.client.delete(svc.url(&format!("/v1/scenes/{scene}"))).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    // Models outlive their scene.
+    svc.png(&format!("/v1/models/{model}/render?azimuth=10")).await;
+    svc.server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn restart_runs_queued_jobs_and_resumes_interrupted_ones() {
+    let data = tempfile::tempdir().unwrap();
+    // First life: the scheduler is off, so the job only gets queued.
+    let mut cfg = config(data.path());
+    cfg.scheduler.run_jobs = false;
+    let svc = Svc::start(cfg).await;
+    let scene = svc.upload_ball().await;
+    let queued = svc.job(&scene, json!({ "steps": 20 })).await;
+    svc.server.shutdown().await.unwrap();
+
+    // Second life: it runs. Start a longer one and stop the server mid-training.
+    let svc = Svc::start(config(data.path())).await;
+    let (s, v) = svc.get(&format!("/v1/scenes/{scene}")).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let job = svc.wait_job(&queued, 60.0, |v| v["status"] == "succeeded").await;
+    assert_eq!(job["progress"]["step"], 20);
+    let long = svc.job(&scene, json!({ "steps": 300 })).await;
+    let seen =
+        svc.wait_job(&long, 60.0, |v| v["model_id"].is_string() && v["progress"]["step"].as_u64() >= Some(10)).await;
+    svc.server.shutdown().await.unwrap();
+    let on_disk: Value =
+        serde_json::from_slice(&std::fs::read(data.path().join(format!("jobs/{long}.json"))).unwrap()).unwrap();
+    assert_eq!(on_disk["status"], "running", "an interrupted job is not final");
+
+    // Third life: it resumes from its checkpoint and finishes.
+    let svc = Svc::start(config(data.path())).await;
+    let done = svc.wait_job(&long, 120.0, |v| v["status"] == "succeeded").await;
+    assert_eq!(done["attempts"], 2, "{done}");
+    let model = done["model_id"].as_str().unwrap();
+    let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert_eq!(m["steps"], 300);
+    assert!(seen["progress"]["step"].as_u64().unwrap() < 300);
+    let (_, all) = svc.get("/v1/jobs").await;
+    assert_eq!(all.as_array().unwrap().len(), 2);
+    svc.server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn api_key_is_required_when_configured() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    cfg.api_key = Some("s3cret".into());
+    let svc = Svc::start(cfg).await;
+    let (s, v) = svc.get("/v1/scenes").await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    assert_error(&v, "unauthorized");
+    let r = svc.client.get(svc.url("/v1/scenes")).bearer_auth("wrong").send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+    let r = svc.client.get(svc.url("/v1/scenes")).bearer_auth("s3cret").send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let (s, _) = svc.get("/healthz").await;
+    assert_eq!(s, StatusCode::OK);
+    svc.server.shutdown().await.unwrap();
+}
