@@ -66,7 +66,8 @@ fn ball_files() -> Vec<(String, Vec<u8>)> {
 }
 
 struct Svc {
-    server: Server,
+    /// `None` when talking to a server in a child process.
+    server: Option<Server>,
     client: Client,
     base: String,
 }
@@ -75,7 +76,17 @@ impl Svc {
     async fn start(config: ServiceConfig) -> Svc {
         let server = Server::start(config, "127.0.0.1:0".parse().unwrap()).await.unwrap();
         let base = format!("http://{}", server.addr);
-        Svc { server, client: Client::new(), base }
+        Svc { server: Some(server), client: Client::new(), base }
+    }
+
+    fn remote(base: String) -> Svc {
+        Svc { server: None, client: Client::new(), base }
+    }
+
+    async fn stop(self) {
+        if let Some(s) = self.server {
+            s.shutdown().await.unwrap();
+        }
     }
 
     fn url(&self, path: &str) -> String {
@@ -198,7 +209,7 @@ async fn upload_zip_and_tar_gz_list_get_delete() {
     let (s, v) = svc.get("/v1/nothing").await;
     assert_eq!(s, StatusCode::NOT_FOUND);
     assert_error(&v, "not_found");
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -273,7 +284,7 @@ async fn bad_uploads_are_refused_and_leave_nothing() {
     let (_, list) = svc.get("/v1/scenes").await;
     assert_eq!(list, json!([]));
     assert!(!Path::new("/tmp/radiance-abs.txt").exists());
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -325,7 +336,7 @@ async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
     let metrics = svc.client.get(svc.url("/metrics")).send().await.unwrap().text().await.unwrap();
     assert!(metrics.contains("radiance_jobs{status=\"succeeded\"} 1"), "{metrics}");
     assert!(metrics.contains("radiance_render_seconds_count 4"), "{metrics}");
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -349,7 +360,7 @@ async fn job_requests_are_checked() {
     assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
     let (s, _) = svc.post_json("/v1/jobs/job_nope/cancel", json!({})).await;
     assert_eq!(s, StatusCode::NOT_FOUND);
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -388,7 +399,7 @@ async fn cancel_stops_a_running_job_and_keeps_its_model() {
     assert_eq!(r.status(), StatusCode::NO_CONTENT);
     // Models outlive their scene.
     svc.png(&format!("/v1/models/{model}/render?azimuth=10")).await;
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -400,7 +411,7 @@ async fn restart_runs_queued_jobs_and_resumes_interrupted_ones() {
     let svc = Svc::start(cfg).await;
     let scene = svc.upload_ball().await;
     let queued = svc.job(&scene, json!({ "steps": 20 })).await;
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
 
     // Second life: it runs. Start a longer one and stop the server mid-training.
     let svc = Svc::start(config(data.path())).await;
@@ -411,7 +422,7 @@ async fn restart_runs_queued_jobs_and_resumes_interrupted_ones() {
     let long = svc.job(&scene, json!({ "steps": 300 })).await;
     let seen =
         svc.wait_job(&long, 60.0, |v| v["model_id"].is_string() && v["progress"]["step"].as_u64() >= Some(10)).await;
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
     let on_disk: Value =
         serde_json::from_slice(&std::fs::read(data.path().join(format!("jobs/{long}.json"))).unwrap()).unwrap();
     assert_eq!(on_disk["status"], "running", "an interrupted job is not final");
@@ -426,7 +437,7 @@ async fn restart_runs_queued_jobs_and_resumes_interrupted_ones() {
     assert!(seen["progress"]["step"].as_u64().unwrap() < 300);
     let (_, all) = svc.get("/v1/jobs").await;
     assert_eq!(all.as_array().unwrap().len(), 2);
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -444,5 +455,90 @@ async fn api_key_is_required_when_configured() {
     assert_eq!(r.status(), StatusCode::OK);
     let (s, _) = svc.get("/healthz").await;
     assert_eq!(s, StatusCode::OK);
-    svc.server.shutdown().await.unwrap();
+    svc.stop().await;
+}
+
+/// Starts the real binary; returns it and its base URL.
+fn spawn_binary(data: &Path) -> (std::process::Child, String) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_radiance"))
+        .args(["serve", "--addr", "127.0.0.1:0", "--checkpoint-every", "0.2", "--threads", "2", "--data-dir"])
+        .arg(data)
+        .env_remove("RADIANCE_API_KEY")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected output: {line}"));
+    (child, addr.to_string())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn job_killed_mid_training_resumes_after_restart() {
+    let data = tempfile::tempdir().unwrap();
+    let (mut child, base) = spawn_binary(data.path());
+    let svc = Svc::remote(base);
+    let scene = svc.upload_ball().await;
+    let id = svc.job(&scene, json!({ "steps": 300 })).await;
+    svc.wait_job(&id, 60.0, |v| v["model_id"].is_string() && v["progress"]["step"].as_u64() >= Some(10)).await;
+    child.kill().unwrap(); // SIGKILL: no chance to checkpoint or record anything
+    child.wait().unwrap();
+
+    let (mut child, base) = spawn_binary(data.path());
+    let svc = Svc::remote(base);
+    let done = svc.wait_job(&id, 120.0, |v| v["status"] == "succeeded" || v["status"] == "failed").await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["attempts"], 2, "{done}");
+    let (_, m) = svc.get(&format!("/v1/models/{}", done["model_id"].as_str().unwrap())).await;
+    assert_eq!(m["steps"], 300, "{m}");
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
+
+/// `(method, path)` of every operation in openapi.yaml (a small reader for
+/// the layout of that file: paths at two spaces, methods at four).
+fn spec_routes() -> Vec<(String, String)> {
+    let spec = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/openapi.yaml")).unwrap();
+    let mut out = Vec::new();
+    let (mut in_paths, mut path) = (false, String::new());
+    for line in spec.lines() {
+        if !line.starts_with(' ') {
+            in_paths = line == "paths:";
+        } else if in_paths && line.starts_with("  /") {
+            path = line.trim().trim_end_matches(':').to_string();
+        } else if in_paths
+            && let Some(m) = ["get:", "post:", "delete:", "put:", "patch:"].iter().find(|m| line == format!("    {m}"))
+        {
+            out.push((m.trim_end_matches(':').to_uppercase(), path.clone()));
+        }
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn router_and_openapi_list_the_same_routes() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let routes = spec_routes();
+    assert!(routes.len() >= 12, "{routes:?}");
+    let mut paths: Vec<&String> = routes.iter().map(|(_, p)| p).collect();
+    paths.dedup();
+    for path in paths {
+        let url = svc.url(&path.replace("{id}", "x_none"));
+        for method in ["GET", "POST", "DELETE", "PUT", "PATCH"] {
+            let r = svc.client.request(method.parse().unwrap(), &url).send().await.unwrap();
+            let status = r.status();
+            let body = r.text().await.unwrap();
+            let in_spec = routes.iter().any(|(m, p)| m == method && p == path);
+            if in_spec {
+                // Served: any answer but "no such route" or "wrong method".
+                assert!(status != StatusCode::METHOD_NOT_ALLOWED && !body.contains("no route"), "{method} {path}");
+            } else {
+                assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED, "{method} {path} is served but not in the spec");
+            }
+        }
+    }
+    svc.stop().await;
 }

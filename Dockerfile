@@ -1,0 +1,23 @@
+# Multi-stage build of `radiance serve`: a Rust builder, then a slim runtime
+# that runs as a non-root user with the data directory on a volume.
+FROM rust:1.95-slim-bookworm AS build
+WORKDIR /src
+COPY Cargo.toml Cargo.lock ./
+COPY src ./src
+RUN cargo build --release --locked --bin radiance
+
+FROM debian:bookworm-slim
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends curl=7.* \
+    && rm -rf /var/lib/apt/lists/* \
+    && useradd --system --uid 10001 --home-dir /data radiance \
+    && mkdir -p /data \
+    && chown radiance /data
+COPY --from=build /src/target/release/radiance /usr/local/bin/radiance
+USER radiance
+ENV RADIANCE_ADDR=0.0.0.0:8080 \
+    RADIANCE_DATA_DIR=/data
+VOLUME ["/data"]
+EXPOSE 8080
+HEALTHCHECK --interval=30s --timeout=3s --start-period=5s CMD ["curl", "-fsS", "http://127.0.0.1:8080/healthz"]
+ENTRYPOINT ["radiance", "serve"]
