@@ -63,6 +63,20 @@ fn render_one(r: &persist::Restored, f: &Frame, bg: [f32; 3]) -> (View, f64) {
     (v, t.elapsed().as_secs_f64())
 }
 
+/// PSNR and SSIM of a rendered view against the frame's ground truth
+/// composited on `background`. Scores the 8-bit image that `render` writes,
+/// so the numbers match an independent check of the PNG files.
+pub(super) fn score(v: &View, f: &Frame, background: [f32; 3]) -> anyhow::Result<(f64, f64)> {
+    let ours: Vec<f32> = png::quantise_rgb(&v.rgb).iter().map(|&b| b as f32 / 255.0).collect();
+    let gt: Vec<f32> = (0..f.camera.height)
+        .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
+        .flat_map(|(i, j)| f.image.rgb_on(i, j, background))
+        .collect();
+    let p = psnr(&ours, &gt);
+    let s = ssim(&ours, &gt, v.width as usize, v.height as usize, 3).with_context(|| format!("SSIM of {}", f.name))?;
+    Ok((p, s))
+}
+
 pub fn render(a: RenderArgs) -> anyhow::Result<()> {
     a.common.init_threads()?;
     let (r, ds, idx) = setup(&a.model, &a.data)?;
@@ -92,16 +106,7 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
     for &i in &idx {
         let f = &ds.frames[i];
         let (v, secs) = render_one(&r, f, ds.background);
-        // Score the 8-bit image that `render` writes, so the numbers match
-        // an independent check of the PNG files.
-        let ours: Vec<f32> = png::quantise_rgb(&v.rgb).iter().map(|&b| b as f32 / 255.0).collect();
-        let gt: Vec<f32> = (0..f.camera.height)
-            .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
-            .flat_map(|(i, j)| f.image.rgb_on(i, j, ds.background))
-            .collect();
-        let p = psnr(&ours, &gt);
-        let s =
-            ssim(&ours, &gt, v.width as usize, v.height as usize, 3).with_context(|| format!("SSIM of {}", f.name))?;
+        let (p, s) = score(&v, f, ds.background)?;
         if let Some(o) = &a.out {
             let path = o.join(format!("{}.png", f.name));
             png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;

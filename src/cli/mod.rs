@@ -1,13 +1,16 @@
-//! The command line: `radiance train | render | eval | serve`.
+//! The command line: `radiance train | render | eval | bench | serve`.
 
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
+mod bench;
 mod eval;
 mod serve;
+mod setup;
 mod train;
 
+pub use bench::{BenchArgs, BenchReport, BenchRow};
 pub use eval::{EvalArgs, RenderArgs};
 pub use serve::ServeArgs;
 pub use train::TrainArgs;
@@ -28,6 +31,8 @@ pub enum Command {
     Render(RenderArgs),
     /// Render a split and print PSNR and SSIM against its ground truth.
     Eval(EvalArgs),
+    /// Train each model once and score its test views at several training-time budgets.
+    Bench(BenchArgs),
     /// Run the REST service: upload scenes, train as jobs, render views.
     Serve(ServeArgs),
 }
@@ -73,6 +78,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(a) => train::run(a),
         Command::Render(a) => eval::render(a),
         Command::Eval(a) => eval::eval(a),
+        Command::Bench(a) => bench::run(a),
         Command::Serve(a) => serve::run(a),
     }
 }

@@ -10,21 +10,19 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::Common;
-use crate::engine::adam::{Adam, AdamConfig};
+use super::setup::{DEFAULT_BATCH_RAYS, new_model_and_adam, train_config};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
-use crate::engine::model::Model;
-use crate::engine::nerf::{NerfConfig, NerfModel};
 use crate::engine::persist;
 use crate::engine::scene::Scene;
-use crate::engine::trainer::{Budget, StopReason, TrainConfig, TrainState, Trainer};
+use crate::engine::trainer::{Budget, StopReason, TrainState, Trainer};
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
     /// Dataset folder.
     #[arg(long)]
     pub data: PathBuf,
-    /// Model kind: `nerf` (the classic model of the paper).
-    #[arg(long, default_value = "nerf")]
+    /// Model kind: `instant` (hash grid, fast) or `nerf` (the classic model of the paper).
+    #[arg(long, default_value = "instant")]
     pub model: String,
     /// Training time budget in seconds (training only, not saving).
     #[arg(long, conflicts_with = "steps")]
@@ -35,8 +33,9 @@ pub struct TrainArgs {
     /// Random seed: same seed, data and thread count give the same model.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Rays per optimisation step.
-    #[arg(long, default_value_t = 1024)]
+    /// Rays per optimisation step for `nerf` (`instant` adapts the number of
+    /// rays to a constant sample budget).
+    #[arg(long, default_value_t = DEFAULT_BATCH_RAYS)]
     pub batch_rays: usize,
     /// Initial learning rate (decays exponentially to a tenth of it).
     #[arg(long)]
@@ -57,19 +56,6 @@ pub struct TrainArgs {
     pub out: PathBuf,
     #[command(flatten)]
     pub common: Common,
-}
-
-fn new_model(kind: &str, scene: Scene, seed: u64, skip: bool) -> anyhow::Result<Box<dyn Model>> {
-    match kind {
-        "nerf" => {
-            let mut cfg = NerfConfig::default();
-            if !skip {
-                cfg.occupancy = None;
-            }
-            Ok(Box::new(NerfModel::new(cfg, scene, seed)))
-        }
-        other => anyhow::bail!("unknown model '{other}' (available: nerf)"),
-    }
 }
 
 fn fmt_secs(s: f64) -> String {
@@ -93,7 +79,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
-    let config = TrainConfig { seed: a.seed, batch_rays: a.batch_rays, budget };
+    let config = train_config(&a.model, a.seed, a.batch_rays, budget);
     let (model, adam, state) = match &a.resume {
         Some(p) => {
             let r = persist::load(p)?;
@@ -107,15 +93,8 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
             (r.model, r.adam, r.state)
         }
         None => {
-            let model = new_model(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip)?;
-            let mut cfg = AdamConfig::default();
-            if let Some(lr) = a.lr {
-                anyhow::ensure!(lr.is_finite() && lr > 0.0, "--lr must be positive");
-                cfg.lr_end = lr * cfg.lr_end / cfg.lr;
-                cfg.lr = lr;
-            }
-            let n = model.params().len();
-            (model, Adam::new(cfg, n), TrainState::default())
+            let (model, adam) = new_model_and_adam(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip, a.lr)?;
+            (model, adam, TrainState::default())
         }
     };
     eprintln!(
@@ -180,6 +159,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     match reason {
         StopReason::Cancelled => eprintln!("interrupted: saved the model at step {}", s.step),
         StopReason::Budget | StopReason::Callback => {}
+        StopReason::Diverged { .. } => anyhow::bail!("{reason}; they were saved to {}", a.out.display()),
     }
     println!("steps          {}", s.step - start_state.step);
     println!("training time  {:.1} s (wall {:.1} s)", secs, wall.elapsed().as_secs_f64());

@@ -7,6 +7,19 @@
 //! paper's factor pi; our coordinates are normalised to the scene box
 //! (`[-1, 1]`), so the finest wavelength is about 1/80 of the box.
 
+/// `sin_cos(x * f)`, finite for every finite `x`: when the phase overflows
+/// f32 (huge coordinates, far outside the scene box) it is taken in f64.
+#[inline]
+fn phase(x: f32, f: f32) -> (f32, f32) {
+    let a = x * f;
+    if a.is_finite() || !x.is_finite() {
+        a.sin_cos()
+    } else {
+        let (s, c) = (x as f64 * f as f64).sin_cos();
+        (s as f32, c as f32)
+    }
+}
+
 /// Output width for `dims` inputs and `freqs` frequencies.
 pub const fn encoded_width(dims: usize, freqs: usize) -> usize {
     dims * (1 + 2 * freqs)
@@ -22,7 +35,7 @@ pub fn encode(x: &[f32], dims: usize, freqs: usize, out: &mut [f32]) {
             let f = (1u32 << k) as f32;
             let base = dims + 2 * dims * k;
             for d in 0..dims {
-                let (s, c) = (p[d] * f).sin_cos();
+                let (s, c) = phase(p[d], f);
                 o[base + d] = s;
                 o[base + dims + d] = c;
             }
@@ -41,7 +54,7 @@ pub fn encode_backward(x: &[f32], dims: usize, freqs: usize, dout: &[f32], dx: &
             let f = (1u32 << k) as f32;
             let base = dims + 2 * dims * k;
             for i in 0..dims {
-                let (s, c) = (p[i] * f).sin_cos();
+                let (s, c) = phase(p[i], f);
                 d[i] += f * (c * g[base + i] - s * g[base + dims + i]);
             }
         }
@@ -62,6 +75,17 @@ mod tests {
         assert!((out[6] - 0.5f32.cos()).abs() < 1e-7);
         assert!((out[9 + 1] - (-0.5f32).sin()).abs() < 1e-7); // sin(2 * -0.25)
         assert!((out[12 + 2] - 2.0f32.cos()).abs() < 1e-7); // cos(2 * 1.0)
+    }
+
+    #[test]
+    fn huge_coordinates_encode_to_finite_values() {
+        let x = [f32::MAX, f32::MIN, 1e38];
+        let mut out = vec![0.0; encoded_width(3, 10)];
+        encode(&x, 3, 10, &mut out);
+        assert!(out[3..].iter().all(|v| v.is_finite() && v.abs() <= 1.0), "{out:?}");
+        let mut dx = [0.0; 3];
+        encode_backward(&x, 3, 10, &vec![1.0; out.len()], &mut dx);
+        assert!(dx.iter().all(|v| v.is_finite()), "{dx:?}");
     }
 
     #[test]

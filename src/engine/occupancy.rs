@@ -206,6 +206,12 @@ impl OccupancyGrid {
             t = next;
         }
         segs
+            if next <= t {
+                // The step is below f32 resolution this far along the ray:
+                // keep the rest rather than loop forever.
+                segs.push(t, t1);
+                break;
+            }
     }
 }
 
@@ -266,4 +272,15 @@ mod tests {
         let ray = Ray { origin: Vec3::new(-3.0, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) };
         assert_eq!(g.segments(&ray, 2.0, 4.0), Segments::single(2.0, 4.0));
     }
+    #[test]
+    fn rays_from_far_away_terminate() {
+        let cfg = OccupancyConfig { resolution: 32, warmup_steps: 0, ..Default::default() };
+        let mut g = OccupancyGrid::new(cfg, unit());
+        g.apply(1, &[], &[]);
+        // At t = 4e6 an f32 step is 0.25 or 0.5, more than twice the marching step.
+        let ray = Ray { origin: Vec3::new(0.0, 0.0, 4e6), dir: Vec3::new(0.0, 0.0, -1.0) };
+        let s = g.segments(&ray, 4e6 - 1.0, 4e6 + 1.0);
+        assert!(s.length() > 0.0 && s.length() <= 2.0, "{s:?}");
+    }
+
 }

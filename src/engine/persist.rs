@@ -1,5 +1,12 @@
 //! Saving and restoring a model with its optimiser and trainer state, on top
 //! of the generic checkpoint container.
+//!
+//! Determinism: a checkpoint is a function of the data, the configuration,
+//! the seed and the thread count, except for one field: `meta.timing` holds
+//! the wall-clock training time (`TrainState::elapsed`, needed to resume a
+//! time budget), and nothing else in the file depends on time. Two runs that
+//! should agree give equal [`identity_bytes`], which are the checkpoint's
+//! bytes without `meta.timing`.
 
 use std::path::Path;
 
@@ -24,12 +31,17 @@ pub struct Restored {
 pub fn to_checkpoint(model: &dyn Model, adam: &Adam, train: &TrainConfig, state: &TrainState) -> Checkpoint {
     let mut c = Checkpoint::new(model.kind(), state.step);
     c.meta = json!({
+    let mut state_json = serde_json::to_value(state).unwrap_or_default();
+    if let Some(o) = state_json.as_object_mut() {
+        o.remove("elapsed");
+    }
         "model": model.config_json(),
         "scene": model.scene(),
         "train": train,
-        "state": state,
+        "state": state_json,
         "adam": adam.config,
     });
+        TIMING: { "elapsed": state.elapsed },
     c.insert("params", Tensor::F32(model.params().to_vec()));
     c.insert("adam.m", Tensor::F32(adam.m.clone()));
     c.insert("adam.v", Tensor::F32(adam.v.clone()));
@@ -41,6 +53,19 @@ pub fn to_checkpoint(model: &dyn Model, adam: &Adam, train: &TrainConfig, state:
 }
 
 /// Saves atomically. Refuses to write parameters that are not finite.
+/// The meta key of the only time-dependent part of a checkpoint.
+pub const TIMING: &str = "timing";
+
+/// The checkpoint's bytes without its wall-clock timing: equal for runs with
+/// the same data, configuration, seed and thread count.
+pub fn identity_bytes(c: &Checkpoint) -> Vec<u8> {
+    let mut c = c.clone();
+    if let Some(o) = c.meta.as_object_mut() {
+        o.remove(TIMING);
+    }
+    c.to_bytes()
+}
+
 pub fn save(
     path: &Path,
     model: &dyn Model,
@@ -95,7 +120,12 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
     Ok(Restored {
         model,
         adam: Adam { config: adam_cfg, m, v, t },
+    let state: TrainState = field(&c.meta, "state", path)?;
         train: field(&c.meta, "train", path)?,
-        state: field(&c.meta, "state", path)?,
+        state: TrainState {
+            // Checkpoints before `meta.timing` kept it in the state.
+            elapsed: c.meta.pointer("/timing/elapsed").and_then(|v| v.as_f64()).unwrap_or(state.elapsed),
+            ..state
+        },
     })
 }

@@ -45,17 +45,16 @@ pub fn sample_pdf(edges: &[f32], weights: &[f32], n: usize, rng: Option<&mut Rng
     }
     // Padding as in the reference code keeps every bin reachable.
     const EPS: f32 = 1e-5;
-    let mut total = 0.0f32;
-    let mut cdf = Vec::with_capacity(bins + 1);
-    cdf.push(0.0f32);
+    // Summed in f64: f32 weights near f32::MAX cannot overflow the total.
+    let mut total = 0.0f64;
+    let mut sums = Vec::with_capacity(bins + 1);
+    sums.push(0.0f64);
     for &w in weights {
-        let w = if w.is_finite() && w > 0.0 { w } else { 0.0 };
-        total += w + EPS;
-        cdf.push(total);
+        let w = if w.is_finite() && w > 0.0 { w as f64 } else { 0.0 };
+        total += w + EPS as f64;
+        sums.push(total);
     }
-    for c in &mut cdf {
-        *c /= total;
-    }
+    let mut cdf: Vec<f32> = sums.iter().map(|&c| (c / total) as f32).collect();
     cdf[bins] = 1.0;
     let mut rng = rng;
     let mut j = 0usize;
@@ -137,13 +136,23 @@ mod tests {
     fn degenerate_weights_give_sorted_finite_samples() {
         let edges = [2.0, 3.0, 4.0, 5.0];
         let mut rng = Rng::new(4);
-        for w in [[0.0f32; 3], [1e-30; 3], [0.0, 1.0, 0.0], [f32::NAN, f32::INFINITY, -1.0]] {
+        for w in [[0.0f32; 3], [1e-30; 3], [0.0, 1.0, 0.0], [f32::NAN, f32::INFINITY, -1.0], [f32::MAX; 3]] {
             let mut out = Vec::new();
             sample_pdf(&edges, &w, 17, Some(&mut rng), &mut out);
             assert_eq!(out.len(), 17);
             assert!(out.iter().all(|s| s.is_finite() && (2.0..=5.0).contains(s)), "{w:?}: {out:?}");
             assert!(out.windows(2).all(|p| p[0] <= p[1]));
         }
+    }
+
+    #[test]
+    fn huge_equal_weights_give_the_uniform_density() {
+        // The f32 total of these weights overflows; the samples must not collapse.
+        let edges = [0.0, 1.0, 2.0, 3.0, 4.0];
+        let mut out = Vec::new();
+        sample_pdf(&edges, &[1e38; 4], 8, None, &mut out);
+        let want: Vec<f32> = (0..8).map(|k| (k as f32 + 0.5) / 2.0).collect();
+        assert!(out.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-4), "{out:?}");
     }
 
     #[test]

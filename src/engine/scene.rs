@@ -5,6 +5,14 @@
 use super::dataset::Dataset;
 use super::math::{Aabb, Ray, Vec3};
 
+/// `v / |v|` computed in f64, so that tiny (subnormal) and huge components
+/// normalise exactly; `None` for zero or non-finite vectors.
+fn unit(v: Vec3) -> Option<Vec3> {
+    let (x, y, z) = (v.x as f64, v.y as f64, v.z as f64);
+    let n = (x * x + y * y + z * z).sqrt();
+    (n.is_finite() && n > 0.0).then(|| Vec3::new((x / n) as f32, (y / n) as f32, (z / n) as f32))
+}
+
 /// World-to-model mapping and the scene's bounds in model units.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Scene {
@@ -46,13 +54,45 @@ impl Scene {
         Aabb { min: Vec3::from_array(self.aabb_min), max: Vec3::from_array(self.aabb_max) }
     }
 
-    /// A world ray in model coordinates (same direction; distances scale).
+    /// A world ray in model coordinates (same direction, normalised;
+    /// distances scale). A zero or non-finite direction is left as it is,
+    /// and [`Scene::clip`] rejects it.
     pub fn to_model(&self, ray: &Ray) -> Ray {
-        Ray { origin: (ray.origin - Vec3::from_array(self.centre)) * self.scale, dir: ray.dir }
+        Ray { origin: (ray.origin - Vec3::from_array(self.centre)) * self.scale, dir: unit(ray.dir).unwrap_or(ray.dir) }
     }
 
-    /// The part of a model-space ray inside the box and `[near, far]`.
+    /// The part of a model-space ray inside the box and `[near, far]`;
+    /// `None` when it misses, and for rays with a non-finite origin or a
+    /// zero or non-finite direction (they see only the background).
     pub fn clip(&self, ray: &Ray) -> Option<(f32, f32)> {
+        if !(ray.origin.is_finite() && ray.dir.is_finite()) || ray.dir.dot(ray.dir) == 0.0 {
+            return None;
+        }
         self.aabb().clip(ray, self.near, self.far)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn degenerate_rays_are_normalised_or_rejected() {
+        let s = Scene::from_bounds(Aabb { min: Vec3::splat(-2.0), max: Vec3::splat(2.0) }, 0.0, 10.0);
+        let inside = Vec3::new(0.5, 0.0, 0.0);
+        for (dir, want) in [
+            (Vec3::new(0.0, 0.0, 1e-20), Vec3::new(0.0, 0.0, 1.0)),
+            (Vec3::new(0.0, -1e-45, 0.0), Vec3::new(0.0, -1.0, 0.0)),
+            (Vec3::new(3e38, 0.0, -3e38), Vec3::new(0.70710677, 0.0, -0.70710677)),
+        ] {
+            let r = s.to_model(&Ray { origin: inside, dir });
+            assert!((r.dir - want).norm() < 1e-7, "{dir:?} -> {:?}", r.dir);
+            assert!(s.clip(&r).is_some());
+        }
+        for dir in [Vec3::splat(0.0), Vec3::new(f32::NAN, 0.0, 1.0), Vec3::new(0.0, f32::INFINITY, 0.0)] {
+            assert_eq!(s.clip(&s.to_model(&Ray { origin: inside, dir })), None, "{dir:?}");
+        }
+        let nan_origin = Ray { origin: Vec3::new(f32::NAN, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) };
+        assert_eq!(s.clip(&s.to_model(&nan_origin)), None);
     }
 }

@@ -5,6 +5,16 @@
 //! Deterministic for a given seed and thread count: the rays of step `s`
 //! depend only on `(seed, s)`, each part of a batch accumulates into its own
 //! gradient buffer, and the parts are summed in order.
+//!
+//! Divergence guard: a step whose loss or gradient is not finite is skipped
+//! (the parameters are untouched). After [`DivergenceGuard::patience`] such
+//! steps in a row the trainer rolls the parameters and Adam's state back to
+//! its last in-memory snapshot (taken every
+//! [`DivergenceGuard::snapshot_every`] good steps) and halves the learning
+//! rate (`TrainState::lr_scale`); the step counter keeps going, so the next
+//! steps see new rays. When it would need more than
+//! [`DivergenceGuard::max_rollbacks`] rollbacks, [`Trainer::run`] restores the
+//! last snapshot once more and stops with [`StopReason::Diverged`].
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -71,24 +81,81 @@ pub struct Progress {
 }
 
 /// The trainer's state, saved in checkpoints so a run resumes exactly.
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TrainState {
     pub step: u64,
     pub elapsed: f64,
     pub rays: u64,
     pub samples: u64,
+    /// Rollbacks to the last good parameters (each halved the learning rate).
+    pub rollbacks: u32,
     pub skipped: u64,
     pub diverged_steps: u64,
     pub smoothed_mse: f64,
 }
 
 /// Why a run stopped.
+    /// Wall-clock seconds of training (kept out of a checkpoint's identity,
+    /// see `persist::identity_bytes`).
+    #[serde(default)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum StopReason {
     Budget,
     Cancelled,
     /// The callback asked to stop.
     Callback,
+    /// Factor on the scheduled learning rate: halved by every rollback.
+    #[serde(default = "one")]
+    pub lr_scale: f32,
+    /// Rollbacks to the last good parameters so far.
+    #[serde(default)]
+    pub rollbacks: u32,
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+impl Default for TrainState {
+    fn default() -> Self {
+        Self {
+            step: 0,
+            elapsed: 0.0,
+            rays: 0,
+            samples: 0,
+            skipped: 0,
+            diverged_steps: 0,
+            smoothed_mse: 0.0,
+            lr_scale: 1.0,
+            rollbacks: 0,
+        }
+    }
+}
+
+/// How the trainer reacts to steps with a non-finite loss or gradient.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DivergenceGuard {
+    /// Non-finite steps in a row that trigger a rollback (5).
+    pub patience: u32,
+    /// Good steps between snapshots of the parameters and Adam's state (100).
+    pub snapshot_every: u64,
+    /// Rollbacks allowed; one more divergence stops the run (3).
+    pub max_rollbacks: u32,
+}
+
+impl Default for DivergenceGuard {
+    fn default() -> Self {
+        Self { patience: 5, snapshot_every: 100, max_rollbacks: 3 }
+    }
+}
+
+/// Parameters and optimiser state at a good step.
+struct Snapshot {
+    params: Vec<f32>,
+    m: Vec<f32>,
+    v: Vec<f32>,
+    t: u64,
+    step: u64,
 }
 
 /// Trains a model on a dataset's training split.
@@ -98,6 +165,28 @@ pub struct Trainer<'a> {
     pub config: TrainConfig,
     pub state: TrainState,
     dataset: &'a Dataset,
+    /// Training kept producing non-finite losses or gradients after
+    /// `rollbacks` rollbacks; the model holds the parameters of `good_step`.
+    Diverged {
+        step: u64,
+        good_step: u64,
+        rollbacks: u32,
+    },
+}
+
+impl std::fmt::Display for StopReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Budget => f.write_str("the budget is spent"),
+            Self::Cancelled => f.write_str("cancelled"),
+            Self::Callback => f.write_str("stopped by the caller"),
+            Self::Diverged { step, good_step, rollbacks } => write!(
+                f,
+                "training diverged: the loss or gradient was still not finite at step {step} after {rollbacks} \
+                 rollbacks with the learning rate halved each time; the parameters are those of step {good_step}"
+            ),
+        }
+    }
     /// Cumulative pixel counts of the training frames.
     cumulative: Vec<u64>,
     part_grads: Vec<Vec<f32>>,
@@ -110,6 +199,13 @@ impl<'a> Trainer<'a> {
         config: TrainConfig,
         state: TrainState,
         dataset: &'a Dataset,
+    pub guard: DivergenceGuard,
+    snapshot: Option<Snapshot>,
+    /// Non-finite steps in a row, and good steps since the last snapshot.
+    bad_streak: u32,
+    good_streak: u64,
+    /// Set when the guard gives up.
+    diverged: Option<StopReason>,
     ) -> Self {
         let mut total = 0u64;
         let cumulative = dataset
@@ -121,7 +217,72 @@ impl<'a> Trainer<'a> {
                 total
             })
             .collect();
-        Self { model, adam, config, state, dataset, cumulative, part_grads: Vec::new() }
+        Self {
+            model,
+            adam,
+            config,
+            state,
+            dataset,
+            cumulative,
+            part_grads: Vec::new(),
+            guard: DivergenceGuard::default(),
+            snapshot: None,
+            bad_streak: 0,
+            good_streak: 0,
+            diverged: None,
+        }
+    }
+
+    /// Remembers the current parameters and Adam state as the point to roll
+    /// back to (when they are finite). Runs every `guard.snapshot_every`
+    /// good steps and before the first step.
+    pub fn snapshot(&mut self) {
+        if !self.model.params().iter().all(|p| p.is_finite()) {
+            return;
+        }
+        let s = self.snapshot.get_or_insert_with(|| Snapshot {
+            params: Vec::new(),
+            m: Vec::new(),
+            v: Vec::new(),
+            t: 0,
+            step: 0,
+        });
+        s.params.clear();
+        s.params.extend_from_slice(self.model.params());
+        s.m.clone_from(&self.adam.m);
+        s.v.clone_from(&self.adam.v);
+        s.t = self.adam.t;
+        s.step = self.state.step;
+        self.good_streak = 0;
+    }
+
+    /// Restores the last snapshot; returns its step.
+    fn restore(&mut self) -> u64 {
+        let Some(s) = &self.snapshot else { return self.state.step };
+        self.model.params_mut().copy_from_slice(&s.params);
+        self.adam.m.clone_from(&s.m);
+        self.adam.v.clone_from(&s.v);
+        self.adam.t = s.t;
+        self.good_streak = 0;
+        s.step
+    }
+
+    /// Counts a non-finite step; rolls back or gives up after `patience`.
+    fn on_divergence(&mut self) {
+        self.state.diverged_steps += 1;
+        self.bad_streak += 1;
+        if self.bad_streak < self.guard.patience.max(1) {
+            return;
+        }
+        self.bad_streak = 0;
+        let good_step = self.restore();
+        if self.state.rollbacks >= self.guard.max_rollbacks {
+            self.diverged =
+                Some(StopReason::Diverged { step: self.state.step, good_step, rollbacks: self.state.rollbacks });
+        } else {
+            self.state.rollbacks += 1;
+            self.state.lr_scale *= 0.5;
+        }
     }
 
     /// The training rays of a step: uniform over all training pixels.
@@ -167,6 +328,9 @@ impl<'a> Trainer<'a> {
             .par_iter_mut()
             .enumerate()
             .map(|(p, g)| {
+        if self.snapshot.is_none() {
+            self.snapshot();
+        }
                 g.clear();
                 g.resize(nparams, 0.0);
                 let lo = (p * per).min(rays.len());
@@ -187,12 +351,17 @@ impl<'a> Trainer<'a> {
         self.state.rays += total.rays;
         self.state.samples += total.samples;
         self.state.skipped += total.skipped;
-        let finite = total.loss.is_finite() && grads.par_iter().all(|g| g.is_finite());
+        // The parameters too: ReLU (`f32::max`) swallows a NaN weight, which
+        // leaves the loss finite but would make the model unsaveable.
+        let finite = total.loss.is_finite()
+            && grads.par_iter().all(|g| g.is_finite())
+            && self.model.params().par_iter().all(|p| p.is_finite());
         if !finite {
-            self.state.diverged_steps += 1;
+            self.on_divergence();
             return None;
         }
-        let lr = self.adam.config.lr_at(self.config.budget.progress(step, self.state.elapsed));
+        self.bad_streak = 0;
+        let lr = self.adam.config.lr_at(self.config.budget.progress(step, self.state.elapsed)) * self.state.lr_scale;
         self.adam.step(self.model.params_mut(), grads, lr);
         self.model.after_step(self.state.step, self.config.seed);
         let mse = total.sq_err / total.rays.max(1) as f64;
@@ -211,13 +380,17 @@ impl<'a> Trainer<'a> {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
         };
+        self.good_streak += 1;
+        if self.good_streak >= self.guard.snapshot_every.max(1) {
+            self.snapshot();
+        }
         Progress {
             step: s.step,
             loss,
             train_psnr: if s.smoothed_mse > 0.0 { -10.0 * s.smoothed_mse.log10() } else { 0.0 },
             elapsed: s.elapsed,
             eta,
-            lr: self.adam.config.lr_at(b.progress(s.step, s.elapsed)),
+            lr: self.adam.config.lr_at(b.progress(s.step, s.elapsed)) * s.lr_scale,
             rays: s.rays,
             samples: s.samples,
             skipped: s.skipped,
@@ -225,8 +398,9 @@ impl<'a> Trainer<'a> {
         }
     }
 
-    /// Trains until the budget is spent, `cancel` is set, or `on_step`
-    /// returns false. `on_step` runs after every step; its time does not
+    /// Trains until the budget is spent, `cancel` is set, `on_step` returns
+    /// false, or training diverges for good ([`StopReason::Diverged`], after
+    /// a last `on_step`). `on_step` runs after every step; its time does not
     /// count as training time.
     pub fn run(&mut self, cancel: &AtomicBool, mut on_step: impl FnMut(&mut Self, &Progress) -> bool) -> StopReason {
         loop {
@@ -235,13 +409,18 @@ impl<'a> Trainer<'a> {
             }
             if cancel.load(Ordering::Relaxed) {
                 return StopReason::Cancelled;
+            rollbacks: s.rollbacks,
             }
             let t0 = Instant::now();
             let stats = self.step();
             self.state.elapsed += t0.elapsed().as_secs_f64();
             let loss = stats.map_or(f64::NAN, |s| s.loss / s.rays.max(1) as f64);
             let p = self.progress(loss);
-            if !on_step(self, &p) {
+            let go_on = on_step(self, &p);
+            if let Some(reason) = self.diverged {
+                return reason;
+            }
+            if !go_on {
                 return StopReason::Callback;
             }
         }

@@ -132,6 +132,10 @@ fn train(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Result<Outcome, Str
     if let Some(e) = save_error {
         return Err(e);
     }
+    if let StopReason::Diverged { .. } = reason {
+        // Repeated divergence fails the job; the last periodic checkpoint stays.
+        return Err(reason.to_string());
+    }
     let p = trainer.progress(f64::NAN);
     set_progress(shared, &job.id, |j| {
         j.progress.step = p.step;

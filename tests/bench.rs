@@ -1,0 +1,99 @@
+//! `radiance bench` end to end on a tiny generated Blender-format scene:
+//! the table, the JSON rows and the PNG plot.
+
+use std::process::Command;
+
+use radiance::cli::BenchReport;
+use radiance::engine::synthetic::BallScene;
+
+fn radiance(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_radiance")).args(args).env("RAYON_NUM_THREADS", "2").output().unwrap()
+}
+
+#[test]
+fn bench_writes_table_json_and_plot() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let json = dir.path().join("bench.json");
+    let plot = dir.path().join("bench.png");
+    let out = radiance(&[
+        "bench",
+        "--data",
+        data.to_str().unwrap(),
+        "--model",
+        "instant",
+        // Unsorted on purpose. The first step of the fresh model marches
+        // the whole box (over a second here), later ones are far cheaper:
+        // the second budget leaves room for several steps.
+        "--budgets",
+        "3,0.25",
+        "--test-views",
+        "1",
+        "--json",
+        json.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "stdout: {stdout}\nstderr: {}", String::from_utf8_lossy(&out.stderr));
+
+    // The table: a header and one row per (model, budget), budgets in order.
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(lines.len(), 3, "{stdout}");
+    assert!(lines[0].starts_with("model") && lines[0].contains("PSNR") && lines[0].contains("peak MiB"), "{stdout}");
+    let budgets: Vec<&str> = lines[1..].iter().map(|l| l.split_whitespace().nth(1).unwrap()).collect();
+    assert_eq!(budgets, ["0.25", "3"], "{stdout}");
+    for l in &lines[1..] {
+        assert!(l.starts_with("instant "), "{l}");
+        let last = l.split_whitespace().last().unwrap();
+        if cfg!(target_os = "linux") {
+            assert!(last.parse::<f64>().is_ok_and(|m| m > 0.0), "peak memory in {l}");
+        } else {
+            assert_eq!(last, "n/a");
+        }
+    }
+
+    // The JSON: the same rows.
+    let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(report.test_views, 1);
+    let rows = &report.rows;
+    assert_eq!(rows.iter().map(|r| r.budget_seconds).collect::<Vec<_>>(), [0.25, 3.0]);
+    for r in rows {
+        assert_eq!(r.model, "instant");
+        assert!(r.psnr.is_finite() && r.psnr > 0.0, "{r:?}");
+        assert!(r.ssim.is_finite() && r.ssim <= 1.0, "{r:?}");
+        assert!(r.train_seconds >= r.budget_seconds, "{r:?}");
+        assert!(r.rays > 0 && r.samples > 0 && r.samples_per_ray > 0.0 && r.render_ms > 0.0, "{r:?}");
+    }
+    assert!(rows[0].steps > 0 && rows[1].steps > rows[0].steps, "steps increase: {rows:?}");
+    assert!(rows[1].rays > rows[0].rays, "{rows:?}");
+    // The table shows the JSON's PSNRs.
+    for (l, r) in lines[1..].iter().zip(rows) {
+        assert!(l.contains(&format!("{:.2}", r.psnr)), "{l} vs {r:?}");
+    }
+
+    // The plot decodes as an image.
+    let img = radiance::media::png::decode_rgb(&std::fs::read(&plot).unwrap()).unwrap();
+    assert_eq!(img.dimensions(), (800, 500));
+    assert!(img.pixels().any(|p| p.0 != [255, 255, 255]), "the plot is not blank");
+}
+
+#[test]
+fn bench_rejects_bad_arguments() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let d = data.to_str().unwrap();
+    for (args, msg) in [
+        (vec!["--model", "nope"], "unknown model 'nope'"),
+        (vec!["--budgets", "0"], "--budgets must be positive"),
+        (vec!["--test-views", "0"], "--test-views must be at least 1"),
+    ] {
+        let mut all = vec!["bench", "--data", d];
+        all.extend(args);
+        let out = radiance(&all);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(msg), "{all:?}: {err}");
+    }
+}
