@@ -33,7 +33,12 @@ fn tiny_model(ds: &Dataset) -> NerfModel {
 fn trainer(ds: &Dataset, steps: u64) -> Trainer<'_> {
     let model = tiny_model(ds);
     let adam = Adam::new(AdamConfig { lr: 5e-3, lr_end: 5e-4, ..Default::default() }, model.params().len());
-    let cfg = TrainConfig { seed: 9, batch_rays: 64, budget: Budget { steps: Some(steps), seconds: None } };
+    let cfg = TrainConfig {
+        seed: 9,
+        batch_rays: 64,
+        budget: Budget { steps: Some(steps), seconds: None },
+        ..Default::default()
+    };
     Trainer::new(Box::new(model), adam, cfg, TrainState::default(), ds)
 }
 

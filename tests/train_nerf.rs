@@ -40,7 +40,12 @@ fn classic_nerf_learns_a_tiny_scene() {
     let model = NerfModel::new(config, Scene::from_dataset(&ds), 1);
     let before = test_psnr(&model, &ds);
     let adam = Adam::new(AdamConfig { lr: 5e-3, lr_end: 5e-4, ..Default::default() }, model.params().len());
-    let cfg = TrainConfig { seed: 1, batch_rays: 256, budget: Budget { steps: Some(300), seconds: None } };
+    let cfg = TrainConfig {
+        seed: 1,
+        batch_rays: 256,
+        budget: Budget { steps: Some(300), seconds: None },
+        ..Default::default()
+    };
     let mut trainer = Trainer::new(Box::new(model), adam, cfg, TrainState::default(), &ds);
     trainer.run(&AtomicBool::new(false), |_, _| true);
     let after = test_psnr(&*trainer.model, &ds);

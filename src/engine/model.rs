@@ -69,11 +69,18 @@ pub trait Model: Send + Sync {
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
     /// Runs after each optimisation step (`step` is the number of steps
     /// done), e.g. to update an occupancy grid.
-    fn after_step(&mut self, _step: u64, _seed: u64) {}
+    fn after_step(&mut self, _step: u64, _seed: u64, _stats: &BatchStats) {}
+    /// Rays per step the model wants (e.g. to keep a constant sample
+    /// budget); `None` uses the trainer's setting.
+    fn batch_rays(&self) -> Option<usize> {
+        None
+    }
     /// Non-parameter state saved with checkpoints (e.g. the occupancy grid).
     fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
         Vec::new()
     }
+    /// The concrete model, for callers that need its own API.
+    fn as_any(&self) -> &dyn std::any::Any;
     /// Renders model-space rays.
     fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats;
 }

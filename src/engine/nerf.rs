@@ -303,6 +303,9 @@ impl Model for NerfModel {
     fn params_mut(&mut self) -> &mut [f32] {
         &mut self.params
     }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
     fn config_json(&self) -> serde_json::Value {
         serde_json::to_value(&self.config).unwrap_or(serde_json::Value::Null)
     }
@@ -340,7 +343,7 @@ impl Model for NerfModel {
         stats
     }
 
-    fn after_step(&mut self, step: u64, seed: u64) {
+    fn after_step(&mut self, step: u64, seed: u64, _stats: &BatchStats) {
         let Some(g) = self.grid.as_ref() else { return };
         if !g.due(step) {
             return;

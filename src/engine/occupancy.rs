@@ -16,7 +16,8 @@ use super::rng::Rng;
 pub struct OccupancyConfig {
     /// Cells per side.
     pub resolution: usize,
-    /// Density (per model unit) below which a cell counts as empty.
+    /// Density (per model unit) below which a cell counts as empty (or the
+    /// grid's mean density, when that is lower).
     pub threshold: f32,
     /// Decay of the running density at each update of a cell.
     pub decay: f32,
@@ -164,7 +165,12 @@ impl OccupancyGrid {
 
     fn rebuild_bits(&mut self) {
         let r = self.config.resolution as isize;
-        let thr = self.config.threshold;
+        // As in Instant-NGP: never stricter than the mean density, so a young
+        // field whose densities are all still low is not emptied wholesale.
+        let (sum, count) =
+            self.density.iter().filter(|d| d.is_finite()).fold((0.0f64, 0usize), |(s, c), &d| (s + d as f64, c + 1));
+        let mean = if count > 0 { (sum / count as f64) as f32 } else { f32::INFINITY };
+        let thr = self.config.threshold.min(mean);
         let raw: Vec<bool> = self.density.iter().map(|&d| d >= thr || d.is_nan()).collect();
         let idx = |x: isize, y: isize, z: isize| ((x * r + y) * r + z) as usize;
         for x in 0..r {
@@ -200,18 +206,18 @@ impl OccupancyGrid {
         let mut t = t0;
         while t < t1 {
             let next = (t + step).min(t1);
-            if self.occupied(ray.at(0.5 * (t + next))) {
-                segs.push(t, next);
-            }
-            t = next;
-        }
-        segs
             if next <= t {
                 // The step is below f32 resolution this far along the ray:
                 // keep the rest rather than loop forever.
                 segs.push(t, t1);
                 break;
             }
+            if self.occupied(ray.at(0.5 * (t + next))) {
+                segs.push(t, next);
+            }
+            t = next;
+        }
+        segs
     }
 }
 
@@ -267,12 +273,6 @@ mod tests {
     }
 
     #[test]
-    fn before_warm_up_everything_is_sampled() {
-        let g = OccupancyGrid::new(OccupancyConfig::default(), unit());
-        let ray = Ray { origin: Vec3::new(-3.0, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) };
-        assert_eq!(g.segments(&ray, 2.0, 4.0), Segments::single(2.0, 4.0));
-    }
-    #[test]
     fn rays_from_far_away_terminate() {
         let cfg = OccupancyConfig { resolution: 32, warmup_steps: 0, ..Default::default() };
         let mut g = OccupancyGrid::new(cfg, unit());
@@ -283,4 +283,10 @@ mod tests {
         assert!(s.length() > 0.0 && s.length() <= 2.0, "{s:?}");
     }
 
+    #[test]
+    fn before_warm_up_everything_is_sampled() {
+        let g = OccupancyGrid::new(OccupancyConfig::default(), unit());
+        let ray = Ray { origin: Vec3::new(-3.0, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) };
+        assert_eq!(g.segments(&ray, 2.0, 4.0), Segments::single(2.0, 4.0));
+    }
 }

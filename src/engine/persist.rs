@@ -14,6 +14,7 @@ use serde_json::json;
 
 use super::adam::{Adam, AdamConfig};
 use super::checkpoint::{Checkpoint, CheckpointError, Tensor};
+use super::instant::{InstantConfig, InstantModel};
 use super::model::Model;
 use super::nerf::{NerfConfig, NerfModel};
 use super::scene::Scene;
@@ -30,18 +31,18 @@ pub struct Restored {
 /// Builds the checkpoint of a training run.
 pub fn to_checkpoint(model: &dyn Model, adam: &Adam, train: &TrainConfig, state: &TrainState) -> Checkpoint {
     let mut c = Checkpoint::new(model.kind(), state.step);
-    c.meta = json!({
     let mut state_json = serde_json::to_value(state).unwrap_or_default();
     if let Some(o) = state_json.as_object_mut() {
         o.remove("elapsed");
     }
+    c.meta = json!({
         "model": model.config_json(),
         "scene": model.scene(),
         "train": train,
         "state": state_json,
         "adam": adam.config,
-    });
         TIMING: { "elapsed": state.elapsed },
+    });
     c.insert("params", Tensor::F32(model.params().to_vec()));
     c.insert("adam.m", Tensor::F32(adam.m.clone()));
     c.insert("adam.v", Tensor::F32(adam.v.clone()));
@@ -52,7 +53,6 @@ pub fn to_checkpoint(model: &dyn Model, adam: &Adam, train: &TrainConfig, state:
     c
 }
 
-/// Saves atomically. Refuses to write parameters that are not finite.
 /// The meta key of the only time-dependent part of a checkpoint.
 pub const TIMING: &str = "timing";
 
@@ -66,6 +66,7 @@ pub fn identity_bytes(c: &Checkpoint) -> Vec<u8> {
     c.to_bytes()
 }
 
+/// Saves atomically. Refuses to write parameters that are not finite.
 pub fn save(
     path: &Path,
     model: &dyn Model,
@@ -108,9 +109,18 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
             }
             Box::new(m)
         }
+        "instant" => {
+            let cfg: InstantConfig = field(&c.meta, "model", path)?;
+            let mut m = InstantModel::from_parts(cfg, scene, params).map_err(&bad)?;
+            let density = c.take_f32("occupancy.density").map_err(|e| e.with_path(path))?;
+            let spr = c.f32("samples_per_ray").map_err(|e| e.with_path(path))?.first().copied().unwrap_or(0.0);
+            m.set_state(density, spr as f64, c.step).map_err(&bad)?;
+            Box::new(m)
+        }
         other => return Err(bad(format!("unknown model kind '{other}'"))),
     };
     let adam_cfg: AdamConfig = field(&c.meta, "adam", path)?;
+    let state: TrainState = field(&c.meta, "state", path)?;
     let m = c.take_f32("adam.m").map_err(|e| e.with_path(path))?;
     let v = c.take_f32("adam.v").map_err(|e| e.with_path(path))?;
     let t = c.u64("adam.t").map_err(|e| e.with_path(path))?.first().copied().unwrap_or(0);
@@ -120,7 +130,6 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
     Ok(Restored {
         model,
         adam: Adam { config: adam_cfg, m, v, t },
-    let state: TrainState = field(&c.meta, "state", path)?;
         train: field(&c.meta, "train", path)?,
         state: TrainState {
             // Checkpoints before `meta.timing` kept it in the state.

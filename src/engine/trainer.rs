@@ -52,11 +52,20 @@ pub struct TrainConfig {
     /// Rays per step (1024).
     pub batch_rays: usize,
     pub budget: Budget,
+    /// Composite RGBA training images on a random colour per ray, so the
+    /// model learns transparency instead of the background colour.
+    #[serde(default)]
+    pub random_background: bool,
 }
 
 impl Default for TrainConfig {
     fn default() -> Self {
-        Self { seed: 0, batch_rays: 1024, budget: Budget { steps: Some(1000), seconds: None } }
+        Self {
+            seed: 0,
+            batch_rays: 1024,
+            budget: Budget { steps: Some(1000), seconds: None },
+            random_background: false,
+        }
     }
 }
 
@@ -78,32 +87,23 @@ pub struct Progress {
     pub skipped: u64,
     /// Steps skipped because the loss or a gradient was not finite.
     pub diverged_steps: u64,
+    /// Rollbacks to the last good parameters (each halved the learning rate).
+    pub rollbacks: u32,
 }
 
 /// The trainer's state, saved in checkpoints so a run resumes exactly.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TrainState {
     pub step: u64,
-    pub elapsed: f64,
-    pub rays: u64,
-    pub samples: u64,
-    /// Rollbacks to the last good parameters (each halved the learning rate).
-    pub rollbacks: u32,
-    pub skipped: u64,
-    pub diverged_steps: u64,
-    pub smoothed_mse: f64,
-}
-
-/// Why a run stopped.
     /// Wall-clock seconds of training (kept out of a checkpoint's identity,
     /// see `persist::identity_bytes`).
     #[serde(default)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum StopReason {
-    Budget,
-    Cancelled,
-    /// The callback asked to stop.
-    Callback,
+    pub elapsed: f64,
+    pub rays: u64,
+    pub samples: u64,
+    pub skipped: u64,
+    pub diverged_steps: u64,
+    pub smoothed_mse: f64,
     /// Factor on the scheduled learning rate: halved by every rollback.
     #[serde(default = "one")]
     pub lr_scale: f32,
@@ -158,13 +158,13 @@ struct Snapshot {
     step: u64,
 }
 
-/// Trains a model on a dataset's training split.
-pub struct Trainer<'a> {
-    pub model: Box<dyn Model>,
-    pub adam: Adam,
-    pub config: TrainConfig,
-    pub state: TrainState,
-    dataset: &'a Dataset,
+/// Why a run stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StopReason {
+    Budget,
+    Cancelled,
+    /// The callback asked to stop.
+    Callback,
     /// Training kept producing non-finite losses or gradients after
     /// `rollbacks` rollbacks; the model holds the parameters of `good_step`.
     Diverged {
@@ -187,9 +187,25 @@ impl std::fmt::Display for StopReason {
             ),
         }
     }
+}
+
+/// Trains a model on a dataset's training split.
+pub struct Trainer<'a> {
+    pub model: Box<dyn Model>,
+    pub adam: Adam,
+    pub config: TrainConfig,
+    pub state: TrainState,
+    dataset: &'a Dataset,
     /// Cumulative pixel counts of the training frames.
     cumulative: Vec<u64>,
     part_grads: Vec<Vec<f32>>,
+    pub guard: DivergenceGuard,
+    snapshot: Option<Snapshot>,
+    /// Non-finite steps in a row, and good steps since the last snapshot.
+    bad_streak: u32,
+    good_streak: u64,
+    /// Set when the guard gives up.
+    diverged: Option<StopReason>,
 }
 
 impl<'a> Trainer<'a> {
@@ -199,13 +215,6 @@ impl<'a> Trainer<'a> {
         config: TrainConfig,
         state: TrainState,
         dataset: &'a Dataset,
-    pub guard: DivergenceGuard,
-    snapshot: Option<Snapshot>,
-    /// Non-finite steps in a row, and good steps since the last snapshot.
-    bad_streak: u32,
-    good_streak: u64,
-    /// Set when the guard gives up.
-    diverged: Option<StopReason>,
     ) -> Self {
         let mut total = 0u64;
         let cumulative = dataset
@@ -294,7 +303,9 @@ impl<'a> Trainer<'a> {
         let mut rng = Rng::stream(self.config.seed, step, u64::MAX);
         let scene = self.model.scene();
         let bg = self.dataset.background;
-        (0..self.config.batch_rays as u64)
+        let random_bg = self.config.random_background;
+        let batch = self.model.batch_rays().unwrap_or(self.config.batch_rays);
+        (0..batch as u64)
             .map(|index| {
                 let p = rng.below(total);
                 let k = self.cumulative.partition_point(|&c| c <= p);
@@ -302,10 +313,12 @@ impl<'a> Trainer<'a> {
                 let local = p - if k == 0 { 0 } else { self.cumulative[k - 1] };
                 let w = frame.camera.width as u64;
                 let (i, j) = ((local % w) as u32, (local / w) as u32);
+                let background =
+                    if random_bg && frame.image.has_alpha { [rng.f32(), rng.f32(), rng.f32()] } else { bg };
                 TrainRay {
                     ray: scene.to_model(&frame.camera.pixel_ray(i, j)),
-                    target: frame.image.rgb_on(i, j, bg),
-                    background: bg,
+                    target: frame.image.rgb_on(i, j, background),
+                    background,
                     index,
                 }
             })
@@ -315,6 +328,9 @@ impl<'a> Trainer<'a> {
     /// One optimisation step. Returns the batch statistics, or `None` when
     /// the step was skipped because the loss or gradient was not finite.
     pub fn step(&mut self) -> Option<BatchStats> {
+        if self.snapshot.is_none() {
+            self.snapshot();
+        }
         let step = self.state.step;
         let rays = self.batch(step);
         let parts = rayon::current_num_threads().max(1);
@@ -328,9 +344,6 @@ impl<'a> Trainer<'a> {
             .par_iter_mut()
             .enumerate()
             .map(|(p, g)| {
-        if self.snapshot.is_none() {
-            self.snapshot();
-        }
                 g.clear();
                 g.resize(nparams, 0.0);
                 let lo = (p * per).min(rays.len());
@@ -363,10 +376,14 @@ impl<'a> Trainer<'a> {
         self.bad_streak = 0;
         let lr = self.adam.config.lr_at(self.config.budget.progress(step, self.state.elapsed)) * self.state.lr_scale;
         self.adam.step(self.model.params_mut(), grads, lr);
-        self.model.after_step(self.state.step, self.config.seed);
+        self.model.after_step(self.state.step, self.config.seed, &total);
         let mse = total.sq_err / total.rays.max(1) as f64;
         self.state.smoothed_mse =
             if self.state.smoothed_mse == 0.0 { mse } else { 0.9 * self.state.smoothed_mse + 0.1 * mse };
+        self.good_streak += 1;
+        if self.good_streak >= self.guard.snapshot_every.max(1) {
+            self.snapshot();
+        }
         Some(total)
     }
 
@@ -380,10 +397,6 @@ impl<'a> Trainer<'a> {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
         };
-        self.good_streak += 1;
-        if self.good_streak >= self.guard.snapshot_every.max(1) {
-            self.snapshot();
-        }
         Progress {
             step: s.step,
             loss,
@@ -395,6 +408,7 @@ impl<'a> Trainer<'a> {
             samples: s.samples,
             skipped: s.skipped,
             diverged_steps: s.diverged_steps,
+            rollbacks: s.rollbacks,
         }
     }
 
@@ -409,7 +423,6 @@ impl<'a> Trainer<'a> {
             }
             if cancel.load(Ordering::Relaxed) {
                 return StopReason::Cancelled;
-            rollbacks: s.rollbacks,
             }
             let t0 = Instant::now();
             let stats = self.step();

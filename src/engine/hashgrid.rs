@@ -1,0 +1,258 @@
+//! Multiresolution hash encoding (Müller et al. 2022): `L` levels of
+//! `F = 2` features, level `l` a grid of resolution `N_l = floor(N_min b^l)`,
+//! stored densely when `(N_l + 1)^3` fits the table and hashed otherwise;
+//! trilinear interpolation of the 8 corners. The backward pass scatters
+//! gradients into a (per-thread) gradient buffer.
+//!
+//! Inputs are points in the unit cube `[0, 1]^3`; points outside are clamped
+//! to it (the caller only samples inside the scene box).
+
+/// Features per level (fixed: two f32s make one 8-byte gather).
+pub const FEATURES: usize = 2;
+
+/// Shape of the encoding. `Default` is Instant-NGP's, with a table size
+/// chosen for CPU caches.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct HashGridConfig {
+    pub levels: usize,
+    /// log2 of the entries per level.
+    pub log2_table: u32,
+    pub base_resolution: u32,
+    pub finest_resolution: u32,
+}
+
+impl Default for HashGridConfig {
+    fn default() -> Self {
+        Self { levels: 16, log2_table: 15, base_resolution: 16, finest_resolution: 512 }
+    }
+}
+
+/// One level's layout.
+#[derive(Clone, Copy, Debug)]
+struct Level {
+    res: u32,
+    /// Offset of the level's table in the parameter range.
+    offset: usize,
+    /// Entries in the level's table.
+    size: usize,
+    dense: bool,
+}
+
+/// The encoding; its parameters are a range of a flat buffer.
+#[derive(Clone, Debug)]
+pub struct HashGrid {
+    pub config: HashGridConfig,
+    levels: Vec<Level>,
+    pub params: std::ops::Range<usize>,
+}
+
+impl HashGrid {
+    pub fn new(layout: &mut super::linear::ParamLayout, config: HashGridConfig) -> Self {
+        let t = 1usize << config.log2_table;
+        let l = config.levels.max(1);
+        let b = if l > 1 {
+            ((config.finest_resolution as f64).ln() - (config.base_resolution as f64).ln()) / (l - 1) as f64
+        } else {
+            0.0
+        };
+        let mut levels = Vec::with_capacity(l);
+        let mut offset = 0;
+        for i in 0..l {
+            let res = ((config.base_resolution as f64) * (b * i as f64).exp()).floor() as u32;
+            let res = res.max(1);
+            let dense_size = (res as usize + 1).pow(3);
+            let (size, dense) = if dense_size <= t { (dense_size, true) } else { (t, false) };
+            levels.push(Level { res, offset, size, dense });
+            offset += size * FEATURES;
+        }
+        let params = layout.add("hashgrid", offset);
+        Self { config, levels, params }
+    }
+
+    /// Output width: levels x features.
+    pub fn width(&self) -> usize {
+        self.levels.len() * FEATURES
+    }
+
+    /// Small uniform initial values, as in Instant-NGP.
+    pub fn init(&self, params: &mut [f32], rng: &mut super::rng::Rng) {
+        for p in &mut params[self.params.clone()] {
+            *p = (rng.f32() * 2.0 - 1.0) * 1e-4;
+        }
+    }
+
+    #[inline(always)]
+    fn index(level: &Level, x: u32, y: u32, z: u32) -> usize {
+        if level.dense {
+            let r = level.res as usize + 1;
+            (x as usize * r + y as usize) * r + z as usize
+        } else {
+            let h = x.wrapping_mul(1) ^ y.wrapping_mul(2_654_435_761) ^ z.wrapping_mul(805_459_861);
+            (h as usize) & (level.size - 1)
+        }
+    }
+
+    /// The 8 corner indices (into the parameter buffer, first feature) and
+    /// trilinear weights of point `p` at `level`.
+    #[inline(always)]
+    fn corners(&self, level: &Level, p: [f32; 3]) -> ([usize; 8], [f32; 8]) {
+        let r = level.res as f32;
+        let mut base = [0u32; 3];
+        let mut frac = [0f32; 3];
+        for d in 0..3 {
+            // `clamp` maps NaN to NaN; `max` first turns it into 0.
+            let v = if p[d].is_nan() { 0.0 } else { p[d].clamp(0.0, 1.0) } * r;
+            // v >= 0, so truncation is floor (and avoids a libm call).
+            let f = (v as u32).min(level.res - 1);
+            base[d] = f;
+            frac[d] = v - f as f32;
+        }
+        let mut idx = [0usize; 8];
+        let mut w = [0f32; 8];
+        for c in 0..8 {
+            let (dx, dy, dz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
+            idx[c] = self.params.start
+                + level.offset
+                + FEATURES * Self::index(level, base[0] + dx as u32, base[1] + dy as u32, base[2] + dz as u32);
+            let wx = if dx == 1 { frac[0] } else { 1.0 - frac[0] };
+            let wy = if dy == 1 { frac[1] } else { 1.0 - frac[1] };
+            let wz = if dz == 1 { frac[2] } else { 1.0 - frac[2] };
+            w[c] = wx * wy * wz;
+        }
+        (idx, w)
+    }
+
+    /// Encodes `n` points (`pts` is `[n x 3]` in the unit cube) into `out`
+    /// (`[n x width]`).
+    ///
+    /// Level by level, so that one level's table stays in cache while all
+    /// points visit it.
+    pub fn forward(&self, params: &[f32], pts: &[f32], out: &mut [f32]) {
+        let width = self.width();
+        for (l, level) in self.levels.iter().enumerate() {
+            for (p, o) in pts.chunks_exact(3).zip(out.chunks_exact_mut(width)) {
+                let (idx, w) = self.corners(level, [p[0], p[1], p[2]]);
+                let (mut f0, mut f1) = (0.0f32, 0.0f32);
+                for c in 0..8 {
+                    f0 += w[c] * params[idx[c]];
+                    f1 += w[c] * params[idx[c] + 1];
+                }
+                o[FEATURES * l] = f0;
+                o[FEATURES * l + 1] = f1;
+            }
+        }
+    }
+
+    /// Scatters `dout` (`[n x width]`) into the table gradients.
+    pub fn backward(&self, pts: &[f32], dout: &[f32], grads: &mut [f32]) {
+        let width = self.width();
+        for (l, level) in self.levels.iter().enumerate() {
+            for (p, g) in pts.chunks_exact(3).zip(dout.chunks_exact(width)) {
+                let (g0, g1) = (g[FEATURES * l], g[FEATURES * l + 1]);
+                if g0 == 0.0 && g1 == 0.0 {
+                    continue;
+                }
+                let (idx, w) = self.corners(level, [p[0], p[1], p[2]]);
+                for c in 0..8 {
+                    grads[idx[c]] += w[c] * g0;
+                    grads[idx[c] + 1] += w[c] * g1;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::linear::ParamLayout;
+    use crate::engine::rng::Rng;
+
+    fn small() -> (HashGrid, usize) {
+        let mut layout = ParamLayout::default();
+        layout.add("pad", 5);
+        let g = HashGrid::new(
+            &mut layout,
+            HashGridConfig { levels: 4, log2_table: 8, base_resolution: 2, finest_resolution: 20 },
+        );
+        (g, layout.len)
+    }
+
+    #[test]
+    fn levels_grow_and_switch_to_hashing() {
+        let (g, _) = small();
+        let res: Vec<u32> = g.levels.iter().map(|l| l.res).collect();
+        assert_eq!(res.first(), Some(&2));
+        assert!(res.windows(2).all(|w| w[0] < w[1]), "{res:?}");
+        assert!(g.levels[0].dense && !g.levels[3].dense);
+    }
+
+    #[test]
+    fn interpolates_corner_values_exactly() {
+        let (g, n) = small();
+        let mut params = vec![0.0f32; n];
+        Rng::new(1).f32();
+        for (i, p) in params.iter_mut().enumerate() {
+            *p = (i % 17) as f32;
+        }
+        // At a grid vertex the encoding equals that vertex's features.
+        let level = g.levels[0];
+        let p = [0.5f32, 0.0, 1.0]; // vertex (1, 0, 2) at resolution 2
+        let mut out = vec![0.0; g.width()];
+        g.forward(&params, &p, &mut out);
+        let k = g.params.start + level.offset + FEATURES * HashGrid::index(&level, 1, 0, 2);
+        assert!((out[0] - params[k]).abs() < 1e-5 && (out[1] - params[k + 1]).abs() < 1e-5);
+    }
+
+    #[test]
+    fn backward_matches_finite_differences_in_f64() {
+        let (g, n) = small();
+        let mut rng = Rng::new(2);
+        let params: Vec<f32> = (0..n).map(|_| rng.normal()).collect();
+        let pts: Vec<f32> = (0..4 * 3).map(|_| rng.f32()).collect();
+        let dout: Vec<f32> = (0..4 * g.width()).map(|_| rng.normal()).collect();
+        let mut grads = vec![0.0f32; n];
+        g.backward(&pts, &dout, &mut grads);
+        // The encoding is linear in the parameters: an f64 objective
+        // sum(out * dout) from the corner weights, differentiated numerically.
+        let objective = |p: &[f64]| -> f64 {
+            let mut total = 0.0;
+            for (q, gd) in pts.chunks(3).zip(dout.chunks(g.width())) {
+                for (l, level) in g.levels.iter().enumerate() {
+                    let (idx, w) = g.corners(level, [q[0], q[1], q[2]]);
+                    for c in 0..8 {
+                        total += w[c] as f64 * (p[idx[c]] * gd[2 * l] as f64 + p[idx[c] + 1] * gd[2 * l + 1] as f64);
+                    }
+                }
+            }
+            total
+        };
+        let p64: Vec<f64> = params.iter().map(|&v| v as f64).collect();
+        let mut nonzero = 0;
+        for i in 0..n {
+            let mut a = p64.clone();
+            a[i] += 1e-6;
+            let mut b = p64.clone();
+            b[i] -= 1e-6;
+            let num = (objective(&a) - objective(&b)) / 2e-6;
+            assert!((num - grads[i] as f64).abs() < 1e-4 * (1.0 + num.abs()), "param {i}: {num} vs {}", grads[i]);
+            nonzero += (num != 0.0) as usize;
+        }
+        assert!(nonzero > 20);
+        // And the forward pass is that same linear function.
+        let mut out = vec![0.0f32; 4 * g.width()];
+        g.forward(&params, &pts, &mut out);
+        let f: f64 = out.iter().zip(&dout).map(|(a, b)| *a as f64 * *b as f64).sum();
+        assert!((f - objective(&p64)).abs() < 1e-4 * (1.0 + f.abs()));
+    }
+
+    #[test]
+    fn out_of_range_points_are_clamped_not_nan() {
+        let (g, n) = small();
+        let params = vec![1.0f32; n];
+        let pts = [-5.0f32, 1e30, f32::NAN, 1.0, 1.0, 1.0];
+        let mut out = vec![0.0; 2 * g.width()];
+        g.forward(&params, &pts, &mut out);
+        assert!(out.iter().all(|v| (v - 1.0).abs() < 1e-5), "{out:?}");
+    }
+}

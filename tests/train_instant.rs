@@ -1,0 +1,106 @@
+//! The fast model learns a tiny generated scene; its skipping (occupancy
+//! grid, early termination) does not change what it renders.
+
+use std::sync::atomic::AtomicBool;
+
+use radiance::engine::adam::{Adam, AdamConfig};
+use radiance::engine::dataset::{Dataset, Split};
+use radiance::engine::hashgrid::HashGridConfig;
+use radiance::engine::instant::{InstantConfig, InstantModel};
+use radiance::engine::metrics::psnr;
+use radiance::engine::model::Model;
+use radiance::engine::render::{View, render_view};
+use radiance::engine::scene::Scene;
+use radiance::engine::synthetic::BallScene;
+use radiance::engine::trainer::{Budget, TrainConfig, TrainState, Trainer};
+
+fn gt(ds: &Dataset, k: usize) -> Vec<f32> {
+    let f = &ds.frames[k];
+    (0..f.camera.height)
+        .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
+        .flat_map(|(i, j)| f.image.rgb_on(i, j, ds.background))
+        .collect()
+}
+
+fn trained() -> (Dataset, Box<dyn Model>) {
+    let ds = BallScene::default().dataset();
+    let mut config = InstantConfig {
+        grid: HashGridConfig { levels: 8, log2_table: 14, base_resolution: 4, finest_resolution: 64 },
+        hidden: 32,
+        steps_per_diagonal: 256,
+        samples_per_step: 1 << 13,
+        chunk_rays: 32,
+        ..Default::default()
+    };
+    config.occupancy.resolution = 32;
+    config.occupancy.update_every = 8;
+    config.occupancy.sweep = 2;
+    let model = InstantModel::new(config, Scene::from_dataset(&ds), 2);
+    let adam =
+        Adam::new(AdamConfig { lr: 1e-2, lr_end: 1e-3, beta1: 0.9, beta2: 0.99, eps: 1e-15 }, model.params().len());
+    let cfg = TrainConfig {
+        seed: 2,
+        batch_rays: 0,
+        budget: Budget { steps: Some(200), seconds: None },
+        random_background: true,
+    };
+    let mut t = Trainer::new(Box::new(model), adam, cfg, TrainState::default(), &ds);
+    t.run(&AtomicBool::new(false), |_, _| true);
+    let model = t.model;
+    (ds, model)
+}
+
+fn max_diff(a: &View, b: &View) -> f32 {
+    a.rgb.iter().zip(&b.rgb).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+#[test]
+fn instant_model_learns_and_skipping_is_lossless() {
+    let (ds, model) = trained();
+    let test: Vec<usize> = ds.split(Split::Test).to_vec();
+    let mut total = 0.0;
+    for &k in &test {
+        let v = render_view(&*model, &ds.frames[k].camera, ds.background);
+        total += psnr(&v.rgb, &gt(&ds, k));
+    }
+    let mean = total / test.len() as f64;
+    eprintln!("instant test PSNR {mean:.2} dB");
+    assert!(mean > 25.0, "test PSNR {mean:.2} dB");
+
+    // Rebuild the same model three ways from its parameters.
+    let ckpt = radiance::engine::persist::to_checkpoint(
+        &*model,
+        &Adam::new(AdamConfig::default(), model.params().len()),
+        &TrainConfig::default(),
+        &TrainState { step: 200, ..Default::default() },
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.ckpt");
+    ckpt.save(&path).unwrap();
+    let restored = radiance::engine::persist::load(&path).unwrap().model;
+    let cam = &ds.frames[test[0]].camera;
+    let marched = render_view(&*restored, cam, ds.background);
+    assert_eq!(marched.rgb, render_view(&*model, cam, ds.background).rgb, "checkpoint round trip");
+
+    let any = restored;
+    let raw: &InstantModel = any.as_any().downcast_ref().expect("an instant model");
+    assert!(raw.grid.active && raw.grid.occupancy() < 0.5, "grid skips space: {}", raw.grid.occupancy());
+    let mut dense = InstantModel::from_parts(raw.config.clone(), raw.scene().clone(), raw.params().to_vec()).unwrap();
+    dense.grid.active = false;
+    dense.config.min_transmittance = 0.0;
+    let dense_view = render_view(&dense, cam, ds.background);
+    assert!(dense_view.stats.samples > 2 * marched.stats.samples, "skipping saves samples");
+    // The occupancy grid skips only cells whose density is below its
+    // threshold (under 1% opacity per marching step), so skipping changes
+    // pixels only slightly; early termination changes a pixel by at most its
+    // threshold (plus f32 rounding).
+    let d = max_diff(&dense_view, &marched);
+    let agreement = psnr(&dense_view.rgb, &marched.rgb);
+    eprintln!("marched vs dense: max difference {d:.5}, PSNR {agreement:.1} dB");
+    assert!(d < 0.03 && agreement > 45.0, "marched vs dense: max difference {d}, PSNR {agreement:.1} dB");
+    let mut no_et = InstantModel::from_parts(raw.config.clone(), raw.scene().clone(), raw.params().to_vec()).unwrap();
+    no_et.grid = raw.grid.clone();
+    no_et.config.min_transmittance = 0.0;
+    let d = max_diff(&render_view(&no_et, cam, ds.background), &marched);
+    assert!(d <= 1e-4 + 1e-6, "early termination changed a pixel by {d}");
+}
