@@ -116,6 +116,11 @@ impl NerfModel {
         (far > 0.0).then_some(Hit { ray: *ray, segs, near: 0.0, far, target, background })
     }
 
+    /// Uses another model's occupancy grid (same configuration).
+    pub fn copy_grid_from(&mut self, other: &NerfModel) {
+        self.grid = other.grid.clone();
+    }
+
     /// The occupancy grid, when the model skips empty space.
     pub fn grid(&self) -> Option<&OccupancyGrid> {
         self.grid.as_ref()
@@ -243,6 +248,102 @@ impl NerfModel {
         out
     }
 
+    /// The fine pass for rendering, in rounds of a few samples per ray, so
+    /// that a ray's samples stop being evaluated once its transmittance falls
+    /// below `min_t`. Returns the composites and the samples evaluated.
+    fn fine_in_rounds(
+        &self,
+        w: &mut Work,
+        hits: &[Hit],
+        fine_t: &[Vec<f32>],
+        min_t: f32,
+    ) -> (Vec<super::volume::Composite>, u64) {
+        const ROUND: usize = 32;
+        struct State {
+            next: usize,
+            tau: f32,
+            rgb: [f32; 3],
+            depth: f32,
+            live: bool,
+            delta: Vec<f32>,
+        }
+        let mut st: Vec<State> = hits
+            .iter()
+            .zip(fine_t)
+            .map(|(h, t)| {
+                let mut delta = Vec::new();
+                deltas(t, h.near, h.far, &mut delta);
+                State { next: 0, tau: 0.0, rgb: [0.0; 3], depth: 0.0, live: !t.is_empty(), delta }
+            })
+            .collect();
+        let mut samples = 0u64;
+        loop {
+            w.pts.clear();
+            w.dirs.clear();
+            w.tr.clear();
+            // (ray, its first sample in this round, count)
+            let mut owners = Vec::new();
+            for (k, (h, s)) in hits.iter().zip(&st).enumerate() {
+                if !s.live {
+                    continue;
+                }
+                let t = &fine_t[k];
+                let end = (s.next + ROUND).min(t.len());
+                for &si in &t[s.next..end] {
+                    let ti = h.segs.to_t(si);
+                    w.tr.push(ti);
+                    let p = h.ray.at(ti);
+                    w.pts.extend_from_slice(&[p.x, p.y, p.z]);
+                    w.dirs.extend_from_slice(&[h.ray.dir.x, h.ray.dir.y, h.ray.dir.z]);
+                }
+                owners.push((k, s.next, end - s.next));
+            }
+            if owners.is_empty() {
+                break;
+            }
+            let n = w.pts.len() / 3;
+            samples += n as u64;
+            self.fine.forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
+            let mut o = 0;
+            for &(k, first, cnt) in &owners {
+                let s = &mut st[k];
+                for j in 0..cnt {
+                    let trans = (-s.tau).exp();
+                    if trans < min_t {
+                        break;
+                    }
+                    s.tau += super::volume::optical_depth(w.ctx.sigma[o + j], s.delta[first + j]);
+                    let wgt = trans - (-s.tau).exp();
+                    for c in 0..3 {
+                        s.rgb[c] += wgt * w.ctx.rgb[3 * (o + j) + c];
+                    }
+                    s.depth += wgt * w.tr[o + j];
+                }
+                s.next = first + cnt;
+                s.live = s.next < fine_t[k].len() && (-s.tau).exp() >= min_t;
+                o += cnt;
+            }
+        }
+        let comps = hits
+            .iter()
+            .zip(st)
+            .map(|(h, s)| {
+                let trans = (-s.tau).exp();
+                super::volume::Composite {
+                    rgb: [
+                        s.rgb[0] + trans * h.background[0],
+                        s.rgb[1] + trans * h.background[1],
+                        s.rgb[2] + trans * h.background[2],
+                    ],
+                    depth: s.depth,
+                    opacity: 1.0 - trans,
+                    used: s.next,
+                }
+            })
+            .collect();
+        (comps, samples)
+    }
+
     /// Runs the coarse and fine passes over a chunk of hit rays; with
     /// `grads`, also backpropagates the L2 loss scaled by `grad_scale`.
     fn run_chunk(
@@ -276,6 +377,11 @@ impl NerfModel {
         }
         // Fine pass.
         let fine_t = self.fine_samples(w, hits, &coarse_t, &mut rngs);
+        if grads.is_none() && min_t > 0.0 {
+            let (comps, n) = self.fine_in_rounds(w, hits, &fine_t, min_t);
+            stats.samples += n;
+            return (comps, stats);
+        }
         Self::gather(w, hits, &fine_t);
         let n = w.pts.len() / 3;
         self.fine.forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
