@@ -66,8 +66,10 @@ fn bench_writes_table_json_and_plot() {
         assert!(r.train_seconds >= r.budget_seconds, "{r:?}");
         assert!(r.rays > 0 && r.samples > 0 && r.samples_per_ray > 0.0 && r.render_ms > 0.0, "{r:?}");
     }
-    assert!(rows[0].steps > 0 && rows[1].steps > rows[0].steps, "steps increase: {rows:?}");
-    assert!(rows[1].rays > rows[0].rays, "{rows:?}");
+    // One slow step may cross both budgets (then both rows hold the same
+    // scores), so counts never decrease but need not grow.
+    assert!(rows[0].steps > 0 && rows[1].steps >= rows[0].steps, "steps never decrease: {rows:?}");
+    assert!(rows[1].rays >= rows[0].rays && rows[1].train_seconds >= rows[0].train_seconds, "{rows:?}");
     // The table shows the JSON's PSNRs.
     for (l, r) in lines[1..].iter().zip(rows) {
         assert!(l.contains(&format!("{:.2}", r.psnr)), "{l} vs {r:?}");
