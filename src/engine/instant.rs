@@ -357,18 +357,9 @@ impl InstantModel {
         count
     }
 
-    /// Unit-cube coordinates of the samples.
+    /// Unit-cube coordinates of the samples (one span per ray).
     fn unit_points(&self, rays: &[Ray], m: &Marched, out: &mut Vec<f32>) {
-        let lo = Vec3::from_array(self.scene.aabb_min);
-        let ext = Vec3::from_array(self.scene.aabb_max) - lo;
-        let inv = Vec3::new(1.0 / ext.x, 1.0 / ext.y, 1.0 / ext.z);
-        out.clear();
-        for (ray, &(o, n)) in rays.iter().zip(&m.spans) {
-            for &t in &m.t[o..o + n] {
-                let p = ray.at(t) - lo;
-                out.extend_from_slice(&[p.x * inv.x, p.y * inv.y, p.z * inv.z]);
-            }
-        }
+        self.unit_points_of(rays, 0..rays.len(), m, out);
     }
 
     fn train_chunk(
@@ -579,7 +570,7 @@ impl Model for InstantModel {
                 if m.t.is_empty() {
                     break;
                 }
-                self.unit_points_of(chunk, &owners, &m, &mut c.unit);
+                self.unit_points_of(chunk, owners.iter().copied(), &m, &mut c.unit);
                 c.n = m.t.len();
                 stats.samples += c.n as u64;
                 self.nets.forward_density(&self.params, &mut c);
@@ -633,13 +624,13 @@ impl Model for InstantModel {
 }
 
 impl InstantModel {
-    /// Unit-cube coordinates of round samples whose rays are `owners`.
-    fn unit_points_of(&self, rays: &[Ray], owners: &[usize], m: &Marched, out: &mut Vec<f32>) {
+    /// Unit-cube coordinates of samples whose spans belong to rays `owners`.
+    fn unit_points_of(&self, rays: &[Ray], owners: impl IntoIterator<Item = usize>, m: &Marched, out: &mut Vec<f32>) {
         let lo = Vec3::from_array(self.scene.aabb_min);
         let ext = Vec3::from_array(self.scene.aabb_max) - lo;
         let inv = Vec3::new(1.0 / ext.x, 1.0 / ext.y, 1.0 / ext.z);
         out.clear();
-        for (&r, &(o, n)) in owners.iter().zip(&m.spans) {
+        for (r, &(o, n)) in owners.into_iter().zip(&m.spans) {
             for &t in &m.t[o..o + n] {
                 let p = rays[r].at(t) - lo;
                 out.extend_from_slice(&[p.x * inv.x, p.y * inv.y, p.z * inv.z]);
