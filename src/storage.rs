@@ -33,7 +33,7 @@ impl Storage {
     /// uploads and deletions.
     pub fn open(root: &Path) -> io::Result<Self> {
         let s = Self { root: root.to_path_buf() };
-        for d in ["scenes", "models", "jobs"] {
+        for d in ["scenes", "models", "jobs", "videos"] {
             std::fs::create_dir_all(s.root.join(d))?;
         }
         let tmp = s.tmp_dir();
@@ -89,6 +89,24 @@ impl Storage {
         }
         v.sort_by(|a, b| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
         Ok(v)
+    }
+
+    pub fn videos_dir(&self) -> PathBuf {
+        self.root.join("videos")
+    }
+    /// The video file (its record says the format).
+    pub fn video_file(&self, id: &str) -> PathBuf {
+        self.videos_dir().join(format!("{id}.bin"))
+    }
+    pub fn video_record(&self, id: &str) -> PathBuf {
+        self.videos_dir().join(format!("{id}.json"))
+    }
+
+    pub fn load_video(&self, id: &str) -> io::Result<Option<VideoInfo>> {
+        if !valid_id(id) {
+            return Ok(None);
+        }
+        read_json_opt(&self.video_record(id))
     }
 
     pub fn load_model(&self, id: &str) -> io::Result<Option<ModelInfo>> {
@@ -226,6 +244,22 @@ pub struct ModelInfo {
     /// Whether training has finished (succeeded or canceled).
     pub complete: bool,
     pub view: ViewDefaults,
+}
+
+/// A rendered orbit video. The file is written before the record, so a
+/// record always points at a whole file.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct VideoInfo {
+    pub id: String,
+    pub model_id: String,
+    pub job_id: String,
+    pub format: crate::media::video::VideoFormat,
+    pub frames: u32,
+    pub fps: u32,
+    pub width: u32,
+    pub height: u32,
+    pub size_bytes: u64,
+    pub created_at: u64,
 }
 
 #[cfg(test)]

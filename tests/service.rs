@@ -65,6 +65,56 @@ fn ball_files() -> Vec<(String, Vec<u8>)> {
     files(d.path())
 }
 
+fn ball() -> BallScene {
+    BallScene { size: 16, views: 8, ..Default::default() }
+}
+
+fn ngp_files() -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    ball().write_ngp(d.path()).unwrap();
+    files(d.path())
+}
+
+fn llff_files() -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    ball().write_llff(d.path()).unwrap();
+    files(d.path())
+}
+
+/// A multipart form with one part per file; `by_filename` names the parts
+/// `file` and puts the path in the filename, else the field name is the path.
+fn form_of(entries: &[(String, Vec<u8>)], by_filename: bool) -> reqwest::multipart::Form {
+    let mut form = reqwest::multipart::Form::new();
+    for (name, data) in entries {
+        let part = reqwest::multipart::Part::bytes(data.clone()).file_name(name.clone());
+        form = form.part(if by_filename { "file".to_string() } else { name.clone() }, part);
+    }
+    form
+}
+
+/// The boxes of an MP4 (ISO BMFF) buffer: `(type, payload)` at one level.
+fn mp4_boxes(b: &[u8]) -> Vec<(String, &[u8])> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i + 8 <= b.len() {
+        let size = u32::from_be_bytes(b[i..i + 4].try_into().unwrap()) as usize;
+        let kind = String::from_utf8_lossy(&b[i + 4..i + 8]).into_owned();
+        assert!(size >= 8 && i + size <= b.len(), "box {kind} of size {size} at {i} overruns {}", b.len());
+        out.push((kind, &b[i + 8..i + size]));
+        i += size;
+    }
+    assert_eq!(i, b.len(), "trailing bytes after the last box");
+    out
+}
+
+fn mp4_child<'a>(b: &'a [u8], path: &[&str]) -> &'a [u8] {
+    let mut cur = b;
+    for name in path {
+        cur = mp4_boxes(cur).into_iter().find(|(k, _)| k == name).unwrap_or_else(|| panic!("no {name} box")).1;
+    }
+    cur
+}
+
 struct Svc {
     /// `None` when talking to a server in a child process.
     server: Option<Server>,
@@ -144,6 +194,29 @@ impl Svc {
             assert!(t0.elapsed().as_secs_f64() < secs, "timed out waiting for job: {v}");
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
+    }
+
+    async fn upload_form(&self, form: reqwest::multipart::Form) -> (StatusCode, Value) {
+        let r = self.client.post(self.url("/v1/scenes")).multipart(form).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    /// Enqueues a video of `model` and waits for it; returns the job and
+    /// the video's bytes and content type.
+    async fn video(&self, model: &str, body: Value) -> (Value, Vec<u8>, String) {
+        let (s, v) = self.post_json(&format!("/v1/models/{model}/videos"), body).await;
+        assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+        assert_eq!((v["kind"].as_str(), v["model_id"].as_str()), (Some("video"), Some(model)), "{v}");
+        let id = v["id"].as_str().unwrap().to_string();
+        let job = self.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+        assert_eq!(job["status"], "succeeded", "{job}");
+        assert_eq!(job["progress"]["step"], job["frames"], "{job}");
+        let r = self.client.get(self.url(&format!("/v1/videos/{}", job["video_id"].as_str().unwrap()))).send().await;
+        let r = r.unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+        let ct = r.headers()["content-type"].to_str().unwrap().to_string();
+        (job, r.bytes().await.unwrap().to_vec(), ct)
     }
 
     async fn png(&self, path: &str) -> image::DynamicImage {
@@ -311,6 +384,8 @@ async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
     assert_eq!(list.as_array().unwrap().len(), 1);
     let (_, done) = svc.get("/v1/jobs?status=succeeded").await;
     assert_eq!(done.as_array().unwrap().len(), 1);
+    assert_eq!(job["kind"], "train");
+    assert!(job["progress"]["test_psnr"].as_f64().is_some(), "{job}");
     let (_, none) = svc.get("/v1/jobs?status=running").await;
     assert_eq!(none, json!([]));
 
@@ -333,8 +408,40 @@ async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
     let (s, _) = svc.get("/v1/models/mdl_missing/render").await;
     assert_eq!(s, StatusCode::NOT_FOUND);
 
+    // Orbit videos, as jobs: a GIF that decodes to its frames, an MP4 whose
+    // boxes hold one H.264 sample per frame.
+    let (job, gif, ct) =
+        svc.video(&model, json!({ "frames": 6, "fps": 12, "width": 24, "height": 16, "format": "gif" })).await;
+    assert_eq!(ct, "image/gif");
+    assert_eq!(job["format"], "gif");
+    use image::AnimationDecoder;
+    let frames = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(&gif)).unwrap().into_frames();
+    let frames = frames.collect_frames().unwrap();
+    assert_eq!(frames.len(), 6);
+    assert_eq!(frames[0].buffer().dimensions(), (24, 16));
+    let (_, mp4, ct) = svc.video(&model, json!({ "frames": 5, "fps": 10, "width": 32, "height": 16 })).await;
+    assert_eq!(ct, "video/mp4");
+    let top: Vec<String> = mp4_boxes(&mp4).into_iter().map(|(k, _)| k).collect();
+    assert!(top.starts_with(&["ftyp".to_string()]) && top.contains(&"moov".into()) && top.contains(&"mdat".into()));
+    let stsz = mp4_child(&mp4, &["moov", "trak", "mdia", "minf", "stbl", "stsz"]);
+    assert_eq!(u32::from_be_bytes(stsz[8..12].try_into().unwrap()), 5, "samples in stsz");
+    let bad_videos = [
+        (json!({ "frames": 0 }), StatusCode::BAD_REQUEST),
+        (json!({ "format": "avi" }), StatusCode::BAD_REQUEST),
+        (json!({ "width": 100000 }), StatusCode::BAD_REQUEST),
+        (json!({ "surprise": 1 }), StatusCode::BAD_REQUEST),
+    ];
+    for (body, want) in bad_videos {
+        let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), body.clone()).await;
+        assert_eq!(s, want, "{body}: {v}");
+    }
+    let (s, _) = svc.post_json("/v1/models/mdl_missing/videos", json!({})).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    let (s, _) = svc.get("/v1/videos/vid_missing").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+
     let metrics = svc.client.get(svc.url("/metrics")).send().await.unwrap().text().await.unwrap();
-    assert!(metrics.contains("radiance_jobs{status=\"succeeded\"} 1"), "{metrics}");
+    assert!(metrics.contains("radiance_jobs{status=\"succeeded\"} 3"), "{metrics}");
     assert!(metrics.contains("radiance_render_seconds_count 4"), "{metrics}");
     svc.stop().await;
 }
@@ -455,6 +562,98 @@ async fn api_key_is_required_when_configured() {
     assert_eq!(r.status(), StatusCode::OK);
     let (s, _) = svc.get("/healthz").await;
     assert_eq!(s, StatusCode::OK);
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn upload_each_format_as_archive_and_as_multipart() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    // instant-ngp transforms.json in a zip: every 8th frame held out
+    let (s, v) = svc.upload("application/zip", zip_of(&ngp_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!(v["format"], "ngp");
+    assert_eq!(v["images"], json!({ "train": 10, "val": 2, "test": 2 }));
+    // LLFF poses_bounds.npy in a tar.gz
+    let (s, v) = svc.upload("application/gzip", tar_gz_of(&llff_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!(v["format"], "llff");
+    assert_eq!(v["resolution"], json!([16, 16]));
+    // multipart, paths as field names (Blender) and as file names (LLFF)
+    let (s, v) = svc.upload_form(form_of(&ball_files(), false)).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!((v["format"].as_str(), v["images"]["train"].as_u64()), (Some("blender"), Some(8)));
+    let (s, v) = svc.upload_form(form_of(&llff_files(), true)).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!(v["format"], "llff");
+    let (_, list) = svc.get("/v1/scenes").await;
+    assert_eq!(list.as_array().unwrap().len(), 4);
+
+    // Bad multipart uploads leave nothing behind.
+    let mut evil = ball_files();
+    evil.push(("../../escaped.txt".into(), b"x".to_vec()));
+    let (s, v) = svc.upload_form(form_of(&evil, false)).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert!(v["error"]["message"].as_str().unwrap().contains(".."), "{v}");
+    let missing: Vec<_> = ngp_files().into_iter().filter(|(n, _)| n != "transforms.json").collect();
+    let (s, v) = svc.upload_form(form_of(&missing, true)).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    let (s, v) = svc.upload_form(reqwest::multipart::Form::new()).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    let left: Vec<_> = std::fs::read_dir(data.path().join("tmp")).unwrap().collect();
+    assert!(left.is_empty(), "tmp/ holds {left:?}");
+    let (_, list) = svc.get("/v1/scenes").await;
+    assert_eq!(list.as_array().unwrap().len(), 4);
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    cfg.scheduler.heldout_every = 0.2;
+    let svc = Svc::start(cfg).await;
+    let scene = svc.upload_ball().await;
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "target_psnr": 16.0, "seconds": 120 } });
+    let (s, job) = svc.post_json("/v1/jobs", body).await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{job}");
+    assert_eq!((job["kind"].as_str(), job["config"]["kind"].as_str()), (Some("train"), Some("instant")), "{job}");
+    let id = job["id"].as_str().unwrap();
+
+    // The event stream: progress events, then one `end` event, then it closes.
+    let r = svc.client.get(svc.url(&format!("/v1/jobs/{id}/events"))).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()["content-type"], "text/event-stream");
+    let text = tokio::time::timeout(Duration::from_secs(120), r.text()).await.expect("the stream ends").unwrap();
+    let mut events: Vec<(String, Value)> = Vec::new();
+    for block in text.split("\n\n").filter(|b| b.contains("data:")) {
+        let name = block.lines().find_map(|l| l.strip_prefix("event: ")).unwrap_or("").to_string();
+        let data: String = block.lines().filter_map(|l| l.strip_prefix("data: ")).collect();
+        events.push((name, serde_json::from_str(&data).unwrap()));
+    }
+    let (last, progress) = events.split_last().expect("events");
+    assert_eq!(last.0, "end");
+    assert!(progress.iter().all(|(n, _)| n == "progress"));
+    assert!(progress.len() >= 2, "{} progress events", progress.len());
+    let steps: Vec<u64> = progress.iter().map(|(_, j)| j["progress"]["step"].as_u64().unwrap()).collect();
+    assert!(steps.windows(2).all(|w| w[0] <= w[1]), "{steps:?}");
+    assert!(
+        progress.iter().any(|(_, j)| j["status"] == "running" && j["progress"]["test_psnr"].is_number()),
+        "a held-out estimate is reported while training"
+    );
+
+    // It stopped at the target, long before its time budget.
+    let done = &last.1;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let p = &done["progress"];
+    assert!(p["elapsed"].as_f64().unwrap() < 100.0, "{done}");
+    let model = done["model_id"].as_str().unwrap();
+    let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert_eq!(m["model"], "instant-tiny");
+    assert!(m["test_psnr"].as_f64().unwrap() > 14.0, "{m}");
+    assert_eq!((p["diverged_steps"].as_u64(), p["rollbacks"].as_u64()), (Some(0), Some(0)), "{done}");
+    let (s, _) = svc.get("/v1/jobs/job_nope/events").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
     svc.stop().await;
 }
 

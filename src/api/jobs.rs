@@ -1,63 +1,64 @@
-//! `/v1/jobs`: enqueue a training job (202), list, get, cancel.
+//! `/v1/jobs`: enqueue a training job (202), list, get, cancel, and follow
+//! a job's progress as Server-Sent Events.
+
+use std::convert::Infallible;
 
 use axum::Json;
 use axum::extract::rejection::{JsonRejection, QueryRejection};
 use axum::extract::{Path, Query, State};
 use axum::http::StatusCode;
+use axum::response::sse::{Event, KeepAlive, Sse};
+use futures_util::Stream;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, Code};
-use crate::engine::nerf::NerfConfig;
-use crate::engine::trainer::Budget;
-use crate::jobs::train::{PRESETS, check_config, preset};
-use crate::jobs::{Job, SchedError, Status, TrainSpec};
+use crate::engine::model_config::{DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
+use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec};
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CreateJob {
     pub scene_id: String,
-    /// Preset: `nerf` (default, the paper's model) or `nerf-tiny`.
+    /// Preset: `instant` (default, the fast model), `instant-tiny`, `nerf`
+    /// (the paper's model) or `nerf-tiny`.
     #[serde(default = "default_model")]
     pub model: String,
-    pub budget: BudgetRequest,
+    pub budget: JobBudget,
     #[serde(default)]
     pub seed: u64,
-    /// Rays per step (1024).
+    /// Rays per step for `nerf` (1024); the fast model adapts its own.
     pub batch_rays: Option<usize>,
-    /// A full model configuration replacing the preset's.
-    pub config: Option<NerfConfig>,
+    /// A full model configuration replacing the preset's (same kind).
+    pub config: Option<ModelConfig>,
 }
 
 fn default_model() -> String {
-    "nerf".into()
-}
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct BudgetRequest {
-    pub seconds: Option<f64>,
-    pub steps: Option<u64>,
-    pub target_psnr: Option<f64>,
+    PRESETS[0].into()
 }
 
 /// Longest accepted time budget: a week.
 const MAX_SECONDS: f64 = 7.0 * 86400.0;
 
 fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
-    let mut config = preset(&r.model).ok_or_else(|| {
+    let mut config = ModelConfig::preset(&r.model).ok_or_else(|| {
         ApiError::bad_request(format!("unknown model '{}' (available: {})", r.model, PRESETS.join(", ")))
     })?;
     if let Some(c) = r.config {
+        if c.kind() != config.kind() {
+            return Err(ApiError::bad_request(format!(
+                "config.kind is '{}' but model '{}' is a '{}' model",
+                c.kind(),
+                r.model,
+                config.kind()
+            )));
+        }
         config = c;
     }
-    check_config(&config).map_err(ApiError::bad_request)?;
+    config.check().map_err(ApiError::bad_request)?;
     let b = r.budget;
-    if b.target_psnr.is_some() {
-        return Err(ApiError::bad_request("budget.target_psnr is not supported yet: give seconds or steps"));
-    }
-    if b.seconds.is_none() && b.steps.is_none() {
-        return Err(ApiError::bad_request("budget needs seconds or steps"));
+    if b.seconds.is_none() && b.steps.is_none() && b.target_psnr.is_none() {
+        return Err(ApiError::bad_request("budget needs seconds, steps or target_psnr"));
     }
     if let Some(s) = b.seconds
         && !(s.is_finite() && s > 0.0 && s <= MAX_SECONDS)
@@ -69,23 +70,23 @@ fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
     {
         return Err(ApiError::bad_request("budget.steps must be in 1..=1000000000"));
     }
-    let batch_rays = r.batch_rays.unwrap_or(1024);
+    if let Some(p) = b.target_psnr
+        && !(p.is_finite() && p > 0.0 && p <= 100.0)
+    {
+        return Err(ApiError::bad_request("budget.target_psnr must be in (0, 100] dB"));
+    }
+    let batch_rays = r.batch_rays.unwrap_or(DEFAULT_BATCH_RAYS);
     if !(1..=65536).contains(&batch_rays) {
         return Err(ApiError::bad_request("batch_rays must be in 1..=65536"));
     }
-    Ok(TrainSpec {
-        scene_id: r.scene_id,
-        model: r.model,
-        config,
-        budget: Budget { seconds: b.seconds, steps: b.steps },
-        seed: r.seed,
-        batch_rays,
-    })
+    Ok(TrainSpec { scene_id: r.scene_id, model: r.model, config, budget: b, seed: r.seed, batch_rays })
 }
 
-fn sched_error(e: SchedError) -> ApiError {
+pub(crate) fn sched_error(e: SchedError) -> ApiError {
     match e {
-        SchedError::SceneNotFound(_) | SchedError::JobNotFound(_) => ApiError::new(Code::NotFound, e.to_string()),
+        SchedError::SceneNotFound(_) | SchedError::JobNotFound(_) | SchedError::ModelNotFound(_) => {
+            ApiError::new(Code::NotFound, e.to_string())
+        }
         SchedError::QueueFull(_) => ApiError::new(Code::QueueFull, e.to_string()),
         SchedError::SceneInUse { .. } | SchedError::AlreadyFinal { .. } => ApiError::conflict(e.to_string()),
         SchedError::Io(io) => ApiError::internal(io),
@@ -99,8 +100,10 @@ pub async fn create(
     let Json(req) = body?;
     let spec = to_spec(req)?;
     let sched = s.scheduler.clone();
-    let job = tokio::task::spawn_blocking(move || sched.enqueue(spec)).await?.map_err(sched_error)?;
-    tracing::info!(job = %job.id, scene = %job.spec.scene_id, "job queued");
+    let job = tokio::task::spawn_blocking(move || sched.enqueue(JobSpec::Train(Box::new(spec)), None))
+        .await?
+        .map_err(sched_error)?;
+    tracing::info!(job = %job.id, kind = "train", "job queued");
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
 
@@ -126,3 +129,39 @@ pub async fn cancel(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
     let job = tokio::task::spawn_blocking(move || sched.cancel(&id)).await?.map_err(sched_error)?;
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
+
+/// `GET /v1/jobs/{id}/events`: Server-Sent Events. A `progress` event with
+/// the job record whenever it changes (checked five times a second), then an
+/// `end` event with the final record, and the stream closes. Comment lines
+/// keep idle connections alive.
+pub async fn events(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
+    if s.scheduler.get(&id).is_none() {
+        return Err(ApiError::not_found("job", &id));
+    }
+    let sched = s.scheduler.clone();
+    let stream = futures_util::stream::unfold((None::<String>, false), move |(last, ended)| {
+        let sched = sched.clone();
+        let id = id.clone();
+        async move {
+            if ended {
+                return None;
+            }
+            loop {
+                let job = sched.get(&id)?;
+                let json = serde_json::to_string(&job).ok()?;
+                if last.as_deref() != Some(json.as_str()) {
+                    let end = job.status.is_final();
+                    let event = Event::default().event(if end { "end" } else { "progress" }).data(json.clone());
+                    return Some((Ok(event), (Some(json), end)));
+                }
+                tokio::time::sleep(EVENT_POLL).await;
+            }
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+const EVENT_POLL: std::time::Duration = std::time::Duration::from_millis(200);

@@ -1,7 +1,7 @@
 //! The REST service: `app(state)` builds every route; [`Server::start`]
 //! binds it and runs the job scheduler beside it.
 //!
-//! One file per resource (`scenes`, `jobs`, `models`), one error type
+//! One file per resource (`scenes`, `jobs`, `models`, `videos`), one error type
 //! (`error`), archive extraction (`archive`), `/healthz` and `/metrics`
 //! (`health`). Handlers never block the runtime: extraction, dataset
 //! validation and rendering run under `spawn_blocking`, training on the
@@ -28,6 +28,7 @@ pub mod health;
 pub mod jobs;
 pub mod models;
 pub mod scenes;
+pub mod videos;
 
 pub use error::{ApiError, ApiResult, Code};
 
@@ -100,9 +101,12 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/jobs", post(jobs::create).get(jobs::list))
         .route("/v1/jobs/{id}", get(jobs::get_one))
         .route("/v1/jobs/{id}/cancel", post(jobs::cancel))
+        .route("/v1/jobs/{id}/events", get(jobs::events))
         .route("/v1/models", get(models::list))
         .route("/v1/models/{id}", get(models::get_one))
         .route("/v1/models/{id}/render", get(models::render))
+        .route("/v1/models/{id}/videos", post(videos::create))
+        .route("/v1/videos/{id}", get(videos::get_one))
         .route("/metrics", get(health::metrics))
         .route_layer(middleware::from_fn_with_state(state.clone(), auth));
     Router::new().route("/healthz", get(health::healthz)).merge(v1).fallback(not_found).with_state(state)

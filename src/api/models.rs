@@ -12,7 +12,7 @@ use image::{ImageBuffer, ImageEncoder, Luma, codecs::png::PngEncoder};
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
-use crate::engine::camera::{Camera, look_at};
+use crate::engine::camera::{Camera, orbit};
 use crate::engine::math::Vec3;
 use crate::engine::model::Model;
 use crate::engine::persist;
@@ -96,16 +96,7 @@ pub fn parse_c2w(s: &str) -> Result<[[f32; 4]; 3], String> {
 
 /// The camera pose of an orbit position around the scene centre.
 pub fn orbit_pose(view: &ViewDefaults, azimuth_deg: f32, elevation_deg: f32, radius: f32) -> Option<[[f32; 4]; 3]> {
-    let up = Vec3::from_array(view.up).normalized()?;
-    let centre = Vec3::from_array(view.centre);
-    // Azimuth 0 is world +x projected on the horizon (+y when up is x).
-    let x = Vec3::new(1.0, 0.0, 0.0);
-    let reference = if up.dot(x).abs() > 0.9 { Vec3::new(0.0, 1.0, 0.0) } else { x };
-    let a = (reference - up * up.dot(reference)).normalized()?;
-    let b = up.cross(a);
-    let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
-    let dir = (a * az.cos() + b * az.sin()) * el.cos() + up * el.sin();
-    look_at(centre + dir * radius, centre, up)
+    orbit(Vec3::from_array(view.centre), Vec3::from_array(view.up), azimuth_deg, elevation_deg, radius)
 }
 
 fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResult<(Camera, Output, Background)> {

@@ -1,17 +1,18 @@
-//! `/v1/scenes`: upload a dataset as an archive, list, get, delete.
+//! `/v1/scenes`: upload a dataset (an archive, or multipart files with their
+//! relative paths), list, get, delete.
 //!
-//! An upload is extracted into `tmp/ID/data`, loaded and validated by the
+//! An upload is extracted (or its parts written) into `tmp/ID/data`, loaded and validated by the
 //! engine's loader, its record written to `tmp/ID/scene.json`, and only then
 //! renamed into `scenes/ID`: a scene either exists whole or not at all, and a
 //! failed upload leaves nothing behind.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use axum::Json;
 use axum::body::Bytes;
-use axum::extract::rejection::BytesRejection;
-use axum::extract::{Path as UrlPath, State};
-use axum::http::{HeaderMap, StatusCode, header::CONTENT_TYPE};
+use axum::extract::multipart::MultipartError;
+use axum::extract::{FromRequest, Multipart, Path as UrlPath, Request, State};
+use axum::http::{StatusCode, header::CONTENT_TYPE};
 
 use super::archive::{self, ArchiveError, ArchiveKind, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
@@ -20,52 +21,162 @@ use crate::engine::math::Vec3;
 use crate::jobs::SchedError;
 use crate::storage::{SceneInfo, SplitCounts, Storage, ViewDefaults, new_id, now_ms, write_json};
 
-pub async fn create(
-    State(s): State<AppState>,
-    headers: HeaderMap,
-    body: Result<Bytes, BytesRejection>,
-) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
-    let ct = headers.get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
-    let kind = ArchiveKind::from_content_type(ct).ok_or_else(|| {
-        ApiError::new(
-            Code::UnsupportedMediaType,
-            format!(
-                "Content-Type '{ct}' is not an accepted archive (application/zip, application/x-tar, application/gzip)"
-            ),
-        )
-    })?;
-    let body = body.map_err(|e| {
-        if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-            ApiError::new(Code::PayloadTooLarge, format!("upload is larger than {} bytes", s.config.max_upload_bytes))
-        } else {
-            ApiError::bad_request(format!("reading the upload: {}", e.body_text()))
-        }
-    })?;
-    if body.is_empty() {
-        return Err(ApiError::bad_request("empty upload: send the archive as the request body"));
-    }
+pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
+    let ct = req.headers().get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
     let limits = Limits { max_unpacked_bytes: s.config.max_unpacked_bytes, max_entries: s.config.max_archive_entries };
-    let storage = s.storage.clone();
-    let info = tokio::task::spawn_blocking(move || ingest(&storage, kind, &body, limits)).await??;
+    let too_large = |s: &AppState| {
+        ApiError::new(Code::PayloadTooLarge, format!("upload is larger than {} bytes", s.config.max_upload_bytes))
+    };
+    let info = if ct.to_ascii_lowercase().starts_with("multipart/form-data") {
+        let multipart = Multipart::from_request(req, &()).await.map_err(|e| ApiError::bad_request(e.body_text()))?;
+        let (id, staging) = staging(&s.storage);
+        let received = receive_parts(multipart, &staging.join("data"), limits).await.map_err(|e| match e {
+            PartError::Api(e) => e,
+            PartError::Multipart(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => too_large(&s),
+            PartError::Multipart(e) => {
+                ApiError::bad_request(format!("reading the multipart upload: {}", e.body_text()))
+            }
+        });
+        let storage = s.storage.clone();
+        tokio::task::spawn_blocking(move || match received {
+            Ok(size) => ingest(&storage, &id, &staging, |_| Ok(size)),
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(&staging);
+                Err(e)
+            }
+        })
+        .await??
+    } else {
+        let kind = ArchiveKind::from_content_type(&ct).ok_or_else(|| {
+            ApiError::new(
+                Code::UnsupportedMediaType,
+                format!(
+                    "Content-Type '{ct}' is not an accepted upload (application/zip, application/x-tar, \
+                     application/gzip, or multipart/form-data with one part per file)"
+                ),
+            )
+        })?;
+        let body = Bytes::from_request(req, &()).await.map_err(|e| {
+            if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                too_large(&s)
+            } else {
+                ApiError::bad_request(format!("reading the upload: {}", e.body_text()))
+            }
+        })?;
+        if body.is_empty() {
+            return Err(ApiError::bad_request("empty upload: send the archive as the request body"));
+        }
+        let storage = s.storage.clone();
+        tokio::task::spawn_blocking(move || {
+            let (id, staging) = staging(&storage);
+            ingest(&storage, &id, &staging, |data| {
+                archive::extract(kind, &body, data, limits).map_err(|e| match e {
+                    ArchiveError::Bad(m) => ApiError::bad_request(m),
+                    ArchiveError::TooLarge(m) => ApiError::new(Code::PayloadTooLarge, m),
+                    ArchiveError::Io(e) => ApiError::internal(e),
+                })
+            })
+        })
+        .await??
+    };
     tracing::info!(scene = %info.id, format = %info.format, train = info.images.train, "scene stored");
     Ok((StatusCode::CREATED, Json(info)))
 }
 
-/// Extracts, validates and stores an archive; removes everything on failure.
-fn ingest(storage: &Storage, kind: ArchiveKind, bytes: &[u8], limits: Limits) -> ApiResult<SceneInfo> {
+/// A new scene id and its staging folder (not yet created).
+fn staging(storage: &Storage) -> (String, PathBuf) {
     let id = new_id("scn");
-    let staging = storage.tmp_dir().join(&id);
+    let dir = storage.tmp_dir().join(&id);
+    (id, dir)
+}
+
+enum PartError {
+    Api(ApiError),
+    Multipart(MultipartError),
+}
+
+impl From<MultipartError> for PartError {
+    fn from(e: MultipartError) -> Self {
+        PartError::Multipart(e)
+    }
+}
+
+impl From<std::io::Error> for PartError {
+    fn from(e: std::io::Error) -> Self {
+        PartError::Api(ApiError::internal(e))
+    }
+}
+
+/// Writes each part of a multipart upload to `data/PATH`, where PATH is the
+/// part's field name, or its file name when the field is named `file` or
+/// `files` (as `curl -F 'file=@x;filename=images/x.png'` sends). Paths are
+/// checked as archive entries are; the same limits apply. Returns the bytes
+/// written.
+async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) -> Result<u64, PartError> {
+    use tokio::io::AsyncWriteExt;
+    let bad = |m: String| PartError::Api(ApiError::bad_request(m));
+    tokio::fs::create_dir_all(data).await?;
+    let (mut total, mut entries) = (0u64, 0usize);
+    while let Some(mut field) = multipart.next_field().await? {
+        let name = match (field.name(), field.file_name()) {
+            (Some("file" | "files") | None, Some(f)) => f.to_string(),
+            (Some(n), _) => n.to_string(),
+            (None, None) => return Err(bad("a multipart part has neither a field name nor a file name".into())),
+        };
+        entries += 1;
+        if entries > limits.max_entries {
+            return Err(PartError::Api(ApiError::new(
+                Code::PayloadTooLarge,
+                format!("upload has more than {} files", limits.max_entries),
+            )));
+        }
+        let rel = archive::safe_relative(&name)
+            .map_err(|e| bad(e.to_string().replace("archive entry", "uploaded file")))?
+            .ok_or_else(|| bad(format!("uploaded file '{name}' has an empty path")))?;
+        let dest = data.join(rel);
+        if let Some(p) = dest.parent() {
+            tokio::fs::create_dir_all(p).await?;
+        }
+        let mut f = match tokio::fs::OpenOptions::new().write(true).create_new(true).open(&dest).await {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                return Err(bad(format!("uploaded file '{name}' appears twice (or is also a folder)")));
+            }
+            Err(e) => return Err(e.into()),
+        };
+        while let Some(chunk) = field.chunk().await? {
+            total += chunk.len() as u64;
+            if total > limits.max_unpacked_bytes {
+                return Err(PartError::Api(ApiError::new(
+                    Code::PayloadTooLarge,
+                    format!("upload holds more than {} bytes", limits.max_unpacked_bytes),
+                )));
+            }
+            f.write_all(&chunk).await?;
+        }
+        f.flush().await?;
+    }
+    if entries == 0 {
+        return Err(bad("empty multipart upload: send one part per file of the dataset".into()));
+    }
+    Ok(total)
+}
+
+/// Fills `staging/data` with `fill` (returning the bytes written), then
+/// loads, validates and stores the dataset; removes everything on failure.
+fn ingest(
+    storage: &Storage,
+    id: &str,
+    staging: &Path,
+    fill: impl FnOnce(&Path) -> ApiResult<u64>,
+) -> ApiResult<SceneInfo> {
     let result = (|| {
         let data = staging.join("data");
         std::fs::create_dir_all(&data)?;
-        let size = archive::extract(kind, bytes, &data, limits).map_err(|e| match e {
-            ArchiveError::Bad(m) => ApiError::bad_request(m),
-            ArchiveError::TooLarge(m) => ApiError::new(Code::PayloadTooLarge, m),
-            ArchiveError::Io(e) => ApiError::internal(e),
-        })?;
+        let size = fill(&data)?;
         let root = archive::dataset_root(&data);
         let ds = Dataset::load(&root, &LoadOptions::default()).map_err(|e| {
-            // Name files relative to the archive, not the server's folders.
+            // Name files relative to the upload, not the server's folders.
             let prefix = format!("{}/", data.display());
             ApiError::new(
                 Code::InvalidDataset,
@@ -75,14 +186,14 @@ fn ingest(storage: &Storage, kind: ArchiveKind, bytes: &[u8], limits: Limits) ->
         if ds.train.is_empty() {
             return Err(ApiError::new(Code::InvalidDataset, "the dataset has no training views"));
         }
-        let rel = root.strip_prefix(&staging).unwrap_or(Path::new("data")).to_string_lossy().into_owned();
-        let info = scene_info(&id, &ds, size, rel);
+        let rel = root.strip_prefix(staging).unwrap_or(Path::new("data")).to_string_lossy().into_owned();
+        let info = scene_info(id, &ds, size, rel);
         write_json(&staging.join("scene.json"), &info)?;
-        std::fs::rename(&staging, storage.scene_dir(&id))?;
+        std::fs::rename(staging, storage.scene_dir(id))?;
         Ok(info)
     })();
     if result.is_err() {
-        let _ = std::fs::remove_dir_all(&staging);
+        let _ = std::fs::remove_dir_all(staging);
     }
     result
 }

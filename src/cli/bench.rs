@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Common;
 use super::eval::score;
-use super::setup::{DEFAULT_BATCH_RAYS, MODEL_KINDS, new_model_and_adam, train_config};
+use super::setup::{DEFAULT_BATCH_RAYS, MODEL_KINDS, new_model_and_adam};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::fsio;
 use crate::engine::render::render_view;
@@ -213,9 +213,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     println!("{HEADER}");
     for kind in &a.model {
         reset_peak_memory();
-        let (model, adam) = new_model_and_adam(kind, Scene::from_dataset(&ds), a.seed, true, None)?;
+        let (cfg, model, adam) = new_model_and_adam(kind, Scene::from_dataset(&ds), a.seed, true, None)?;
         let budget = Budget { steps: None, seconds: Some(max_budget) };
-        let config = train_config(kind, a.seed, DEFAULT_BATCH_RAYS, budget);
+        let config = cfg.train_config(a.seed, DEFAULT_BATCH_RAYS, budget);
         eprintln!(
             "bench '{}' on {} ({} training views, {} test views scored), {} parameters, {} threads",
             kind,

@@ -10,7 +10,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::Common;
-use super::setup::{DEFAULT_BATCH_RAYS, new_model_and_adam, train_config};
+use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::persist;
 use crate::engine::scene::Scene;
@@ -79,7 +79,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
-    let config = train_config(&a.model, a.seed, a.batch_rays, budget);
+    let config = model_config(&a.model, !a.no_skip)?.train_config(a.seed, a.batch_rays, budget);
     let (model, adam, state) = match &a.resume {
         Some(p) => {
             let r = persist::load(p)?;
@@ -93,7 +93,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
             (r.model, r.adam, r.state)
         }
         None => {
-            let (model, adam) = new_model_and_adam(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip, a.lr)?;
+            let (_, model, adam) = new_model_and_adam(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip, a.lr)?;
             (model, adam, TrainState::default())
         }
     };

@@ -151,6 +151,21 @@ pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Option<[[f32; 4]; 3]> {
     Some([[right.x, up.x, back.x, eye.x], [right.y, up.y, back.y, eye.y], [right.z, up.z, back.z, eye.z]])
 }
 
+/// The pose of a camera on an orbit around `centre`, looking at it:
+/// `azimuth_deg` around `up` (0 is world +x projected on the horizon, or +y
+/// when `up` is close to x), `elevation_deg` above the horizon, at distance
+/// `radius`. `None` when degenerate (zero `up`, looking straight along it).
+pub fn orbit(centre: Vec3, up: Vec3, azimuth_deg: f32, elevation_deg: f32, radius: f32) -> Option<[[f32; 4]; 3]> {
+    let up = up.normalized()?;
+    let x = Vec3::new(1.0, 0.0, 0.0);
+    let reference = if up.dot(x).abs() > 0.9 { Vec3::new(0.0, 1.0, 0.0) } else { x };
+    let a = (reference - up * up.dot(reference)).normalized()?;
+    let b = up.cross(a);
+    let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
+    let dir = (a * az.cos() + b * az.sin()) * el.cos() + up * el.sin();
+    look_at(centre + dir * radius, centre, up)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -28,19 +28,9 @@ const TILE: usize = 256;
 pub fn render_view(model: &dyn Model, camera: &Camera, background: [f32; 3]) -> View {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let scene = model.scene();
-    let rays: Vec<Ray> = (0..h)
-        .flat_map(|j| (0..w).map(move |i| (i, j)))
-        .map(|(i, j)| scene.to_model(&camera.pixel_ray(i as u32, j as u32)))
-        .collect();
-    let mut out = vec![RayOutput::default(); rays.len()];
-    let stats = rays
-        .par_chunks(TILE)
-        .zip(out.par_chunks_mut(TILE))
-        .map(|(r, o)| model.render_rays(r, background, o))
-        .reduce(BatchStats::default, |mut a, b| {
-            a.add(&b);
-            a
-        });
+    let rays: Vec<Ray> =
+        (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| camera.pixel_ray(i as u32, j as u32)).collect();
+    let (out, stats) = render_rays(model, &rays, background);
     let inv = 1.0 / scene.scale;
     View {
         width: camera.width,
@@ -50,4 +40,20 @@ pub fn render_view(model: &dyn Model, camera: &Camera, background: [f32; 3]) -> 
         opacity: out.iter().map(|o| o.opacity).collect(),
         stats,
     }
+}
+
+/// Renders world-space rays in parallel tiles; depths stay in model units.
+pub fn render_rays(model: &dyn Model, rays: &[Ray], background: [f32; 3]) -> (Vec<RayOutput>, BatchStats) {
+    let scene = model.scene();
+    let rays: Vec<Ray> = rays.iter().map(|r| scene.to_model(r)).collect();
+    let mut out = vec![RayOutput::default(); rays.len()];
+    let stats = rays
+        .par_chunks(TILE)
+        .zip(out.par_chunks_mut(TILE))
+        .map(|(r, o)| model.render_rays(r, background, o))
+        .reduce(BatchStats::default, |mut a, b| {
+            a.add(&b);
+            a
+        });
+    (out, stats)
 }

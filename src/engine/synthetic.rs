@@ -118,4 +118,62 @@ impl BallScene {
         }
         Ok(())
     }
+
+    /// Writes the scene as an instant-ngp `transforms.json` dataset (one
+    /// file for all views, explicit intrinsics, RGBA PNGs in `images/`),
+    /// with `scale`/`offset` chosen so the box holds the ball.
+    pub fn write_ngp(&self, dir: &std::path::Path) -> std::io::Result<()> {
+        let ds = self.dataset();
+        std::fs::create_dir_all(dir.join("images"))?;
+        let mut frames = Vec::new();
+        for f in &ds.frames {
+            let img = image::RgbaImage::from_raw(f.image.width, f.image.height, f.image.rgba.clone())
+                .ok_or_else(|| std::io::Error::other("image size"))?;
+            img.save(dir.join("images").join(format!("{}.png", f.name))).map_err(std::io::Error::other)?;
+            let m = &f.camera.c2w;
+            frames.push(serde_json::json!({
+                "file_path": format!("images/{}.png", f.name),
+                "transform_matrix": [m[0], m[1], m[2], [0.0, 0.0, 0.0, 1.0]],
+            }));
+        }
+        let c = &ds.frames[0].camera;
+        // The box [-1.5, 1.5]^3 (world) is the unit cube: p * scale + offset.
+        let scale = 1.0 / (3.0 * self.scale);
+        let json = serde_json::json!({
+            "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height,
+            "aabb_scale": 1, "scale": scale, "offset": [0.5, 0.5, 0.5], "frames": frames,
+        });
+        std::fs::write(dir.join("transforms.json"), serde_json::to_vec_pretty(&json)?)
+    }
+
+    /// Writes the scene as an LLFF dataset: `poses_bounds.npy` and RGB PNGs
+    /// (composited on white) in `images/`, in the LLFF axis order
+    /// [down, right, backwards].
+    pub fn write_llff(&self, dir: &std::path::Path) -> std::io::Result<()> {
+        let ds = self.dataset();
+        std::fs::create_dir_all(dir.join("images"))?;
+        let mut rows = Vec::new();
+        for (k, f) in ds.frames.iter().enumerate() {
+            let (w, h) = (f.image.width, f.image.height);
+            let rgb: Vec<u8> = (0..h)
+                .flat_map(|j| (0..w).map(move |i| (i, j)))
+                .flat_map(|(i, j)| f.image.rgb_on(i, j, [1.0; 3]))
+                .map(|v| (v * 255.0).round() as u8)
+                .collect();
+            let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| std::io::Error::other("image size"))?;
+            img.save(dir.join("images").join(format!("img{k:03}.png"))).map_err(std::io::Error::other)?;
+            let m = &f.camera.c2w;
+            let mut row = Vec::with_capacity(17);
+            for r in m {
+                // columns: down = -up, right, backwards, translation, [H, W, focal]
+                let hwf = [h as f32, w as f32, f.camera.fx][row.len() / 5];
+                row.extend([-r[1], r[0], r[2], r[3], hwf].map(f64::from));
+            }
+            let dist = f.camera.origin().norm() / self.scale;
+            row.extend([(dist - 1.0) * self.scale, (dist + 1.0) * self.scale].map(f64::from));
+            rows.extend(row);
+        }
+        let shape = [ds.frames.len(), 17];
+        std::fs::write(dir.join("poses_bounds.npy"), super::dataset::npy::npy_bytes(&shape, &rows, 1))
+    }
 }

@@ -15,11 +15,13 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use crate::engine::nerf::NerfConfig;
+use crate::engine::model_config::ModelConfig;
 use crate::engine::trainer::Budget;
+use crate::media::video::VideoFormat;
 use crate::storage::{Storage, new_id, now_ms, write_json};
 
 pub mod train;
+pub mod video;
 
 /// A job's state.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -62,27 +64,106 @@ impl std::str::FromStr for Status {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct TrainSpec {
     pub scene_id: String,
-    /// Preset name (`nerf`, `nerf-tiny`).
+    /// Preset name (`instant`, `instant-tiny`, `nerf`, `nerf-tiny`).
     pub model: String,
     /// The model configuration (the preset's, or the one given).
-    pub config: NerfConfig,
-    pub budget: Budget,
+    pub config: ModelConfig,
+    pub budget: JobBudget,
     pub seed: u64,
     pub batch_rays: usize,
+}
+
+/// When a training job stops: at the first limit reached.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct JobBudget {
+    pub seconds: Option<f64>,
+    pub steps: Option<u64>,
+    /// Held-out PSNR (dB) at which training stops early.
+    pub target_psnr: Option<f64>,
+}
+
+impl JobBudget {
+    /// Training time allowed when only a target PSNR is given.
+    pub const DEFAULT_CAP_SECONDS: f64 = 3600.0;
+
+    /// The engine's budget: steps and seconds (a target-only budget is
+    /// capped at [`Self::DEFAULT_CAP_SECONDS`]).
+    pub fn engine(&self) -> Budget {
+        let seconds = match (self.seconds, self.steps) {
+            (None, None) => Some(Self::DEFAULT_CAP_SECONDS),
+            (s, _) => s,
+        };
+        Budget { steps: self.steps, seconds }
+    }
+}
+
+/// What a video job renders: an orbit around the scene centre of the job's
+/// model (`Job::model_id`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct VideoSpec {
+    pub frames: u32,
+    pub fps: u32,
+    pub width: u32,
+    pub height: u32,
+    /// Degrees above the horizon.
+    pub elevation: f32,
+    /// Distance from the scene centre, world units.
+    pub radius: f32,
+    /// Horizontal field of view, degrees.
+    pub fov: f32,
+    pub format: VideoFormat,
+}
+
+/// A job's kind and what it does.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum JobSpec {
+    Train(Box<TrainSpec>),
+    Video(VideoSpec),
+}
+
+impl JobSpec {
+    pub fn name(&self) -> &'static str {
+        match self {
+            JobSpec::Train(_) => "train",
+            JobSpec::Video(_) => "video",
+        }
+    }
+    /// The scene a training job reads.
+    pub fn scene_id(&self) -> Option<&str> {
+        match self {
+            JobSpec::Train(t) => Some(&t.scene_id),
+            JobSpec::Video(_) => None,
+        }
+    }
 }
 
 /// Where a job is, as clients see it.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct JobProgress {
+    /// Training steps done, or video frames rendered.
     pub step: u64,
+    /// Steps (or frames) in all, when known in advance.
+    #[serde(default)]
+    pub total_steps: Option<u64>,
     pub loss: f64,
     pub train_psnr: f64,
-    /// Seconds of training (across restarts).
+    /// Seconds of training (across restarts), or of rendering.
     pub elapsed: f64,
     pub eta: Option<f64>,
-    /// Mean PSNR on held-out views, measured at the end.
+    /// Mean PSNR on held-out views: estimated on a sample of held-out pixels
+    /// as training goes, then measured on whole views at the end.
     pub test_psnr: Option<f64>,
+    /// Training step of the last `test_psnr`.
+    #[serde(default)]
+    pub test_psnr_step: Option<u64>,
     pub rays_per_second: f64,
+    /// Steps skipped because the loss or a gradient was not finite.
+    #[serde(default)]
+    pub diverged_steps: u64,
+    /// Rollbacks to the last good parameters, each halving the learning rate.
+    #[serde(default)]
+    pub rollbacks: u32,
 }
 
 /// A job record.
@@ -91,16 +172,18 @@ pub struct Job {
     pub id: String,
     /// Enqueue order.
     pub seq: u64,
-    pub kind: String,
     pub status: Status,
     #[serde(flatten)]
-    pub spec: TrainSpec,
+    pub spec: JobSpec,
     pub created_at: u64,
     pub started_at: Option<u64>,
     pub finished_at: Option<u64>,
     pub error: Option<String>,
-    /// Set once a checkpoint exists.
+    /// Training: set once a checkpoint exists. Video: the model rendered.
     pub model_id: Option<String>,
+    /// Video: set when the video is ready at `/v1/videos/{video_id}`.
+    #[serde(default)]
+    pub video_id: Option<String>,
     pub progress: JobProgress,
     /// Times the job was started (more than one after a restart).
     #[serde(default)]
@@ -111,6 +194,10 @@ impl Job {
     /// The id its model gets: the job id with the `mdl` prefix.
     pub fn reserved_model_id(&self) -> String {
         format!("mdl{}", self.id.trim_start_matches("job"))
+    }
+    /// The id its video gets: the job id with the `vid` prefix.
+    pub fn reserved_video_id(&self) -> String {
+        format!("vid{}", self.id.trim_start_matches("job"))
     }
 }
 
@@ -124,13 +211,23 @@ pub struct SchedulerConfig {
     pub checkpoint_every: f64,
     /// Held-out views rendered to measure a finished model.
     pub eval_views: usize,
+    /// Seconds of training between estimates of the held-out PSNR (spaced
+    /// out further when an estimate would cost over a fifth of the time).
+    pub heldout_every: f64,
     /// Whether to start jobs at all (tests enqueue with it off, then restart).
     pub run_jobs: bool,
 }
 
 impl Default for SchedulerConfig {
     fn default() -> Self {
-        Self { max_concurrent: 1, max_queued: 100, checkpoint_every: 30.0, eval_views: 4, run_jobs: true }
+        Self {
+            max_concurrent: 1,
+            max_queued: 100,
+            checkpoint_every: 30.0,
+            eval_views: 4,
+            heldout_every: 10.0,
+            run_jobs: true,
+        }
     }
 }
 
@@ -143,6 +240,8 @@ pub enum SchedError {
     QueueFull(usize),
     #[error("scene '{scene}' is used by job '{job}' ({status})")]
     SceneInUse { scene: String, job: String, status: &'static str },
+    #[error("model '{0}' not found")]
+    ModelNotFound(String),
     #[error("job '{0}' not found")]
     JobNotFound(String),
     #[error("job '{id}' is already {status}")]
@@ -228,11 +327,23 @@ impl Scheduler {
         &self.shared.counters
     }
 
-    /// Registers a training job and answers with its queued record.
-    pub fn enqueue(&self, spec: TrainSpec) -> Result<Job, SchedError> {
+    /// Registers a job and answers with its queued record. A training job
+    /// needs its scene; a video job needs a model (`model_id`).
+    pub fn enqueue(&self, spec: JobSpec, model_id: Option<String>) -> Result<Job, SchedError> {
         let mut st = self.shared.lock();
-        if self.shared.storage.load_scene(&spec.scene_id)?.is_none() {
-            return Err(SchedError::SceneNotFound(spec.scene_id));
+        let storage = &self.shared.storage;
+        match &spec {
+            JobSpec::Train(t) => {
+                if storage.load_scene(&t.scene_id)?.is_none() {
+                    return Err(SchedError::SceneNotFound(t.scene_id.clone()));
+                }
+            }
+            JobSpec::Video(_) => {
+                let id = model_id.clone().unwrap_or_default();
+                if storage.load_model(&id)?.is_none() {
+                    return Err(SchedError::ModelNotFound(id));
+                }
+            }
         }
         if st.queue.len() >= self.shared.config.max_queued {
             return Err(SchedError::QueueFull(st.queue.len()));
@@ -240,18 +351,18 @@ impl Scheduler {
         let job = Job {
             id: new_id("job"),
             seq: st.next_seq,
-            kind: "train".into(),
             status: Status::Queued,
             spec,
             created_at: now_ms(),
             started_at: None,
             finished_at: None,
             error: None,
-            model_id: None,
+            model_id,
+            video_id: None,
             progress: JobProgress::default(),
             attempts: 0,
         };
-        write_json(&self.shared.storage.job_record(&job.id), &job)?;
+        write_json(&storage.job_record(&job.id), &job)?;
         st.next_seq += 1;
         st.queue.push_back(job.id.clone());
         st.jobs.insert(job.id.clone(), job.clone());
@@ -313,7 +424,7 @@ impl Scheduler {
     /// meanwhile.
     pub fn delete_scene(&self, scene_id: &str, delete: impl FnOnce() -> io::Result<()>) -> Result<(), SchedError> {
         let st = self.shared.lock();
-        if let Some(j) = st.jobs.values().find(|j| j.spec.scene_id == scene_id && !j.status.is_final()) {
+        if let Some(j) = st.jobs.values().find(|j| j.spec.scene_id() == Some(scene_id) && !j.status.is_final()) {
             return Err(SchedError::SceneInUse { scene: scene_id.into(), job: j.id.clone(), status: j.status.name() });
         }
         delete()?;
@@ -396,9 +507,12 @@ pub(crate) enum Outcome {
 
 fn run_job(shared: &Arc<Shared>, job: Job, cancel: Arc<AtomicBool>) {
     let id = job.id.clone();
-    tracing::info!(job = %id, scene = %job.spec.scene_id, model = %job.spec.model, "job started");
-    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| train::run(shared, &job, &cancel)))
-        .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
+    tracing::info!(job = %id, kind = job.spec.name(), "job started");
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &job.spec {
+        JobSpec::Train(spec) => train::run(shared, &job, spec, &cancel),
+        JobSpec::Video(spec) => video::run(shared, &job, spec, &cancel),
+    }))
+    .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
     let mut st = shared.lock();
     finish(shared, &mut st, &id, outcome);
     drop(st);

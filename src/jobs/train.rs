@@ -4,59 +4,19 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use super::{Job, Outcome, Shared, set_progress};
-use crate::engine::adam::{Adam, AdamConfig};
+use super::{Job, Outcome, Shared, TrainSpec, set_progress};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
+use crate::engine::heldout::HeldOutPixels;
 use crate::engine::metrics::psnr;
 use crate::engine::model::Model;
-use crate::engine::nerf::{NerfConfig, NerfModel};
-use crate::engine::nerf_net::NetConfig;
 use crate::engine::persist;
 use crate::engine::render::render_view;
 use crate::engine::scene::Scene;
-use crate::engine::trainer::{StopReason, TrainConfig, TrainState, Trainer};
+use crate::engine::trainer::{StopReason, TrainState, Trainer};
 use crate::storage::{ModelInfo, SceneInfo, Storage, now_ms, write_json};
 
-/// Model presets a job may name.
-pub const PRESETS: [&str; 2] = ["nerf", "nerf-tiny"];
-
-/// The configuration of a preset: `nerf` is the paper's model (the engine's
-/// default); `nerf-tiny` is a small network for previews and tests.
-pub fn preset(name: &str) -> Option<NerfConfig> {
-    match name {
-        "nerf" => Some(NerfConfig::default()),
-        "nerf-tiny" => Some(NerfConfig {
-            net: NetConfig { pos_freqs: 4, dir_freqs: 2, width: 32, depth: 4, skip: 2, dir_width: 16 },
-            coarse_samples: 16,
-            fine_samples: 16,
-            ..NerfConfig::default()
-        }),
-        _ => None,
-    }
-}
-
-/// Refuses configurations that would allocate absurdly or not run.
-pub fn check_config(c: &NerfConfig) -> Result<(), String> {
-    let n = &c.net;
-    let ok = (1..=1024).contains(&n.width)
-        && (1..=32).contains(&n.depth)
-        && n.skip < n.depth
-        && n.pos_freqs <= 24
-        && n.dir_freqs <= 24
-        && (1..=1024).contains(&n.dir_width)
-        && (1..=1024).contains(&c.coarse_samples)
-        && c.fine_samples <= 1024
-        && (1..=4096).contains(&c.chunk_rays)
-        && c.min_transmittance.is_finite()
-        && c.occupancy.as_ref().is_none_or(|o| (1..=256).contains(&o.resolution) && o.sweep >= 1);
-    if ok {
-        Ok(())
-    } else {
-        Err("model config out of range (width, dir_width 1..=1024, depth 1..=32, skip < depth, \
-             freqs <= 24, samples <= 1024, chunk_rays 1..=4096, occupancy resolution 1..=256)"
-            .into())
-    }
-}
+/// Held-out pixels rendered for each estimate of the test PSNR during training.
+const HELD_OUT_PIXELS: usize = 1024;
 
 /// Loads a stored scene's dataset (all splits).
 pub fn load_dataset(storage: &Storage, scene: &SceneInfo) -> Result<Dataset, String> {
@@ -64,16 +24,15 @@ pub fn load_dataset(storage: &Storage, scene: &SceneInfo) -> Result<Dataset, Str
     Dataset::load(&root, &LoadOptions::default()).map_err(|e| e.to_string())
 }
 
-pub(crate) fn run(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Outcome {
-    match train(shared, job, cancel) {
+pub(crate) fn run(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Outcome {
+    match train(shared, job, spec, cancel) {
         Ok(o) => o,
         Err(e) => Outcome::Failed(e),
     }
 }
 
-fn train(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Result<Outcome, String> {
+fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
     let storage = &shared.storage;
-    let spec = &job.spec;
     let scene = storage
         .load_scene(&spec.scene_id)
         .map_err(|e| e.to_string())?
@@ -84,27 +43,45 @@ fn train(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Result<Outcome, Str
     }
     let model_id = job.reserved_model_id();
     let ckpt = storage.checkpoint(&model_id);
-    let mut config = TrainConfig::default();
-    (config.seed, config.batch_rays, config.budget) = (spec.seed, spec.batch_rays, spec.budget);
+    let config = spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine());
     let (model, adam, state) = if ckpt.is_file() {
         let r = persist::load(&ckpt).map_err(|e| format!("resuming from the checkpoint: {e}"))?;
         tracing::info!(job = %job.id, step = r.state.step, "resuming from checkpoint");
         (r.model, r.adam, r.state)
     } else {
-        let model: Box<dyn Model> = Box::new(NerfModel::new(spec.config.clone(), Scene::from_dataset(&ds), spec.seed));
-        let n = model.params().len();
-        (model, Adam::new(AdamConfig::default(), n), TrainState::default())
+        let (model, adam) = spec.config.build_with_adam(Scene::from_dataset(&ds), spec.seed, None)?;
+        (model, adam, TrainState::default())
     };
     let mut trainer = Trainer::new(model, adam, config, state, &ds);
-    let record = ModelRecord { shared, job, model_id: &model_id, scene: &scene, created_at: now_ms() };
+    let record = ModelRecord { shared, job, spec, model_id: &model_id, scene: &scene, created_at: now_ms() };
+    let held_out = HeldOutPixels::new(&ds, HELD_OUT_PIXELS, spec.seed);
+    let target = spec.budget.target_psnr;
+    let mut heldout_every = shared.config.heldout_every;
+    let mut last_heldout = trainer.state.elapsed;
     let mut last_save = trainer.state.elapsed;
     let mut last_report = Instant::now();
     let mut save_error = None;
+    let mut reached = None;
     let (mut rays0, mut t0) = (trainer.state.rays, trainer.state.elapsed);
     let reason = trainer.run(cancel, |t, p| {
         let c = &shared.counters;
         c.train_steps.fetch_add(1, Ordering::Relaxed);
-        if last_report.elapsed().as_secs_f64() >= 0.1 {
+        // The held-out estimate: every `heldout_every` seconds of training,
+        // spaced so that it never costs more than a fifth of the training time.
+        let mut estimate = None;
+        if let Some(h) = &held_out
+            && p.elapsed - last_heldout >= heldout_every
+        {
+            last_heldout = p.elapsed;
+            let started = Instant::now();
+            let v = h.psnr(&*t.model);
+            heldout_every = heldout_every.max(4.0 * started.elapsed().as_secs_f64());
+            estimate = Some(v);
+            if target.is_some_and(|goal| v >= goal) {
+                reached = Some(v);
+            }
+        }
+        if estimate.is_some() || reached.is_some() || last_report.elapsed().as_secs_f64() >= 0.1 {
             last_report = Instant::now();
             let dt = (p.elapsed - t0).max(1e-9);
             let rate = (p.rays - rays0) as f64 / dt;
@@ -112,12 +89,19 @@ fn train(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Result<Outcome, Str
             c.train_micros.fetch_add((dt * 1e6) as u64, Ordering::Relaxed);
             (rays0, t0) = (p.rays, p.elapsed);
             set_progress(shared, &job.id, |j| {
-                j.progress.step = p.step;
-                j.progress.loss = p.loss;
-                j.progress.train_psnr = p.train_psnr;
-                j.progress.elapsed = p.elapsed;
-                j.progress.eta = p.eta;
-                j.progress.rays_per_second = rate;
+                let g = &mut j.progress;
+                g.step = p.step;
+                g.total_steps = spec.budget.steps;
+                g.loss = p.loss;
+                g.train_psnr = p.train_psnr;
+                g.elapsed = p.elapsed;
+                g.eta = p.eta;
+                g.rays_per_second = rate;
+                g.diverged_steps = p.diverged_steps;
+                g.rollbacks = p.rollbacks;
+                if let Some(v) = estimate {
+                    (g.test_psnr, g.test_psnr_step) = (Some(v), Some(p.step));
+                }
             });
         }
         if p.elapsed - last_save >= shared.config.checkpoint_every {
@@ -127,7 +111,7 @@ fn train(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Result<Outcome, Str
                 return false;
             }
         }
-        true
+        reached.is_none()
     });
     if let Some(e) = save_error {
         return Err(e);
@@ -136,11 +120,16 @@ fn train(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Result<Outcome, Str
         // Repeated divergence fails the job; the last periodic checkpoint stays.
         return Err(reason.to_string());
     }
+    if let Some(v) = reached {
+        tracing::info!(job = %job.id, step = trainer.state.step, psnr = v, "target PSNR reached");
+    }
     let p = trainer.progress(f64::NAN);
     set_progress(shared, &job.id, |j| {
         j.progress.step = p.step;
         j.progress.elapsed = p.elapsed;
         j.progress.eta = p.eta;
+        j.progress.diverged_steps = p.diverged_steps;
+        j.progress.rollbacks = p.rollbacks;
     });
     if reason == StopReason::Cancelled {
         // Canceled or shut down: keep what was learnt as a usable model.
@@ -153,7 +142,11 @@ fn train(shared: &Shared, job: &Job, cancel: &AtomicBool) -> Result<Outcome, Str
         record.save(&trainer, true, None)?;
         return Ok(Outcome::Stopped);
     }
-    set_progress(shared, &job.id, |j| j.progress.test_psnr = metric.map(|m| m.0));
+    set_progress(shared, &job.id, |j| {
+        if let Some(m) = metric {
+            (j.progress.test_psnr, j.progress.test_psnr_step) = (Some(m.0), Some(p.step));
+        }
+    });
     record.save(&trainer, true, metric)?;
     Ok(Outcome::Succeeded)
 }
@@ -182,6 +175,7 @@ fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBo
 struct ModelRecord<'a> {
     shared: &'a Shared,
     job: &'a Job,
+    spec: &'a TrainSpec,
     model_id: &'a str,
     scene: &'a SceneInfo,
     created_at: u64,
@@ -198,7 +192,7 @@ impl ModelRecord<'_> {
             id: self.model_id.to_string(),
             scene_id: self.scene.id.clone(),
             job_id: self.job.id.clone(),
-            model: self.job.spec.model.clone(),
+            model: self.spec.model.clone(),
             config: t.model.config_json(),
             steps: t.state.step,
             training_seconds: t.state.elapsed,

@@ -1,3 +1,4 @@
 //! Encoding rendered views for people: PNG images (videos come later).
 
 pub mod png;
+pub mod video;

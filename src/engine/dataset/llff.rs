@@ -257,7 +257,7 @@ fn frustum_box(frames: &[Frame], near: f32, far: f32) -> Aabb {
 
 #[cfg(test)]
 mod tests {
-    use super::super::npy::tests::npy_bytes;
+    use super::super::npy::npy_bytes;
     use super::super::testutil::*;
     use super::*;
 

@@ -13,7 +13,7 @@ mod images;
 mod json;
 mod llff;
 mod ngp;
-mod npy;
+pub mod npy;
 #[cfg(test)]
 mod testutil;
 mod validate;

@@ -1,0 +1,156 @@
+//! Orbit videos: `POST /v1/models/{id}/videos` enqueues a video job (202,
+//! polled like a training job); `GET /v1/videos/{id}` serves the result.
+
+use axum::Json;
+use axum::extract::rejection::JsonRejection;
+use axum::extract::{Path, State};
+use axum::http::StatusCode;
+use axum::http::header::CONTENT_TYPE;
+use axum::response::IntoResponse;
+use serde::Deserialize;
+
+use super::jobs::sched_error;
+use super::{ApiError, ApiResult, AppState};
+use crate::jobs::{Job, JobSpec, VideoSpec};
+use crate::media::video::VideoFormat;
+use crate::storage::ViewDefaults;
+
+/// `POST /v1/models/{id}/videos` body; every field is optional.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreateVideo {
+    /// Frames in one turn (60).
+    pub frames: Option<u32>,
+    /// Frames per second (30).
+    pub fps: Option<u32>,
+    /// Frame size (the training cameras').
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    /// Degrees above the horizon (30).
+    pub elevation: Option<f32>,
+    /// Distance from the scene centre (the training cameras' mean).
+    pub radius: Option<f32>,
+    /// Horizontal field of view in degrees (the training cameras').
+    pub fov: Option<f32>,
+    /// `mp4` (default when built with the `mp4` feature) or `gif`.
+    pub format: Option<String>,
+}
+
+/// Most frames in one video.
+pub const MAX_FRAMES: u32 = 600;
+
+/// Checks a request against the model's view defaults and the render cap.
+pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> Result<VideoSpec, String> {
+    let frames = r.frames.unwrap_or(60);
+    if !(1..=MAX_FRAMES).contains(&frames) {
+        return Err(format!("frames must be in 1..={MAX_FRAMES}"));
+    }
+    let fps = r.fps.unwrap_or(30);
+    if !(1..=60).contains(&fps) {
+        return Err("fps must be in 1..=60".into());
+    }
+    let width = r.width.unwrap_or(view.width);
+    let height = r.height.unwrap_or_else(|| match r.width {
+        Some(w) => ((w as u64 * view.height as u64) / view.width.max(1) as u64).max(1) as u32,
+        None => view.height,
+    });
+    let max_side = 4096;
+    if !(16..=max_side).contains(&width)
+        || !(16..=max_side).contains(&height)
+        || width as u64 * height as u64 > max_render_pixels
+    {
+        return Err(format!(
+            "video frame size {width}x{height} is out of range (sides 16..={max_side}, at most {max_render_pixels} pixels)"
+        ));
+    }
+    let elevation = r.elevation.unwrap_or(30.0);
+    if !(elevation.is_finite() && (-89.0..=89.0).contains(&elevation)) {
+        return Err("elevation must be in [-89, 89] degrees".into());
+    }
+    let radius = r.radius.unwrap_or(view.radius);
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err("radius must be a positive number".into());
+    }
+    let fov = r.fov.unwrap_or(view.fov);
+    if !(fov.is_finite() && fov > 1.0 && fov < 179.0) {
+        return Err("fov must be between 1 and 179 degrees".into());
+    }
+    let format = match r.format.as_deref() {
+        None if cfg!(feature = "mp4") => VideoFormat::Mp4,
+        None => VideoFormat::Gif,
+        Some(f) => f.parse::<VideoFormat>().map_err(|_| format!("unknown video format '{f}' (expected mp4 or gif)"))?,
+    };
+    if !format.is_available() {
+        return Err(format!("{format} videos are not available in this build (cargo feature `mp4`); ask for gif"));
+    }
+    crate::media::video::validate(format, width, height, fps).map_err(|e| e.to_string())?;
+    Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format })
+}
+
+pub async fn create(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+    body: Result<Json<CreateVideo>, JsonRejection>,
+) -> ApiResult<(StatusCode, Json<Job>)> {
+    let Json(req) = body?;
+    let info = s.storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id))?;
+    let spec = to_spec(req, &info.view, s.config.max_render_pixels).map_err(ApiError::bad_request)?;
+    let sched = s.scheduler.clone();
+    let job = tokio::task::spawn_blocking(move || sched.enqueue(JobSpec::Video(spec), Some(id)))
+        .await?
+        .map_err(sched_error)?;
+    tracing::info!(job = %job.id, kind = "video", "job queued");
+    Ok((StatusCode::ACCEPTED, Json(job)))
+}
+
+pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+    let info = s.storage.load_video(&id)?.ok_or_else(|| ApiError::not_found("video", &id))?;
+    let bytes = tokio::fs::read(s.storage.video_file(&id)).await?;
+    Ok(([(CONTENT_TYPE, info.format.content_type())], bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn view() -> ViewDefaults {
+        ViewDefaults {
+            width: 200,
+            height: 100,
+            fov: 40.0,
+            centre: [0.0; 3],
+            up: [0.0, 0.0, 1.0],
+            radius: 4.0,
+            far: 6.0,
+        }
+    }
+
+    #[test]
+    fn defaults_come_from_the_view() {
+        let s = to_spec(CreateVideo::default(), &view(), 1 << 20).unwrap();
+        assert_eq!((s.frames, s.fps, s.width, s.height, s.radius, s.fov), (60, 30, 200, 100, 4.0, 40.0));
+        let s = to_spec(CreateVideo { width: Some(100), ..Default::default() }, &view(), 1 << 20).unwrap();
+        assert_eq!((s.width, s.height), (100, 50));
+        let s = to_spec(CreateVideo { format: Some("gif".into()), ..Default::default() }, &view(), 1 << 20).unwrap();
+        assert_eq!(s.format, VideoFormat::Gif);
+    }
+
+    #[test]
+    fn bad_requests_name_the_field() {
+        let cases = [
+            (CreateVideo { frames: Some(0), ..Default::default() }, "frames"),
+            (CreateVideo { fps: Some(1000), ..Default::default() }, "fps"),
+            (CreateVideo { width: Some(100_000), ..Default::default() }, "size"),
+            (CreateVideo { elevation: Some(f32::NAN), ..Default::default() }, "elevation"),
+            (CreateVideo { radius: Some(-1.0), ..Default::default() }, "radius"),
+            (CreateVideo { fov: Some(0.0), ..Default::default() }, "fov"),
+            (CreateVideo { format: Some("avi".into()), ..Default::default() }, "avi"),
+        ];
+        for (req, word) in cases {
+            let e = to_spec(req, &view(), 1 << 20).unwrap_err();
+            assert!(e.contains(word), "{e} should name {word}");
+        }
+        let e = to_spec(CreateVideo { width: Some(2000), height: Some(2000), ..Default::default() }, &view(), 1 << 20);
+        assert!(e.unwrap_err().contains("pixels"));
+    }
+}

@@ -1,0 +1,81 @@
+//! A video job: render an orbit around a trained model's scene, frame by
+//! frame on the worker pool, and encode it (GIF or MP4). The file and then
+//! its record are written atomically, so a video either exists whole or not
+//! at all; an interrupted job renders again from the start.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use image::RgbImage;
+
+use super::{Job, Outcome, Shared, VideoSpec, set_progress};
+use crate::engine::camera::{Camera, orbit};
+use crate::engine::fsio::write_atomic;
+use crate::engine::math::Vec3;
+use crate::engine::persist;
+use crate::engine::render::render_view;
+use crate::media::{png, video};
+use crate::storage::{VideoInfo, now_ms, write_json};
+
+pub(crate) fn run(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Outcome {
+    match render(shared, job, spec, cancel) {
+        Ok(o) => o,
+        Err(e) => Outcome::Failed(e),
+    }
+}
+
+fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
+    let storage = &shared.storage;
+    let model_id = job.model_id.clone().unwrap_or_default();
+    let info = storage
+        .load_model(&model_id)
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| format!("model '{model_id}' no longer exists"))?;
+    let model = persist::load(&storage.checkpoint(&model_id)).map_err(|e| format!("loading the model: {e}"))?.model;
+    let (centre, up) = (Vec3::from_array(info.view.centre), Vec3::from_array(info.view.up));
+    let started = Instant::now();
+    let mut frames = Vec::with_capacity(spec.frames as usize);
+    for k in 0..spec.frames {
+        if cancel.load(Ordering::Relaxed) {
+            return Ok(Outcome::Stopped);
+        }
+        let azimuth = 360.0 * k as f32 / spec.frames as f32;
+        let pose = orbit(centre, up, azimuth, spec.elevation, spec.radius)
+            .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?;
+        let camera = Camera::from_fov(spec.width, spec.height, spec.fov.to_radians(), pose);
+        let view = render_view(&*model, &camera, [1.0; 3]);
+        let rgb = png::quantise_rgb(&view.rgb);
+        frames.push(RgbImage::from_raw(spec.width, spec.height, rgb).ok_or("a rendered frame has the wrong size")?);
+        let done = k as u64 + 1;
+        let elapsed = started.elapsed().as_secs_f64();
+        set_progress(shared, &job.id, |j| {
+            j.progress.step = done;
+            j.progress.total_steps = Some(spec.frames as u64);
+            j.progress.elapsed = elapsed;
+            j.progress.eta = Some(elapsed / done as f64 * (spec.frames as u64 - done) as f64);
+        });
+    }
+    let bytes = video::encode(spec.format, &frames, spec.fps).map_err(|e| format!("encoding the video: {e}"))?;
+    let id = job.reserved_video_id();
+    write_atomic(&storage.video_file(&id), &bytes).map_err(|e| format!("saving the video: {e}"))?;
+    let record = VideoInfo {
+        id: id.clone(),
+        model_id,
+        job_id: job.id.clone(),
+        format: spec.format,
+        frames: spec.frames,
+        fps: spec.fps,
+        width: spec.width,
+        height: spec.height,
+        size_bytes: bytes.len() as u64,
+        created_at: now_ms(),
+    };
+    write_json(&storage.video_record(&id), &record).map_err(|e| format!("saving the video record: {e}"))?;
+    let elapsed = started.elapsed().as_secs_f64();
+    set_progress(shared, &job.id, |j| {
+        j.video_id = Some(id);
+        j.progress.elapsed = elapsed;
+        j.progress.eta = Some(0.0);
+    });
+    Ok(Outcome::Succeeded)
+}
