@@ -10,11 +10,13 @@ FROM debian:bookworm-slim
 RUN apt-get update \
     && apt-get install -y --no-install-recommends curl=7.* \
     && rm -rf /var/lib/apt/lists/* \
-    && useradd --system --uid 10001 --home-dir /data radiance \
+    && groupadd --system --gid 10001 radiance \
+    && useradd --system --uid 10001 --gid 10001 --home-dir /data --no-create-home radiance \
     && mkdir -p /data \
-    && chown radiance /data
+    && chown 10001:10001 /data
 COPY --from=build /src/target/release/radiance /usr/local/bin/radiance
-USER radiance
+# Numeric, so the runtime (and Kubernetes' runAsNonRoot) can tell it is not root.
+USER 10001:10001
 ENV RADIANCE_ADDR=0.0.0.0:8080 \
     RADIANCE_DATA_DIR=/data
 VOLUME ["/data"]
