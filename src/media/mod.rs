@@ -1,4 +1,4 @@
-//! Encoding rendered views for people: PNG images (videos come later).
+//! Encoding rendered views for people: PNG images and orbit videos (GIF, MP4).
 
 pub mod png;
 pub mod video;

