@@ -88,6 +88,7 @@ fn instant_model_learns_and_skipping_is_lossless() {
     let mut dense = InstantModel::from_parts(raw.config.clone(), raw.scene().clone(), raw.params().to_vec()).unwrap();
     dense.grid.active = false;
     dense.config.min_transmittance = 0.0;
+    dense.config.max_dropped_weight = 0.0;
     let dense_view = render_view(&dense, cam, ds.background);
     assert!(dense_view.stats.samples > 2 * marched.stats.samples, "skipping saves samples");
     // The occupancy grid skips only cells whose density is below its
@@ -98,9 +99,21 @@ fn instant_model_learns_and_skipping_is_lossless() {
     let agreement = psnr(&dense_view.rgb, &marched.rgb);
     eprintln!("marched vs dense: max difference {d:.5}, PSNR {agreement:.1} dB");
     assert!(d < 0.03 && agreement > 45.0, "marched vs dense: max difference {d}, PSNR {agreement:.1} dB");
-    let mut no_et = InstantModel::from_parts(raw.config.clone(), raw.scene().clone(), raw.params().to_vec()).unwrap();
-    no_et.grid = raw.grid.clone();
-    no_et.config.min_transmittance = 0.0;
-    let d = max_diff(&render_view(&no_et, cam, ds.background), &marched);
-    assert!(d <= 1e-4 + 1e-6, "early termination changed a pixel by {d}");
+    let variant = |min_t: f32, max_dropped: f32| {
+        let mut m = InstantModel::from_parts(raw.config.clone(), raw.scene().clone(), raw.params().to_vec()).unwrap();
+        m.grid = raw.grid.clone();
+        m.config.min_transmittance = min_t;
+        m.config.max_dropped_weight = max_dropped;
+        render_view(&m, cam, ds.background)
+    };
+    let (min_t, max_dropped) = (raw.config.min_transmittance, raw.config.max_dropped_weight);
+    let exact = variant(0.0, 0.0);
+    let early = variant(min_t, 0.0);
+    let d = max_diff(&exact, &early);
+    assert!(d <= min_t + 1e-6, "early termination changed a pixel by {d}");
+    // Skipping the colour of nearly empty samples changes a pixel by at
+    // most the weight skipped, and it does skip some.
+    let d = max_diff(&early, &marched);
+    assert!(d <= max_dropped + 1e-6, "skipping negligible weights changed a pixel by {d}");
+    assert!(d > 0.0, "some colours were skipped");
 }

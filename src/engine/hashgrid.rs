@@ -81,7 +81,9 @@ impl HashGrid {
         }
     }
 
-    #[inline(always)]
+    /// The table index of a vertex (the reference for `corners_of`, which
+    /// computes the same indices a term per axis).
+    #[cfg(test)]
     fn index(level: &Level, x: u32, y: u32, z: u32) -> usize {
         if level.dense {
             let r = level.res as usize + 1;
@@ -94,8 +96,16 @@ impl HashGrid {
 
     /// The 8 corner indices (into the parameter buffer, first feature) and
     /// trilinear weights of point `p` at `level`.
-    #[inline(always)]
+    #[cfg(test)]
     fn corners(&self, level: &Level, p: [f32; 3]) -> ([usize; 8], [f32; 8]) {
+        if level.dense { self.corners_of::<true>(level, p) } else { self.corners_of::<false>(level, p) }
+    }
+
+    /// [`Self::corners`] for a level known to be dense or hashed: the index
+    /// is a sum (dense) or an xor (hashed) of one term per axis, so the six
+    /// terms are computed once and combined for the eight corners.
+    #[inline(always)]
+    fn corners_of<const DENSE: bool>(&self, level: &Level, p: [f32; 3]) -> ([usize; 8], [f32; 8]) {
         let r = level.res as f32;
         let mut base = [0u32; 3];
         let mut frac = [0f32; 3];
@@ -107,17 +117,30 @@ impl HashGrid {
             base[d] = f;
             frac[d] = v - f as f32;
         }
+        let [x, y, z] = base;
+        let terms: [[usize; 2]; 3] = if DENSE {
+            let n = level.res as usize + 1;
+            let (x, y, z) = (x as usize, y as usize, z as usize);
+            [[x * n * n, (x + 1) * n * n], [y * n, (y + 1) * n], [z, z + 1]]
+        } else {
+            let h = |v: u32, prime: u32| [v.wrapping_mul(prime) as usize, (v + 1).wrapping_mul(prime) as usize];
+            [h(x, 1), h(y, 2_654_435_761), h(z, 805_459_861)]
+        };
+        let start = self.params.start + level.offset;
+        let mask = level.size - 1;
+        let ws = [[1.0 - frac[0], frac[0]], [1.0 - frac[1], frac[1]], [1.0 - frac[2], frac[2]]];
         let mut idx = [0usize; 8];
         let mut w = [0f32; 8];
         for c in 0..8 {
             let (dx, dy, dz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
-            idx[c] = self.params.start
-                + level.offset
-                + FEATURES * Self::index(level, base[0] + dx as u32, base[1] + dy as u32, base[2] + dz as u32);
-            let wx = if dx == 1 { frac[0] } else { 1.0 - frac[0] };
-            let wy = if dy == 1 { frac[1] } else { 1.0 - frac[1] };
-            let wz = if dz == 1 { frac[2] } else { 1.0 - frac[2] };
-            w[c] = wx * wy * wz;
+            let i = if DENSE {
+                terms[0][dx] + terms[1][dy] + terms[2][dz]
+            } else {
+                // The hash keeps 32 bits, as the reference's uint32 arithmetic.
+                ((terms[0][dx] ^ terms[1][dy] ^ terms[2][dz]) as u32 as usize) & mask
+            };
+            idx[c] = start + FEATURES * i;
+            w[c] = ws[0][dx] * ws[1][dy] * ws[2][dz];
         }
         (idx, w)
     }
@@ -128,35 +151,51 @@ impl HashGrid {
     /// Level by level, so that one level's table stays in cache while all
     /// points visit it.
     pub fn forward(&self, params: &[f32], pts: &[f32], out: &mut [f32]) {
-        let width = self.width();
         for (l, level) in self.levels.iter().enumerate() {
-            for (p, o) in pts.chunks_exact(3).zip(out.chunks_exact_mut(width)) {
-                let (idx, w) = self.corners(level, [p[0], p[1], p[2]]);
-                let (mut f0, mut f1) = (0.0f32, 0.0f32);
-                for c in 0..8 {
-                    f0 += w[c] * params[idx[c]];
-                    f1 += w[c] * params[idx[c] + 1];
-                }
-                o[FEATURES * l] = f0;
-                o[FEATURES * l + 1] = f1;
+            if level.dense {
+                self.forward_level::<true>(l, level, params, pts, out);
+            } else {
+                self.forward_level::<false>(l, level, params, pts, out);
             }
+        }
+    }
+
+    #[inline(always)]
+    fn forward_level<const DENSE: bool>(&self, l: usize, level: &Level, params: &[f32], pts: &[f32], out: &mut [f32]) {
+        for (p, o) in pts.chunks_exact(3).zip(out.chunks_exact_mut(self.width())) {
+            let (idx, w) = self.corners_of::<DENSE>(level, [p[0], p[1], p[2]]);
+            let (mut f0, mut f1) = (0.0f32, 0.0f32);
+            for c in 0..8 {
+                f0 += w[c] * params[idx[c]];
+                f1 += w[c] * params[idx[c] + 1];
+            }
+            o[FEATURES * l] = f0;
+            o[FEATURES * l + 1] = f1;
         }
     }
 
     /// Scatters `dout` (`[n x width]`) into the table gradients.
     pub fn backward(&self, pts: &[f32], dout: &[f32], grads: &mut [f32]) {
-        let width = self.width();
         for (l, level) in self.levels.iter().enumerate() {
-            for (p, g) in pts.chunks_exact(3).zip(dout.chunks_exact(width)) {
-                let (g0, g1) = (g[FEATURES * l], g[FEATURES * l + 1]);
-                if g0 == 0.0 && g1 == 0.0 {
-                    continue;
-                }
-                let (idx, w) = self.corners(level, [p[0], p[1], p[2]]);
-                for c in 0..8 {
-                    grads[idx[c]] += w[c] * g0;
-                    grads[idx[c] + 1] += w[c] * g1;
-                }
+            if level.dense {
+                self.backward_level::<true>(l, level, pts, dout, grads);
+            } else {
+                self.backward_level::<false>(l, level, pts, dout, grads);
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn backward_level<const DENSE: bool>(&self, l: usize, level: &Level, pts: &[f32], dout: &[f32], grads: &mut [f32]) {
+        for (p, g) in pts.chunks_exact(3).zip(dout.chunks_exact(self.width())) {
+            let (g0, g1) = (g[FEATURES * l], g[FEATURES * l + 1]);
+            if g0 == 0.0 && g1 == 0.0 {
+                continue;
+            }
+            let (idx, w) = self.corners_of::<DENSE>(level, [p[0], p[1], p[2]]);
+            for c in 0..8 {
+                grads[idx[c]] += w[c] * g0;
+                grads[idx[c] + 1] += w[c] * g1;
             }
         }
     }
@@ -202,6 +241,27 @@ mod tests {
         g.forward(&params, &p, &mut out);
         let k = g.params.start + level.offset + FEATURES * HashGrid::index(&level, 1, 0, 2);
         assert!((out[0] - params[k]).abs() < 1e-5 && (out[1] - params[k + 1]).abs() < 1e-5);
+    }
+
+    /// The per-axis index terms give the vertex indices of the plain
+    /// formula, on dense and hashed levels alike.
+    #[test]
+    fn corner_indices_match_the_vertex_formula() {
+        let (g, _) = small();
+        let mut rng = Rng::new(4);
+        for level in &g.levels {
+            for _ in 0..50 {
+                let p = [rng.f32(), rng.f32(), rng.f32()];
+                let (idx, w) = g.corners(level, p);
+                let base: Vec<u32> = p.iter().map(|&v| ((v * level.res as f32) as u32).min(level.res - 1)).collect();
+                for c in 0..8 {
+                    let (dx, dy, dz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
+                    let i = HashGrid::index(level, base[0] + dx, base[1] + dy, base[2] + dz);
+                    assert_eq!(idx[c as usize], g.params.start + level.offset + FEATURES * i);
+                }
+                assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5);
+            }
+        }
     }
 
     #[test]

@@ -36,6 +36,11 @@ pub struct InstantConfig {
     pub samples_per_step: usize,
     /// Transmittance below which rendering stops (1e-4).
     pub min_transmittance: f32,
+    /// Rendering skips the colour of samples whose weights, summed along a
+    /// ray, stay below this (1e-3, a quarter of an 8-bit step): a pixel
+    /// changes by at most this much.
+    #[serde(default = "default_max_dropped_weight")]
+    pub max_dropped_weight: f32,
     /// Rays processed together by one thread.
     pub chunk_rays: usize,
 }
@@ -53,14 +58,20 @@ impl Default for InstantConfig {
                 update_every: 16,
                 sweep: 16,
                 warmup_steps: 32,
+                full_updates_until: 128,
             },
             steps_per_diagonal: 512,
             max_samples: 1024,
             samples_per_step: 1 << 14,
             min_transmittance: 1e-4,
+            max_dropped_weight: default_max_dropped_weight(),
             chunk_rays: 64,
         }
     }
+}
+
+fn default_max_dropped_weight() -> f32 {
+    1e-3
 }
 
 /// Density activation: `exp` of the clamped input (its derivative is the
@@ -347,7 +358,14 @@ impl InstantModel {
                 Some(c) => {
                     // Step to where the ray leaves this empty cell, on the dt lattice.
                     let exit = cell_exit(g.aabb.min, cell, g.config.resolution, c, ray, *t);
-                    let k = ((exit - *t) / dt).ceil().max(1.0);
+                    // ceil without a libm call: steps are whole and >= 1.
+                    let q = (exit - *t) / dt;
+                    let k = if q.is_finite() && q > 1.0 {
+                        let f = q as u32 as f32;
+                        if f < q { f + 1.0 } else { f }
+                    } else {
+                        1.0
+                    };
                     m.skipped += k as u64;
                     *t += k * dt;
                 }
@@ -541,6 +559,9 @@ impl Model for InstantModel {
                     None => (0.0, 0.0, 0.0, 0, false),
                 })
                 .collect();
+            // per ray: the weight of the samples whose colour was skipped
+            let mut dropped = vec![0.0f32; chunk.len()];
+            let max_dropped = self.config.max_dropped_weight;
             // kept samples: ray, weight, t; geometry rows and directions for the colour pass
             let (mut k_ray, mut k_w, mut k_t) = (Vec::new(), Vec::new(), Vec::new());
             let (mut k_geo, mut k_dirs) = (Vec::new(), Vec::new());
@@ -585,6 +606,11 @@ impl Model for InstantModel {
                         }
                         st.2 += super::volume::optical_depth(c.sigma[i], m.delta[i]);
                         let w = trans - (-st.2).exp();
+                        if dropped[r] + w <= max_dropped {
+                            // Nearly empty space: its colour cannot matter.
+                            dropped[r] += w;
+                            continue;
+                        }
                         k_ray.push(r);
                         k_w.push(w);
                         k_t.push(m.t[i]);

@@ -8,6 +8,8 @@
 //! bits by one cell so that a ray stepping half a cell at a time can never
 //! step over a cell it crosses.
 
+use rayon::prelude::*;
+
 use super::math::{Aabb, Ray, Vec3};
 use super::rng::Rng;
 
@@ -28,11 +30,24 @@ pub struct OccupancyConfig {
     pub sweep: usize,
     /// No skipping before this many steps (the field is still noise).
     pub warmup_steps: u64,
+    /// Update steps up to this one that are powers of two refresh every
+    /// cell, not a `1 / sweep` share, so that skipping starts right after the
+    /// warm-up instead of a full sweep later (0: never).
+    #[serde(default)]
+    pub full_updates_until: u64,
 }
 
 impl Default for OccupancyConfig {
     fn default() -> Self {
-        Self { resolution: 64, threshold: 0.5, decay: 0.95, update_every: 8, sweep: 8, warmup_steps: 32 }
+        Self {
+            resolution: 64,
+            threshold: 0.5,
+            decay: 0.95,
+            update_every: 8,
+            sweep: 8,
+            warmup_steps: 32,
+            full_updates_until: 0,
+        }
     }
 }
 
@@ -45,6 +60,8 @@ pub struct OccupancyGrid {
     pub bits: Vec<bool>,
     /// Whether skipping is active (after warm-up).
     pub active: bool,
+    /// Cells per world unit along each axis.
+    inv_cell: Vec3,
 }
 
 /// Occupied parts of a ray, and a map between distance along the ray `t`
@@ -95,7 +112,10 @@ impl Segments {
 impl OccupancyGrid {
     pub fn new(config: OccupancyConfig, aabb: Aabb) -> Self {
         let n = config.resolution.pow(3);
-        Self { config, aabb, density: vec![f32::INFINITY; n], bits: vec![true; n], active: false }
+        let ext = aabb.max - aabb.min;
+        let r = config.resolution as f32;
+        let inv_cell = Vec3::new(r / ext.x, r / ext.y, r / ext.z);
+        Self { config, aabb, density: vec![f32::INFINITY; n], bits: vec![true; n], active: false, inv_cell }
     }
 
     fn cell_size(&self) -> Vec3 {
@@ -103,15 +123,16 @@ impl OccupancyGrid {
     }
 
     /// Index of the cell holding `p`, if inside the box.
+    #[inline]
     pub fn cell_of(&self, p: Vec3) -> Option<usize> {
         let r = self.config.resolution;
         let rel = p - self.aabb.min;
-        let cs = self.cell_size();
-        let f = |v: f32, c: f32| {
-            let i = (v / c).floor();
-            (i >= 0.0 && i < r as f32).then_some(i as usize)
-        };
-        Some((f(rel.x, cs.x)? * r + f(rel.y, cs.y)?) * r + f(rel.z, cs.z)?)
+        // Truncation is floor for v >= 0 (and needs no libm call); NaN fails
+        // the comparison.
+        let f = |v: f32| (v >= 0.0 && v < r as f32).then_some(v as usize);
+        let (x, y, z) = (f(rel.x * self.inv_cell.x)?, f(rel.y * self.inv_cell.y)?, f(rel.z * self.inv_cell.z)?);
+        // Rounding of a point just below the box's far faces.
+        (x < r && y < r && z < r).then_some((x * r + y) * r + z)
     }
 
     pub fn occupied(&self, p: Vec3) -> bool {
@@ -131,7 +152,8 @@ impl OccupancyGrid {
     /// The cells updated at `step` and a random point in each (model space).
     pub fn update_points(&self, step: u64, seed: u64) -> (Vec<usize>, Vec<f32>) {
         let r = self.config.resolution;
-        let sweep = self.config.sweep.max(1);
+        let full = step <= self.config.full_updates_until && step.is_power_of_two();
+        let sweep = if full { 1 } else { self.config.sweep.max(1) };
         let phase = (step / self.config.update_every.max(1)) as usize % sweep;
         let mut rng = Rng::stream(seed, step, 0x0CC0);
         let cs = self.cell_size();
@@ -164,34 +186,19 @@ impl OccupancyGrid {
     }
 
     fn rebuild_bits(&mut self) {
-        let r = self.config.resolution as isize;
+        let r = self.config.resolution;
         // As in Instant-NGP: never stricter than the mean density, so a young
         // field whose densities are all still low is not emptied wholesale.
-        let (sum, count) =
-            self.density.iter().filter(|d| d.is_finite()).fold((0.0f64, 0usize), |(s, c), &d| (s + d as f64, c + 1));
+        let (sum, count) = self
+            .density
+            .par_iter()
+            .filter(|d| d.is_finite())
+            .fold(|| (0.0f64, 0usize), |(s, c), &d| (s + d as f64, c + 1))
+            .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         let mean = if count > 0 { (sum / count as f64) as f32 } else { f32::INFINITY };
         let thr = self.config.threshold.min(mean);
-        let raw: Vec<bool> = self.density.iter().map(|&d| d >= thr || d.is_nan()).collect();
-        let idx = |x: isize, y: isize, z: isize| ((x * r + y) * r + z) as usize;
-        for x in 0..r {
-            for y in 0..r {
-                for z in 0..r {
-                    let mut any = false;
-                    'n: for dx in -1..=1 {
-                        for dy in -1..=1 {
-                            for dz in -1..=1 {
-                                let (a, b, c) = (x + dx, y + dy, z + dz);
-                                if a >= 0 && b >= 0 && c >= 0 && a < r && b < r && c < r && raw[idx(a, b, c)] {
-                                    any = true;
-                                    break 'n;
-                                }
-                            }
-                        }
-                    }
-                    self.bits[idx(x, y, z)] = any;
-                }
-            }
-        }
+        let raw: Vec<bool> = self.density.par_iter().map(|&d| d >= thr || d.is_nan()).collect();
+        self.bits = dilate(&raw, r);
     }
 
     /// The occupied parts of `[t0, t1]` along `ray`, found by stepping half a
@@ -221,9 +228,60 @@ impl OccupancyGrid {
     }
 }
 
+/// Marks every cell with an occupied cell among its 27 neighbours (itself
+/// included): a 3x3x3 maximum, done as three passes of 3 along each axis.
+fn dilate(raw: &[bool], r: usize) -> Vec<bool> {
+    let slab = r * r;
+    let mut a = vec![false; raw.len()];
+    a.par_chunks_mut(r).zip(raw.par_chunks(r)).for_each(|(o, i)| {
+        for z in 0..r {
+            o[z] = i[z] || (z > 0 && i[z - 1]) || (z + 1 < r && i[z + 1]);
+        }
+    });
+    let mut b = vec![false; raw.len()];
+    b.par_chunks_mut(slab).zip(a.par_chunks(slab)).for_each(|(o, i)| {
+        for k in 0..slab {
+            let y = k / r;
+            o[k] = i[k] || (y > 0 && i[k - r]) || (y + 1 < r && i[k + r]);
+        }
+    });
+    let mut out = vec![false; raw.len()];
+    out.par_chunks_mut(slab).enumerate().for_each(|(x, o)| {
+        let mid = &b[x * slab..(x + 1) * slab];
+        let lo = (x > 0).then(|| &b[(x - 1) * slab..x * slab]);
+        let hi = (x + 1 < r).then(|| &b[(x + 1) * slab..(x + 2) * slab]);
+        for k in 0..slab {
+            o[k] = mid[k] || lo.is_some_and(|l| l[k]) || hi.is_some_and(|h| h[k]);
+        }
+    });
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn separable_dilation_equals_the_27_neighbour_rule() {
+        let r = 7isize;
+        let mut rng = Rng::new(9);
+        let raw: Vec<bool> = (0..r * r * r).map(|_| rng.f32() < 0.04).collect();
+        let fast = dilate(&raw, r as usize);
+        let idx = |x: isize, y: isize, z: isize| ((x * r + y) * r + z) as usize;
+        for x in 0..r {
+            for y in 0..r {
+                for z in 0..r {
+                    let mut any = false;
+                    for (dx, dy, dz) in (0..27).map(|k| (k / 9 - 1, (k / 3) % 3 - 1, k % 3 - 1)) {
+                        let (a, b, c) = (x + dx, y + dy, z + dz);
+                        any |= (0..r).contains(&a) && (0..r).contains(&b) && (0..r).contains(&c) && raw[idx(a, b, c)];
+                    }
+                    assert_eq!(fast[idx(x, y, z)], any, "cell {x},{y},{z}");
+                }
+            }
+        }
+        assert!(fast.iter().filter(|&&b| b).count() > raw.iter().filter(|&&b| b).count());
+    }
 
     fn unit() -> Aabb {
         Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }
