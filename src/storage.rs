@@ -5,10 +5,13 @@
 //! DATA/scenes/ID/data/...     the uploaded dataset as extracted
 //! DATA/models/ID.ckpt         checkpoint (engine::persist, atomic)
 //! DATA/models/ID.json         model record
-//! DATA/jobs/ID.json           job record (only enqueued and final states)
+//! DATA/videos/ID.bin, ID.json video file and record
+//! DATA/jobs.redb              job records (redb; only enqueued, started and final states)
 //! DATA/tmp/                   uploads being extracted, scenes being deleted
 //! ```
 //!
+//! Job records live in an embedded database (redb: transactions are atomic
+//! and durable when they commit); the large artifacts are files beside it.
 //! Every file is written atomically ([`write_atomic`]) and every folder
 //! appears by one `rename`, so a crash leaves either the old state or the
 //! new one. `tmp/` is emptied at start-up.
@@ -16,8 +19,10 @@
 use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
+use redb::{ReadableDatabase, ReadableTable};
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 
 use crate::engine::fsio::write_atomic;
@@ -26,14 +31,23 @@ use crate::engine::fsio::write_atomic;
 #[derive(Clone, Debug)]
 pub struct Storage {
     pub root: PathBuf,
+    /// Serialises the job database's transactions within the process.
+    jobs_lock: Arc<Mutex<()>>,
+}
+
+/// The job table: id -> the job record as JSON.
+const JOBS: redb::TableDefinition<&str, &[u8]> = redb::TableDefinition::new("jobs");
+
+fn db_error(e: impl std::fmt::Display) -> io::Error {
+    io::Error::other(format!("job database: {e}"))
 }
 
 impl Storage {
     /// Creates the layout (if missing) and clears leftovers of interrupted
     /// uploads and deletions.
     pub fn open(root: &Path) -> io::Result<Self> {
-        let s = Self { root: root.to_path_buf() };
-        for d in ["scenes", "models", "jobs", "videos"] {
+        let s = Self { root: root.to_path_buf(), jobs_lock: Arc::default() };
+        for d in ["scenes", "models", "videos"] {
             std::fs::create_dir_all(s.root.join(d))?;
         }
         let tmp = s.tmp_dir();
@@ -65,11 +79,65 @@ impl Storage {
     pub fn model_record(&self, model_id: &str) -> PathBuf {
         self.models_dir().join(format!("{model_id}.json"))
     }
-    pub fn jobs_dir(&self) -> PathBuf {
-        self.root.join("jobs")
+    pub fn jobs_db(&self) -> PathBuf {
+        self.root.join("jobs.redb")
     }
-    pub fn job_record(&self, id: &str) -> PathBuf {
-        self.jobs_dir().join(format!("{id}.json"))
+
+    /// Runs `f` on the job database, opened for this call only (the file
+    /// is locked while open; job records change a few times per job).
+    fn with_jobs<T>(&self, f: impl FnOnce(&redb::Database) -> Result<T, io::Error>) -> io::Result<T> {
+        let _guard = self.jobs_lock.lock().unwrap_or_else(|e| e.into_inner());
+        let db = redb::Database::create(self.jobs_db()).map_err(db_error)?;
+        f(&db)
+    }
+
+    /// Writes a job record (one committed transaction).
+    pub fn put_job<T: Serialize>(&self, id: &str, job: &T) -> io::Result<()> {
+        let bytes = serde_json::to_vec(job).map_err(io::Error::other)?;
+        self.with_jobs(|db| {
+            let tx = db.begin_write().map_err(db_error)?;
+            {
+                let mut t = tx.open_table(JOBS).map_err(db_error)?;
+                t.insert(id, bytes.as_slice()).map_err(db_error)?;
+            }
+            tx.commit().map_err(db_error)
+        })
+    }
+
+    /// Every job record (in id order).
+    pub fn list_jobs<T: DeserializeOwned>(&self) -> io::Result<Vec<T>> {
+        self.with_jobs(|db| {
+            let tx = db.begin_read().map_err(db_error)?;
+            let t = match tx.open_table(JOBS) {
+                Ok(t) => t,
+                Err(redb::TableError::TableDoesNotExist(_)) => return Ok(Vec::new()),
+                Err(e) => return Err(db_error(e)),
+            };
+            let mut v = Vec::new();
+            for row in t.iter().map_err(db_error)? {
+                let (k, bytes) = row.map_err(db_error)?;
+                let job = serde_json::from_slice(bytes.value())
+                    .map_err(|e| db_error(format!("record '{}': {e}", k.value())))?;
+                v.push(job);
+            }
+            Ok(v)
+        })
+    }
+
+    /// One job record.
+    pub fn get_job<T: DeserializeOwned>(&self, id: &str) -> io::Result<Option<T>> {
+        self.with_jobs(|db| {
+            let tx = db.begin_read().map_err(db_error)?;
+            let t = match tx.open_table(JOBS) {
+                Ok(t) => t,
+                Err(redb::TableError::TableDoesNotExist(_)) => return Ok(None),
+                Err(e) => return Err(db_error(e)),
+            };
+            match t.get(id).map_err(db_error)? {
+                Some(bytes) => serde_json::from_slice(bytes.value()).map(Some).map_err(db_error),
+                None => Ok(None),
+            }
+        })
     }
 
     pub fn load_scene(&self, id: &str) -> io::Result<Option<SceneInfo>> {
@@ -265,6 +333,22 @@ pub struct VideoInfo {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn job_records_round_trip_through_the_database() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Storage::open(dir.path()).unwrap();
+        assert_eq!(s.list_jobs::<serde_json::Value>().unwrap(), Vec::<serde_json::Value>::new());
+        assert_eq!(s.get_job::<serde_json::Value>("job_a").unwrap(), None);
+        s.put_job("job_b", &serde_json::json!({ "id": "job_b", "n": 1 })).unwrap();
+        s.put_job("job_a", &serde_json::json!({ "id": "job_a" })).unwrap();
+        s.put_job("job_b", &serde_json::json!({ "id": "job_b", "n": 2 })).unwrap();
+        // A second handle (as after a restart) sees what was committed.
+        let again = Storage::open(dir.path()).unwrap();
+        let all: Vec<serde_json::Value> = again.list_jobs().unwrap();
+        assert_eq!(all, vec![serde_json::json!({ "id": "job_a" }), serde_json::json!({ "id": "job_b", "n": 2 })]);
+        assert_eq!(again.get_job::<serde_json::Value>("job_b").unwrap().unwrap()["n"], 2);
+    }
 
     #[test]
     fn ids_are_valid_and_distinct() {

@@ -530,8 +530,9 @@ async fn restart_runs_queued_jobs_and_resumes_interrupted_ones() {
     let seen =
         svc.wait_job(&long, 60.0, |v| v["model_id"].is_string() && v["progress"]["step"].as_u64() >= Some(10)).await;
     svc.stop().await;
-    let on_disk: Value =
-        serde_json::from_slice(&std::fs::read(data.path().join(format!("jobs/{long}.json"))).unwrap()).unwrap();
+    let store = radiance::storage::Storage::open(data.path()).unwrap();
+    let on_disk: Value = store.get_job(&long).unwrap().expect("the job is recorded");
+    drop(store);
     assert_eq!(on_disk["status"], "running", "an interrupted job is not final");
 
     // Third life: it resumes from its checkpoint and finishes.

@@ -1,8 +1,8 @@
 //! Jobs: their records and states, the persisted store, and the scheduler
 //! that runs at most `max_concurrent` of them at once.
 //!
-//! Only the enqueued, started and final states are written to disk (one JSON
-//! file per job, written atomically): progress lives in memory. On start-up
+//! Only the enqueued, started and final states are written to disk (the
+//! job database, one committed transaction each): progress lives in memory. On start-up
 //! a job found `queued` or `running` is queued again in its original order;
 //! a training job whose checkpoint exists resumes from it.
 
@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 use crate::engine::model_config::ModelConfig;
 use crate::engine::trainer::Budget;
 use crate::media::video::VideoFormat;
-use crate::storage::{Storage, new_id, now_ms, write_json};
+use crate::storage::{Storage, new_id, now_ms};
 
 pub mod train;
 pub mod video;
@@ -300,7 +300,7 @@ impl Scheduler {
     /// Loads the job records and starts the scheduler thread.
     pub fn open(storage: Storage, config: SchedulerConfig) -> io::Result<Self> {
         let mut st = State::default();
-        let mut jobs: Vec<Job> = crate::storage::list_json(&storage.jobs_dir())?;
+        let mut jobs: Vec<Job> = storage.list_jobs()?;
         jobs.sort_by_key(|j| j.seq);
         for mut j in jobs {
             st.next_seq = st.next_seq.max(j.seq + 1);
@@ -362,7 +362,7 @@ impl Scheduler {
             progress: JobProgress::default(),
             attempts: 0,
         };
-        write_json(&storage.job_record(&job.id), &job)?;
+        storage.put_job(&job.id, &job)?;
         st.next_seq += 1;
         st.queue.push_back(job.id.clone());
         st.jobs.insert(job.id.clone(), job.clone());
@@ -413,7 +413,7 @@ impl Scheduler {
                 job.status = Status::Canceled;
                 job.finished_at = Some(now_ms());
                 let job = job.clone();
-                write_json(&self.shared.storage.job_record(id), &job)?;
+                self.shared.storage.put_job(id, &job)?;
                 Ok(job)
             }
         }
@@ -478,7 +478,7 @@ fn tick(shared: &Arc<Shared>, st: &mut State) {
         job.started_at = Some(now_ms());
         job.attempts += 1;
         job.error = None;
-        if let Err(e) = write_json(&shared.storage.job_record(&id), &*job) {
+        if let Err(e) = shared.storage.put_job(&id, &*job) {
             tracing::error!(job = %id, error = %e, "cannot persist job start");
         }
         let cancel = Arc::new(AtomicBool::new(false));
@@ -539,7 +539,7 @@ fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) {
     job.status = status;
     job.finished_at = Some(now_ms());
     tracing::info!(job = %id, status = status.name(), error = job.error.as_deref().unwrap_or(""), "job finished");
-    if let Err(e) = write_json(&shared.storage.job_record(id), &*job) {
+    if let Err(e) = shared.storage.put_job(id, &*job) {
         tracing::error!(job = %id, error = %e, "cannot persist job end");
     }
 }
