@@ -273,6 +273,19 @@ pub struct ViewDefaults {
     pub far: f32,
 }
 
+impl ViewDefaults {
+    /// The frame size for an optional width and height: the training
+    /// cameras' size, or the given width with their aspect ratio.
+    pub fn frame_size(&self, width: Option<u32>, height: Option<u32>) -> (u32, u32) {
+        let w = width.unwrap_or(self.width);
+        let h = height.unwrap_or_else(|| match width {
+            Some(w) => ((w as u64 * self.height as u64) / self.width.max(1) as u64).max(1) as u32,
+            None => self.height,
+        });
+        (w, h)
+    }
+}
+
 /// A stored scene.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SceneInfo {

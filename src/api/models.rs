@@ -113,11 +113,7 @@ fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResu
                 .ok_or_else(|| ApiError::bad_request("this orbit position gives no well-defined camera"))?
         }
     };
-    let width = q.width.unwrap_or(view.width);
-    let height = q.height.unwrap_or_else(|| match q.width {
-        Some(w) => ((w as u64 * view.height as u64) / view.width.max(1) as u64).max(1) as u32,
-        None => view.height,
-    });
+    let (width, height) = view.frame_size(q.width, q.height);
     if width == 0 || height == 0 || width > 8192 || height > 8192 || width as u64 * height as u64 > max_pixels {
         return Err(ApiError::bad_request(format!(
             "render size {width}x{height} is out of range (at most {max_pixels} pixels, sides 1..=8192)"

@@ -49,11 +49,7 @@ pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> R
     if !(1..=60).contains(&fps) {
         return Err("fps must be in 1..=60".into());
     }
-    let width = r.width.unwrap_or(view.width);
-    let height = r.height.unwrap_or_else(|| match r.width {
-        Some(w) => ((w as u64 * view.height as u64) / view.width.max(1) as u64).max(1) as u32,
-        None => view.height,
-    });
+    let (width, height) = view.frame_size(r.width, r.height);
     let max_side = 4096;
     if !(16..=max_side).contains(&width)
         || !(16..=max_side).contains(&height)
