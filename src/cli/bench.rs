@@ -38,6 +38,13 @@ pub struct BenchArgs {
     /// Random seed of every training run.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Initial learning rate, instead of each model's default.
+    #[arg(long)]
+    pub lr: Option<f32>,
+    /// Override a setting of the models' presets (`KEY=VALUE`, as for
+    /// `radiance train --set`; repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
     /// Also write the rows as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -84,6 +91,12 @@ pub struct BenchReport {
     pub threads: usize,
     pub seed: u64,
     pub test_views: usize,
+    /// `--lr`, when given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lr: Option<f32>,
+    /// `--set` overrides, as given.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub set: Vec<String>,
     pub rows: Vec<BenchRow>,
 }
 
@@ -205,6 +218,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         data: a.data.display().to_string(),
         threads,
         seed: a.seed,
+        lr: a.lr,
+        set: a.set.clone(),
         test_views: views.len(),
         rows: Vec::new(),
     };
@@ -213,7 +228,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     println!("{HEADER}");
     for kind in &a.model {
         reset_peak_memory();
-        let (cfg, model, adam) = new_model_and_adam(kind, Scene::from_dataset(&ds), a.seed, true, None)?;
+        let (cfg, model, adam) = new_model_and_adam(kind, Scene::from_dataset(&ds), a.seed, true, a.lr, &a.set)?;
         let budget = Budget { steps: None, seconds: Some(max_budget) };
         let config = cfg.train_config(a.seed, DEFAULT_BATCH_RAYS, budget);
         eprintln!(

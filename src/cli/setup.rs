@@ -13,16 +13,52 @@ pub use crate::engine::model_config::DEFAULT_BATCH_RAYS;
 pub const MODEL_KINDS: [&str; 2] = ["instant", "nerf"];
 
 /// The configuration of `kind`. `skip: false` samples the whole clipped ray,
-/// without the occupancy grid (nerf only).
-pub fn model_config(kind: &str, skip: bool) -> anyhow::Result<ModelConfig> {
+/// without the occupancy grid (nerf only). `sets` are `--set KEY=VALUE`
+/// overrides of the preset (see [`apply_sets`]).
+pub fn model_config(kind: &str, skip: bool, sets: &[String]) -> anyhow::Result<ModelConfig> {
     anyhow::ensure!(MODEL_KINDS.contains(&kind), "unknown model '{kind}' (available: {})", MODEL_KINDS.join(", "));
-    let mut cfg = ModelConfig::preset(kind).expect("every model kind is a preset");
+    let mut cfg = apply_sets(ModelConfig::preset(kind).expect("every model kind is a preset"), sets)?;
     match &mut cfg {
         ModelConfig::Nerf(c) if !skip => c.occupancy = None,
         ModelConfig::Instant(_) => anyhow::ensure!(skip, "--no-skip applies to the nerf model only"),
         ModelConfig::Nerf(_) => {}
     }
     Ok(cfg)
+}
+
+/// Overrides fields of `cfg`: each of `sets` is `KEY=VALUE`, where `KEY` is
+/// a dotted path into the configuration as JSON (`occupancy.sweep`,
+/// `grid.log2_table`) and `VALUE` is JSON (a bare word counts as a string).
+/// Unknown keys, values of the wrong type and out-of-range results are
+/// errors that name the key.
+pub fn apply_sets(cfg: ModelConfig, sets: &[String]) -> anyhow::Result<ModelConfig> {
+    if sets.is_empty() {
+        return Ok(cfg);
+    }
+    let mut json = serde_json::to_value(&cfg)?;
+    for set in sets {
+        let (key, value) = set
+            .split_once('=')
+            .ok_or_else(|| anyhow::anyhow!("--set {set}: expected KEY=VALUE, e.g. grid.log2_table=17"))?;
+        anyhow::ensure!(key != "kind", "--set {set}: the model kind is chosen with --model");
+        let value: serde_json::Value =
+            serde_json::from_str(value).unwrap_or_else(|_| serde_json::Value::String(value.to_string()));
+        let mut node = &mut json;
+        for part in key.split('.') {
+            node = node
+                .as_object_mut()
+                .and_then(|o| o.get_mut(part))
+                .ok_or_else(|| anyhow::anyhow!("--set {set}: the {} config has no field '{key}'", cfg.kind()))?;
+        }
+        anyhow::ensure!(
+            !node.is_object() && !node.is_array(),
+            "--set {set}: '{key}' is a group of settings; set one of its fields"
+        );
+        *node = value;
+    }
+    let out: ModelConfig = serde_json::from_value(json).map_err(|e| anyhow::anyhow!("--set: {e}"))?;
+    out.check().map_err(|e| anyhow::anyhow!("--set: {e}"))?;
+    Ok(out)
 }
 
 /// A fresh model of `kind` and its optimiser.
@@ -32,8 +68,28 @@ pub fn new_model_and_adam(
     seed: u64,
     skip: bool,
     lr: Option<f32>,
+    sets: &[String],
 ) -> anyhow::Result<(ModelConfig, Box<dyn Model>, Adam)> {
-    let cfg = model_config(kind, skip)?;
+    let cfg = model_config(kind, skip, sets)?;
     let (model, adam) = cfg.build_with_adam(scene, seed, lr).map_err(|e| anyhow::anyhow!("--lr: {e}"))?;
     Ok((cfg, model, adam))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sets_override_nested_fields_and_name_bad_keys() {
+        let cfg = model_config("instant", true, &["grid.log2_table=17".into(), "occupancy.sweep=4".into()]).unwrap();
+        let ModelConfig::Instant(c) = &cfg else { panic!("instant expected") };
+        assert_eq!((c.grid.log2_table, c.occupancy.sweep), (17, 4));
+        let err = |s: &str| model_config("instant", true, &[s.to_string()]).unwrap_err().to_string();
+        assert!(err("grid.nope=1").contains("no field 'grid.nope'"), "{}", err("grid.nope=1"));
+        assert!(err("grid=3").contains("group of settings"));
+        assert!(err("hidden=wide").contains("--set"));
+        assert!(err("grid.log2_table=40").contains("out of range"));
+        assert!(err("hidden").contains("KEY=VALUE"));
+        assert!(err("kind=nerf").contains("--model"));
+    }
 }

@@ -51,6 +51,11 @@ pub struct TrainArgs {
     /// sampling; for speed comparisons).
     #[arg(long)]
     pub no_skip: bool,
+    /// Override a setting of the model's preset, as a dotted JSON path and a
+    /// JSON value: `--set grid.log2_table=17 --set occupancy.sweep=8`
+    /// (repeatable; ignored with --resume, which keeps the checkpoint's).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
     /// Where to write the model checkpoint.
     #[arg(long)]
     pub out: PathBuf,
@@ -79,7 +84,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
-    let config = model_config(&a.model, !a.no_skip)?.train_config(a.seed, a.batch_rays, budget);
+    let config = model_config(&a.model, !a.no_skip, &a.set)?.train_config(a.seed, a.batch_rays, budget);
     let (model, adam, state) = match &a.resume {
         Some(p) => {
             let r = persist::load(p)?;
@@ -93,7 +98,8 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
             (r.model, r.adam, r.state)
         }
         None => {
-            let (_, model, adam) = new_model_and_adam(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip, a.lr)?;
+            let (_, model, adam) =
+                new_model_and_adam(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip, a.lr, &a.set)?;
             (model, adam, TrainState::default())
         }
     };

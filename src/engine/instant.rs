@@ -41,7 +41,9 @@ pub struct InstantConfig {
     /// changes by at most this much.
     #[serde(default = "default_max_dropped_weight")]
     pub max_dropped_weight: f32,
-    /// Rays processed together by one thread.
+    /// Training rays processed together by one thread (256: enough samples
+    /// that each hash-grid level's table is reused from cache while all of
+    /// them visit it).
     pub chunk_rays: usize,
 }
 
@@ -56,16 +58,17 @@ impl Default for InstantConfig {
                 threshold: 0.0, // set from the step size in `InstantModel::new`
                 decay: 0.95,
                 update_every: 16,
-                sweep: 16,
+                sweep: 8,
                 warmup_steps: 32,
                 full_updates_until: 128,
+                empty_sweep: 64,
             },
             steps_per_diagonal: 512,
             max_samples: 1024,
             samples_per_step: 1 << 14,
             min_transmittance: 1e-4,
             max_dropped_weight: default_max_dropped_weight(),
-            chunk_rays: 64,
+            chunk_rays: 256,
         }
     }
 }
@@ -73,6 +76,9 @@ impl Default for InstantConfig {
 fn default_max_dropped_weight() -> f32 {
     1e-3
 }
+
+/// Rays rendered together by one thread (in rounds of samples).
+const RENDER_CHUNK_RAYS: usize = 256;
 
 /// Density activation: `exp` of the clamped input (its derivative is the
 /// density itself, which stays finite).
@@ -356,8 +362,11 @@ impl InstantModel {
                     *t += dt;
                 }
                 Some(c) => {
-                    // Step to where the ray leaves this empty cell, on the dt lattice.
-                    let exit = cell_exit(g.aabb.min, cell, g.config.resolution, c, ray, *t);
+                    // Step to where the ray leaves this empty cell (or its
+                    // block, when that is empty too), on the dt lattice.
+                    let (c, res) = g.empty_region(c);
+                    let size = cell * (g.config.resolution / res) as f32;
+                    let exit = cell_exit(g.aabb.min, size, res, c, ray, *t);
                     // ceil without a libm call: steps are whole and >= 1.
                     let q = (exit - *t) / dt;
                     let k = if q.is_finite() && q > 1.0 {
@@ -549,7 +558,7 @@ impl Model for InstantModel {
         let mut stats = BatchStats { rays: rays.len() as u64, ..Default::default() };
         let mut c = Ctx::default();
         let mut m = Marched::default();
-        let per = self.config.chunk_rays.max(1) * 4;
+        let per = RENDER_CHUNK_RAYS;
         for (chunk, outc) in rays.chunks(per).zip(out.chunks_mut(per)) {
             // per ray: next t, end, optical depth, samples so far, live
             let mut state: Vec<(f32, f32, f32, usize, bool)> = chunk

@@ -28,6 +28,11 @@ pub struct OccupancyConfig {
     /// ... a `1 / sweep` share of the cells, so a full sweep takes
     /// `update_every * sweep` steps.
     pub sweep: usize,
+    /// Cells currently empty are visited at this (larger) period instead:
+    /// empty space rarely fills in, while occupied cells must be freed soon
+    /// to save samples (0: the same as `sweep`).
+    #[serde(default)]
+    pub empty_sweep: usize,
     /// No skipping before this many steps (the field is still noise).
     pub warmup_steps: u64,
     /// Update steps up to this one that are powers of two refresh every
@@ -47,6 +52,7 @@ impl Default for OccupancyConfig {
             sweep: 8,
             warmup_steps: 32,
             full_updates_until: 0,
+            empty_sweep: 0,
         }
     }
 }
@@ -58,6 +64,10 @@ pub struct OccupancyGrid {
     pub aabb: Aabb,
     pub density: Vec<f32>,
     pub bits: Vec<bool>,
+    /// Blocks of `BLOCK^3` cells with any occupied bit (when the resolution
+    /// is a multiple of `BLOCK`): a marcher leaves an empty block in one
+    /// step instead of one cell at a time.
+    pub blocks: Vec<bool>,
     /// Whether skipping is active (after warm-up).
     pub active: bool,
     /// Cells per world unit along each axis.
@@ -115,7 +125,8 @@ impl OccupancyGrid {
         let ext = aabb.max - aabb.min;
         let r = config.resolution as f32;
         let inv_cell = Vec3::new(r / ext.x, r / ext.y, r / ext.z);
-        Self { config, aabb, density: vec![f32::INFINITY; n], bits: vec![true; n], active: false, inv_cell }
+        let blocks = vec![true; Self::block_count(config.resolution)];
+        Self { config, aabb, density: vec![f32::INFINITY; n], bits: vec![true; n], blocks, active: false, inv_cell }
     }
 
     fn cell_size(&self) -> Vec3 {
@@ -144,22 +155,48 @@ impl OccupancyGrid {
         self.bits.iter().filter(|&&b| b).count() as f64 / self.bits.len() as f64
     }
 
-    /// Whether `step` is an update step.
+    /// Whether `step` is an update step. With full refreshes that reach the
+    /// end of the warm-up, updates before it are skipped: the first full
+    /// refresh after it overwrites them.
     pub fn due(&self, step: u64) -> bool {
-        step > 0 && step.is_multiple_of(self.config.update_every)
+        let c = &self.config;
+        step > 0
+            && step.is_multiple_of(c.update_every.max(1))
+            && (c.full_updates_until < self.first_active_update() || step >= c.warmup_steps)
     }
 
-    /// The cells updated at `step` and a random point in each (model space).
+    /// The first update step at or after the warm-up.
+    fn first_active_update(&self) -> u64 {
+        let every = self.config.update_every.max(1);
+        self.config.warmup_steps.max(1).div_ceil(every) * every
+    }
+
+    /// Whether the update at `step` refreshes every cell: the first one after
+    /// the warm-up and those at powers of two up to `full_updates_until`.
+    fn full_update(&self, step: u64) -> bool {
+        step <= self.config.full_updates_until && (step.is_power_of_two() || step == self.first_active_update())
+    }
+
+    /// The cells updated at `step` and a random point in each (model space):
+    /// a `1 / sweep` share of the occupied cells and a `1 / empty_sweep`
+    /// share of the empty ones, or all of them at a full update.
     pub fn update_points(&self, step: u64, seed: u64) -> (Vec<usize>, Vec<f32>) {
         let r = self.config.resolution;
-        let full = step <= self.config.full_updates_until && step.is_power_of_two();
+        let full = self.full_update(step);
         let sweep = if full { 1 } else { self.config.sweep.max(1) };
-        let phase = (step / self.config.update_every.max(1)) as usize % sweep;
+        let empty_sweep = match self.config.empty_sweep {
+            _ if full => 1,
+            0 => sweep,
+            e => e,
+        };
+        let k = step / self.config.update_every.max(1);
+        let (phase, empty_phase) = ((k % sweep as u64) as usize, (k % empty_sweep as u64) as usize);
         let mut rng = Rng::stream(seed, step, 0x0CC0);
         let cs = self.cell_size();
-        let mut cells = Vec::with_capacity(r * r * r / sweep + 1);
-        let mut pts = Vec::with_capacity(3 * (r * r * r / sweep + 1));
-        for c in (phase..r * r * r).step_by(sweep) {
+        let n = r * r * r;
+        let mut cells = Vec::with_capacity(n / sweep.min(empty_sweep) + 1);
+        let mut pts = Vec::with_capacity(3 * cells.capacity());
+        let mut visit = |c: usize| {
             let (x, y, z) = (c / (r * r), (c / r) % r, c % r);
             let p = self.aabb.min
                 + Vec3::new(
@@ -169,6 +206,14 @@ impl OccupancyGrid {
                 );
             cells.push(c);
             pts.extend_from_slice(&[p.x, p.y, p.z]);
+        };
+        if sweep == empty_sweep {
+            (phase..n).step_by(sweep).for_each(&mut visit);
+        } else {
+            // Two passes in cell order: occupied cells of this phase, then
+            // empty cells of the empty phase (a cell is in one of them only).
+            (phase..n).step_by(sweep).filter(|&c| self.bits[c]).for_each(&mut visit);
+            (empty_phase..n).step_by(empty_sweep).filter(|&c| !self.bits[c]).for_each(&mut visit);
         }
         (cells, pts)
     }
@@ -199,6 +244,43 @@ impl OccupancyGrid {
         let thr = self.config.threshold.min(mean);
         let raw: Vec<bool> = self.density.par_iter().map(|&d| d >= thr || d.is_nan()).collect();
         self.bits = dilate(&raw, r);
+        self.rebuild_blocks();
+    }
+
+    /// Blocks per side times itself twice, or 0 when the resolution is not a
+    /// multiple of [`BLOCK`].
+    fn block_count(res: usize) -> usize {
+        if res.is_multiple_of(BLOCK) { (res / BLOCK).pow(3) } else { 0 }
+    }
+
+    fn rebuild_blocks(&mut self) {
+        let r = self.config.resolution;
+        if self.blocks.is_empty() {
+            return;
+        }
+        let rb = r / BLOCK;
+        self.blocks.fill(false);
+        for (c, _) in self.bits.iter().enumerate().filter(|(_, b)| **b) {
+            let (x, y, z) = (c / (r * r), (c / r) % r, c % r);
+            self.blocks[((x / BLOCK) * rb + y / BLOCK) * rb + z / BLOCK] = true;
+        }
+    }
+
+    /// For an empty cell `c`: the index and the resolution of the largest
+    /// empty region around it that is a cell of a grid (its block when that
+    /// is empty, else the cell itself), for a marcher to step out of.
+    #[inline]
+    pub fn empty_region(&self, c: usize) -> (usize, usize) {
+        let r = self.config.resolution;
+        if !self.blocks.is_empty() {
+            let rb = r / BLOCK;
+            let (x, y, z) = (c / (r * r), (c / r) % r, c % r);
+            let b = ((x / BLOCK) * rb + y / BLOCK) * rb + z / BLOCK;
+            if !self.blocks[b] {
+                return (b, rb);
+            }
+        }
+        (c, r)
     }
 
     /// The occupied parts of `[t0, t1]` along `ray`, found by stepping half a
@@ -227,6 +309,9 @@ impl OccupancyGrid {
         segs
     }
 }
+
+/// Cells per side of a block (see [`OccupancyGrid::blocks`]).
+pub const BLOCK: usize = 8;
 
 /// Marks every cell with an occupied cell among its 27 neighbours (itself
 /// included): a 3x3x3 maximum, done as three passes of 3 along each axis.
@@ -281,6 +366,45 @@ mod tests {
             }
         }
         assert!(fast.iter().filter(|&&b| b).count() > raw.iter().filter(|&&b| b).count());
+    }
+
+    /// An empty region is a whole grid cell of its resolution that holds no
+    /// occupied bit, and it is a block wherever the block is empty.
+    #[test]
+    fn empty_regions_hold_no_occupied_cell() {
+        let r = 32;
+        let cfg = OccupancyConfig { resolution: r, warmup_steps: 0, update_every: 1, sweep: 1, ..Default::default() };
+        let mut g = OccupancyGrid::new(cfg, unit());
+        let (cells, pts) = g.update_points(1, 3);
+        // Two small dense spots; everything else empty.
+        let sigma: Vec<f32> = pts
+            .chunks(3)
+            .map(|p| {
+                let q = Vec3::new(p[0], p[1], p[2]);
+                let near = |c: Vec3| (q - c).norm() < 0.08;
+                if near(Vec3::new(0.3, -0.2, 0.1)) || near(Vec3::new(-0.7, 0.6, -0.5)) { 100.0 } else { 0.0 }
+            })
+            .collect();
+        g.apply(1, &cells, &sigma);
+        let occupied = g.bits.iter().filter(|&&b| b).count();
+        assert!(occupied > 0 && occupied < r * r * r / 10, "{occupied}");
+        let mut in_blocks = 0;
+        for c in (0..r * r * r).filter(|&c| !g.bits[c]) {
+            let (i, res) = g.empty_region(c);
+            let k = r / res;
+            let (x, y, z) = (i / (res * res), (i / res) % res, i % res);
+            for dx in 0..k {
+                for dy in 0..k {
+                    for dz in 0..k {
+                        let f = ((x * k + dx) * r + y * k + dy) * r + z * k + dz;
+                        assert!(!g.bits[f], "cell {c}: region {i} at {res} holds occupied cell {f}");
+                    }
+                }
+            }
+            assert!(k == 1 || k == BLOCK);
+            in_blocks += (k == BLOCK) as usize;
+        }
+        assert!(in_blocks > r * r * r / 2, "most empty cells lie in empty blocks: {in_blocks}");
     }
 
     fn unit() -> Aabb {
