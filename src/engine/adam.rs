@@ -43,7 +43,9 @@ impl Adam {
     }
 
     /// One update of `params` with gradient `grads` at learning rate `lr`.
-    pub fn step(&mut self, params: &mut [f32], grads: &[f32], lr: f32) {
+    /// The gradient is consumed: `grads` is left zeroed, ready to accumulate
+    /// the next step's (in the same pass over memory).
+    pub fn step(&mut self, params: &mut [f32], grads: &mut [f32], lr: f32) {
         use rayon::prelude::*;
         self.t += 1;
         let (b1, b2, eps) = (self.config.beta1, self.config.beta2, self.config.eps);
@@ -54,12 +56,13 @@ impl Adam {
         const CHUNK: usize = 1 << 14;
         params
             .par_chunks_mut(CHUNK)
-            .zip(grads.par_chunks(CHUNK))
+            .zip(grads.par_chunks_mut(CHUNK))
             .zip(self.m.par_chunks_mut(CHUNK))
             .zip(self.v.par_chunks_mut(CHUNK))
             .for_each(|(((p, g), m), v)| {
                 for i in 0..p.len() {
                     let gi = g[i];
+                    g[i] = 0.0;
                     m[i] = b1 * m[i] + (1.0 - b1) * gi;
                     v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
                     p[i] -= step * m[i] / (v[i].sqrt() + eps_hat);
@@ -85,7 +88,9 @@ mod tests {
     fn first_step_moves_by_lr_against_the_gradient_sign() {
         let mut a = Adam::new(AdamConfig::default(), 3);
         let mut p = vec![1.0f32, 1.0, 1.0];
-        a.step(&mut p, &[2.0, -0.001, 0.0], 0.1);
+        let mut g = [2.0, -0.001, 0.0];
+        a.step(&mut p, &mut g, 0.1);
+        assert_eq!(g, [0.0; 3], "the gradient is consumed");
         // With bias correction the first step is lr * g / |g|.
         assert!((p[0] - 0.9).abs() < 1e-5);
         assert!((p[1] - 1.1).abs() < 1e-3);
@@ -97,8 +102,8 @@ mod tests {
         let mut a = Adam::new(AdamConfig { lr: 0.05, ..Default::default() }, 2);
         let mut p = vec![3.0f32, -2.0];
         for _ in 0..2000 {
-            let g = vec![2.0 * (p[0] - 1.0), 8.0 * (p[1] + 0.5)];
-            a.step(&mut p, &g, 0.05);
+            let mut g = vec![2.0 * (p[0] - 1.0), 8.0 * (p[1] + 0.5)];
+            a.step(&mut p, &mut g, 0.05);
         }
         assert!((p[0] - 1.0).abs() < 1e-2 && (p[1] + 0.5).abs() < 1e-2, "{p:?}");
     }

@@ -344,8 +344,11 @@ impl<'a> Trainer<'a> {
             .par_iter_mut()
             .enumerate()
             .map(|(p, g)| {
-                g.clear();
-                g.resize(nparams, 0.0);
+                // The buffers are left zeroed by the previous step.
+                if g.len() != nparams {
+                    g.clear();
+                    g.resize(nparams, 0.0);
+                }
                 let lo = (p * per).min(rays.len());
                 let hi = ((p + 1) * per).min(rays.len());
                 model.train_rays(&rays[lo..hi], &ctx, g)
@@ -357,24 +360,22 @@ impl<'a> Trainer<'a> {
         }
         let (first, rest) = self.part_grads.split_at_mut(1);
         let grads = &mut first[0];
-        for g in rest.iter() {
-            grads.par_iter_mut().zip(g.par_iter()).for_each(|(a, b)| *a += b);
-        }
         self.state.step += 1;
         self.state.rays += total.rays;
         self.state.samples += total.samples;
         self.state.skipped += total.skipped;
         // The parameters too: ReLU (`f32::max`) swallows a NaN weight, which
         // leaves the loss finite but would make the model unsaveable.
-        let finite = total.loss.is_finite()
-            && grads.par_iter().all(|g| g.is_finite())
-            && self.model.params().par_iter().all(|p| p.is_finite());
+        let sums_finite = sum_and_check(grads, rest, self.model.params());
+        let finite = total.loss.is_finite() && sums_finite;
         if !finite {
+            grads.fill(0.0);
             self.on_divergence();
             return None;
         }
         self.bad_streak = 0;
         let lr = self.adam.config.lr_at(self.config.budget.progress(step, self.state.elapsed)) * self.state.lr_scale;
+        // Adam leaves `grads` zeroed for the next step.
         self.adam.step(self.model.params_mut(), grads, lr);
         self.model.after_step(self.state.step, self.config.seed, &total);
         let mse = total.sq_err / total.rays.max(1) as f64;
@@ -438,4 +439,35 @@ impl<'a> Trainer<'a> {
             }
         }
     }
+}
+
+/// Adds the per-thread gradients `rest` into `grads`, zeroing them for the
+/// next step, and returns whether the sum and `params` are all finite: one
+/// pass over the buffers instead of three.
+fn sum_and_check(grads: &mut [f32], rest: &mut [Vec<f32>], params: &[f32]) -> bool {
+    const CHUNK: usize = 1 << 14;
+    let mut parts: Vec<Vec<&mut [f32]>> = (0..grads.len().div_ceil(CHUNK)).map(|_| Vec::new()).collect();
+    for g in rest.iter_mut() {
+        for (i, c) in g.chunks_mut(CHUNK).enumerate() {
+            parts[i].push(c);
+        }
+    }
+    // Every chunk is visited (no early exit), so `rest` always ends zeroed.
+    grads
+        .par_chunks_mut(CHUNK)
+        .zip(parts.par_iter_mut())
+        .zip(params.par_chunks(CHUNK))
+        .map(|((g, others), p)| {
+            for o in others.iter_mut() {
+                for (a, b) in g.iter_mut().zip(o.iter_mut()) {
+                    *a += *b;
+                    *b = 0.0;
+                }
+            }
+            // Sums of products with NaN/inf stay non-finite: one test per chunk.
+            let gs: f32 = g.iter().map(|v| v * 0.0).sum();
+            let ps: f32 = p.iter().map(|v| v * 0.0).sum();
+            gs == 0.0 && ps == 0.0
+        })
+        .reduce(|| true, |a, b| a && b)
 }
