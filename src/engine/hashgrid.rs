@@ -98,20 +98,22 @@ impl HashGrid {
     /// trilinear weights of point `p` at `level`.
     #[cfg(test)]
     fn corners(&self, level: &Level, p: [f32; 3]) -> ([usize; 8], [f32; 8]) {
+        let p = p.map(sanitize);
         if level.dense { self.corners_of::<true>(level, p) } else { self.corners_of::<false>(level, p) }
     }
 
     /// [`Self::corners`] for a level known to be dense or hashed: the index
     /// is a sum (dense) or an xor (hashed) of one term per axis, so the six
-    /// terms are computed once and combined for the eight corners.
+    /// terms are computed once and combined for the eight corners. `p` is in
+    /// the unit cube (see [`sanitize`]); every index is inside the level's
+    /// table.
     #[inline(always)]
     fn corners_of<const DENSE: bool>(&self, level: &Level, p: [f32; 3]) -> ([usize; 8], [f32; 8]) {
         let r = level.res as f32;
         let mut base = [0u32; 3];
         let mut frac = [0f32; 3];
         for d in 0..3 {
-            // `clamp` maps NaN to NaN; `max` first turns it into 0.
-            let v = if p[d].is_nan() { 0.0 } else { p[d].clamp(0.0, 1.0) } * r;
+            let v = p[d] * r;
             // v >= 0, so truncation is floor (and avoids a libm call).
             let f = (v as u32).min(level.res - 1);
             base[d] = f;
@@ -145,12 +147,16 @@ impl HashGrid {
         (idx, w)
     }
 
-    /// Encodes `n` points (`pts` is `[n x 3]` in the unit cube) into `out`
-    /// (`[n x width]`).
+    /// Encodes `n` points (`pts` is `[n x 3]` in the unit cube) into the
+    /// first `n` rows of `out` (`[>= n x width]`).
     ///
     /// Level by level, so that one level's table stays in cache while all
     /// points visit it.
     pub fn forward(&self, params: &[f32], pts: &[f32], out: &mut [f32]) {
+        let out = &mut out[..pts.len() / 3 * self.width()];
+        assert!(params.len() >= self.params.end, "hash grid: parameter buffer too short");
+        let pts: Vec<f32> = pts.iter().map(|&v| sanitize(v)).collect();
+        let pts = &pts[..];
         for (l, level) in self.levels.iter().enumerate() {
             if level.dense {
                 self.forward_level::<true>(l, level, params, pts, out);
@@ -173,7 +179,7 @@ impl HashGrid {
             for j in 0..m {
                 let (i, w) = self.corners_of::<DENSE>(level, [p[3 * j], p[3 * j + 1], p[3 * j + 2]]);
                 for &k in &i {
-                    prefetch(&params[k]);
+                    prefetch(params, k);
                 }
                 idx[j] = i;
                 wts[j] = w;
@@ -182,8 +188,12 @@ impl HashGrid {
                 let (i, w) = (&idx[j], &wts[j]);
                 let (mut f0, mut f1) = (0.0f32, 0.0f32);
                 for c in 0..8 {
-                    f0 += w[c] * params[i[c]];
-                    f1 += w[c] * params[i[c] + 1];
+                    debug_assert!(i[c] + 1 < self.params.end);
+                    // SAFETY: corner indices lie in the level's table, inside
+                    // `self.params`, and `forward` asserted the buffer holds it.
+                    let (a, b) = unsafe { (*params.get_unchecked(i[c]), *params.get_unchecked(i[c] + 1)) };
+                    f0 += w[c] * a;
+                    f1 += w[c] * b;
                 }
                 o[FEATURES * l] = f0;
                 o[FEATURES * l + 1] = f1;
@@ -191,8 +201,13 @@ impl HashGrid {
         }
     }
 
-    /// Scatters `dout` (`[n x width]`) into the table gradients.
+    /// Scatters the first `n` rows of `dout` (`[>= n x width]`) into the
+    /// table gradients.
     pub fn backward(&self, pts: &[f32], dout: &[f32], grads: &mut [f32]) {
+        let dout = &dout[..pts.len() / 3 * self.width()];
+        assert!(grads.len() >= self.params.end, "hash grid: gradient buffer too short");
+        let pts: Vec<f32> = pts.iter().map(|&v| sanitize(v)).collect();
+        let pts = &pts[..];
         for (l, level) in self.levels.iter().enumerate() {
             if level.dense {
                 self.backward_level::<true>(l, level, pts, dout, grads);
@@ -217,7 +232,7 @@ impl HashGrid {
                 }
                 let (i, w) = self.corners_of::<DENSE>(level, [p[3 * j], p[3 * j + 1], p[3 * j + 2]]);
                 for &k in &i {
-                    prefetch(&grads[k]);
+                    prefetch(grads, k);
                 }
                 idx[m] = i;
                 wts[m] = w;
@@ -227,8 +242,13 @@ impl HashGrid {
             for j in 0..m {
                 let (i, w, [g0, g1]) = (&idx[j], &wts[j], gs[j]);
                 for c in 0..8 {
-                    grads[i[c]] += w[c] * g0;
-                    grads[i[c] + 1] += w[c] * g1;
+                    debug_assert!(i[c] + 1 < self.params.end);
+                    // SAFETY: as in `forward_level`; `backward` asserted the
+                    // gradient buffer holds the table.
+                    unsafe {
+                        *grads.get_unchecked_mut(i[c]) += w[c] * g0;
+                        *grads.get_unchecked_mut(i[c] + 1) += w[c] * g1;
+                    }
                 }
             }
         }
@@ -238,16 +258,24 @@ impl HashGrid {
 /// Points per group of the grouped lookups (8 corners each in flight).
 const GROUP: usize = 16;
 
-/// A hint to bring the cache line of `v` into L1; no effect on results.
+/// A hint to bring the cache line of `v[k]` into L1; no effect on results.
 #[inline(always)]
-fn prefetch(v: &f32) {
+fn prefetch(v: &[f32], k: usize) {
     #[cfg(target_arch = "x86_64")]
-    // SAFETY: prefetching is a hint that cannot fault; `v` is a valid reference.
+    // SAFETY: a prefetch is a hint that cannot fault, whatever the address;
+    // `wrapping_add` computes it without bounds checks or overflow UB.
     unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>((v as *const f32).cast());
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(v.as_ptr().wrapping_add(k).cast());
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = v;
+    let _ = (v, k);
+}
+
+/// A coordinate clamped to the unit interval, NaN mapped to 0.
+#[inline(always)]
+fn sanitize(v: f32) -> f32 {
+    // `clamp` keeps NaN; the test first turns it into 0.
+    if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) }
 }
 
 #[cfg(test)]

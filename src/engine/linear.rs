@@ -24,36 +24,7 @@ impl ParamLayout {
     }
 }
 
-/// `c = alpha * a b + beta * c` with explicit row/column strides (f32).
-#[allow(clippy::too_many_arguments)]
-#[inline]
-pub fn gemm(
-    m: usize,
-    k: usize,
-    n: usize,
-    a: &[f32],
-    (rsa, csa): (isize, isize),
-    b: &[f32],
-    (rsb, csb): (isize, isize),
-    beta: f32,
-    c: &mut [f32],
-    (rsc, csc): (isize, isize),
-) {
-    if m == 0 || n == 0 {
-        return;
-    }
-    let span = |rows: usize, cols: usize, rs: isize, cs: isize| {
-        (rows.saturating_sub(1)) * rs as usize + (cols.saturating_sub(1)) * cs as usize + 1
-    };
-    assert!(a.len() >= span(m, k, rsa, csa) || k == 0, "gemm: a too short");
-    assert!(b.len() >= span(k, n, rsb, csb) || k == 0, "gemm: b too short");
-    assert!(c.len() >= span(m, n, rsc, csc), "gemm: c too short");
-    // SAFETY: the asserts above guarantee every index the kernel touches
-    // lies inside the slices; strides are positive.
-    unsafe {
-        matrixmultiply::sgemm(m, k, n, 1.0, a.as_ptr(), rsa, csa, b.as_ptr(), rsb, csb, beta, c.as_mut_ptr(), rsc, csc);
-    }
-}
+pub use super::gemm::gemm;
 
 /// A dense layer `y = [x_1 .. x_k] W + b`.
 #[derive(Clone, Debug)]

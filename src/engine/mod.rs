@@ -10,6 +10,7 @@ pub mod checkpoint;
 pub mod dataset;
 pub mod encoding;
 pub mod fsio;
+pub mod gemm;
 pub mod hashgrid;
 pub mod heldout;
 pub mod instant;
