@@ -384,7 +384,7 @@ impl InstantModel {
         while *t < t1 && count < limit {
             let p = ray.at(*t);
             match g.cell_of(p) {
-                Some(c) if !g.active || g.bits[c] => {
+                Some(c) if !g.active || g.bit(c) => {
                     m.t.push(*t);
                     m.delta.push(dt);
                     m.dirs.extend_from_slice(&[ray.dir.x, ray.dir.y, ray.dir.z]);
