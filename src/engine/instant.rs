@@ -28,7 +28,7 @@ pub struct InstantConfig {
     /// Outputs of the density MLP: log-density and geometry features (16).
     pub geo_features: usize,
     pub occupancy: OccupancyConfig,
-    /// Marching steps along the scene box's diagonal (1024).
+    /// Marching steps along the scene box's diagonal (384).
     pub steps_per_diagonal: usize,
     /// Upper bound of samples per ray.
     pub max_samples: usize,
@@ -63,7 +63,7 @@ impl Default for InstantConfig {
                 full_updates_until: 128,
                 empty_sweep: 64,
             },
-            steps_per_diagonal: 512,
+            steps_per_diagonal: 384,
             max_samples: 1024,
             samples_per_step: 1 << 14,
             min_transmittance: 1e-4,
