@@ -78,14 +78,16 @@ fn fast_path_applies(m: usize, k: usize, n: usize, (rsb, csb): (isize, isize), b
     has_avx2_fma() && csc == 1 && n.is_multiple_of(8) && (beta == 0.0 || beta == 1.0) && (small_b || small_c)
 }
 
+/// Whether this CPU runs the engine's AVX2/FMA paths (this kernel and the
+/// hash grid's).
 #[cfg(target_arch = "x86_64")]
-fn has_avx2_fma() -> bool {
+pub(crate) fn has_avx2_fma() -> bool {
     // Cached by std after the first call.
     is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
 }
 
 #[cfg(not(target_arch = "x86_64"))]
-fn has_avx2_fma() -> bool {
+pub(crate) fn has_avx2_fma() -> bool {
     false
 }
 

@@ -173,7 +173,7 @@ impl HashGrid {
     /// many points it encoded (0 without AVX2/FMA).
     fn forward_simd(&self, params: &[f32], pts: &[f32], out: &mut [f32]) -> usize {
         #[cfg(target_arch = "x86_64")]
-        if simd::available() {
+        if super::gemm::has_avx2_fma() {
             let n = pts.len() / 3 / 8 * 8;
             let soa = simd::Soa::new(&pts[..3 * n]);
             for (l, level) in self.levels.iter().enumerate() {
@@ -251,7 +251,7 @@ impl HashGrid {
     /// it handled (0 without AVX2/FMA).
     fn backward_simd(&self, pts: &[f32], dout: &[f32], grads: &mut [f32]) -> usize {
         #[cfg(target_arch = "x86_64")]
-        if simd::available() {
+        if super::gemm::has_avx2_fma() {
             let n = pts.len() / 3 / 8 * 8;
             let soa = simd::Soa::new(&pts[..3 * n]);
             for (l, level) in self.levels.iter().enumerate() {
@@ -339,10 +339,6 @@ mod simd {
     use std::arch::x86_64::*;
 
     use super::{FEATURES, Level, prefetch};
-
-    pub fn available() -> bool {
-        is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
-    }
 
     /// Points as three coordinate arrays (a multiple of 8 long).
     pub struct Soa {
