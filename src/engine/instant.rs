@@ -377,40 +377,14 @@ impl InstantModel {
     /// Appends up to `limit` samples of `ray` from `t` on (stepping over
     /// empty cells) and advances `t` past them.
     fn march_segment(&self, ray: &Ray, t: &mut f32, t1: f32, limit: usize, m: &mut Marched) -> usize {
-        let dt = self.dt;
-        let g = &self.grid;
-        let cell = (g.aabb.max - g.aabb.min) * (1.0 / g.config.resolution as f32);
-        let mut count = 0;
-        while *t < t1 && count < limit {
-            let p = ray.at(*t);
-            match g.cell_of(p) {
-                Some(c) if !g.active || g.bit(c) => {
-                    m.t.push(*t);
-                    m.delta.push(dt);
-                    m.dirs.extend_from_slice(&[ray.dir.x, ray.dir.y, ray.dir.z]);
-                    count += 1;
-                    *t += dt;
-                }
-                Some(c) => {
-                    // Step to where the ray leaves this empty cell (or its
-                    // block, when that is empty too), on the dt lattice.
-                    let (c, res) = g.empty_region(c);
-                    let size = cell * (g.config.resolution / res) as f32;
-                    let exit = cell_exit(g.aabb.min, size, res, c, ray, *t);
-                    // ceil without a libm call: steps are whole and >= 1.
-                    let q = (exit - *t) / dt;
-                    let k = if q.is_finite() && q > 1.0 {
-                        let f = q as u32 as f32;
-                        if f < q { f + 1.0 } else { f }
-                    } else {
-                        1.0
-                    };
-                    m.skipped += k as u64;
-                    *t += k * dt;
-                }
-                None => *t += dt,
-            }
-        }
+        let (dt, dir) = (self.dt, [ray.dir.x, ray.dir.y, ray.dir.z]);
+        let gr = self.grid.grid_ray(ray);
+        let (count, skipped) = self.grid.march(&gr, t, t1, dt, limit, |t| {
+            m.t.push(t);
+            m.delta.push(dt);
+            m.dirs.extend_from_slice(&dir);
+        });
+        m.skipped += skipped;
         count
     }
 
@@ -503,26 +477,6 @@ impl InstantModel {
         });
         out
     }
-}
-
-/// Distance along `ray` at which it leaves cell `c` (from `t` on).
-fn cell_exit(min: Vec3, cell: Vec3, res: usize, c: usize, ray: &Ray, t: f32) -> f32 {
-    let (x, y, z) = (c / (res * res), (c / res) % res, c % res);
-    let lo = min + Vec3::new(x as f32 * cell.x, y as f32 * cell.y, z as f32 * cell.z);
-    let hi = lo + cell;
-    let mut exit = f32::INFINITY;
-    for (o, d, a, b) in [
-        (ray.origin.x, ray.dir.x, lo.x, hi.x),
-        (ray.origin.y, ray.dir.y, lo.y, hi.y),
-        (ray.origin.z, ray.dir.z, lo.z, hi.z),
-    ] {
-        if d > 0.0 {
-            exit = exit.min((b - o) / d);
-        } else if d < 0.0 {
-            exit = exit.min((a - o) / d);
-        }
-    }
-    if exit.is_finite() { exit.max(t) } else { t }
 }
 
 impl Model for InstantModel {

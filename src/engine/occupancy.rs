@@ -64,13 +64,14 @@ pub struct OccupancyGrid {
     pub aabb: Aabb,
     pub density: Vec<f32>,
     pub bits: Vec<bool>,
-    /// Blocks of `BLOCK^3` cells with any occupied bit (when the resolution
-    /// is a multiple of `BLOCK`): a marcher leaves an empty block in one
-    /// step instead of one cell at a time.
-    pub blocks: Vec<bool>,
     /// `bits` packed 64 to a word (256 KiB at 128^3, where the bools take
     /// 2 MiB): the marcher's lookups stay in L2.
     packed: Vec<u64>,
+    /// The occupancy mip levels 1, 2, ...: level `l` has cells of `2^l`
+    /// cells a side (`ceil(resolution / 2^l)` of them a side), each set when
+    /// any cell inside it is, packed like `packed`. A marcher leaves the
+    /// largest empty one around a point in one step.
+    mips: Vec<Vec<u64>>,
     /// Whether skipping is active (after warm-up).
     pub active: bool,
     /// Cells per world unit along each axis.
@@ -128,15 +129,17 @@ impl OccupancyGrid {
         let ext = aabb.max - aabb.min;
         let r = config.resolution as f32;
         let inv_cell = Vec3::new(r / ext.x, r / ext.y, r / ext.z);
-        let blocks = vec![true; Self::block_count(config.resolution)];
         let packed = vec![u64::MAX; n.div_ceil(64)];
+        let mips = (1..Self::levels(config.resolution))
+            .map(|l| vec![u64::MAX; Self::level_res(config.resolution, l).pow(3).div_ceil(64)])
+            .collect();
         Self {
             config,
             aabb,
             density: vec![f32::INFINITY; n],
             bits: vec![true; n],
-            blocks,
             packed,
+            mips,
             active: false,
             inv_cell,
         }
@@ -262,7 +265,7 @@ impl OccupancyGrid {
             .chunks(64)
             .map(|w| w.iter().enumerate().fold(0u64, |acc, (i, &b)| acc | ((b as u64) << i)))
             .collect();
-        self.rebuild_blocks();
+        self.rebuild_mips();
     }
 
     /// `bits[c]`, from the packed copy.
@@ -271,40 +274,142 @@ impl OccupancyGrid {
         (self.packed[c >> 6] >> (c & 63)) & 1 != 0
     }
 
-    /// Blocks per side times itself twice, or 0 when the resolution is not a
-    /// multiple of [`BLOCK`].
-    fn block_count(res: usize) -> usize {
-        if res.is_multiple_of(BLOCK) { (res / BLOCK).pow(3) } else { 0 }
+    /// Mip levels, the cells themselves included: up to cells of half the
+    /// grid a side.
+    fn levels(res: usize) -> usize {
+        let mut l = 1;
+        while (2usize << l) <= res {
+            l += 1;
+        }
+        l
     }
 
-    fn rebuild_blocks(&mut self) {
-        let r = self.config.resolution;
-        if self.blocks.is_empty() {
-            return;
-        }
-        let rb = r / BLOCK;
-        self.blocks.fill(false);
-        for (c, _) in self.bits.iter().enumerate().filter(|(_, b)| **b) {
-            let (x, y, z) = (c / (r * r), (c / r) % r, c % r);
-            self.blocks[((x / BLOCK) * rb + y / BLOCK) * rb + z / BLOCK] = true;
-        }
-    }
-
-    /// For an empty cell `c`: the index and the resolution of the largest
-    /// empty region around it that is a cell of a grid (its block when that
-    /// is empty, else the cell itself), for a marcher to step out of.
+    /// Cells a side at mip level `l`.
     #[inline]
-    pub fn empty_region(&self, c: usize) -> (usize, usize) {
-        let r = self.config.resolution;
-        if !self.blocks.is_empty() {
-            let rb = r / BLOCK;
-            let (x, y, z) = (c / (r * r), (c / r) % r, c % r);
-            let b = ((x / BLOCK) * rb + y / BLOCK) * rb + z / BLOCK;
-            if !self.blocks[b] {
-                return (b, rb);
+    fn level_res(res: usize, l: usize) -> usize {
+        // Shifts, not `div_ceil`: a division by a variable is slow.
+        (res + (1 << l) - 1) >> l
+    }
+
+    fn rebuild_mips(&mut self) {
+        let res = self.config.resolution;
+        let mut below = (res, self.packed.clone());
+        for (i, mip) in self.mips.iter_mut().enumerate() {
+            let (r0, fine) = &below;
+            let r = Self::level_res(res, i + 1);
+            mip.fill(0);
+            for x in 0..*r0 {
+                for y in 0..*r0 {
+                    for z in 0..*r0 {
+                        let c = (x * r0 + y) * r0 + z;
+                        if (fine[c >> 6] >> (c & 63)) & 1 != 0 {
+                            let p = ((x / 2) * r + y / 2) * r + z / 2;
+                            mip[p >> 6] |= 1 << (p & 63);
+                        }
+                    }
+                }
+            }
+            below = (r, mip.clone());
+        }
+    }
+
+    /// Whether mip level `l` (0: the cells) is set around cell `at`.
+    #[inline]
+    fn mip_bit(&self, l: usize, at: [usize; 3]) -> bool {
+        let words = if l == 0 { &self.packed } else { &self.mips[l - 1] };
+        let r = Self::level_res(self.config.resolution, l);
+        let c = ((at[0] >> l) * r + (at[1] >> l)) * r + (at[2] >> l);
+        (words[c >> 6] >> (c & 63)) & 1 != 0
+    }
+
+    /// `ray` in cell coordinates, for [`OccupancyGrid::march`].
+    pub fn grid_ray(&self, ray: &Ray) -> GridRay {
+        let o = ray.origin - self.aabb.min;
+        let o = [o.x * self.inv_cell.x, o.y * self.inv_cell.y, o.z * self.inv_cell.z];
+        let d = [ray.dir.x * self.inv_cell.x, ray.dir.y * self.inv_cell.y, ray.dir.z * self.inv_cell.z];
+        GridRay { o, d, inv: d.map(|v| if v != 0.0 { 1.0 / v } else { f32::INFINITY }) }
+    }
+
+    /// What lies at distance `t` along `r`: the box's outside, an occupied
+    /// cell and where the ray leaves it, or the largest empty mip cell
+    /// around the point and where the ray leaves that. Every cell counts as
+    /// occupied before the warm-up ends.
+    #[inline]
+    pub fn probe(&self, r: &GridRay, t: f32) -> Probe {
+        let res = self.config.resolution;
+        let rf = res as f32;
+        let mut at = [0usize; 3];
+        for (a, i) in at.iter_mut().enumerate() {
+            let v = r.o[a] + t * r.d[a];
+            // Truncation is floor for v >= 0 (no libm call); NaN fails the test.
+            if !(v >= 0.0 && v < rf) {
+                return Probe::Outside;
+            }
+            *i = (v as usize).min(res - 1);
+        }
+        if !self.active {
+            // The whole box is one occupied region.
+            return Probe::Occupied { exit: r.exit([0; 3], res, t) };
+        }
+        if self.mip_bit(0, at) {
+            return Probe::Occupied { exit: r.exit(at, 1, t) };
+        }
+        // The coarsest empty level around the point.
+        let mut l = 0;
+        while l < self.mips.len() && !self.mip_bit(l + 1, at) {
+            l += 1;
+        }
+        Probe::Empty { exit: r.exit(at.map(|i| i >> l << l), 1 << l, t) }
+    }
+
+    /// Marches `ray` from `*t` to `t1` on the lattice `*t + k * dt`: calls
+    /// `sample(t)` for each lattice point in an occupied cell (at most
+    /// `limit` of them), steps over empty regions to the first
+    /// lattice point past them, and leaves `*t` at the next lattice point
+    /// to visit. Returns the samples taken and the lattice points skipped.
+    #[inline]
+    pub fn march(
+        &self,
+        ray: &GridRay,
+        t: &mut f32,
+        t1: f32,
+        dt: f32,
+        limit: usize,
+        mut sample: impl FnMut(f32),
+    ) -> (usize, u64) {
+        let inv_dt = 1.0 / dt;
+        let (mut count, mut skipped) = (0, 0u64);
+        while *t < t1 && count < limit {
+            match self.probe(ray, *t) {
+                Probe::Occupied { exit } => {
+                    // Every lattice point up to the cell's exit (at least the
+                    // one that found it, so rounding at a face cannot stall).
+                    let end = exit.min(t1);
+                    loop {
+                        sample(*t);
+                        count += 1;
+                        *t += dt;
+                        if *t >= end || count >= limit {
+                            break;
+                        }
+                    }
+                }
+                Probe::Empty { exit } => {
+                    // ceil without a libm call: steps are whole and >= 1.
+                    let q = (exit - *t) * inv_dt;
+                    let k = if q.is_finite() && q > 1.0 {
+                        let f = q as u32 as f32;
+                        if f < q { f + 1.0 } else { f }
+                    } else {
+                        1.0
+                    };
+                    skipped += k as u64;
+                    *t += k * dt;
+                }
+                Probe::Outside => *t += dt,
             }
         }
-        (c, r)
+        (count, skipped)
     }
 
     /// The occupied parts of `[t0, t1]` along `ray`, found by stepping half a
@@ -334,8 +439,46 @@ impl OccupancyGrid {
     }
 }
 
-/// Cells per side of a block (see [`OccupancyGrid::blocks`]).
-pub const BLOCK: usize = 8;
+/// A ray in the grid's cell coordinates (cell `(x, y, z)` spans `[x, x+1)`
+/// along the first axis, and so on), with its inverse direction.
+#[derive(Clone, Copy, Debug)]
+pub struct GridRay {
+    o: [f32; 3],
+    d: [f32; 3],
+    inv: [f32; 3],
+}
+
+impl GridRay {
+    /// Where the ray leaves the cube of `size` cells a side whose lowest
+    /// cell is `lo` (not before `t`).
+    #[inline]
+    fn exit(&self, lo: [usize; 3], size: usize, t: f32) -> f32 {
+        let mut exit = f32::INFINITY;
+        for a in 0..3 {
+            let d = self.d[a];
+            let face = if d > 0.0 {
+                (lo[a] + size) as f32
+            } else if d < 0.0 {
+                lo[a] as f32
+            } else {
+                continue;
+            };
+            exit = exit.min((face - self.o[a]) * self.inv[a]);
+        }
+        exit.max(t)
+    }
+}
+
+/// What a marcher finds at one point of its ray.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Probe {
+    /// Outside the grid's box.
+    Outside,
+    /// In an occupied cell, which the ray leaves at `exit`.
+    Occupied { exit: f32 },
+    /// In an empty cell (or an empty block), which the ray leaves at `exit`.
+    Empty { exit: f32 },
+}
 
 /// Marks every cell with an occupied cell among its 27 neighbours (itself
 /// included): a 3x3x3 maximum, done as three passes of 3 along each axis.
@@ -392,15 +535,12 @@ mod tests {
         assert!(fast.iter().filter(|&&b| b).count() > raw.iter().filter(|&&b| b).count());
     }
 
-    /// An empty region is a whole grid cell of its resolution that holds no
-    /// occupied bit, and it is a block wherever the block is empty.
-    #[test]
-    fn empty_regions_hold_no_occupied_cell() {
+    /// A grid of two small dense spots in a box of 32^3 cells.
+    fn two_spots() -> OccupancyGrid {
         let r = 32;
         let cfg = OccupancyConfig { resolution: r, warmup_steps: 0, update_every: 1, sweep: 1, ..Default::default() };
         let mut g = OccupancyGrid::new(cfg, unit());
         let (cells, pts) = g.update_points(1, 3);
-        // Two small dense spots; everything else empty.
         let sigma: Vec<f32> = pts
             .chunks(3)
             .map(|p| {
@@ -410,26 +550,159 @@ mod tests {
             })
             .collect();
         g.apply(1, &cells, &sigma);
+        g
+    }
+
+    /// A random ray from outside the unit box through a random point of
+    /// the two-spot grid's box (aimed at a spot half of the time).
+    fn random_ray(rng: &mut Rng, k: usize) -> Ray {
+        let target = match k % 4 {
+            0 => Vec3::new(0.3, -0.2, 0.1),
+            1 => Vec3::new(-0.7, 0.6, -0.5),
+            _ => Vec3::new(rng.f32() * 2.0 - 1.0, rng.f32() * 2.0 - 1.0, rng.f32() * 2.0 - 1.0),
+        } + Vec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.03;
+        let origin = Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalized().unwrap() * 3.0;
+        Ray { origin, dir: (target - origin).normalized().unwrap() }
+    }
+
+    /// Distance in cells from `p` to the nearest face of the cell holding it.
+    fn to_face(g: &OccupancyGrid, p: Vec3) -> f32 {
+        let c = (p - g.aabb.min) * (g.config.resolution as f32 / 2.0);
+        [c.x, c.y, c.z].iter().map(|v| (v - v.round()).abs()).fold(f32::INFINITY, f32::min)
+    }
+
+    /// Each mip level's cell is set exactly when a cell inside it is, also
+    /// for a resolution that is not a power of two.
+    #[test]
+    fn mip_levels_are_the_or_of_their_cells() {
+        for res in [32, 24] {
+            let cfg =
+                OccupancyConfig { resolution: res, warmup_steps: 0, update_every: 1, sweep: 1, ..Default::default() };
+            let mut g = OccupancyGrid::new(cfg, unit());
+            let (cells, pts) = g.update_points(1, 3);
+            let mut rng = Rng::new(res as u64);
+            let sigma: Vec<f32> = pts.chunks(3).map(|_| if rng.f32() < 0.0005 { 100.0 } else { 0.0 }).collect();
+            g.apply(1, &cells, &sigma);
+            assert_eq!(g.mips.len() + 1, OccupancyGrid::levels(res));
+            assert_eq!(OccupancyGrid::levels(res), if res == 32 { 5 } else { 4 });
+            for l in 1..=g.mips.len() {
+                let mut set = 0;
+                for x in 0..res {
+                    for y in 0..res {
+                        for z in 0..res {
+                            let any = (0..res).filter(|i| i >> l == x >> l).any(|i| {
+                                (0..res).filter(|j| j >> l == y >> l).any(|j| {
+                                    (0..res).filter(|k| k >> l == z >> l).any(|k| g.bits[(i * res + j) * res + k])
+                                })
+                            });
+                            assert_eq!(g.mip_bit(l, [x, y, z]), any, "res {res} level {l} at {x} {y} {z}");
+                            set += any as usize;
+                        }
+                    }
+                }
+                assert!(set > 0 && (l > 2 || set < res * res * res), "level {l}: {set} set");
+            }
+        }
+    }
+
+    /// What an empty probe steps over (up to its exit) holds no occupied
+    /// cell, and most steps leave a whole empty block.
+    #[test]
+    fn empty_probes_hold_no_occupied_cell() {
+        let g = two_spots();
+        let r = g.config.resolution;
         let occupied = g.bits.iter().filter(|&&b| b).count();
         assert!((0..r * r * r).all(|c| g.bit(c) == g.bits[c]), "the packed bits are the bits");
         assert!(occupied > 0 && occupied < r * r * r / 10, "{occupied}");
-        let mut in_blocks = 0;
-        for c in (0..r * r * r).filter(|&c| !g.bits[c]) {
-            let (i, res) = g.empty_region(c);
-            let k = r / res;
-            let (x, y, z) = (i / (res * res), (i / res) % res, i % res);
-            for dx in 0..k {
-                for dy in 0..k {
-                    for dz in 0..k {
-                        let f = ((x * k + dx) * r + y * k + dy) * r + z * k + dz;
-                        assert!(!g.bits[f], "cell {c}: region {i} at {res} holds occupied cell {f}");
+        let mut rng = Rng::new(11);
+        let (mut empty, mut long) = (0, 0);
+        for k in 0..400 {
+            let ray = random_ray(&mut rng, k);
+            let gr = g.grid_ray(&ray);
+            let t = 2.0 + 2.0 * rng.f32();
+            match g.probe(&gr, t) {
+                Probe::Empty { exit } => {
+                    assert!(exit >= t, "exit {exit} before t {t}");
+                    assert!(!g.occupied(ray.at(t)));
+                    empty += 1;
+                    long += (exit - t > 4.0 / r as f32) as usize;
+                    for i in 0..64 {
+                        let p = ray.at(t + (exit - t) * i as f32 / 64.0);
+                        assert!(
+                            !g.occupied(p) || to_face(&g, p) < 1e-3,
+                            "ray {k}: occupied cell at {p:?} before {exit}"
+                        );
                     }
                 }
+                Probe::Occupied { exit } => {
+                    assert!(g.occupied(ray.at(t)) && exit >= t);
+                    let mid = ray.at(0.5 * (t + exit));
+                    assert!(g.occupied(mid) || to_face(&g, mid) < 1e-3);
+                }
+                Probe::Outside => assert!(g.cell_of(ray.at(t)).is_none()),
             }
-            assert!(k == 1 || k == BLOCK);
-            in_blocks += (k == BLOCK) as usize;
         }
-        assert!(in_blocks > r * r * r / 2, "most empty cells lie in empty blocks: {in_blocks}");
+        assert!(empty > 200 && long > empty / 2, "{empty} empty probes, {long} leave a block");
+    }
+
+    /// Marching takes exactly the lattice points that lie in occupied cells
+    /// (but for points within rounding of a cell face), whatever `limit`
+    /// splits the march into.
+    #[test]
+    fn marching_takes_every_occupied_lattice_point() {
+        let g = two_spots();
+        let mut rng = Rng::new(12);
+        let dt = 0.013;
+        let mut total = 0;
+        for k in 0..300 {
+            let ray = random_ray(&mut rng, k);
+            let (t0, t1) = (1.5 + 0.5 * rng.f32(), 4.5);
+            let brute: Vec<i64> = (0..)
+                .map(|i| (i, t0 + i as f32 * dt))
+                .take_while(|&(_, t)| t < t1)
+                .filter(|&(_, t)| g.occupied(ray.at(t)) && g.cell_of(ray.at(t)).is_some())
+                .map(|(i, _)| i)
+                .collect();
+            let gr = g.grid_ray(&ray);
+            let limit = 1 + k % 20;
+            let mut got = Vec::new();
+            let mut t = t0;
+            loop {
+                let before = got.len();
+                let (n, _) = g.march(&gr, &mut t, t1, dt, limit, |s| got.push(s));
+                assert_eq!(n, got.len() - before);
+                assert!(n <= limit);
+                if n == 0 {
+                    break;
+                }
+            }
+            assert!(t >= t1);
+            let got: Vec<i64> = got.iter().map(|&s| ((s - t0) / dt).round() as i64).collect();
+            assert!(got.windows(2).all(|w| w[0] < w[1]), "ray {k}: samples in order");
+            let near_face = |i: i64| to_face(&g, ray.at(t0 + i as f32 * dt)) < 2e-3;
+            for i in &brute {
+                assert!(got.contains(i) || near_face(*i), "ray {k}: occupied lattice point {i} skipped");
+            }
+            for i in &got {
+                assert!(brute.contains(i) || near_face(*i), "ray {k}: lattice point {i} is empty");
+            }
+            total += brute.len();
+        }
+        assert!(total > 500, "the rays cross the spots: {total} occupied points");
+    }
+
+    /// Before the warm-up every lattice point in the box is a sample.
+    #[test]
+    fn marching_before_warm_up_takes_every_point() {
+        let g = OccupancyGrid::new(OccupancyConfig::default(), unit());
+        let ray = Ray { origin: Vec3::new(-3.0, 0.1, 0.2), dir: Vec3::new(1.0, 0.0, 0.0) };
+        let mut t = 1.0;
+        let mut got = Vec::new();
+        let (n, skipped) = g.march(&g.grid_ray(&ray), &mut t, 5.0, 0.01, 10_000, |s| got.push(s));
+        assert_eq!(skipped, 0);
+        // Inside the box: t in [2, 4).
+        assert!((199..=201).contains(&n), "{n}");
+        assert!(got.iter().all(|&s| (1.99..4.0).contains(&s)));
     }
 
     fn unit() -> Aabb {
