@@ -612,10 +612,15 @@ async fn upload_each_format_as_archive_and_as_multipart() {
 async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
     let data = tempfile::tempdir().unwrap();
     let mut cfg = config(data.path());
-    cfg.scheduler.heldout_every = 0.2;
+    // The ball scene passes 26 dB within 0.15 s on a fast machine and levels
+    // off near 30 dB: with a 29 dB target and an estimate every 0.02 s,
+    // several estimates (and stream polls) fall below the target on any
+    // machine (with 16 dB and 0.2 s, the first estimate reached it and the
+    // stream went straight to the end).
+    cfg.scheduler.heldout_every = 0.02;
     let svc = Svc::start(cfg).await;
     let scene = svc.upload_ball().await;
-    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "target_psnr": 16.0, "seconds": 120 } });
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "target_psnr": 29.0, "seconds": 120 } });
     let (s, job) = svc.post_json("/v1/jobs", body).await;
     assert_eq!(s, StatusCode::ACCEPTED, "{job}");
     assert_eq!((job["kind"].as_str(), job["config"]["kind"].as_str()), (Some("train"), Some("instant")), "{job}");
@@ -638,10 +643,13 @@ async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
     assert!(progress.len() >= 2, "{} progress events", progress.len());
     let steps: Vec<u64> = progress.iter().map(|(_, j)| j["progress"]["step"].as_u64().unwrap()).collect();
     assert!(steps.windows(2).all(|w| w[0] <= w[1]), "{steps:?}");
-    assert!(
-        progress.iter().any(|(_, j)| j["status"] == "running" && j["progress"]["test_psnr"].is_number()),
-        "a held-out estimate is reported while training"
-    );
+    let estimates: Vec<f64> = progress
+        .iter()
+        .filter(|(_, j)| j["status"] == "running")
+        .filter_map(|(_, j)| j["progress"]["test_psnr"].as_f64())
+        .collect();
+    eprintln!("held-out estimates while running: {estimates:?}, done after {} s", last.1["progress"]["elapsed"]);
+    assert!(!estimates.is_empty(), "a held-out estimate is reported while training");
 
     // It stopped at the target, long before its time budget.
     let done = &last.1;
@@ -651,7 +659,7 @@ async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
     let model = done["model_id"].as_str().unwrap();
     let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
     assert_eq!(m["model"], "instant-tiny");
-    assert!(m["test_psnr"].as_f64().unwrap() > 14.0, "{m}");
+    assert!(m["test_psnr"].as_f64().unwrap() > 26.0, "{m}");
     assert_eq!((p["diverged_steps"].as_u64(), p["rollbacks"].as_u64()), (Some(0), Some(0)), "{done}");
     let (s, _) = svc.get("/v1/jobs/job_nope/events").await;
     assert_eq!(s, StatusCode::NOT_FOUND);

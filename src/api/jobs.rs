@@ -131,7 +131,7 @@ pub async fn cancel(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
 }
 
 /// `GET /v1/jobs/{id}/events`: Server-Sent Events. A `progress` event with
-/// the job record whenever it changes (checked five times a second), then an
+/// the job record whenever it changes (checked twenty times a second), then an
 /// `end` event with the final record, and the stream closes. Comment lines
 /// keep idle connections alive.
 pub async fn events(
@@ -164,4 +164,4 @@ pub async fn events(
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
 
-const EVENT_POLL: std::time::Duration = std::time::Duration::from_millis(200);
+const EVENT_POLL: std::time::Duration = std::time::Duration::from_millis(50);
