@@ -62,6 +62,10 @@ impl Default for InstantConfig {
                 warmup_steps: 32,
                 full_updates_until: 128,
                 empty_sweep: 64,
+                // The marcher tests each sample's own cell; dilating would
+                // add a shell of cells the threshold already called empty
+                // (22.4 samples per ray instead of 15.4 on lego).
+                dilate: false,
             },
             steps_per_diagonal: 384,
             max_samples: 1024,
@@ -651,6 +655,67 @@ impl InstantModel {
         }
         stats
     }
+}
+
+impl InstantModel {
+    /// Renders model-space `rays` the slow, obvious way, as a reference for
+    /// the marcher: every lattice point of each clipped ray (no occupancy
+    /// grid, no early termination, every colour). Also says, per ray, what
+    /// the occupancy grid would have skipped: the lattice points in cells it
+    /// marks empty, how many of them hold a density at or above its cutoff,
+    /// and the sum of their opacities, which bounds how much skipping them
+    /// changes the pixel.
+    pub fn reference_rays(&self, rays: &[Ray], background: [f32; 3]) -> Vec<ReferenceRay> {
+        rays.par_iter()
+            .map(|ray| {
+                let mut m = Marched::default();
+                if let Some((t0, t1)) = self.scene.clip(ray) {
+                    let mut t = t0 + 0.5 * self.dt;
+                    while t < t1 && m.t.len() < self.config.max_samples {
+                        m.t.push(t);
+                        t += self.dt;
+                    }
+                }
+                let n = m.t.len();
+                let mut r = ReferenceRay::default();
+                if n == 0 {
+                    r.out.rgb = background;
+                    return r;
+                }
+                m.spans.push((0, n));
+                m.delta = vec![self.dt; n];
+                m.dirs = (0..n).flat_map(|_| [ray.dir.x, ray.dir.y, ray.dir.z]).collect();
+                let mut c = Ctx { n, ..Default::default() };
+                self.unit_points_of(std::slice::from_ref(ray), [0], &m, &mut c.unit);
+                self.nets.forward_density(&self.params, &mut c);
+                self.nets.forward_color(&self.params, &m.dirs, &mut c);
+                for (&t, &s) in m.t.iter().zip(&c.sigma[..n]) {
+                    if !self.grid.occupied(ray.at(t)) {
+                        r.skipped += 1;
+                        r.skipped_above_cutoff += (s >= self.grid.cutoff) as usize;
+                        r.skipped_opacity += 1.0 - (-super::volume::optical_depth(s, self.dt)).exp();
+                    }
+                }
+                let mut w = vec![0.0; n];
+                let comp = composite(&c.sigma[..n], &c.rgb[..3 * n], &m.t, &m.delta, background, 0.0, &mut w);
+                r.out = RayOutput { rgb: comp.rgb, depth: comp.depth, opacity: comp.opacity };
+                r
+            })
+            .collect()
+    }
+}
+
+/// One ray of [`InstantModel::reference_rays`].
+#[derive(Clone, Debug, Default)]
+pub struct ReferenceRay {
+    /// The ray rendered from every lattice point.
+    pub out: RayOutput,
+    /// Lattice points in cells the occupancy grid marks empty...
+    pub skipped: usize,
+    /// ... of which these hold a density at or above the grid's cutoff...
+    pub skipped_above_cutoff: usize,
+    /// ... and the sum of their opacities.
+    pub skipped_opacity: f32,
 }
 
 impl InstantModel {

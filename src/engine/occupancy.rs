@@ -40,6 +40,14 @@ pub struct OccupancyConfig {
     /// warm-up instead of a full sweep later (0: never).
     #[serde(default)]
     pub full_updates_until: u64,
+    /// Whether the bits are dilated by one cell (true): needed by a sampler
+    /// that steps half a cell at a time ([`OccupancyGrid::segments`]).
+    #[serde(default = "yes")]
+    pub dilate: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Default for OccupancyConfig {
@@ -53,6 +61,7 @@ impl Default for OccupancyConfig {
             warmup_steps: 32,
             full_updates_until: 0,
             empty_sweep: 0,
+            dilate: true,
         }
     }
 }
@@ -74,6 +83,10 @@ pub struct OccupancyGrid {
     mips: Vec<Vec<u64>>,
     /// Whether skipping is active (after warm-up).
     pub active: bool,
+    /// The density below which the last rebuild called a cell empty (the
+    /// configured threshold or the mean density, whichever was lower; 0
+    /// before the first).
+    pub cutoff: f32,
     /// Cells per world unit along each axis.
     inv_cell: Vec3,
 }
@@ -141,6 +154,7 @@ impl OccupancyGrid {
             packed,
             mips,
             active: false,
+            cutoff: 0.0,
             inv_cell,
         }
     }
@@ -258,8 +272,9 @@ impl OccupancyGrid {
             .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         let mean = if count > 0 { (sum / count as f64) as f32 } else { f32::INFINITY };
         let thr = self.config.threshold.min(mean);
+        self.cutoff = thr;
         let raw: Vec<bool> = self.density.par_iter().map(|&d| d >= thr || d.is_nan()).collect();
-        self.bits = dilate(&raw, r);
+        self.bits = if self.config.dilate { dilate(&raw, r) } else { raw };
         self.packed = self
             .bits
             .chunks(64)
