@@ -62,10 +62,8 @@ impl Default for InstantConfig {
                 warmup_steps: 32,
                 full_updates_until: 128,
                 empty_sweep: 64,
-                // The marcher tests each sample's own cell; dilating would
-                // add a shell of cells the threshold already called empty
-                // (22.4 samples per ray instead of 15.4 on lego).
-                dilate: false,
+                // Decided from the scene in `InstantModel::new`.
+                dilate: None,
             },
             steps_per_diagonal: 384,
             max_samples: 1024,
@@ -329,6 +327,17 @@ impl InstantModel {
         if config.occupancy.threshold <= 0.0 {
             // Empty: less than 1% opacity over one marching step.
             config.occupancy.threshold = 0.01 / dt;
+        }
+        if config.occupancy.dilate.is_none() {
+            // The marcher tests each sample's own cell, so dilation only adds
+            // a shell of cells the threshold called empty. Where transparent
+            // training pixels teach that the space around the object is
+            // empty, skipping that shell is both faster and sharper (lego,
+            // 60 s: 30.4 dB and 15 samples per ray, against 29.6 dB and 22);
+            // a capture without them may need faint density in that shell
+            // to explain its background (fox: 22.0 dB undilated, 24.0 dB
+            // dilated), so it keeps it.
+            config.occupancy.dilate = Some(!scene.transparent);
         }
         let grid = OccupancyGrid::new(config.occupancy.clone(), aabb);
         let spr = 64.0;
@@ -737,6 +746,48 @@ impl InstantModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The preset leaves dilation to the scene: none behind transparent
+    /// training pixels, dilated otherwise; explicit settings and configs
+    /// written before the setting existed are kept (those are dilated).
+    #[test]
+    fn occupancy_dilation_follows_the_scene_unless_set() {
+        use crate::engine::synthetic::BallScene;
+        let mut ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
+        let transparent = Scene::from_dataset(&ds);
+        assert!(transparent.transparent);
+        for f in &mut ds.frames {
+            f.image.rgba.chunks_exact_mut(4).for_each(|p| p[3] = 255);
+        }
+        let opaque = Scene::from_dataset(&ds);
+        assert!(!opaque.transparent);
+        let built = |c: InstantConfig, s: &Scene| InstantModel::new(c, s.clone(), 0).config.occupancy.dilate;
+        assert_eq!(InstantConfig::default().occupancy.dilate, None);
+        assert_eq!(built(InstantConfig::default(), &transparent), Some(false));
+        assert_eq!(built(InstantConfig::default(), &opaque), Some(true));
+        let mut set = InstantConfig::default();
+        set.occupancy.dilate = Some(true);
+        assert_eq!(built(set.clone(), &transparent), Some(true));
+        set.occupancy.dilate = Some(false);
+        assert_eq!(built(set, &opaque), Some(false));
+        // A stored config without the field (older checkpoints) is dilated.
+        let mut json = serde_json::to_value(InstantConfig::default()).unwrap();
+        json["occupancy"].as_object_mut().unwrap().remove("dilate");
+        let old: InstantConfig = serde_json::from_value(json).unwrap();
+        assert_eq!(built(old, &transparent), Some(true));
+        // And the choice changes the bits: dilated grids mark more cells.
+        let grid = |d: bool| {
+            let mut c = InstantConfig::default();
+            c.occupancy.resolution = 16;
+            c.occupancy.dilate = Some(d);
+            let mut m = InstantModel::new(c, transparent.clone(), 0);
+            let n = m.grid.density.len();
+            let density: Vec<f32> = (0..n).map(|i| if i == n / 2 + 8 * 16 + 8 { 1e3 } else { 0.0 }).collect();
+            m.set_state(density, 16.0, 1000).unwrap();
+            m.grid.occupancy()
+        };
+        assert!(grid(true) > 20.0 * grid(false) && grid(false) > 0.0, "{} {}", grid(true), grid(false));
+    }
 
     #[test]
     fn network_gradients_match_finite_differences_in_f64() {

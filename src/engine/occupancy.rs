@@ -40,14 +40,17 @@ pub struct OccupancyConfig {
     /// warm-up instead of a full sweep later (0: never).
     #[serde(default)]
     pub full_updates_until: u64,
-    /// Whether the bits are dilated by one cell (true): needed by a sampler
-    /// that steps half a cell at a time ([`OccupancyGrid::segments`]).
-    #[serde(default = "yes")]
-    pub dilate: bool,
+    /// Whether the bits are dilated by one cell (`true`, which a sampler
+    /// that steps half a cell at a time needs: [`OccupancyGrid::segments`]),
+    /// or `null` for the model to decide from its scene when it is built
+    /// (the fast model stores its choice). A configuration without the
+    /// field, as written before it existed, is dilated.
+    #[serde(default = "dilated")]
+    pub dilate: Option<bool>,
 }
 
-fn yes() -> bool {
-    true
+fn dilated() -> Option<bool> {
+    Some(true)
 }
 
 impl Default for OccupancyConfig {
@@ -61,7 +64,7 @@ impl Default for OccupancyConfig {
             warmup_steps: 32,
             full_updates_until: 0,
             empty_sweep: 0,
-            dilate: true,
+            dilate: Some(true),
         }
     }
 }
@@ -274,7 +277,7 @@ impl OccupancyGrid {
         let thr = self.config.threshold.min(mean);
         self.cutoff = thr;
         let raw: Vec<bool> = self.density.par_iter().map(|&d| d >= thr || d.is_nan()).collect();
-        self.bits = if self.config.dilate { dilate(&raw, r) } else { raw };
+        self.bits = if self.config.dilate.unwrap_or(true) { dilate(&raw, r) } else { raw };
         self.packed = self
             .bits
             .chunks(64)

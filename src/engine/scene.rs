@@ -26,11 +26,19 @@ pub struct Scene {
     /// Ray interval in model units.
     pub near: f32,
     pub far: f32,
+    /// Whether some training images have transparent pixels (an object on
+    /// an empty background, as in the NeRF synthetic scenes).
+    #[serde(default)]
+    pub transparent: bool,
 }
 
 impl Scene {
     pub fn from_dataset(ds: &Dataset) -> Self {
-        Self::from_bounds(ds.aabb, ds.near, ds.far)
+        let transparent = ds.train.iter().any(|&i| {
+            let im = &ds.frames[i].image;
+            im.has_alpha && im.rgba.chunks_exact(4).any(|p| p[3] < 255)
+        });
+        Self { transparent, ..Self::from_bounds(ds.aabb, ds.near, ds.far) }
     }
 
     pub fn from_bounds(aabb: Aabb, near: f32, far: f32) -> Self {
@@ -47,6 +55,7 @@ impl Scene {
             aabb_max: hi.to_array(),
             near: near * scale,
             far: far * scale,
+            transparent: false,
         }
     }
 
