@@ -613,14 +613,14 @@ async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
     let data = tempfile::tempdir().unwrap();
     let mut cfg = config(data.path());
     // The ball scene passes 26 dB within 0.15 s on a fast machine and levels
-    // off near 30 dB: with a 29 dB target and an estimate every 0.02 s,
+    // off near 30 dB: with a 28 dB target and an estimate every 0.02 s,
     // several estimates (and stream polls) fall below the target on any
     // machine (with 16 dB and 0.2 s, the first estimate reached it and the
     // stream went straight to the end).
     cfg.scheduler.heldout_every = 0.02;
     let svc = Svc::start(cfg).await;
     let scene = svc.upload_ball().await;
-    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "target_psnr": 29.0, "seconds": 120 } });
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "target_psnr": 28.0, "seconds": 60 } });
     let (s, job) = svc.post_json("/v1/jobs", body).await;
     assert_eq!(s, StatusCode::ACCEPTED, "{job}");
     assert_eq!((job["kind"].as_str(), job["config"]["kind"].as_str()), (Some("train"), Some("instant")), "{job}");
@@ -655,7 +655,7 @@ async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
     let done = &last.1;
     assert_eq!(done["status"], "succeeded", "{done}");
     let p = &done["progress"];
-    assert!(p["elapsed"].as_f64().unwrap() < 100.0, "{done}");
+    assert!(p["elapsed"].as_f64().unwrap() < 50.0, "{done}");
     let model = done["model_id"].as_str().unwrap();
     let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
     assert_eq!(m["model"], "instant-tiny");

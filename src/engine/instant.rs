@@ -13,7 +13,7 @@ use super::hashgrid::{HashGrid, HashGridConfig};
 use super::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
 use super::math::{Ray, Vec3};
 use super::model::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
-use super::occupancy::{OccupancyConfig, OccupancyGrid};
+use super::occupancy::{OccupancyConfig, OccupancyGrid, Probe};
 use super::rng::Rng;
 use super::scene::Scene;
 use super::sh;
@@ -698,8 +698,11 @@ impl InstantModel {
                 self.unit_points_of(std::slice::from_ref(ray), [0], &m, &mut c.unit);
                 self.nets.forward_density(&self.params, &mut c);
                 self.nets.forward_color(&self.params, &m.dirs, &mut c);
+                // The marcher's own test of a point, so the two cannot round
+                // differently at a cell's face.
+                let gr = self.grid.grid_ray(ray);
                 for (&t, &s) in m.t.iter().zip(&c.sigma[..n]) {
-                    if !self.grid.occupied(ray.at(t)) {
+                    if !matches!(self.grid.probe(&gr, t), Probe::Occupied { .. }) {
                         r.skipped += 1;
                         r.skipped_above_cutoff += (s >= self.grid.cutoff) as usize;
                         r.skipped_opacity += 1.0 - (-super::volume::optical_depth(s, self.dt)).exp();

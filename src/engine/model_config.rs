@@ -87,12 +87,12 @@ impl ModelConfig {
                     && (1..=4096).contains(&c.chunk_rays)
                     && c.min_transmittance.is_finite()
                     && (0.0..1.0).contains(&c.min_transmittance)
-                    && c.occupancy.as_ref().is_none_or(occupancy_ok);
+                    && c.occupancy.as_ref().is_none_or(|o| occupancy_ok(o) && o.dilate != Some(false));
                 ok.then_some(()).ok_or_else(|| {
                     "nerf config out of range (net.width, net.dir_width 1..=1024, net.depth 1..=32, \
                      net.skip < net.depth, freqs <= 24, coarse_samples 1..=1024, fine_samples <= 1024, \
                      chunk_rays 1..=4096, min_transmittance in [0, 1), occupancy resolution 1..=256, \
-                     sweep >= 1, update_every >= 1)"
+                     sweep >= 1, update_every >= 1, occupancy.dilate not false: the sampler steps half a cell)"
                         .into()
                 })
             }
@@ -209,6 +209,16 @@ mod tests {
         let ModelConfig::Nerf(mut n) = ModelConfig::preset("nerf").unwrap() else { unreachable!() };
         n.net.skip = n.net.depth;
         assert!(ModelConfig::Nerf(n).check().unwrap_err().contains("skip"));
+        // The classic sampler steps half a cell: its grid must be dilated.
+        let ModelConfig::Nerf(mut n) = ModelConfig::preset("nerf").unwrap() else { unreachable!() };
+        let mut o = n.occupancy.clone().expect("the preset skips");
+        for (dilate, ok) in [(Some(false), false), (None, true), (Some(true), true)] {
+            o.dilate = dilate;
+            n.occupancy = Some(o.clone());
+            let r = ModelConfig::Nerf(n.clone()).check();
+            assert_eq!(r.is_ok(), ok, "{dilate:?}: {r:?}");
+            assert!(ok || r.unwrap_err().contains("occupancy.dilate"));
+        }
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
         let c = ModelConfig::preset("nerf-tiny").unwrap();
         assert!(c.build_with_adam(Scene::from_dataset(&ds), 0, Some(f32::NAN)).is_err());

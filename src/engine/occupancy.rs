@@ -4,9 +4,11 @@
 //!
 //! The update is a few named steps, as in instant-ngp: evaluate the density
 //! at a random point in a share of the cells, decay the running value and
-//! take the maximum (an EMA of maxima), threshold to bits, then dilate the
-//! bits by one cell so that a ray stepping half a cell at a time can never
-//! step over a cell it crosses.
+//! take the maximum (an EMA of maxima), threshold to bits, then (unless
+//! configured not to) dilate the bits by one cell so that a ray stepping
+//! half a cell at a time can never step over a cell it crosses. The
+//! marcher ([`OccupancyGrid::march`]) tests each lattice point's own cell
+//! and leaves empty space through mip levels of the bits.
 
 use rayon::prelude::*;
 
@@ -69,7 +71,8 @@ impl Default for OccupancyConfig {
     }
 }
 
-/// The grid: running densities and dilated occupancy bits.
+/// The grid: running densities and occupancy bits (dilated unless
+/// configured otherwise).
 #[derive(Clone, Debug)]
 pub struct OccupancyGrid {
     pub config: OccupancyConfig,
@@ -406,7 +409,14 @@ impl OccupancyGrid {
                     loop {
                         sample(*t);
                         count += 1;
-                        *t += dt;
+                        let next = *t + dt;
+                        if next <= *t {
+                            // dt is below f32 resolution this far along the
+                            // ray: stop rather than repeat the point.
+                            *t = t1;
+                            break;
+                        }
+                        *t = next;
                         if *t >= end || count >= limit {
                             break;
                         }
@@ -422,9 +432,13 @@ impl OccupancyGrid {
                         1.0
                     };
                     skipped += k as u64;
-                    *t += k * dt;
+                    let next = *t + k * dt;
+                    *t = if next > *t { next } else { t1 };
                 }
-                Probe::Outside => *t += dt,
+                Probe::Outside => {
+                    let next = *t + dt;
+                    *t = if next > *t { next } else { t1 };
+                }
             }
         }
         (count, skipped)
@@ -555,8 +569,19 @@ mod tests {
 
     /// A grid of two small dense spots in a box of 32^3 cells.
     fn two_spots() -> OccupancyGrid {
+        spots(true)
+    }
+
+    fn spots(dilate: bool) -> OccupancyGrid {
         let r = 32;
-        let cfg = OccupancyConfig { resolution: r, warmup_steps: 0, update_every: 1, sweep: 1, ..Default::default() };
+        let cfg = OccupancyConfig {
+            resolution: r,
+            warmup_steps: 0,
+            update_every: 1,
+            sweep: 1,
+            dilate: Some(dilate),
+            ..Default::default()
+        };
         let mut g = OccupancyGrid::new(cfg, unit());
         let (cells, pts) = g.update_points(1, 3);
         let sigma: Vec<f32> = pts
@@ -593,7 +618,7 @@ mod tests {
     /// for a resolution that is not a power of two.
     #[test]
     fn mip_levels_are_the_or_of_their_cells() {
-        for res in [32, 24] {
+        for (res, levels) in [(32, 5), (24, 4), (20, 4), (3, 1)] {
             let cfg =
                 OccupancyConfig { resolution: res, warmup_steps: 0, update_every: 1, sweep: 1, ..Default::default() };
             let mut g = OccupancyGrid::new(cfg, unit());
@@ -602,7 +627,7 @@ mod tests {
             let sigma: Vec<f32> = pts.chunks(3).map(|_| if rng.f32() < 0.0005 { 100.0 } else { 0.0 }).collect();
             g.apply(1, &cells, &sigma);
             assert_eq!(g.mips.len() + 1, OccupancyGrid::levels(res));
-            assert_eq!(OccupancyGrid::levels(res), if res == 32 { 5 } else { 4 });
+            assert_eq!(OccupancyGrid::levels(res), levels);
             for l in 1..=g.mips.len() {
                 let mut set = 0;
                 for x in 0..res {
@@ -668,7 +693,12 @@ mod tests {
     /// splits the march into.
     #[test]
     fn marching_takes_every_occupied_lattice_point() {
-        let g = two_spots();
+        for dilate in [true, false] {
+            marching_matches_brute_force(&spots(dilate));
+        }
+    }
+
+    fn marching_matches_brute_force(g: &OccupancyGrid) {
         let mut rng = Rng::new(12);
         let dt = 0.013;
         let mut total = 0;
@@ -697,7 +727,7 @@ mod tests {
             assert!(t >= t1);
             let got: Vec<i64> = got.iter().map(|&s| ((s - t0) / dt).round() as i64).collect();
             assert!(got.windows(2).all(|w| w[0] < w[1]), "ray {k}: samples in order");
-            let near_face = |i: i64| to_face(&g, ray.at(t0 + i as f32 * dt)) < 2e-3;
+            let near_face = |i: i64| to_face(g, ray.at(t0 + i as f32 * dt)) < 2e-3;
             for i in &brute {
                 assert!(got.contains(i) || near_face(*i), "ray {k}: occupied lattice point {i} skipped");
             }
@@ -707,6 +737,31 @@ mod tests {
             total += brute.len();
         }
         assert!(total > 500, "the rays cross the spots: {total} occupied points");
+    }
+
+    /// Far along a ray, where the step is below f32 resolution, marching
+    /// ends instead of looping or repeating a point.
+    #[test]
+    fn marching_far_along_a_ray_terminates() {
+        let mut g = two_spots();
+        let ray = Ray { origin: Vec3::new(0.3, -0.2, 4e7), dir: Vec3::new(0.0, 0.0, -1.0) };
+        let gr = g.grid_ray(&ray);
+        for active in [true, false] {
+            g.active = active;
+            // 4e7 is the only f32 in the box along this ray (the next one
+            // is 4e7 + 4), and 4e7 + 0.01 == 4e7.
+            let (t0, t1) = (4e7f32, 4e7f32 + 4.0);
+            assert!(t0 < t1 && t0 + 0.01 == t0 && g.cell_of(ray.at(t0)).is_some());
+            let mut t = t0;
+            let mut got = Vec::new();
+            let (n, _) = g.march(&gr, &mut t, t1, 0.01, 1000, |s| got.push(s));
+            assert!(n == got.len() && n <= 1 && t >= t1, "{n} samples, t {t}");
+            assert!(active || n == 1, "before warm-up the point is sampled");
+            // Outside the box the whole way.
+            let mut t = 1e8;
+            let (n, _) = g.march(&gr, &mut t, 1e8 + 100.0, 0.01, 1000, |_| {});
+            assert_eq!((n, t), (0, 1e8 + 100.0));
+        }
     }
 
     /// Before the warm-up every lattice point in the box is a sample.
