@@ -292,7 +292,7 @@ impl OccupancyGrid {
     /// `bits[c]`, from the packed copy.
     #[inline]
     pub fn bit(&self, c: usize) -> bool {
-        (self.packed[c >> 6] >> (c & 63)) & 1 != 0
+        packed_bit(&self.packed, c)
     }
 
     /// Mip levels, the cells themselves included: up to cells of half the
@@ -312,25 +312,25 @@ impl OccupancyGrid {
         (res + (1 << l) - 1) >> l
     }
 
+    /// Each mip level from the one below it (level 1 from the cells).
     fn rebuild_mips(&mut self) {
         let res = self.config.resolution;
-        let mut below = (res, self.packed.clone());
-        for (i, mip) in self.mips.iter_mut().enumerate() {
-            let (r0, fine) = &below;
-            let r = Self::level_res(res, i + 1);
+        for l in 1..=self.mips.len() {
+            let (below, this) = self.mips.split_at_mut(l - 1);
+            let fine = below.last().unwrap_or(&self.packed);
+            let (r0, r) = (Self::level_res(res, l - 1), Self::level_res(res, l));
+            let mip = &mut this[0];
             mip.fill(0);
-            for x in 0..*r0 {
-                for y in 0..*r0 {
-                    for z in 0..*r0 {
-                        let c = (x * r0 + y) * r0 + z;
-                        if (fine[c >> 6] >> (c & 63)) & 1 != 0 {
+            for x in 0..r0 {
+                for y in 0..r0 {
+                    for z in 0..r0 {
+                        if packed_bit(fine, (x * r0 + y) * r0 + z) {
                             let p = ((x / 2) * r + y / 2) * r + z / 2;
                             mip[p >> 6] |= 1 << (p & 63);
                         }
                     }
                 }
             }
-            below = (r, mip.clone());
         }
     }
 
@@ -339,8 +339,7 @@ impl OccupancyGrid {
     fn mip_bit(&self, l: usize, at: [usize; 3]) -> bool {
         let words = if l == 0 { &self.packed } else { &self.mips[l - 1] };
         let r = Self::level_res(self.config.resolution, l);
-        let c = ((at[0] >> l) * r + (at[1] >> l)) * r + (at[2] >> l);
-        (words[c >> 6] >> (c & 63)) & 1 != 0
+        packed_bit(words, ((at[0] >> l) * r + (at[1] >> l)) * r + (at[2] >> l))
     }
 
     /// `ray` in cell coordinates, for [`OccupancyGrid::march`].
@@ -471,6 +470,12 @@ impl OccupancyGrid {
     }
 }
 
+/// Bit `c` of bits packed 64 to a word.
+#[inline]
+fn packed_bit(words: &[u64], c: usize) -> bool {
+    (words[c >> 6] >> (c & 63)) & 1 != 0
+}
+
 /// A ray in the grid's cell coordinates (cell `(x, y, z)` spans `[x, x+1)`
 /// along the first axis, and so on), with its inverse direction.
 #[derive(Clone, Copy, Debug)]
@@ -568,10 +573,6 @@ mod tests {
     }
 
     /// A grid of two small dense spots in a box of 32^3 cells.
-    fn two_spots() -> OccupancyGrid {
-        spots(true)
-    }
-
     fn spots(dilate: bool) -> OccupancyGrid {
         let r = 32;
         let cfg = OccupancyConfig {
@@ -652,7 +653,7 @@ mod tests {
     /// cell, and most steps leave a whole empty block.
     #[test]
     fn empty_probes_hold_no_occupied_cell() {
-        let g = two_spots();
+        let g = spots(true);
         let r = g.config.resolution;
         let occupied = g.bits.iter().filter(|&&b| b).count();
         assert!((0..r * r * r).all(|c| g.bit(c) == g.bits[c]), "the packed bits are the bits");
@@ -743,7 +744,7 @@ mod tests {
     /// ends instead of looping or repeating a point.
     #[test]
     fn marching_far_along_a_ray_terminates() {
-        let mut g = two_spots();
+        let mut g = spots(true);
         let ray = Ray { origin: Vec3::new(0.3, -0.2, 4e7), dir: Vec3::new(0.0, 0.0, -1.0) };
         let gr = g.grid_ray(&ray);
         for active in [true, false] {
