@@ -1,0 +1,266 @@
+//! Support shared by the service tests: a real server on 127.0.0.1:0 (in
+//! process or as the binary), tiny generated scenes and their archives, and
+//! readers for what the service answers.
+#![allow(dead_code)] // each test binary uses its own part of this module
+
+use std::io::Write;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use radiance::api::{Server, ServiceConfig};
+use radiance::engine::synthetic::BallScene;
+use reqwest::{Client, StatusCode};
+use serde_json::{Value, json};
+
+pub fn scene_dir(dir: &Path) {
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(dir).unwrap();
+}
+
+/// Every file under `dir` as (relative name, bytes), sorted.
+pub fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    fn walk(root: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
+        for e in std::fs::read_dir(d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                let rel = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
+                out.push((rel, std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    let mut v = Vec::new();
+    walk(dir, dir, &mut v);
+    v.sort();
+    v
+}
+
+pub fn zip_of(entries: &[(String, Vec<u8>)]) -> Vec<u8> {
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+    for (name, data) in entries {
+        w.start_file(name.as_str(), opts).unwrap();
+        w.write_all(data).unwrap();
+    }
+    w.finish().unwrap().into_inner()
+}
+
+/// A tar.gz whose entry names are written raw (so `..` can be tested).
+pub fn tar_gz_of(entries: &[(String, Vec<u8>)]) -> Vec<u8> {
+    let gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    let mut b = tar::Builder::new(gz);
+    for (name, data) in entries {
+        let mut h = tar::Header::new_gnu();
+        h.as_gnu_mut().unwrap().name[..name.len()].copy_from_slice(name.as_bytes());
+        h.set_size(data.len() as u64);
+        h.set_mode(0o644);
+        h.set_entry_type(tar::EntryType::Regular);
+        h.set_cksum();
+        b.append(&h, data.as_slice()).unwrap();
+    }
+    b.into_inner().unwrap().finish().unwrap()
+}
+
+pub fn ball_files() -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    scene_dir(d.path());
+    files(d.path())
+}
+
+pub fn ball() -> BallScene {
+    BallScene { size: 16, views: 8, ..Default::default() }
+}
+
+pub fn ngp_files() -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    ball().write_ngp(d.path()).unwrap();
+    files(d.path())
+}
+
+pub fn llff_files() -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    ball().write_llff(d.path()).unwrap();
+    files(d.path())
+}
+
+/// A multipart form with one part per file; `by_filename` names the parts
+/// `file` and puts the path in the filename, else the field name is the path.
+pub fn form_of(entries: &[(String, Vec<u8>)], by_filename: bool) -> reqwest::multipart::Form {
+    let mut form = reqwest::multipart::Form::new();
+    for (name, data) in entries {
+        let part = reqwest::multipart::Part::bytes(data.clone()).file_name(name.clone());
+        form = form.part(if by_filename { "file".to_string() } else { name.clone() }, part);
+    }
+    form
+}
+
+/// The boxes of an MP4 (ISO BMFF) buffer: `(type, payload)` at one level.
+pub fn mp4_boxes(b: &[u8]) -> Vec<(String, &[u8])> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i + 8 <= b.len() {
+        let size = u32::from_be_bytes(b[i..i + 4].try_into().unwrap()) as usize;
+        let kind = String::from_utf8_lossy(&b[i + 4..i + 8]).into_owned();
+        assert!(size >= 8 && i + size <= b.len(), "box {kind} of size {size} at {i} overruns {}", b.len());
+        out.push((kind, &b[i + 8..i + size]));
+        i += size;
+    }
+    assert_eq!(i, b.len(), "trailing bytes after the last box");
+    out
+}
+
+pub fn mp4_child<'a>(b: &'a [u8], path: &[&str]) -> &'a [u8] {
+    let mut cur = b;
+    for name in path {
+        cur = mp4_boxes(cur).into_iter().find(|(k, _)| k == name).unwrap_or_else(|| panic!("no {name} box")).1;
+    }
+    cur
+}
+
+pub struct Svc {
+    /// `None` when talking to a server in a child process.
+    pub server: Option<Server>,
+    pub client: Client,
+    pub base: String,
+}
+
+impl Svc {
+    pub async fn start(config: ServiceConfig) -> Svc {
+        let server = Server::start(config, "127.0.0.1:0".parse().unwrap()).await.unwrap();
+        let base = format!("http://{}", server.addr);
+        Svc { server: Some(server), client: Client::new(), base }
+    }
+
+    pub fn remote(base: String) -> Svc {
+        Svc { server: None, client: Client::new(), base }
+    }
+
+    pub async fn stop(self) {
+        if let Some(s) = self.server {
+            s.shutdown().await.unwrap();
+        }
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    pub async fn get(&self, path: &str) -> (StatusCode, Value) {
+        let r = self.client.get(self.url(path)).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    pub async fn post_json(&self, path: &str, body: Value) -> (StatusCode, Value) {
+        let r = self.client.post(self.url(path)).json(&body).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    pub async fn upload(&self, content_type: &str, body: Vec<u8>) -> (StatusCode, Value) {
+        let r = self
+            .client
+            .post(self.url("/v1/scenes"))
+            .header("content-type", content_type)
+            .body(body)
+            .send()
+            .await
+            .unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    pub async fn upload_ball(&self) -> String {
+        let (s, v) = self.upload("application/zip", zip_of(&ball_files())).await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        v["id"].as_str().unwrap().to_string()
+    }
+
+    pub async fn job(&self, scene: &str, budget: Value) -> String {
+        let body = json!({ "scene_id": scene, "model": "nerf-tiny", "budget": budget, "seed": 1, "batch_rays": 256 });
+        let (s, v) = self.post_json("/v1/jobs", body).await;
+        assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+        assert_eq!(v["status"], "queued");
+        v["id"].as_str().unwrap().to_string()
+    }
+
+    /// Polls a job until `pred` holds (panics after `secs`).
+    pub async fn wait_job(&self, id: &str, secs: f64, pred: impl Fn(&Value) -> bool) -> Value {
+        let t0 = Instant::now();
+        loop {
+            let (s, v) = self.get(&format!("/v1/jobs/{id}")).await;
+            assert_eq!(s, StatusCode::OK);
+            if pred(&v) {
+                return v;
+            }
+            assert!(t0.elapsed().as_secs_f64() < secs, "timed out waiting for job: {v}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    pub async fn upload_form(&self, form: reqwest::multipart::Form) -> (StatusCode, Value) {
+        let r = self.client.post(self.url("/v1/scenes")).multipart(form).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    /// Enqueues a video of `model` and waits for it; returns the job and
+    /// the video's bytes and content type.
+    pub async fn video(&self, model: &str, body: Value) -> (Value, Vec<u8>, String) {
+        let (s, v) = self.post_json(&format!("/v1/models/{model}/videos"), body).await;
+        assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+        assert_eq!((v["kind"].as_str(), v["model_id"].as_str()), (Some("video"), Some(model)), "{v}");
+        let id = v["id"].as_str().unwrap().to_string();
+        let job = self.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+        assert_eq!(job["status"], "succeeded", "{job}");
+        assert_eq!(job["progress"]["step"], job["frames"], "{job}");
+        let r = self.client.get(self.url(&format!("/v1/videos/{}", job["video_id"].as_str().unwrap()))).send().await;
+        let r = r.unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+        let ct = r.headers()["content-type"].to_str().unwrap().to_string();
+        (job, r.bytes().await.unwrap().to_vec(), ct)
+    }
+
+    pub async fn png(&self, path: &str) -> image::DynamicImage {
+        let r = self.client.get(self.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "{path}: {}", r.text().await.unwrap());
+        assert_eq!(r.headers()["content-type"], "image/png");
+        image::load_from_memory(&r.bytes().await.unwrap()).unwrap()
+    }
+}
+
+pub fn config(dir: &Path) -> ServiceConfig {
+    let mut c = ServiceConfig::new(dir);
+    c.scheduler.checkpoint_every = 0.2;
+    c
+}
+
+pub fn assert_error(v: &Value, code: &str) {
+    assert_eq!(v["error"]["code"], code, "{v}");
+    assert!(v["error"]["message"].as_str().is_some_and(|m| !m.is_empty()), "{v}");
+}
+
+/// Nothing left in the data directory but empty folders.
+pub fn assert_no_scene_files(data: &Path) {
+    for d in ["scenes", "tmp"] {
+        let left: Vec<_> = std::fs::read_dir(data.join(d)).unwrap().collect();
+        assert!(left.is_empty(), "{d}/ holds {left:?}");
+    }
+}
+
+/// Starts the real binary; returns it and its base URL.
+pub fn spawn_binary(data: &Path) -> (std::process::Child, String) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_radiance"))
+        .args(["serve", "--addr", "127.0.0.1:0", "--checkpoint-every", "0.2", "--threads", "2", "--data-dir"])
+        .arg(data)
+        .env_remove("RADIANCE_API_KEY")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected output: {line}"));
+    (child, addr.to_string())
+}
