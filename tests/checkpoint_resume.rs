@@ -113,3 +113,39 @@ fn non_finite_parameters_are_never_saved() {
     assert!(persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).is_err());
     assert!(!path.exists());
 }
+
+#[test]
+fn a_stripped_checkpoint_renders_the_same_and_cannot_resume() {
+    use radiance::engine::render::render_view;
+    let ds = BallScene { size: 12, views: 8, ..Default::default() }.dataset();
+    let mut t = trainer(&ds, 12);
+    t.run(&AtomicBool::new(false), |_, _| true);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.ckpt");
+    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+    let full_len = std::fs::metadata(&path).unwrap().len();
+    let camera = &ds.frames[ds.train[0]].camera;
+    let before = persist::load(&path).unwrap();
+    assert!(!before.render_only);
+    let want = render_view(&*before.model, camera, [1.0; 3]);
+
+    assert!(persist::strip_training_state(&path).unwrap(), "the first strip rewrites the file");
+    let stripped_len = std::fs::metadata(&path).unwrap().len();
+    // Adam's two moments go: two f32 per parameter.
+    let moments = 8 * before.model.params().len() as u64;
+    assert!(full_len - stripped_len >= moments, "{full_len} -> {stripped_len} bytes, moments {moments}");
+    let after = persist::load(&path).unwrap();
+    assert!(after.render_only);
+    assert_eq!(after.model.params(), before.model.params());
+    assert_eq!(after.model.state_tensors(), before.model.state_tensors());
+    assert_eq!((after.adam.t, after.adam.m.iter().all(|&x| x == 0.0)), (0, true), "a fresh Adam");
+    let got = render_view(&*after.model, camera, [1.0; 3]);
+    assert_eq!((got.rgb, got.depth, got.opacity), (want.rgb, want.depth, want.opacity));
+
+    // Stripping again writes nothing; resuming is refused with a clear error.
+    assert!(!persist::strip_training_state(&path).unwrap());
+    assert_eq!(std::fs::metadata(&path).unwrap().len(), stripped_len);
+    let e = persist::load_resumable(&path).err().expect("a render-only checkpoint must not resume").to_string();
+    assert!(e.contains("m.ckpt") && e.contains("render-only"), "{e}");
+    assert_eq!(dir.path().read_dir().unwrap().count(), 1, "no temporary file is left");
+}

@@ -87,7 +87,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     let config = model_config(&a.model, !a.no_skip, &a.set)?.train_config(a.seed, a.batch_rays, budget);
     let (model, adam, state) = match &a.resume {
         Some(p) => {
-            let r = persist::load(p)?;
+            let r = persist::load_resumable(p)?;
             anyhow::ensure!(
                 r.model.kind() == a.model,
                 "{} holds a '{}' model, not '{}'",

@@ -1,6 +1,13 @@
 //! Saving and restoring a model with its optimiser and trainer state, on top
 //! of the generic checkpoint container.
 //!
+//! A finished model does not need its optimiser state (Adam's `m` and `v`,
+//! two thirds of the file): [`strip_training_state`] rewrites a checkpoint
+//! without them and marks it render-only (`meta.render_only`). [`load`]
+//! reads both kinds (a render-only one with a zeroed Adam and
+//! `Restored::render_only` set); [`load_resumable`] refuses a render-only
+//! one, since training cannot continue exactly from it.
+//!
 //! Determinism: a checkpoint is a function of the data, the configuration,
 //! the seed and the thread count, except for one field: `meta.timing` holds
 //! the wall-clock training time (`TrainState::elapsed`, needed to resume a
@@ -26,6 +33,9 @@ pub struct Restored {
     pub adam: Adam,
     pub train: TrainConfig,
     pub state: TrainState,
+    /// The checkpoint had no optimiser state ([`strip_training_state`]):
+    /// `adam` is zeroed, and training would not continue exactly.
+    pub render_only: bool,
 }
 
 /// Builds the checkpoint of a training run.
@@ -92,7 +102,52 @@ fn field<T: serde::de::DeserializeOwned>(
         .map_err(|e| CheckpointError::Header { path: Some(path.to_path_buf()), message: format!("meta.{key}: {e}") })
 }
 
-/// Restores a checkpoint written by [`save`].
+/// The meta key that marks a checkpoint without optimiser state.
+pub const RENDER_ONLY: &str = "render_only";
+/// The tensors [`strip_training_state`] drops.
+const OPTIMISER_TENSORS: [&str; 2] = ["adam.m", "adam.v"];
+
+/// Rewrites the checkpoint at `path` atomically without its optimiser
+/// moments, marked render-only; the model renders exactly as before.
+/// Returns `false` (and writes nothing) when it already was render-only.
+pub fn strip_training_state(path: &Path) -> Result<bool, CheckpointError> {
+    let mut c = Checkpoint::load(path)?;
+    if is_render_only(&c) {
+        return Ok(false);
+    }
+    let Some(meta) = c.meta.as_object_mut() else {
+        return Err(CheckpointError::Header {
+            path: Some(path.to_path_buf()),
+            message: "meta is not an object".into(),
+        });
+    };
+    meta.insert(RENDER_ONLY.into(), true.into());
+    c.tensors.retain(|(name, _)| !OPTIMISER_TENSORS.contains(&name.as_str()));
+    c.save(path)?;
+    Ok(true)
+}
+
+fn is_render_only(c: &Checkpoint) -> bool {
+    c.meta.get(RENDER_ONLY).and_then(|v| v.as_bool()) == Some(true)
+}
+
+/// Like [`load`], but refuses a render-only checkpoint: training resumed
+/// from it would not continue the run exactly.
+pub fn load_resumable(path: &Path) -> Result<Restored, CheckpointError> {
+    let r = load(path)?;
+    if r.render_only {
+        return Err(CheckpointError::Header {
+            path: Some(path.to_path_buf()),
+            message:
+                "this checkpoint was stripped of its optimiser state (render-only); training cannot resume from it"
+                    .into(),
+        });
+    }
+    Ok(r)
+}
+
+/// Restores a checkpoint written by [`save`] (or stripped by
+/// [`strip_training_state`]: then with a zeroed Adam and `render_only`).
 pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
     let mut c = Checkpoint::load(path)?;
     let bad = |message: String| CheckpointError::Header { path: Some(path.to_path_buf()), message };
@@ -121,9 +176,16 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
     };
     let adam_cfg: AdamConfig = field(&c.meta, "adam", path)?;
     let state: TrainState = field(&c.meta, "state", path)?;
-    let m = c.take_f32("adam.m").map_err(|e| e.with_path(path))?;
-    let v = c.take_f32("adam.v").map_err(|e| e.with_path(path))?;
-    let t = c.u64("adam.t").map_err(|e| e.with_path(path))?.first().copied().unwrap_or(0);
+    let render_only = is_render_only(&c);
+    let (m, v) = if render_only {
+        (vec![0.0; nparams], vec![0.0; nparams])
+    } else {
+        (c.take_f32("adam.m").map_err(|e| e.with_path(path))?, c.take_f32("adam.v").map_err(|e| e.with_path(path))?)
+    };
+    let t = match render_only {
+        true => 0,
+        false => c.u64("adam.t").map_err(|e| e.with_path(path))?.first().copied().unwrap_or(0),
+    };
     if m.len() != nparams || v.len() != nparams {
         return Err(bad(format!("optimizer state has {} / {} values for {nparams} parameters", m.len(), v.len())));
     }
@@ -136,5 +198,6 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
             elapsed: c.meta.pointer("/timing/elapsed").and_then(|v| v.as_f64()).unwrap_or(state.elapsed),
             ..state
         },
+        render_only,
     })
 }

@@ -45,7 +45,7 @@ fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> R
     let ckpt = storage.checkpoint(&model_id);
     let config = spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine());
     let (model, adam, state) = if ckpt.is_file() {
-        let r = persist::load(&ckpt).map_err(|e| format!("resuming from the checkpoint: {e}"))?;
+        let r = persist::load_resumable(&ckpt).map_err(|e| format!("resuming from the checkpoint: {e}"))?;
         tracing::info!(job = %job.id, step = r.state.step, "resuming from checkpoint");
         (r.model, r.adam, r.state)
     } else {
