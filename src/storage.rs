@@ -140,6 +140,20 @@ impl Storage {
         })
     }
 
+    /// Removes a job record (one committed transaction); `false` if there
+    /// was none.
+    pub fn remove_job(&self, id: &str) -> io::Result<bool> {
+        self.with_jobs(|db| {
+            let tx = db.begin_write().map_err(db_error)?;
+            let removed = {
+                let mut t = tx.open_table(JOBS).map_err(db_error)?;
+                t.remove(id).map_err(db_error)?.is_some()
+            };
+            tx.commit().map_err(db_error)?;
+            Ok(removed)
+        })
+    }
+
     pub fn load_scene(&self, id: &str) -> io::Result<Option<SceneInfo>> {
         if !valid_id(id) {
             return Ok(None);
@@ -182,6 +196,36 @@ impl Storage {
             return Ok(None);
         }
         read_json_opt(&self.model_record(id))
+    }
+
+    pub fn list_videos(&self) -> io::Result<Vec<VideoInfo>> {
+        let mut v: Vec<VideoInfo> = list_json(&self.videos_dir())?;
+        v.sort_by(|a, b| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
+        Ok(v)
+    }
+
+    /// Removes a model: its record first, then its checkpoint, so a record
+    /// never points at a missing file (a crash between the two leaves an
+    /// orphaned checkpoint, which the next start-up removes).
+    pub fn remove_model(&self, id: &str) -> io::Result<()> {
+        remove_file_if_exists(&self.model_record(id))?;
+        remove_file_if_exists(&self.checkpoint(id))
+    }
+
+    /// Removes a video: its record first, then its file.
+    pub fn remove_video(&self, id: &str) -> io::Result<()> {
+        remove_file_if_exists(&self.video_record(id))?;
+        remove_file_if_exists(&self.video_file(id))
+    }
+
+    /// Bytes of the files under each folder of the data directory.
+    pub fn disk_usage(&self) -> io::Result<DiskUsage> {
+        Ok(DiskUsage {
+            scenes: tree_bytes(&self.scenes_dir())?,
+            models: tree_bytes(&self.models_dir())?,
+            videos: tree_bytes(&self.videos_dir())?,
+            tmp: tree_bytes(&self.tmp_dir())?,
+        })
     }
 
     pub fn list_models(&self) -> io::Result<Vec<ModelInfo>> {
@@ -247,6 +291,44 @@ pub fn list_json<T: DeserializeOwned>(dir: &Path) -> io::Result<Vec<T>> {
         }
     }
     Ok(v)
+}
+
+/// Removes a file; a missing one is not an error.
+pub fn remove_file_if_exists(path: &Path) -> io::Result<()> {
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+        _ => Ok(()),
+    }
+}
+
+/// Bytes of the files under `dir` (recursively; links are not followed,
+/// entries that vanish meanwhile are skipped).
+pub fn tree_bytes(dir: &Path) -> io::Result<u64> {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(0),
+        Err(e) => return Err(e),
+    };
+    let mut total = 0;
+    for e in entries {
+        let e = e?;
+        let meta = match e.metadata() {
+            Ok(m) => m,
+            Err(err) if err.kind() == io::ErrorKind::NotFound => continue,
+            Err(err) => return Err(err),
+        };
+        total += if meta.is_dir() { tree_bytes(&e.path())? } else { meta.len() };
+    }
+    Ok(total)
+}
+
+/// Disk use of the data directory's folders, in bytes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DiskUsage {
+    pub scenes: u64,
+    pub models: u64,
+    pub videos: u64,
+    pub tmp: u64,
 }
 
 /// Image counts of a dataset's splits.

@@ -9,14 +9,18 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use serde_json::{Value, json};
 
-use super::AppState;
+use super::{ApiResult, AppState};
 use crate::jobs::Status;
+use crate::storage::DiskUsage;
 
 pub async fn healthz() -> Json<Value> {
     Json(json!({ "status": "ok", "version": env!("CARGO_PKG_VERSION") }))
 }
 
-pub async fn metrics(State(s): State<AppState>) -> impl IntoResponse {
+pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> {
+    // Walking the data directory is file work: off the async threads.
+    let storage = s.storage.clone();
+    let disk = tokio::task::spawn_blocking(move || storage.disk_usage()).await??;
     let (by_status, queue) = s.scheduler.stats();
     let c = s.scheduler.counters();
     let (renders, render_secs) = {
@@ -44,5 +48,18 @@ pub async fn metrics(State(s): State<AppState>) -> impl IntoResponse {
     }
     let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
     let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");
-    ([(CONTENT_TYPE, "text/plain; version=0.0.4")], out)
+    write_disk(&mut out, &disk);
+    Ok(([(CONTENT_TYPE, "text/plain; version=0.0.4")], out))
+}
+
+/// `radiance_disk_bytes{kind}`: bytes under each folder of the data directory.
+fn write_disk(out: &mut String, d: &DiskUsage) {
+    let _ = writeln!(
+        out,
+        "# HELP radiance_disk_bytes Bytes of the files under each folder of the data directory.\n\
+         # TYPE radiance_disk_bytes gauge"
+    );
+    for (kind, bytes) in [("scenes", d.scenes), ("models", d.models), ("videos", d.videos), ("tmp", d.tmp)] {
+        let _ = writeln!(out, "radiance_disk_bytes{{kind=\"{kind}\"}} {bytes}");
+    }
 }

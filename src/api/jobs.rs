@@ -84,11 +84,16 @@ fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
 
 pub(crate) fn sched_error(e: SchedError) -> ApiError {
     match e {
-        SchedError::SceneNotFound(_) | SchedError::JobNotFound(_) | SchedError::ModelNotFound(_) => {
-            ApiError::new(Code::NotFound, e.to_string())
-        }
+        SchedError::SceneNotFound(_)
+        | SchedError::JobNotFound(_)
+        | SchedError::ModelNotFound(_)
+        | SchedError::VideoNotFound(_) => ApiError::new(Code::NotFound, e.to_string()),
         SchedError::QueueFull(_) => ApiError::new(Code::QueueFull, e.to_string()),
-        SchedError::SceneInUse { .. } | SchedError::AlreadyFinal { .. } => ApiError::conflict(e.to_string()),
+        SchedError::SceneInUse { .. }
+        | SchedError::AlreadyFinal { .. }
+        | SchedError::JobNotFinal { .. }
+        | SchedError::ModelInUse { .. }
+        | SchedError::VideoInUse { .. } => ApiError::conflict(e.to_string()),
         SchedError::Io(io) => ApiError::internal(io),
     }
 }
@@ -128,6 +133,14 @@ pub async fn cancel(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
     let sched = s.scheduler.clone();
     let job = tokio::task::spawn_blocking(move || sched.cancel(&id)).await?.map_err(sched_error)?;
     Ok((StatusCode::ACCEPTED, Json(job)))
+}
+
+/// Deletes a finished job's record (204); what it made stays. A queued or
+/// running job is a conflict (409): cancel it first.
+pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+    let sched = s.scheduler.clone();
+    tokio::task::spawn_blocking(move || sched.delete_job(&id)).await?.map_err(sched_error)?;
+    Ok(StatusCode::NO_CONTENT)
 }
 
 /// `GET /v1/jobs/{id}/events`: Server-Sent Events. A `progress` event with

@@ -1,4 +1,4 @@
-//! `/v1/models`: list, get, and render a novel view as PNG.
+//! `/v1/models`: list, get, delete, and render a novel view as PNG.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -6,27 +6,68 @@ use std::time::Instant;
 use axum::Json;
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{Path, Query, State};
+use axum::http::StatusCode;
 use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use image::{ImageBuffer, ImageEncoder, Luma, codecs::png::PngEncoder};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
+use super::jobs::sched_error;
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
 use crate::engine::camera::{Camera, orbit};
+use crate::engine::checkpoint::CheckpointError;
 use crate::engine::math::Vec3;
 use crate::engine::model::Model;
 use crate::engine::persist;
 use crate::engine::render::{View, render_view};
 use crate::media::png;
-use crate::storage::{ModelInfo, ViewDefaults};
+use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
 
-pub async fn list(State(s): State<AppState>) -> ApiResult<Json<Vec<ModelInfo>>> {
-    let storage = s.storage.clone();
-    Ok(Json(tokio::task::spawn_blocking(move || storage.list_models()).await??))
+/// A model as the API shows it: its record and the disk use of its videos.
+#[derive(Debug, Serialize)]
+pub struct ModelView {
+    #[serde(flatten)]
+    pub info: ModelInfo,
+    /// Bytes of the videos rendered from this model (`size_bytes` is the
+    /// checkpoint's).
+    pub videos_bytes: u64,
 }
 
-pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<Json<ModelInfo>> {
-    s.storage.load_model(&id)?.map(Json).ok_or_else(|| ApiError::not_found("model", &id))
+fn view_of(info: ModelInfo, videos: &[VideoInfo]) -> ModelView {
+    let videos_bytes = videos.iter().filter(|v| v.model_id == info.id).map(|v| v.size_bytes).sum();
+    ModelView { info, videos_bytes }
+}
+
+pub async fn list(State(s): State<AppState>) -> ApiResult<Json<Vec<ModelView>>> {
+    let storage = s.storage.clone();
+    let views = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<ModelView>> {
+        let videos = storage.list_videos()?;
+        Ok(storage.list_models()?.into_iter().map(|m| view_of(m, &videos)).collect())
+    })
+    .await??;
+    Ok(Json(views))
+}
+
+pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<Json<ModelView>> {
+    let storage = s.storage.clone();
+    let id2 = id.clone();
+    let view = tokio::task::spawn_blocking(move || -> std::io::Result<Option<ModelView>> {
+        let Some(info) = storage.load_model(&id2)? else { return Ok(None) };
+        Ok(Some(view_of(info, &storage.list_videos()?)))
+    })
+    .await??;
+    view.map(Json).ok_or_else(|| ApiError::not_found("model", &id))
+}
+
+/// Deletes a model (record, then checkpoint) and forgets its loaded copy:
+/// 204, 404, or 409 while a queued or running job writes or renders it.
+/// Videos made from it stay.
+pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+    let sched = s.scheduler.clone();
+    let id2 = id.clone();
+    tokio::task::spawn_blocking(move || sched.delete_model(&id2)).await?.map_err(sched_error)?;
+    s.model_cache.lock().unwrap_or_else(|e| e.into_inner()).retain(|c| c.id != id);
+    Ok(StatusCode::NO_CONTENT)
 }
 
 /// Query of `GET /v1/models/{id}/render`.
@@ -177,7 +218,13 @@ fn cached_model(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
             return Ok(c.model.clone());
         }
     }
-    let restored = persist::load(&s.storage.checkpoint(&info.id)).map_err(ApiError::internal)?;
+    let restored = persist::load(&s.storage.checkpoint(&info.id)).map_err(|e| match e {
+        // Deleted since its record was read.
+        CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            ApiError::not_found("model", &info.id)
+        }
+        e => ApiError::internal(e),
+    })?;
     let model: Arc<dyn Model> = Arc::from(restored.model);
     let mut cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
     cache.retain(|c| c.id != info.id);

@@ -1,5 +1,6 @@
 //! Orbit videos: `POST /v1/models/{id}/videos` enqueues a video job (202,
-//! polled like a training job); `GET /v1/videos/{id}` serves the result.
+//! polled like a training job); `GET /v1/videos/{id}` serves the result,
+//! `DELETE /v1/videos/{id}` removes it.
 
 use axum::Json;
 use axum::extract::rejection::JsonRejection;
@@ -103,6 +104,14 @@ pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiRe
     let info = s.storage.load_video(&id)?.ok_or_else(|| ApiError::not_found("video", &id))?;
     let bytes = tokio::fs::read(s.storage.video_file(&id)).await?;
     Ok(([(CONTENT_TYPE, info.format.content_type())], bytes))
+}
+
+/// Deletes a video (record, then file): 204, 404, or 409 while its job
+/// has not ended.
+pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+    let sched = s.scheduler.clone();
+    tokio::task::spawn_blocking(move || sched.delete_video(&id)).await?.map_err(sched_error)?;
+    Ok(StatusCode::NO_CONTENT)
 }
 
 #[cfg(test)]

@@ -20,6 +20,7 @@ use crate::engine::trainer::Budget;
 use crate::media::video::VideoFormat;
 use crate::storage::{Storage, new_id, now_ms};
 
+mod lifecycle;
 pub mod train;
 pub mod video;
 
@@ -246,6 +247,14 @@ pub enum SchedError {
     JobNotFound(String),
     #[error("job '{id}' is already {status}")]
     AlreadyFinal { id: String, status: &'static str },
+    #[error("job '{id}' is {status}: cancel it first")]
+    JobNotFinal { id: String, status: &'static str },
+    #[error("model '{model}' is used by job '{job}' ({status})")]
+    ModelInUse { model: String, job: String, status: &'static str },
+    #[error("video '{0}' not found")]
+    VideoNotFound(String),
+    #[error("video '{video}' belongs to job '{job}', which is {status}")]
+    VideoInUse { video: String, job: String, status: &'static str },
     #[error("{0}")]
     Io(#[from] io::Error),
 }
@@ -281,6 +290,9 @@ pub(crate) struct Shared {
     storage: Storage,
     config: SchedulerConfig,
     pub counters: Counters,
+    /// Held while a model's files change outside its training job (it is
+    /// deleted); taken before `state`.
+    model_files: Mutex<()>,
 }
 
 impl Shared {
@@ -317,6 +329,7 @@ impl Scheduler {
             storage,
             config,
             counters: Counters::default(),
+            model_files: Mutex::new(()),
         });
         let s2 = shared.clone();
         let handle = std::thread::Builder::new().name("scheduler".into()).spawn(move || scheduler_loop(&s2))?;

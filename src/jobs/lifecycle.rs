@@ -1,0 +1,70 @@
+//! Deleting what the jobs made: a finished job's record, a model, a video.
+//! Each check ("is anything queued or running that needs it?") and its
+//! deletion happen under the scheduler's lock, so no job can be enqueued
+//! on a model between the check and the removal (enqueueing checks that
+//! the model exists under the same lock).
+
+use super::{Job, JobSpec, SchedError, Scheduler, State};
+
+impl Scheduler {
+    /// Removes a finished job's record, from memory and from the job
+    /// database in one step under the lock. What it made (a model, a
+    /// video) stays. A queued or running job must be canceled first.
+    pub fn delete_job(&self, id: &str) -> Result<(), SchedError> {
+        let mut st = self.shared.lock();
+        let Some(job) = st.jobs.get(id) else { return Err(SchedError::JobNotFound(id.into())) };
+        if !job.status.is_final() {
+            return Err(SchedError::JobNotFinal { id: id.into(), status: job.status.name() });
+        }
+        // The database first: if it fails, the job is still listed.
+        self.shared.storage.remove_job(id)?;
+        st.jobs.remove(id);
+        Ok(())
+    }
+
+    /// Removes a model (record, then checkpoint) unless a queued or running
+    /// job writes or renders it. Videos made from it stay.
+    pub fn delete_model(&self, id: &str) -> Result<(), SchedError> {
+        // Retention rewrites checkpoints under `model_files`; the order
+        // (`model_files`, then the scheduler's lock) is the same everywhere.
+        let _files = self.shared.model_files.lock().unwrap_or_else(|e| e.into_inner());
+        let st = self.shared.lock();
+        let storage = &self.shared.storage;
+        if storage.load_model(id)?.is_none() {
+            return Err(SchedError::ModelNotFound(id.into()));
+        }
+        if let Some(j) = model_user(&st, id) {
+            return Err(SchedError::ModelInUse { model: id.into(), job: j.id.clone(), status: j.status.name() });
+        }
+        storage.remove_model(id)?;
+        Ok(())
+    }
+
+    /// Removes a video (record, then file) unless its job has not ended.
+    pub fn delete_video(&self, id: &str) -> Result<(), SchedError> {
+        let st = self.shared.lock();
+        let storage = &self.shared.storage;
+        let Some(info) = storage.load_video(id)? else { return Err(SchedError::VideoNotFound(id.into())) };
+        if let Some(j) = st.jobs.get(&info.job_id).filter(|j| !j.status.is_final()) {
+            return Err(SchedError::VideoInUse { video: id.into(), job: j.id.clone(), status: j.status.name() });
+        }
+        storage.remove_video(id)?;
+        Ok(())
+    }
+}
+
+/// Whether `job` writes model `id` (a training job) or reads it (a video job).
+pub(crate) fn uses_model(job: &Job, id: &str) -> bool {
+    writes_model(job, id) || job.model_id.as_deref() == Some(id)
+}
+
+/// Whether `job` is the training job of model `id` (before its first
+/// checkpoint the job's `model_id` is not set yet, but the id is reserved).
+pub(crate) fn writes_model(job: &Job, id: &str) -> bool {
+    matches!(job.spec, JobSpec::Train(_)) && (job.reserved_model_id() == id || job.model_id.as_deref() == Some(id))
+}
+
+/// A queued or running job that writes or renders model `id`.
+fn model_user<'a>(st: &'a State, id: &str) -> Option<&'a Job> {
+    st.jobs.values().find(|j| !j.status.is_final() && uses_model(j, id))
+}
