@@ -406,7 +406,16 @@ pub struct ModelInfo {
     pub updated_at: u64,
     /// Whether training has finished (succeeded or canceled).
     pub complete: bool,
+    /// Whether the checkpoint still holds the optimiser state (needed only
+    /// to resume training); dropped `--keep-training-state-hours` after
+    /// training has ended.
+    #[serde(default = "yes")]
+    pub training_state: bool,
     pub view: ViewDefaults,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// A rendered orbit video. The file is written before the record, so a

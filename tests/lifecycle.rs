@@ -1,7 +1,10 @@
 //! What piles up on disk: deleting jobs, models and videos (and what depends
-//! on what), and the disk use the service reports.
+//! on what), orphaned files at start-up, the optimiser state dropped from
+//! finished models, and the disk use the service reports.
 
 mod common;
+
+use std::time::{Duration, Instant};
 
 use common::*;
 use reqwest::StatusCode;
@@ -128,5 +131,83 @@ async fn deletes_refuse_what_a_job_needs_and_free_the_disk() {
     let (_, jobs) = svc.get("/v1/jobs").await;
     let ids: Vec<&str> = jobs.as_array().unwrap().iter().map(|j| j["id"].as_str().unwrap()).collect();
     assert_eq!(ids, [vjob["id"].as_str().unwrap(), &*waiting]);
+    svc.stop().await;
+}
+
+/// Polls a model until `pred` holds (panics after `secs`).
+async fn wait_model(svc: &Svc, id: &str, secs: f64, pred: impl Fn(&Value) -> bool) -> Value {
+    let t0 = Instant::now();
+    loop {
+        let (s, v) = svc.get(&format!("/v1/models/{id}")).await;
+        assert_eq!(s, StatusCode::OK, "{v}");
+        if pred(&v) {
+            return v;
+        }
+        assert!(t0.elapsed().as_secs_f64() < secs, "timed out waiting for model: {v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_models_drop_their_optimiser_state_and_render_the_same() {
+    let data = tempfile::tempdir().unwrap();
+    // First life: the default retention (24 hours) keeps the state.
+    let svc = Svc::start(config(data.path())).await;
+    let scene = svc.upload_ball().await;
+    // The fast model: its parameters, hence Adam's two moments, dominate its checkpoint.
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "steps": 20 } });
+    let (s, job) = svc.post_json("/v1/jobs", body).await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{job}");
+    let job = svc.wait_job(job["id"].as_str().unwrap(), 120.0, is_final).await;
+    assert_eq!(job["status"], "succeeded", "{job}");
+    let model = job["model_id"].as_str().unwrap().to_string();
+    let view = format!("/v1/models/{model}/render?azimuth=30&elevation=20&width=24&height=20");
+    let (s, before) = raw(&svc, &view).await;
+    assert_eq!(s, StatusCode::OK);
+    let m = svc.get(&format!("/v1/models/{model}")).await.1;
+    assert_eq!(m["training_state"], true, "{m}");
+    let full = m["size_bytes"].as_u64().unwrap();
+    svc.stop().await;
+
+    // Second life, keeping it for no time: the start-up sweep strips it.
+    let mut cfg = config(data.path());
+    cfg.scheduler.keep_training_state = Duration::ZERO;
+    let svc = Svc::start(cfg).await;
+    let m = wait_model(&svc, &model, 30.0, |m| m["training_state"] == false).await;
+    let ckpt = data.path().join("models").join(format!("{model}.ckpt"));
+    let stripped = m["size_bytes"].as_u64().unwrap();
+    assert_eq!(stripped, std::fs::metadata(&ckpt).unwrap().len());
+    assert!(stripped * 2 < full, "{full} -> {stripped} bytes");
+    assert_eq!(raw(&svc, &view).await, (StatusCode::OK, before), "the stripped model renders other bytes");
+
+    // A job that ends now is stripped at once, not at the next minute's sweep.
+    let t0 = Instant::now();
+    let job = svc.job(&scene, json!({ "steps": 5 })).await;
+    let other = svc.wait_job(&job, 60.0, is_final).await["model_id"].as_str().unwrap().to_string();
+    wait_model(&svc, &other, 20.0, |m| m["training_state"] == false).await;
+    assert!(t0.elapsed() < Duration::from_secs(40), "{:?}", t0.elapsed());
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn start_up_removes_files_without_records_but_not_a_queued_jobs_checkpoint() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    cfg.scheduler.run_jobs = false;
+    let svc = Svc::start(cfg.clone()).await;
+    let scene = svc.upload_ball().await;
+    let queued = svc.job(&scene, json!({ "steps": 5 })).await;
+    svc.stop().await;
+    let file = |d: &str, name: String| data.path().join(d).join(name);
+    // What a job interrupted after its first checkpoint left, and what a
+    // crash between deleting a record and its file leaves.
+    let resumed = file("models", format!("mdl{}.ckpt", queued.trim_start_matches("job")));
+    let orphans = [file("models", "mdl_gone.ckpt".into()), file("videos", "vid_gone.bin".into())];
+    for p in orphans.iter().chain([&resumed]) {
+        std::fs::write(p, b"x").unwrap();
+    }
+    let svc = Svc::start(cfg).await;
+    assert!(orphans.iter().all(|p| !p.exists()), "orphans are left");
+    assert!(resumed.exists(), "the queued job's checkpoint is gone");
     svc.stop().await;
 }

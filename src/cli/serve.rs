@@ -36,6 +36,11 @@ pub struct ServeArgs {
     /// Largest render, in pixels (width * height).
     #[arg(long, env = "RADIANCE_MAX_RENDER_PIXELS", default_value_t = 1 << 20)]
     pub max_render_pixels: u64,
+    /// Hours a model keeps its optimiser state after its training ended
+    /// (only resuming training needs it: two thirds of the checkpoint);
+    /// then the checkpoint is rewritten without it. 0: at once.
+    #[arg(long, env = "RADIANCE_KEEP_TRAINING_STATE_HOURS", default_value_t = 24.0)]
+    pub keep_training_state_hours: f64,
     /// Require `Authorization: Bearer KEY` on every route but /healthz.
     #[arg(long, env = "RADIANCE_API_KEY", hide_env_values = true)]
     pub api_key: Option<String>,
@@ -53,6 +58,8 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
     let threads = a.common.init_threads()?;
     anyhow::ensure!(a.checkpoint_every.is_finite() && a.checkpoint_every > 0.0, "--checkpoint-every must be positive");
     anyhow::ensure!(a.max_concurrent_jobs > 0, "--max-concurrent-jobs must be at least 1");
+    let keep_training_state = std::time::Duration::try_from_secs_f64(a.keep_training_state_hours * 3600.0)
+        .map_err(|_| anyhow::anyhow!("--keep-training-state-hours must be a number of hours, 0 or more"))?;
     let mut config = ServiceConfig::new(&a.data_dir);
     config.max_upload_bytes = a.max_upload_mb << 20;
     config.max_unpacked_bytes = a.max_unpacked_mb << 20;
@@ -62,6 +69,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         max_concurrent: a.max_concurrent_jobs,
         max_queued: a.max_queued_jobs,
         checkpoint_every: a.checkpoint_every,
+        keep_training_state,
         ..SchedulerConfig::default()
     };
     // The runtime only moves bytes: the work runs on the rayon pool.

@@ -11,7 +11,7 @@ use std::io;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 
@@ -21,6 +21,7 @@ use crate::media::video::VideoFormat;
 use crate::storage::{Storage, new_id, now_ms};
 
 mod lifecycle;
+mod retention;
 pub mod train;
 pub mod video;
 
@@ -217,6 +218,9 @@ pub struct SchedulerConfig {
     pub heldout_every: f64,
     /// Whether to start jobs at all (tests enqueue with it off, then restart).
     pub run_jobs: bool,
+    /// How long a model keeps its optimiser state after its training ended
+    /// (then its checkpoint is rewritten without it; zero: at once).
+    pub keep_training_state: Duration,
 }
 
 impl Default for SchedulerConfig {
@@ -228,6 +232,7 @@ impl Default for SchedulerConfig {
             eval_views: 4,
             heldout_every: 10.0,
             run_jobs: true,
+            keep_training_state: Duration::from_secs(24 * 3600),
         }
     }
 }
@@ -290,9 +295,11 @@ pub(crate) struct Shared {
     storage: Storage,
     config: SchedulerConfig,
     pub counters: Counters,
-    /// Held while a model's files change outside its training job (it is
-    /// deleted); taken before `state`.
+    /// Held while a model's files change outside its training job (deleted,
+    /// or stripped of its optimiser state); taken before `state`.
     model_files: Mutex<()>,
+    /// A job ended: the retention sweep runs at the next tick.
+    sweep_requested: AtomicBool,
 }
 
 impl Shared {
@@ -309,7 +316,9 @@ pub struct Scheduler {
 }
 
 impl Scheduler {
-    /// Loads the job records and starts the scheduler thread.
+    /// Loads the job records, removes checkpoints and videos that have no
+    /// record and no job to write them (`retention`), and starts the
+    /// scheduler thread.
     pub fn open(storage: Storage, config: SchedulerConfig) -> io::Result<Self> {
         let mut st = State::default();
         let mut jobs: Vec<Job> = storage.list_jobs()?;
@@ -323,6 +332,9 @@ impl Scheduler {
             }
             st.jobs.insert(j.id.clone(), j);
         }
+        for path in retention::remove_orphans(&storage, &st.jobs)? {
+            tracing::info!(path = %path, "removed a file without a record");
+        }
         let shared = Arc::new(Shared {
             state: Mutex::new(st),
             wake: Condvar::new(),
@@ -330,6 +342,7 @@ impl Scheduler {
             config,
             counters: Counters::default(),
             model_files: Mutex::new(()),
+            sweep_requested: AtomicBool::new(false),
         });
         let s2 = shared.clone();
         let handle = std::thread::Builder::new().name("scheduler".into()).spawn(move || scheduler_loop(&s2))?;
@@ -465,11 +478,19 @@ impl Scheduler {
     }
 }
 
-/// The scheduler thread: `tick` until shutdown.
+/// The scheduler thread: `tick` until shutdown, and the retention sweep
+/// (without the lock) at start-up, when a job ends and once a minute.
 fn scheduler_loop(shared: &Arc<Shared>) {
+    let mut last_sweep: Option<Instant> = None;
     let mut st = shared.lock();
     while !st.shutting_down {
         tick(shared, &mut st);
+        if retention::sweep_due(shared, last_sweep) {
+            drop(st);
+            retention::sweep(shared);
+            last_sweep = Some(Instant::now());
+            st = shared.lock();
+        }
         st = shared.wake.wait_timeout(st, Duration::from_millis(500)).unwrap_or_else(|e| e.into_inner()).0;
     }
 }
@@ -551,6 +572,7 @@ fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) {
     };
     job.status = status;
     job.finished_at = Some(now_ms());
+    shared.sweep_requested.store(true, Ordering::SeqCst);
     tracing::info!(job = %id, status = status.name(), error = job.error.as_deref().unwrap_or(""), "job finished");
     if let Err(e) = shared.storage.put_job(id, &*job) {
         tracing::error!(job = %id, error = %e, "cannot persist job end");

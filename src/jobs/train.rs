@@ -202,6 +202,7 @@ impl ModelRecord<'_> {
             created_at: previous.as_ref().map_or(self.created_at, |p| p.created_at),
             updated_at: now_ms(),
             complete,
+            training_state: true,
             view: self.scene.view.clone(),
         };
         write_json(&storage.model_record(self.model_id), &info).map_err(|e| format!("saving the model record: {e}"))?;
