@@ -2,11 +2,14 @@
 
 Uploads two copies of a tiny generated Blender scene (a sphere seen from 8 training
 and 2 test cameras, 16x16 RGBA), trains one 4-step nerf-tiny job on the first and
-waits for its model, then prints schemathesis configuration (TOML) that feeds those ids
-to the operations taking an id (mixed with generated ids): the second scene is for
-DELETE, so the first one stays for GET.
+waits for its model, renders a 4-frame 16x16 GIF orbit of it, then prints schemathesis
+configuration (TOML) that feeds those ids to the operations taking an id (mixed with
+generated ids). DELETE deletes, so it gets spares of its own and the seeded records stay
+for GET: the second scene, spare models and videos, and finished jobs (queued jobs
+canceled at once, cheap to make in numbers).
 
 Usage: schemathesis_seed.py BASE_URL >>schemathesis.toml
+
 """
 
 import io
@@ -15,6 +18,7 @@ import math
 import struct
 import sys
 import time
+import urllib.error
 import urllib.request
 import zipfile
 import zlib
@@ -95,31 +99,83 @@ def call(base, method, path, body=None, content_type="application/json"):
         return json.load(r)
 
 
-def main():
-    base = sys.argv[1]
-    archive = scene_zip()
-    scenes = [call(base, "POST", "/v1/scenes", archive, "application/zip")["id"] for _ in range(2)]
-    job = call(base, "POST", "/v1/jobs", {"scene_id": scenes[0], "model": "nerf-tiny", "budget": {"steps": 4},
-                                          "seed": 0, "batch_rays": 64})["id"]
+FINAL = ("succeeded", "failed", "canceled")
+
+
+def wait(base, job, want="succeeded", key=None):
+    """Waits for a job to end; returns the job (exits unless it ended `want` with `key` set)."""
     deadline = time.time() + 120
     while True:
         j = call(base, "GET", f"/v1/jobs/{job}")
-        if j["status"] in ("succeeded", "failed", "canceled"):
+        if j["status"] in FINAL:
             break
         if time.time() > deadline:
             sys.exit(f"seed job {job} did not finish in 120 s: {j}")
         time.sleep(0.2)
-    if j["status"] != "succeeded" or not j.get("model_id"):
-        sys.exit(f"seed job {job} did not succeed: {j}")
-    ids = {"scene": scenes[0], "spare_scene": scenes[1], "job": job, "model": j["model_id"]}
+    if want and (j["status"] != want or (key and not j.get(key))):
+        sys.exit(f"seed job {job} did not end {want} with {key}: {j}")
+    return j
+
+
+def train(base, scene):
+    """A 4-step nerf-tiny job; returns (job id, model id)."""
+    body = {"scene_id": scene, "model": "nerf-tiny", "budget": {"steps": 4}, "seed": 0, "batch_rays": 64}
+    job = call(base, "POST", "/v1/jobs", body)["id"]
+    return job, wait(base, job, key="model_id")["model_id"]
+
+
+def video(base, model):
+    """A 4-frame 16x16 GIF orbit of a model; returns its video id."""
+    body = {"frames": 4, "fps": 4, "width": 16, "height": 16, "format": "gif"}
+    return wait(base, call(base, "POST", f"/v1/models/{model}/videos", body)["id"], key="video_id")["video_id"]
+
+
+def canceled_jobs(base, scene, n):
+    """`n` jobs canceled (mostly while still queued); returns their ids once all have ended."""
+    body = {"scene_id": scene, "model": "nerf-tiny", "budget": {"steps": 1}, "seed": 0, "batch_rays": 64}
+    jobs = [call(base, "POST", "/v1/jobs", body)["id"] for _ in range(n)]
+    for job in jobs:
+        try:
+            call(base, "POST", f"/v1/jobs/{job}/cancel", {})
+        except urllib.error.HTTPError as e:  # 409: it ended before the cancel
+            if e.code != 409:
+                raise
+    for job in jobs:
+        wait(base, job, want=None)
+    return jobs
+
+
+def main():
+    base = sys.argv[1]
+    archive = scene_zip()
+    scenes = [call(base, "POST", "/v1/scenes", archive, "application/zip")["id"] for _ in range(2)]
+    job, model = train(base, scenes[0])
+    vid = video(base, model)
+    spare_trained = [train(base, scenes[0]) for _ in range(3)]
+    spare_videos = [video(base, model) for _ in range(3)]
+    spare_jobs = canceled_jobs(base, scenes[0], 20) + [j for j, _ in spare_trained]
+    ids = {
+        "scene": [scenes[0]],
+        "spare_scene": [scenes[1]],
+        "job": [job],
+        "spare_job": spare_jobs,
+        "model": [model],
+        "spare_model": [m for _, m in spare_trained],
+        "video": [vid],
+        "spare_video": spare_videos,
+    }
     bindings = [
         ("GET", "^/v1/scenes/\\{id\\}$", "scene"),
         ("DELETE", "^/v1/scenes/\\{id\\}$", "spare_scene"),
         ("GET|POST", "^/v1/jobs/\\{id\\}", "job"),
-        ("GET", "^/v1/models/\\{id\\}", "model"),
+        ("DELETE", "^/v1/jobs/\\{id\\}$", "spare_job"),
+        ("GET|POST", "^/v1/models/\\{id\\}", "model"),
+        ("DELETE", "^/v1/models/\\{id\\}$", "spare_model"),
+        ("GET", "^/v1/videos/\\{id\\}$", "video"),
+        ("DELETE", "^/v1/videos/\\{id\\}$", "spare_video"),
     ]
     out = [f"\n# Seeded by schemathesis_seed.py: {ids}\n"]
-    out += [f'[dictionaries.{name}]\nvalues = ["{value}"]\n' for name, value in ids.items()]
+    out += [f"[dictionaries.{name}]\nvalues = {json.dumps(values)}\n" for name, values in ids.items()]
     for method, path, name in bindings:
         out.append(
             f"[[operations]]\ninclude-method-regex = '^({method})$'\ninclude-path-regex = '{path}'\n"
