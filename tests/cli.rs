@@ -91,6 +91,9 @@ fn serve_refuses_a_bad_retention() {
         };
         let mut err = String::new();
         std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
-        assert!(!status.success() && err.contains("--keep-training-state-hours"), "{hours}: {err}");
+        assert!(
+            !status.success() && err.contains("--keep-training-state-hours must be a number of hours"),
+            "{hours}: {err}"
+        );
     }
 }
