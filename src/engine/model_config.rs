@@ -62,6 +62,16 @@ impl ModelConfig {
         })
     }
 
+    /// The configuration a built model runs with (as its checkpoint stores it).
+    pub fn of_model(model: &dyn Model) -> Option<Self> {
+        let json = model.config_json();
+        match model.kind() {
+            "instant" => serde_json::from_value(json).ok().map(ModelConfig::Instant),
+            "nerf" => serde_json::from_value(json).ok().map(ModelConfig::Nerf),
+            _ => None,
+        }
+    }
+
     /// `instant` or `nerf`.
     pub fn kind(&self) -> &'static str {
         match self {
