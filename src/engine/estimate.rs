@@ -49,8 +49,8 @@ pub struct Estimate {
     pub memory_bytes: u64,
     /// What makes up the peak, largest first: `(what, bytes)`.
     pub parts: Vec<(String, u64)>,
-    /// Bytes of the checkpoint on disk.
-    pub checkpoint_bytes: u64,
+    /// Bytes the run writes to disk: the checkpoint, or the video.
+    pub disk_bytes: u64,
 }
 
 /// Memory of the process before any model or data: code, allocator arenas,
@@ -69,12 +69,12 @@ impl Estimate {
         parts.sort_by_key(|p| std::cmp::Reverse(p.1));
         let memory_bytes = parts.iter().map(|p| p.1).sum();
         // params + Adam's moments + model state, and a small header.
-        let checkpoint_bytes = (3 * params + state_floats) * F32 + (64 << 10);
+        let disk_bytes = (3 * params + state_floats) * F32 + (64 << 10);
         Self {
             params,
             memory_bytes,
             parts: parts.into_iter().map(|(k, v)| (k.to_string(), v)).collect(),
-            checkpoint_bytes,
+            disk_bytes,
         }
     }
 
@@ -130,7 +130,10 @@ pub fn video(config: &ModelConfig, frames: u32, width: u32, height: u32, threads
         // Every frame as 8-bit RGB, then the encoded file.
         ("frames", 2 * frames as u64 * pixels * 3),
     ];
-    Estimate::new(params, occupancy, parts)
+    let mut e = Estimate::new(params, occupancy, parts);
+    // At most the raw frames: both formats compress.
+    e.disk_bytes = frames as u64 * pixels * 3;
+    e
 }
 
 /// Trainable parameters of the fast model.
@@ -215,7 +218,7 @@ mod tests {
         let more_threads = training(&c, DataSize::uniform(10, 100, 100), 3);
         assert!(more_threads.memory_bytes >= small.memory_bytes + small.params * 4);
         // The checkpoint holds parameters and both moments.
-        assert!(small.checkpoint_bytes >= 3 * small.params * 4);
+        assert!(small.disk_bytes >= 3 * small.params * 4);
     }
 
     #[test]
