@@ -26,7 +26,8 @@ pub fn scene_data(scene: &SceneInfo) -> DataSize {
 /// `resource_limit`) or whose checkpoint would leave less free disk than
 /// the reserve (507 `insufficient_storage`).
 pub fn check(e: &Estimate, config: &ServiceConfig) -> Result<(), ApiError> {
-    let parts: serde_json::Map<String, serde_json::Value> = e.parts.iter().map(|(k, v)| (k.clone(), json!(v))).collect();
+    let parts: serde_json::Map<String, serde_json::Value> =
+        e.parts.iter().map(|(k, v)| (k.clone(), json!(v))).collect();
     if e.memory_bytes > config.scheduler.max_job_memory_bytes {
         return Err(ApiError::new(
             Code::ResourceLimit,

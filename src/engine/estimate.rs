@@ -70,12 +70,7 @@ impl Estimate {
         let memory_bytes = parts.iter().map(|p| p.1).sum();
         // params + Adam's moments + model state, and a small header.
         let disk_bytes = (3 * params + state_floats) * F32 + (64 << 10);
-        Self {
-            params,
-            memory_bytes,
-            parts: parts.into_iter().map(|(k, v)| (k.to_string(), v)).collect(),
-            disk_bytes,
-        }
+        Self { params, memory_bytes, parts: parts.into_iter().map(|(k, v)| (k.to_string(), v)).collect(), disk_bytes }
     }
 
     /// The parts as text: `parameters 12.0 MiB, ...`.

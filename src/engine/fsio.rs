@@ -120,7 +120,9 @@ mod tests {
     fn temporary_names_are_recognised() {
         assert!(is_temporary(&temp_name(std::ffi::OsStr::new("model.ckpt"), 42, 7)));
         assert!(is_temporary(std::ffi::OsStr::new(".mdl_1.ckpt.tmp19226.2")));
-        for name in ["model.ckpt", ".model.ckpt", ".x.tmp12", ".x.tmp.3", ".x.tmpa.3", ".x.tmp1.", ".tmp1.2", "x.tmp1.2"] {
+        for name in
+            ["model.ckpt", ".model.ckpt", ".x.tmp12", ".x.tmp.3", ".x.tmpa.3", ".x.tmp1.", ".tmp1.2", "x.tmp1.2"]
+        {
             assert!(!is_temporary(std::ffi::OsStr::new(name)), "{name}");
         }
     }

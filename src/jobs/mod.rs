@@ -542,7 +542,8 @@ fn tick(shared: &Arc<Shared>, st: &mut State) {
             // Accepted under a larger limit before a restart.
             st.queue.pop_front();
             let limit = shared.config.max_job_memory_bytes >> 20;
-            let msg = format!("the job needs about {} MiB, more than the server now allows a job ({limit} MiB)", need >> 20);
+            let msg =
+                format!("the job needs about {} MiB, more than the server now allows a job ({limit} MiB)", need >> 20);
             finish(shared, st, &id, Outcome::Failed(msg));
             continue;
         }
