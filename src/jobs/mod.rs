@@ -1,10 +1,12 @@
 //! Jobs: their records and states, the persisted store, and the scheduler
 //! that runs at most `max_concurrent` of them at once.
 //!
-//! Only the enqueued, started and final states are written to disk (the
-//! job database, one committed transaction each): progress lives in memory. On start-up
-//! a job found `queued` or `running` is queued again in its original order;
-//! a training job whose checkpoint exists resumes from it.
+//! Only the enqueued, started, interrupted (written back as queued by a
+//! clean shutdown) and final states are written to disk (the job database,
+//! one committed transaction each): progress lives in memory. On start-up a
+//! job found `queued` or `running` is queued again in its original order; a
+//! training job whose checkpoint exists resumes from it. One found `running`
+//! was cut short by the process dying: see [`MAX_CRASHES`].
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::io;
