@@ -14,6 +14,8 @@ RUN apt-get update \
     && useradd --system --uid 10001 --gid 10001 --home-dir /data --no-create-home radiance \
     && mkdir -p /data \
     && chown 10001:10001 /data
+# The licence texts (MIT OR Apache-2.0) travel with the binary.
+COPY LICENSE-MIT LICENSE-APACHE /usr/share/doc/radiance/
 COPY --from=build /src/target/release/radiance /usr/local/bin/radiance
 # Numeric, so the runtime (and Kubernetes' runAsNonRoot) can tell it is not root.
 USER 10001:10001

@@ -13,3 +13,4 @@ pub mod engine;
 pub mod jobs;
 pub mod media;
 pub mod storage;
+pub mod system;

@@ -55,6 +55,10 @@ impl Storage {
             std::fs::remove_dir_all(&tmp)?;
         }
         std::fs::create_dir_all(&tmp)?;
+        let removed = remove_stale_temporaries(&s.root, &s.scenes_dir())?;
+        if removed > 0 {
+            tracing::info!(files = removed, "removed temporary files left by an interrupted write");
+        }
         Ok(s)
     }
 
@@ -233,6 +237,30 @@ impl Storage {
         v.sort_by(|a, b| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
         Ok(v)
     }
+}
+
+/// Removes every temporary file of an interrupted atomic write
+/// ([`crate::engine::fsio::is_temporary`]) below `dir`, except inside the
+/// uploaded datasets (`scenes/ID/data/`, the user's files, which no atomic
+/// write of ours touches). Returns how many it removed. Only for start-up:
+/// a running writer's temporary file would be removed too.
+fn remove_stale_temporaries(dir: &Path, scenes: &Path) -> io::Result<usize> {
+    let mut removed = 0;
+    for e in std::fs::read_dir(dir)? {
+        let e = e?;
+        let path = e.path();
+        let kind = e.file_type()?;
+        if kind.is_dir() {
+            let dataset = path.parent().and_then(Path::parent) == Some(scenes) && e.file_name() == "data";
+            if !dataset {
+                removed += remove_stale_temporaries(&path, scenes)?;
+            }
+        } else if kind.is_file() && crate::engine::fsio::is_temporary(&e.file_name()) {
+            std::fs::remove_file(&path)?;
+            removed += 1;
+        }
+    }
+    Ok(removed)
 }
 
 /// Ids are made here and only ever contain `[a-z0-9_]`: a path component
@@ -452,6 +480,34 @@ mod tests {
         let all: Vec<serde_json::Value> = again.list_jobs().unwrap();
         assert_eq!(all, vec![serde_json::json!({ "id": "job_a" }), serde_json::json!({ "id": "job_b", "n": 2 })]);
         assert_eq!(again.get_job::<serde_json::Value>("job_b").unwrap().unwrap()["n"], 2);
+    }
+
+    #[test]
+    fn start_up_removes_stale_temporaries_but_not_uploaded_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Storage::open(dir.path()).unwrap();
+        let stale = [
+            s.models_dir().join(".mdl_a.ckpt.tmp19226.2"),
+            s.videos_dir().join(".vid_a.bin.tmp7.0"),
+            s.scene_dir("scn_a").join(".scene.json.tmp3.1"),
+            dir.path().join(".jobs.redb.tmp1.1"),
+        ];
+        let kept = [
+            s.models_dir().join("mdl_a.ckpt"),
+            s.scene_dir("scn_a").join("data").join(".img.png.tmp1.1"),
+            s.scene_dir("scn_a").join("data").join("sub").join(".x.tmp2.2"),
+        ];
+        for p in stale.iter().chain(&kept) {
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, b"partial").unwrap();
+        }
+        Storage::open(dir.path()).unwrap();
+        for p in &stale {
+            assert!(!p.exists(), "{} should be gone", p.display());
+        }
+        for p in &kept {
+            assert!(p.exists(), "{} should stay", p.display());
+        }
     }
 
     #[test]

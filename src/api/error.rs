@@ -19,6 +19,10 @@ pub enum Code {
     UnsupportedMediaType,
     InvalidDataset,
     QueueFull,
+    /// The job would need more memory than the server allows one job.
+    ResourceLimit,
+    /// The job's output would leave less free disk than the reserve.
+    InsufficientStorage,
     Internal,
 }
 
@@ -34,6 +38,8 @@ impl Code {
             Code::UnsupportedMediaType => ("unsupported_media_type", StatusCode::UNSUPPORTED_MEDIA_TYPE),
             Code::InvalidDataset => ("invalid_dataset", StatusCode::UNPROCESSABLE_ENTITY),
             Code::QueueFull => ("queue_full", StatusCode::SERVICE_UNAVAILABLE),
+            Code::ResourceLimit => ("resource_limit", StatusCode::UNPROCESSABLE_ENTITY),
+            Code::InsufficientStorage => ("insufficient_storage", StatusCode::INSUFFICIENT_STORAGE),
             Code::Internal => ("internal", StatusCode::INTERNAL_SERVER_ERROR),
         }
     }

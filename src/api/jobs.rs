@@ -11,7 +11,8 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use futures_util::Stream;
 use serde::Deserialize;
 
-use super::{ApiError, ApiResult, AppState, Code};
+use super::{ApiError, ApiResult, AppState, Code, limits};
+use crate::engine::estimate;
 use crate::engine::model_config::{DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
 use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec};
 
@@ -104,10 +105,20 @@ pub async fn create(
 ) -> ApiResult<(StatusCode, Json<Job>)> {
     let Json(req) = body?;
     let spec = to_spec(req)?;
-    let sched = s.scheduler.clone();
-    let job = tokio::task::spawn_blocking(move || sched.enqueue(JobSpec::Train(Box::new(spec)), None))
-        .await?
-        .map_err(sched_error)?;
+    let job = tokio::task::spawn_blocking(move || -> ApiResult<Job> {
+        // An unknown scene has no estimate: enqueue answers 404 for it.
+        let memory = match s.storage.load_scene(&spec.scene_id)? {
+            Some(scene) => {
+                let threads = rayon::current_num_threads();
+                let e = estimate::training(&spec.config, limits::scene_data(&scene), threads);
+                limits::check(&e, &s.config)?;
+                e.memory_bytes
+            }
+            None => 0,
+        };
+        s.scheduler.enqueue(JobSpec::Train(Box::new(spec)), None, memory).map_err(sched_error)
+    })
+    .await??;
     tracing::info!(job = %job.id, kind = "train", "job queued");
     Ok((StatusCode::ACCEPTED, Json(job)))
 }

@@ -26,6 +26,7 @@ pub mod archive;
 pub mod error;
 pub mod health;
 pub mod jobs;
+pub mod limits;
 pub mod models;
 pub mod scenes;
 pub mod videos;
@@ -47,6 +48,8 @@ pub struct ServiceConfig {
     pub max_concurrent_renders: usize,
     /// When set, every route but `/healthz` needs `Authorization: Bearer KEY`.
     pub api_key: Option<String>,
+    /// Free disk space a new job must leave, beyond its own output.
+    pub min_free_disk_bytes: u64,
     pub scheduler: SchedulerConfig,
 }
 
@@ -60,6 +63,7 @@ impl ServiceConfig {
             max_render_pixels: 1 << 20,
             max_concurrent_renders: 2,
             api_key: None,
+            min_free_disk_bytes: 1 << 30,
             scheduler: SchedulerConfig::default(),
         }
     }

@@ -11,7 +11,9 @@ use axum::response::IntoResponse;
 use serde::Deserialize;
 
 use super::jobs::sched_error;
-use super::{ApiError, ApiResult, AppState};
+use super::{ApiError, ApiResult, AppState, limits};
+use crate::engine::estimate;
+use crate::engine::model_config::ModelConfig;
 use crate::jobs::{Job, JobSpec, VideoSpec};
 use crate::media::video::VideoFormat;
 use crate::storage::ViewDefaults;
@@ -92,10 +94,15 @@ pub async fn create(
     let Json(req) = body?;
     let info = s.storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id))?;
     let spec = to_spec(req, &info.view, s.config.max_render_pixels).map_err(ApiError::bad_request)?;
-    let sched = s.scheduler.clone();
-    let job = tokio::task::spawn_blocking(move || sched.enqueue(JobSpec::Video(spec), Some(id)))
-        .await?
-        .map_err(sched_error)?;
+    let config = ModelConfig::preset(&info.model)
+        .and_then(|preset| ModelConfig::from_kind_json(preset.kind(), info.config.clone()))
+        .ok_or_else(|| ApiError::internal(format!("model '{id}' has an unreadable configuration")))?;
+    let e = estimate::video(&config, spec.frames, spec.width, spec.height, rayon::current_num_threads());
+    let job = tokio::task::spawn_blocking(move || -> ApiResult<Job> {
+        limits::check(&e, &s.config)?;
+        s.scheduler.enqueue(JobSpec::Video(spec), Some(id), e.memory_bytes).map_err(sched_error)
+    })
+    .await??;
     tracing::info!(job = %job.id, kind = "video", "job queued");
     Ok((StatusCode::ACCEPTED, Json(job)))
 }

@@ -20,6 +20,7 @@ use crate::engine::fsio;
 use crate::engine::render::render_view;
 use crate::engine::scene::Scene;
 use crate::engine::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
+use crate::system::{peak_memory, reset_peak_memory};
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -98,20 +99,6 @@ pub struct BenchReport {
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub set: Vec<String>,
     pub rows: Vec<BenchRow>,
-}
-
-/// Peak resident memory of this process in bytes (`VmHWM`), on Linux.
-fn peak_memory() -> Option<u64> {
-    let s = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
-}
-
-/// Resets the peak resident memory to the current one (Linux 4.0+), so each
-/// model's peak is its own; harmless where unsupported.
-fn reset_peak_memory() {
-    let _ = std::fs::write("/proc/self/clear_refs", "5");
 }
 
 const HEADER: &str = "model    budget s  train s    steps          rays        samples  smp/ray  skip/ray  PSNR dB    \

@@ -8,7 +8,7 @@ use clap::Args;
 
 use super::Common;
 use crate::api::{Server, ServiceConfig};
-use crate::jobs::SchedulerConfig;
+use crate::jobs::{SchedulerConfig, default_memory_budget};
 
 #[derive(Args, Debug)]
 pub struct ServeArgs {
@@ -41,6 +41,19 @@ pub struct ServeArgs {
     /// then the checkpoint is rewritten without it. 0: at once.
     #[arg(long, env = "RADIANCE_KEEP_TRAINING_STATE_HOURS", default_value_t = 24.0)]
     pub keep_training_state_hours: f64,
+    /// Estimated peak memory of all running jobs together, in MiB (default:
+    /// 80 % of the machine's memory); a job waits while starting it would
+    /// pass this.
+    #[arg(long, env = "RADIANCE_MEMORY_BUDGET_MB")]
+    pub memory_budget_mb: Option<u64>,
+    /// Estimated peak memory one job may have, in MiB (default: the memory
+    /// budget); larger jobs are refused with 422.
+    #[arg(long, env = "RADIANCE_MAX_JOB_MEMORY_MB")]
+    pub max_job_memory_mb: Option<u64>,
+    /// Free disk space, in MiB, that a new job's output must leave on the
+    /// data directory's file system; jobs that would not are refused with 507.
+    #[arg(long, env = "RADIANCE_MIN_FREE_DISK_MB", default_value_t = 1024)]
+    pub min_free_disk_mb: u64,
     /// Require `Authorization: Bearer KEY` on every route but /healthz.
     #[arg(long, env = "RADIANCE_API_KEY", hide_env_values = true)]
     pub api_key: Option<String>,
@@ -65,11 +78,23 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
     config.max_unpacked_bytes = a.max_unpacked_mb << 20;
     config.max_render_pixels = a.max_render_pixels;
     config.api_key = a.api_key.filter(|k| !k.is_empty());
+    let budget = a.memory_budget_mb.map_or_else(default_memory_budget, |m| m << 20);
+    let per_job = a.max_job_memory_mb.map_or(budget, |m| m << 20);
+    anyhow::ensure!(budget > 0 && per_job > 0, "--memory-budget-mb and --max-job-memory-mb must be positive");
+    anyhow::ensure!(
+        per_job <= budget,
+        "--max-job-memory-mb ({} MiB) is larger than --memory-budget-mb ({} MiB): such a job could never start",
+        per_job >> 20,
+        budget >> 20
+    );
+    config.min_free_disk_bytes = a.min_free_disk_mb << 20;
     config.scheduler = SchedulerConfig {
         max_concurrent: a.max_concurrent_jobs,
         max_queued: a.max_queued_jobs,
         checkpoint_every: a.checkpoint_every,
         keep_training_state,
+        max_job_memory_bytes: per_job,
+        memory_budget_bytes: budget,
         ..SchedulerConfig::default()
     };
     // The runtime only moves bytes: the work runs on the rayon pool.
@@ -79,7 +104,13 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("starting the service on {} with data in {}", a.addr, a.data_dir.display()))?;
         println!("listening on http://{}", server.addr);
-        tracing::info!(data_dir = %a.data_dir.display(), threads, "radiance serve ready");
+        tracing::info!(
+            data_dir = %a.data_dir.display(),
+            threads,
+            memory_budget_mib = budget >> 20,
+            max_job_memory_mib = per_job >> 20,
+            "radiance serve ready"
+        );
         shutdown_signal().await;
         tracing::info!("shutting down: checkpointing running jobs");
         server.shutdown().await.context("shutting down")?;

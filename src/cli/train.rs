@@ -12,9 +12,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 use super::Common;
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
+use crate::engine::estimate::{self, DataSize, mib};
+use crate::engine::model_config::ModelConfig;
 use crate::engine::persist;
 use crate::engine::scene::Scene;
 use crate::engine::trainer::{Budget, StopReason, TrainState, Trainer};
+use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
@@ -113,6 +116,12 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
         model.params().len(),
         threads
     );
+    if let Some(c) = ModelConfig::of_model(&*model) {
+        let data =
+            DataSize { frames: ds.frames.len(), pixels: ds.frames.iter().map(|f| f.image.rgba.len() as u64 / 4).sum() };
+        let e = estimate::training(&c, data, threads);
+        eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
+    }
     let cancel = Arc::new(AtomicBool::new(false));
     {
         let c = cancel.clone();
@@ -175,6 +184,9 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     println!("train PSNR     {:.2} dB", p.train_psnr);
     if s.diverged_steps > 0 {
         println!("skipped steps  {} (non-finite loss or gradient)", s.diverged_steps);
+    }
+    if let Some(peak) = peak_memory() {
+        println!("peak memory    {}", mib(peak));
     }
     println!("model          {}", a.out.display());
     Ok(())

@@ -84,6 +84,17 @@ fn temp_name(name: &std::ffi::OsStr, pid: u32, n: u64) -> OsString {
     s
 }
 
+/// Whether a file name is one of [`write_atomic_with`]'s temporary files
+/// (`.<name>.tmp<pid>.<counter>`): what a crash mid-write leaves behind.
+pub fn is_temporary(name: &std::ffi::OsStr) -> bool {
+    let Some(s) = name.to_str() else { return false };
+    let Some(rest) = s.strip_prefix('.') else { return false };
+    let Some((stem, counter)) = rest.rsplit_once('.') else { return false };
+    let Some((file, pid)) = stem.rsplit_once(".tmp") else { return false };
+    let digits = |t: &str| !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit());
+    !file.is_empty() && digits(pid) && digits(counter)
+}
+
 #[cfg(unix)]
 fn sync_dir(dir: &Path) -> io::Result<()> {
     File::open(dir)?.sync_all()
@@ -103,6 +114,17 @@ mod tests {
             fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
         v.sort();
         v
+    }
+
+    #[test]
+    fn temporary_names_are_recognised() {
+        assert!(is_temporary(&temp_name(std::ffi::OsStr::new("model.ckpt"), 42, 7)));
+        assert!(is_temporary(std::ffi::OsStr::new(".mdl_1.ckpt.tmp19226.2")));
+        for name in
+            ["model.ckpt", ".model.ckpt", ".x.tmp12", ".x.tmp.3", ".x.tmpa.3", ".x.tmp1.", ".tmp1.2", "x.tmp1.2"]
+        {
+            assert!(!is_temporary(std::ffi::OsStr::new(name)), "{name}");
+        }
     }
 
     #[test]

@@ -312,6 +312,12 @@ struct Marched {
     skipped: u64,
 }
 
+/// Lays out the fast model's parameters for `config` (without allocating
+/// them): what [`InstantModel::new`] allocates.
+pub fn layout(layout: &mut ParamLayout, config: &InstantConfig) {
+    Nets::new(layout, config);
+}
+
 impl InstantModel {
     pub fn new(mut config: InstantConfig, scene: Scene, seed: u64) -> Self {
         let mut layout = ParamLayout::default();

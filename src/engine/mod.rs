@@ -9,6 +9,7 @@ pub mod camera;
 pub mod checkpoint;
 pub mod dataset;
 pub mod encoding;
+pub mod estimate;
 pub mod fsio;
 pub mod gemm;
 pub mod hashgrid;

@@ -62,6 +62,21 @@ impl ModelConfig {
         })
     }
 
+    /// The configuration a built model runs with (as its checkpoint stores it).
+    pub fn of_model(model: &dyn Model) -> Option<Self> {
+        Self::from_kind_json(model.kind(), model.config_json())
+    }
+
+    /// A configuration from a model kind and its untagged JSON (as
+    /// `Model::config_json` writes it).
+    pub fn from_kind_json(kind: &str, json: serde_json::Value) -> Option<Self> {
+        match kind {
+            "instant" => serde_json::from_value(json).ok().map(ModelConfig::Instant),
+            "nerf" => serde_json::from_value(json).ok().map(ModelConfig::Nerf),
+            _ => None,
+        }
+    }
+
     /// `instant` or `nerf`.
     pub fn kind(&self) -> &'static str {
         match self {

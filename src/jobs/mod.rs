@@ -1,10 +1,12 @@
 //! Jobs: their records and states, the persisted store, and the scheduler
 //! that runs at most `max_concurrent` of them at once.
 //!
-//! Only the enqueued, started and final states are written to disk (the
-//! job database, one committed transaction each): progress lives in memory. On start-up
-//! a job found `queued` or `running` is queued again in its original order;
-//! a training job whose checkpoint exists resumes from it.
+//! Only the enqueued, started, interrupted (written back as queued by a
+//! clean shutdown) and final states are written to disk (the job database,
+//! one committed transaction each): progress lives in memory. On start-up a
+//! job found `queued` or `running` is queued again in its original order; a
+//! training job whose checkpoint exists resumes from it. One found `running`
+//! was cut short by the process dying: see [`MAX_CRASHES`].
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::io;
@@ -190,6 +192,15 @@ pub struct Job {
     /// Times the job was started (more than one after a restart).
     #[serde(default)]
     pub attempts: u32,
+    /// Estimated peak memory of the job (bytes), checked against the
+    /// server's limits before it was queued and before it starts.
+    #[serde(default)]
+    pub memory_estimate_bytes: u64,
+    /// Runs in a row that ended with the server process dying (killed, or
+    /// out of memory) without the job saving anything new; at two the job
+    /// is failed instead of being run again.
+    #[serde(default)]
+    pub crashes: u32,
 }
 
 impl Job {
@@ -221,6 +232,11 @@ pub struct SchedulerConfig {
     /// How long a model keeps its optimiser state after its training ended
     /// (then its checkpoint is rewritten without it; zero: at once).
     pub keep_training_state: Duration,
+    /// Estimated peak memory one job may have (larger ones are refused).
+    pub max_job_memory_bytes: u64,
+    /// Estimated peak memory of all running jobs together: a job waits
+    /// while starting it would pass this.
+    pub memory_budget_bytes: u64,
 }
 
 impl Default for SchedulerConfig {
@@ -233,8 +249,17 @@ impl Default for SchedulerConfig {
             heldout_every: 10.0,
             run_jobs: true,
             keep_training_state: Duration::from_secs(24 * 3600),
+            max_job_memory_bytes: default_memory_budget(),
+            memory_budget_bytes: default_memory_budget(),
         }
     }
+}
+
+/// The default memory budget for jobs: 80 % of the machine's memory (4 GiB
+/// where it cannot be read), leaving room for the server, renders and the
+/// page cache.
+pub fn default_memory_budget() -> u64 {
+    crate::system::total_memory().map_or(4 << 30, |t| t / 5 * 4)
 }
 
 /// Why a job could not be enqueued or a scene deleted.
@@ -325,6 +350,9 @@ impl Scheduler {
         jobs.sort_by_key(|j| j.seq);
         for mut j in jobs {
             st.next_seq = st.next_seq.max(j.seq + 1);
+            if j.status == Status::Running {
+                count_crash(&storage, &mut j)?;
+            }
             if !j.status.is_final() {
                 // It was waiting or interrupted: run it again, in order.
                 j.status = Status::Queued;
@@ -355,7 +383,7 @@ impl Scheduler {
 
     /// Registers a job and answers with its queued record. A training job
     /// needs its scene; a video job needs a model (`model_id`).
-    pub fn enqueue(&self, spec: JobSpec, model_id: Option<String>) -> Result<Job, SchedError> {
+    pub fn enqueue(&self, spec: JobSpec, model_id: Option<String>, memory_estimate: u64) -> Result<Job, SchedError> {
         let mut st = self.shared.lock();
         let storage = &self.shared.storage;
         match &spec {
@@ -387,6 +415,8 @@ impl Scheduler {
             video_id: None,
             progress: JobProgress::default(),
             attempts: 0,
+            memory_estimate_bytes: memory_estimate,
+            crashes: 0,
         };
         storage.put_job(&job.id, &job)?;
         st.next_seq += 1;
@@ -478,6 +508,39 @@ impl Scheduler {
     }
 }
 
+/// Runs in a row that end with the process dying, without the job saving
+/// anything new in between, before the job is failed rather than run again.
+pub const MAX_CRASHES: u32 = 2;
+
+/// A job found `running` at start-up: the process died while running it (a
+/// clean shutdown writes it back as `queued`). Counts the crash, unless
+/// the job saved a checkpoint since it started, which shows it was making
+/// progress (a restart then resumes it); fails it at [`MAX_CRASHES`], so a
+/// job that takes the process down (out of memory) cannot do so at every
+/// start.
+fn count_crash(storage: &Storage, j: &mut Job) -> io::Result<()> {
+    let saved_since_start = match &j.spec {
+        JobSpec::Train(_) => storage
+            .load_model(&j.reserved_model_id())
+            .ok()
+            .flatten()
+            .is_some_and(|m| j.started_at.is_some_and(|s| m.updated_at > s)),
+        JobSpec::Video(_) => false,
+    };
+    j.crashes = if saved_since_start { 1 } else { j.crashes + 1 };
+    if j.crashes >= MAX_CRASHES {
+        j.status = Status::Failed;
+        j.finished_at = Some(now_ms());
+        j.error = Some(format!(
+            "the server process died {} times in a row while running this job, without the job saving progress \
+             in between (killed, or out of memory?); it is not run again",
+            j.crashes
+        ));
+        tracing::error!(job = %j.id, crashes = j.crashes, "job failed: it crashed the server repeatedly");
+    }
+    storage.put_job(&j.id, &*j)
+}
+
 /// The scheduler thread: `tick` until shutdown, and the retention sweep
 /// (without the lock) at start-up, when a job ends and once a minute.
 fn scheduler_loop(shared: &Arc<Shared>) {
@@ -506,7 +569,25 @@ fn tick(shared: &Arc<Shared>, st: &mut State) {
         return;
     }
     while st.running.len() < shared.config.max_concurrent.max(1) {
-        let Some(id) = st.queue.pop_front() else { break };
+        let Some(id) = st.queue.front().cloned() else { break };
+        let Some(need) = st.jobs.get(&id).map(|j| j.memory_estimate_bytes) else {
+            st.queue.pop_front();
+            continue;
+        };
+        if need > shared.config.max_job_memory_bytes {
+            // Accepted under a larger limit before a restart.
+            st.queue.pop_front();
+            let limit = shared.config.max_job_memory_bytes >> 20;
+            let msg =
+                format!("the job needs about {} MiB, more than the server now allows a job ({limit} MiB)", need >> 20);
+            finish(shared, st, &id, Outcome::Failed(msg));
+            continue;
+        }
+        let used: u64 = st.running.keys().filter_map(|r| st.jobs.get(r)).map(|j| j.memory_estimate_bytes).sum();
+        if !st.running.is_empty() && used + need > shared.config.memory_budget_bytes {
+            break; // it waits, in order, until running jobs free enough memory
+        }
+        st.queue.pop_front();
         let Some(job) = st.jobs.get_mut(&id) else { continue };
         job.status = Status::Running;
         job.started_at = Some(now_ms());
@@ -567,6 +648,13 @@ fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) {
         Outcome::Stopped if user_cancel => Status::Canceled,
         Outcome::Stopped => {
             tracing::info!(job = %id, step = job.progress.step, "job interrupted by shutdown; it resumes at the next start");
+            // Queued again on disk: a job found `running` at start-up was
+            // cut short by the process dying, which counts as a crash.
+            let mut record = job.clone();
+            record.status = Status::Queued;
+            if let Err(e) = shared.storage.put_job(id, &record) {
+                tracing::error!(job = %id, error = %e, "cannot persist the interrupted job");
+            }
             return;
         }
     };

@@ -170,6 +170,8 @@ mod tests {
             video_id: None,
             progress: JobProgress::default(),
             attempts: 0,
+            memory_estimate_bytes: 0,
+            crashes: 0,
         }
     }
 

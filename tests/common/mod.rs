@@ -250,9 +250,17 @@ pub fn assert_no_scene_files(data: &Path) {
 
 /// Starts the real binary; returns it and its base URL.
 pub fn spawn_binary(data: &Path) -> (std::process::Child, String) {
+    spawn_binary_with(data, &["--checkpoint-every", "0.2"])
+}
+
+/// Starts the real binary with more `serve` arguments; returns it and its
+/// base URL once it listens.
+pub fn spawn_binary_with(data: &Path, args: &[&str]) -> (std::process::Child, String) {
     use std::io::BufRead;
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_radiance"))
-        .args(["serve", "--addr", "127.0.0.1:0", "--checkpoint-every", "0.2", "--threads", "2", "--data-dir"])
+        .args(["serve", "--addr", "127.0.0.1:0", "--threads", "2"])
+        .args(args)
+        .arg("--data-dir")
         .arg(data)
         .env_remove("RADIANCE_API_KEY")
         .stdout(std::process::Stdio::piped())

@@ -1,0 +1,237 @@
+//! What a run will cost before it starts: peak memory and checkpoint size,
+//! computed from the configuration and the dataset's size alone (nothing is
+//! allocated), so a service can refuse a job that would not fit.
+//!
+//! The figures follow what the code allocates:
+//! - parameters `P` floats, Adam's two moments (`2P`), the divergence
+//!   guard's snapshot of all three (`3P`), one gradient buffer per worker
+//!   thread (`threads * P`), and while a checkpoint is written, a copy of
+//!   the parameters and moments (`3P`);
+//! - the occupancy grid (a density and a few bits per cell);
+//! - each worker thread's activation buffers, sized for the largest chunk
+//!   of samples it processes (they never shrink);
+//! - the dataset, every frame held as 8-bit RGBA;
+//! - a fixed allowance for the process itself (code, allocator, stacks).
+//!
+//! `tests/estimate.rs` trains small and large configurations and checks
+//! the measured peak (`VmHWM`) against this estimate.
+
+use super::hashgrid::HashGrid;
+use super::instant::{self, InstantConfig};
+use super::linear::ParamLayout;
+use super::model_config::ModelConfig;
+use super::nerf::NerfConfig;
+use super::nerf_net::NerfNet;
+use super::occupancy::OccupancyConfig;
+
+/// The size of a dataset in memory: every frame of every split.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct DataSize {
+    pub frames: usize,
+    /// Pixels summed over all frames.
+    pub pixels: u64,
+}
+
+impl DataSize {
+    /// `frames` frames of `width` x `height`.
+    pub fn uniform(frames: usize, width: u32, height: u32) -> Self {
+        Self { frames, pixels: frames as u64 * width as u64 * height as u64 }
+    }
+}
+
+/// An estimate: the parts of the peak memory, in bytes, and the size of the
+/// checkpoint the run writes.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Estimate {
+    /// Trainable parameters.
+    pub params: u64,
+    /// Peak resident memory, bytes: the sum of `parts`.
+    pub memory_bytes: u64,
+    /// What makes up the peak, largest first: `(what, bytes)`.
+    pub parts: Vec<(String, u64)>,
+    /// Bytes the run writes to disk: the checkpoint, or the video.
+    pub disk_bytes: u64,
+}
+
+/// Memory of the process before any model or data: code, allocator arenas,
+/// thread stacks, the async runtime.
+pub const BASE_BYTES: u64 = 24 << 20;
+
+/// Bytes per pixel of a loaded frame (8-bit RGBA).
+const PIXEL_BYTES: u64 = 4;
+
+const F32: u64 = 4;
+
+impl Estimate {
+    fn new(params: u64, state_floats: u64, mut parts: Vec<(&str, u64)>) -> Self {
+        parts.push(("process", BASE_BYTES));
+        parts.retain(|p| p.1 > 0);
+        parts.sort_by_key(|p| std::cmp::Reverse(p.1));
+        let memory_bytes = parts.iter().map(|p| p.1).sum();
+        // params + Adam's moments + model state, and a small header.
+        let disk_bytes = (3 * params + state_floats) * F32 + (64 << 10);
+        Self { params, memory_bytes, parts: parts.into_iter().map(|(k, v)| (k.to_string(), v)).collect(), disk_bytes }
+    }
+
+    /// The parts as text: `parameters 12.0 MiB, ...`.
+    pub fn describe(&self) -> String {
+        self.parts.iter().map(|(k, v)| format!("{k} {}", mib(*v))).collect::<Vec<_>>().join(", ")
+    }
+}
+
+/// `12.3 MiB`.
+pub fn mib(bytes: u64) -> String {
+    format!("{:.1} MiB", bytes as f64 / (1u64 << 20) as f64)
+}
+
+/// Peak memory and checkpoint size of training `config` on `data` with
+/// `threads` worker threads.
+pub fn training(config: &ModelConfig, data: DataSize, threads: usize) -> Estimate {
+    let threads = threads.max(1) as u64;
+    let (params, occupancy, activations) = match config {
+        ModelConfig::Instant(c) => {
+            (instant_params(c), occupancy_cells(Some(&c.occupancy)), instant_activations(c, threads))
+        }
+        ModelConfig::Nerf(c) => (nerf_params(c), occupancy_cells(c.occupancy.as_ref()), nerf_activations(c)),
+    };
+    let p = params * F32;
+    let parts = vec![
+        ("parameters", p),
+        ("optimiser moments", 2 * p),
+        ("divergence snapshot", 3 * p),
+        ("per-thread gradients", threads * p),
+        ("checkpoint copy", 3 * p),
+        ("occupancy grid", occupancy * (F32 + 2)),
+        ("per-thread activations", threads * activations * F32),
+        ("dataset", data.pixels * PIXEL_BYTES),
+    ];
+    Estimate::new(params, occupancy, parts)
+}
+
+/// Peak memory of rendering a video of `frames` frames of `width` x
+/// `height` from a model of `config` (loaded with its optimiser state).
+pub fn video(config: &ModelConfig, frames: u32, width: u32, height: u32, threads: usize) -> Estimate {
+    let (params, occupancy) = match config {
+        ModelConfig::Instant(c) => (instant_params(c), occupancy_cells(Some(&c.occupancy))),
+        ModelConfig::Nerf(c) => (nerf_params(c), occupancy_cells(c.occupancy.as_ref())),
+    };
+    let pixels = width as u64 * height as u64;
+    let parts = vec![
+        // The checkpoint is read whole, then parameters and moments are copied out of it.
+        ("model and optimiser state", 6 * params * F32),
+        ("occupancy grid", occupancy * (F32 + 2)),
+        // A view's colour, depth and opacity, and each thread's samples.
+        ("render buffers", pixels * 5 * F32 + threads.max(1) as u64 * (4 << 20)),
+        // Every frame as 8-bit RGB, then the encoded file.
+        ("frames", 2 * frames as u64 * pixels * 3),
+    ];
+    let mut e = Estimate::new(params, occupancy, parts);
+    // At most the raw frames: both formats compress.
+    e.disk_bytes = frames as u64 * pixels * 3;
+    e
+}
+
+/// Trainable parameters of the fast model.
+pub fn instant_params(c: &InstantConfig) -> u64 {
+    let mut layout = ParamLayout::default();
+    instant::layout(&mut layout, c);
+    layout.len as u64
+}
+
+/// Trainable parameters of the classic model (coarse and fine networks).
+pub fn nerf_params(c: &NerfConfig) -> u64 {
+    let mut layout = ParamLayout::default();
+    NerfNet::new(&mut layout, "coarse", c.net.clone());
+    NerfNet::new(&mut layout, "fine", c.net.clone());
+    layout.len as u64
+}
+
+fn occupancy_cells(c: Option<&OccupancyConfig>) -> u64 {
+    c.map_or(0, |o| (o.resolution as u64).pow(3))
+}
+
+/// Floats one worker thread holds for the fast model's largest chunk.
+///
+/// Rays per step start at `samples_per_step / 64` (the model's first guess
+/// of samples per ray) and shrink once it learns the real figure, so the
+/// largest chunk is the first one: `min(chunk_rays, rays per thread)` rays
+/// of up to one sample per marching step each (the occupancy grid is not
+/// warm yet).
+fn instant_activations(c: &InstantConfig, threads: u64) -> u64 {
+    let first_rays = (c.samples_per_step as u64).div_ceil(64).div_ceil(threads);
+    let rays = (c.chunk_rays as u64).min(first_rays).max(1);
+    let per_ray = (c.max_samples as u64).min(c.steps_per_diagonal as u64 + 1);
+    let samples = rays * per_ray;
+    let grid = HashGrid::new(&mut ParamLayout::default(), c.grid.clone()).width() as u64;
+    let (h, g) = (c.hidden as u64, c.geo_features as u64);
+    // Forward: unit position, encoding, density hidden, geometry features,
+    // density, SH direction code (16), two colour hiddens, colour; backward:
+    // two hidden-sized gradients, the features' and the encoding's; and the
+    // marcher's per-sample position, direction, distance and step.
+    let per_sample = (3 + grid + h + g + 1 + 16 + 2 * h + 3) + (2 * h + g + grid) + 12;
+    samples * per_sample
+}
+
+/// Floats one worker thread holds for the classic model's chunk: the coarse
+/// network on the coarse samples, the fine one on all of them, with each
+/// trunk layer's output kept for backward and the same again as gradients.
+fn nerf_activations(c: &NerfConfig) -> u64 {
+    let n = &c.net;
+    let (xw, dw) = (3 + 6 * n.pos_freqs as u64, 3 + 6 * n.dir_freqs as u64);
+    let per_sample = 2 * (xw + dw + (n.depth as u64 + 1) * n.width as u64 + n.dir_width as u64 + 8);
+    let rays = c.chunk_rays as u64;
+    rays * (2 * c.coarse_samples as u64 + c.fine_samples as u64) * per_sample
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::scene::Scene;
+    use crate::engine::synthetic::BallScene;
+
+    #[test]
+    fn parameter_counts_match_the_built_models() {
+        let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
+        for name in crate::engine::model_config::PRESETS {
+            let c = ModelConfig::preset(name).unwrap();
+            let m = c.build(Scene::from_dataset(&ds), 1);
+            let e = training(&c, DataSize::uniform(2, 8, 8), 2);
+            assert_eq!(e.params, m.params().len() as u64, "{name}");
+        }
+    }
+
+    #[test]
+    fn parts_add_up_and_grow_with_what_they_count() {
+        let c = ModelConfig::preset("instant").unwrap();
+        let small = training(&c, DataSize::uniform(10, 100, 100), 2);
+        assert_eq!(small.memory_bytes, small.parts.iter().map(|p| p.1).sum::<u64>());
+        assert!(small.parts.windows(2).all(|w| w[0].1 >= w[1].1), "largest first: {:?}", small.parts);
+        // The dataset part is exactly its RGBA bytes.
+        let more_data = training(&c, DataSize::uniform(20, 100, 100), 2);
+        assert_eq!(more_data.memory_bytes - small.memory_bytes, 10 * 100 * 100 * 4);
+        // A thread more adds one gradient buffer (and may add activations).
+        let more_threads = training(&c, DataSize::uniform(10, 100, 100), 3);
+        assert!(more_threads.memory_bytes >= small.memory_bytes + small.params * 4);
+        // The checkpoint holds parameters and both moments.
+        assert!(small.disk_bytes >= 3 * small.params * 4);
+    }
+
+    #[test]
+    fn the_twelve_gigabyte_config_of_issue_14_is_seen_as_such() {
+        let ModelConfig::Instant(mut c) = ModelConfig::preset("instant").unwrap() else { unreachable!() };
+        c.grid.levels = 32;
+        c.grid.log2_table = 24;
+        c.grid.finest_resolution = 8192;
+        c.hidden = 256;
+        c.geo_features = 64;
+        c.samples_per_step = 1 << 20;
+        c.chunk_rays = 4096;
+        let e = training(&ModelConfig::Instant(c), DataSize::uniform(100, 200, 200), 2);
+        // 32 levels of up to 2^24 entries of 2 features (the coarse ones are
+        // dense and smaller): 651 M parameters, 2.4 GiB, times
+        // (1 + 2 + 3 + 2 + 3) for the copies training keeps: more than
+        // this 24 GiB machine has.
+        assert!(e.params > 600_000_000, "{}", e.params);
+        assert!(e.memory_bytes > 24 << 30, "{}", e.describe());
+    }
+}
