@@ -7,6 +7,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use common::*;
+use radiance::engine::model_config::ModelConfig;
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 
@@ -227,6 +228,25 @@ async fn job_requests_are_checked() {
         assert_eq!(s, want, "{body}: {v}");
         assert!(v["error"]["code"].is_string(), "{v}");
     }
+    // A configuration out of range: each failing field is named, in the
+    // message and in the details.
+    let mut config = serde_json::to_value(ModelConfig::preset("instant-tiny").unwrap()).unwrap();
+    config["grid"]["log2_table"] = json!(40);
+    config["hidden"] = json!(0);
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "steps": 1 }, "config": config });
+    let (s, v) = svc.post_json("/v1/jobs", body).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert_error(&v, "bad_request");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("grid.log2_table is 40, allowed 8..=24") && msg.contains("hidden is 0"), "{msg}");
+    assert!(!msg.contains("geo_features"), "only the failing fields are named: {msg}");
+    assert_eq!(
+        v["error"]["details"],
+        json!({ "fields": [
+            { "field": "grid.log2_table", "value": 40, "allowed": "8..=24" },
+            { "field": "hidden", "value": 0, "allowed": "1..=256" },
+        ] })
+    );
     let (s, v) = svc.get("/v1/jobs?status=sleeping").await;
     assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
     let (s, _) = svc.post_json("/v1/jobs/job_nope/cancel", json!({})).await;
