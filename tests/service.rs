@@ -505,6 +505,7 @@ async fn router_and_openapi_list_the_same_routes() {
         for method in ["GET", "POST", "DELETE", "PUT", "PATCH"] {
             let r = svc.client.request(method.parse().unwrap(), &url).send().await.unwrap();
             let status = r.status();
+            let allow = r.headers().get("allow").map(|a| a.to_str().unwrap().to_string());
             let body = r.text().await.unwrap();
             let in_spec = routes.iter().any(|(m, p)| m == method && p == path);
             if in_spec {
@@ -512,8 +513,23 @@ async fn router_and_openapi_list_the_same_routes() {
                 assert!(status != StatusCode::METHOD_NOT_ALLOWED && !body.contains("no route"), "{method} {path}");
             } else {
                 assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED, "{method} {path} is served but not in the spec");
+                // The JSON envelope, naming the method, the path and the
+                // methods allowed, and the `Allow` header listing them.
+                let v: Value = serde_json::from_str(&body).unwrap_or_else(|e| panic!("{method} {path}: {e}: {body:?}"));
+                assert_error(&v, "method_not_allowed");
+                let allow = allow.unwrap_or_else(|| panic!("{method} {path}: no Allow header"));
+                let msg = v["error"]["message"].as_str().unwrap();
+                for (m, _) in routes.iter().filter(|(_, p)| p == path) {
+                    assert!(allow.split(',').any(|a| a.trim() == m), "{method} {path}: Allow: {allow}");
+                    assert!(msg.contains(m.as_str()), "{msg}");
+                }
+                assert!(msg.contains(method) && msg.contains(&path.replace("{id}", "x_none")), "{msg}");
             }
         }
     }
+    // An answer to HEAD has no body, 405 or not.
+    let r = svc.client.head(svc.url("/v1/jobs/x_none/cancel")).send().await.unwrap();
+    assert_eq!((r.status(), r.headers()["allow"].to_str().unwrap()), (StatusCode::METHOD_NOT_ALLOWED, "POST"));
+    assert!(r.bytes().await.unwrap().is_empty());
     svc.stop().await;
 }

@@ -13,7 +13,8 @@ use std::sync::{Arc, Mutex};
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request, State};
-use axum::http::header::AUTHORIZATION;
+use axum::http::StatusCode;
+use axum::http::header::{ALLOW, AUTHORIZATION};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
@@ -109,11 +110,36 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/videos/{id}", get(videos::get_one))
         .route("/metrics", get(health::metrics))
         .route_layer(middleware::from_fn_with_state(state.clone(), auth));
-    Router::new().route("/healthz", get(health::healthz)).merge(v1).fallback(not_found).with_state(state)
+    let routes = Router::new().route("/healthz", get(health::healthz)).merge(v1).fallback(not_found).with_state(state);
+    // Around the whole router rather than its routes: axum adds the `Allow`
+    // header of a 405 as the answer leaves the route, after any route layer.
+    Router::new().fallback_service(routes).layer(middleware::from_fn(method_not_allowed))
 }
 
 async fn not_found(req: Request) -> ApiError {
     ApiError::new(Code::NotFound, format!("no route for {} {}", req.method(), req.uri().path()))
+}
+
+/// Gives axum's 405 answers (a known path, another method) the JSON error
+/// envelope every other error has. A middleware rather than
+/// `Router::method_not_allowed_fallback`, because only the finished answer
+/// carries the `Allow` header that axum computes, which the message quotes
+/// and the answer keeps. (axum still drops the body of an answer to HEAD.)
+async fn method_not_allowed(req: Request, next: Next) -> Response {
+    let (method, path) = (req.method().clone(), req.uri().path().to_string());
+    let response = next.run(req).await;
+    if response.status() != StatusCode::METHOD_NOT_ALLOWED {
+        return response;
+    }
+    let allow = response.headers().get(ALLOW).cloned();
+    let allowed = allow.as_ref().and_then(|a| a.to_str().ok()).unwrap_or("none").replace(',', ", ");
+    let mut envelope =
+        ApiError::new(Code::MethodNotAllowed, format!("{method} is not allowed on {path} (allowed: {allowed})"))
+            .into_response();
+    if let Some(a) = allow {
+        envelope.headers_mut().insert(ALLOW, a);
+    }
+    envelope
 }
 
 /// Bearer-token check, when an API key is configured.
