@@ -91,6 +91,7 @@ async fn bad_uploads_are_refused_and_leave_nothing() {
     let (s, v) = svc.upload("application/zip", zip_of(&[("zeros.bin".into(), vec![0u8; 8 << 20])])).await;
     assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
     assert_error(&v, "payload_too_large");
+    assert!(v["error"]["message"].as_str().unwrap().contains("declares 8388608 bytes"), "{v}");
 
     // wrong media type
     let (s, v) = svc.upload("text/plain", zip_of(&good)).await;
@@ -122,6 +123,53 @@ async fn bad_uploads_are_refused_and_leave_nothing() {
     let (_, list) = svc.get("/v1/scenes").await;
     assert_eq!(list, json!([]));
     assert!(!Path::new("/tmp/radiance-abs.txt").exists());
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn archive_bombs_are_refused_from_their_declared_sizes() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    cfg.max_unpacked_bytes = 16 << 20;
+    let svc = Svc::start(cfg).await;
+    let limit = "16777216 bytes";
+
+    // 64 MiB of zeros in a 64 KiB zip, beside a valid dataset: refused from
+    // the central directory (the message gives the declared total), before
+    // anything is written.
+    let mut bomb = ball_files();
+    bomb.push(("zeros.bin".into(), vec![0u8; 64 << 20]));
+    let declared: usize = bomb.iter().map(|(_, d)| d.len()).sum();
+    let zip = zip_of(&bomb);
+    assert!(zip.len() < 1 << 20, "{} bytes", zip.len());
+    let (s, v) = svc.upload("application/zip", zip).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
+    assert_error(&v, "payload_too_large");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains(&format!("archive declares {declared} bytes")) && msg.contains(limit), "{msg}");
+    assert_no_scene_files(data.path());
+
+    // Within the limit but packed over 100:1: refused by its ratio.
+    let mut bomb = ball_files();
+    bomb.push(("zeros.bin".into(), vec![0u8; 8 << 20]));
+    let (s, v) = svc.upload("application/zip", zip_of(&bomb)).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("'zeros.bin' declares 8388608 bytes") && msg.contains("ratio over 100:1"), "{msg}");
+    assert_no_scene_files(data.path());
+
+    // A tar.gz: refused at the header of the entry that passes the limit.
+    let mut bomb = ball_files();
+    bomb.push(("zeros.bin".into(), vec![0u8; 32 << 20]));
+    let (s, v) = svc.upload("application/gzip", tar_gz_of(&bomb)).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("'zeros.bin' declares 33554432 bytes") && msg.contains(limit), "{msg}");
+    assert_no_scene_files(data.path());
+
+    // The same dataset without the bomb is stored.
+    let (s, v) = svc.upload("application/zip", zip_of(&ball_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
     svc.stop().await;
 }
 
