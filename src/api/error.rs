@@ -4,7 +4,8 @@
 //! logged with their detail and answered with a generic message.
 
 use axum::Json;
-use axum::http::StatusCode;
+use axum::http::header::WWW_AUTHENTICATE;
+use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde_json::{Value, json};
 
@@ -40,6 +41,10 @@ impl Code {
         }
     }
 }
+
+/// The challenge every 401 carries (RFC 9110 section 11.6.1 requires one),
+/// telling the client which scheme the service takes.
+pub const BEARER_CHALLENGE: &str = "Bearer realm=\"radiance\"";
 
 /// `{"error": {"code", "message", "details"}}` with the code's status.
 #[derive(Debug)]
@@ -113,6 +118,10 @@ impl IntoResponse for ApiError {
             self.message
         };
         let body = json!({ "error": { "code": name, "message": message, "details": self.details } });
-        (status, Json(body)).into_response()
+        let mut response = (status, Json(body)).into_response();
+        if self.code == Code::Unauthorized {
+            response.headers_mut().insert(WWW_AUTHENTICATE, HeaderValue::from_static(BEARER_CHALLENGE));
+        }
+        response
     }
 }

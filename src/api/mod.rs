@@ -142,17 +142,24 @@ async fn method_not_allowed(req: Request, next: Next) -> Response {
     envelope
 }
 
-/// Bearer-token check, when an API key is configured.
+/// Bearer-token check, when an API key is configured. The 401 carries a
+/// `WWW-Authenticate` challenge (see [`ApiError`]'s response).
 async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
     if let Some(key) = &s.config.api_key {
-        let given =
-            req.headers().get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
+        let given = req.headers().get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(bearer_token);
         if !given.is_some_and(|g| constant_time_eq(g.as_bytes(), key.as_bytes())) {
             return ApiError::new(Code::Unauthorized, "missing or wrong API key (Authorization: Bearer KEY)")
                 .into_response();
         }
     }
     next.run(req).await
+}
+
+/// The token of an `Authorization: Bearer TOKEN` value. The scheme name is
+/// case-insensitive (RFC 9110 section 11.1), so `bearer` and `BEARER` work too.
+fn bearer_token(value: &str) -> Option<&str> {
+    let (scheme, token) = value.split_once(' ')?;
+    scheme.eq_ignore_ascii_case("bearer").then(|| token.trim_matches(' '))
 }
 
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
