@@ -538,6 +538,21 @@ async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
     let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
     assert_eq!(m["model"], "instant-tiny");
     assert!(m["test_psnr"].as_f64().unwrap() > 26.0, "{m}");
+
+    // Depth is composited over the far plane: a camera at z = 3 looking
+    // down -z sees the ball (radius 0.6) at 2.4 in its centre pixel; looking
+    // up +z it sees nothing, which is white, the far plane.
+    let far = m["view"]["far"].as_f64().unwrap();
+    let depth = |c2w: &str| format!("/v1/models/{model}/render?c2w={c2w}&width=17&height=17&output=depth");
+    let img = svc.png(&depth("1,0,0,0,0,1,0,0,0,0,1,3")).await.into_luma16();
+    let (centre, corner) = (img.get_pixel(8, 8)[0] as f64, img.get_pixel(0, 0)[0]);
+    let want = 2.4 / far * 65535.0;
+    // Within 0.3: the expected depth of a small model spreads around the
+    // surface, and a centre opacity short of 1 adds its share of the far plane.
+    assert!((centre - want).abs() < 0.3 / far * 65535.0, "centre {centre}, want {want} (far {far})");
+    assert!(corner > 60000, "the corner misses the ball: {corner}");
+    let img = svc.png(&depth("-1,0,0,0,0,1,0,0,0,0,-1,3")).await.into_luma16();
+    assert!(img.pixels().all(|p| p[0] == 65535), "{:?}", img.as_raw());
     assert_eq!((p["diverged_steps"].as_u64(), p["rollbacks"].as_u64()), (Some(0), Some(0)), "{done}");
     let (s, _) = svc.get("/v1/jobs/job_nope/events").await;
     assert_eq!(s, StatusCode::NOT_FOUND);
