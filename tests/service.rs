@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use radiance::engine::model_config::ModelConfig;
+use radiance::engine::synthetic::BallScene;
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 
@@ -243,6 +244,7 @@ async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
         (json!({ "format": "avi" }), StatusCode::BAD_REQUEST),
         (json!({ "width": 100000 }), StatusCode::BAD_REQUEST),
         (json!({ "surprise": 1 }), StatusCode::BAD_REQUEST),
+        (json!({ "width": 33, "height": 17, "format": "mp4" }), StatusCode::BAD_REQUEST),
     ];
     for (body, want) in bad_videos {
         let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), body.clone()).await;
@@ -640,5 +642,40 @@ async fn router_and_openapi_list_the_same_routes() {
     let r = svc.client.head(svc.url("/v1/jobs/x_none/cancel")).send().await.unwrap();
     assert_eq!((r.status(), r.headers()["allow"].to_str().unwrap()), (StatusCode::METHOD_NOT_ALLOWED, "POST"));
     assert!(r.bytes().await.unwrap().is_empty());
+    svc.stop().await;
+}
+
+/// The width and height in an MP4's track header (16.16 fixed point, at the
+/// end of `tkhd`).
+fn mp4_track_size(mp4: &[u8]) -> (u32, u32) {
+    let tkhd = mp4_child(mp4, &["moov", "trak", "tkhd"]);
+    let at = |i: usize| u32::from_be_bytes(tkhd[i..i + 4].try_into().unwrap()) >> 16;
+    (at(tkhd.len() - 8), at(tkhd.len() - 4))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mp4_of_an_odd_sized_scene_is_the_size_its_job_says() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let dir = tempfile::tempdir().unwrap();
+    BallScene { size: 17, views: 8, ..Default::default() }.write_blender(dir.path()).unwrap();
+    let (s, v) = svc.upload("application/zip", zip_of(&files(dir.path()))).await;
+    assert_eq!((s, &v["resolution"]), (StatusCode::CREATED, &json!([17, 17])), "{v}");
+    let id = svc.job(v["id"].as_str().unwrap(), json!({ "steps": 2 })).await;
+    let job = svc.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    let model = job["model_id"].as_str().unwrap_or_else(|| panic!("{job}"));
+
+    // The cameras' 17x17 becomes 16x16, in the job and in the file.
+    let (job, mp4, _) = svc.video(model, json!({ "frames": 2, "fps": 10, "format": "mp4" })).await;
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(16), Some(16)), "{job}");
+    assert_eq!(mp4_track_size(&mp4), (16, 16));
+    // Asked for explicitly, an odd side is refused, naming the even sizes.
+    let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), json!({ "width": 33, "height": 17 })).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("33x17") && msg.contains("32x16 or 34x18") && msg.contains("gif"), "{msg}");
+    // GIF keeps the cameras' size.
+    let (job, _, _) = svc.video(model, json!({ "frames": 2, "fps": 10, "format": "gif" })).await;
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(17), Some(17)), "{job}");
     svc.stop().await;
 }
