@@ -7,6 +7,8 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use common::*;
+use radiance::engine::model_config::ModelConfig;
+use radiance::engine::synthetic::BallScene;
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 
@@ -90,6 +92,7 @@ async fn bad_uploads_are_refused_and_leave_nothing() {
     let (s, v) = svc.upload("application/zip", zip_of(&[("zeros.bin".into(), vec![0u8; 8 << 20])])).await;
     assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
     assert_error(&v, "payload_too_large");
+    assert!(v["error"]["message"].as_str().unwrap().contains("declares 8388608 bytes"), "{v}");
 
     // wrong media type
     let (s, v) = svc.upload("text/plain", zip_of(&good)).await;
@@ -121,6 +124,53 @@ async fn bad_uploads_are_refused_and_leave_nothing() {
     let (_, list) = svc.get("/v1/scenes").await;
     assert_eq!(list, json!([]));
     assert!(!Path::new("/tmp/radiance-abs.txt").exists());
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn archive_bombs_are_refused_from_their_declared_sizes() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    cfg.max_unpacked_bytes = 16 << 20;
+    let svc = Svc::start(cfg).await;
+    let limit = "16777216 bytes";
+
+    // 64 MiB of zeros in a 64 KiB zip, beside a valid dataset: refused from
+    // the central directory (the message gives the declared total), before
+    // anything is written.
+    let mut bomb = ball_files();
+    bomb.push(("zeros.bin".into(), vec![0u8; 64 << 20]));
+    let declared: usize = bomb.iter().map(|(_, d)| d.len()).sum();
+    let zip = zip_of(&bomb);
+    assert!(zip.len() < 1 << 20, "{} bytes", zip.len());
+    let (s, v) = svc.upload("application/zip", zip).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
+    assert_error(&v, "payload_too_large");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains(&format!("archive declares {declared} bytes")) && msg.contains(limit), "{msg}");
+    assert_no_scene_files(data.path());
+
+    // Within the limit but packed over 100:1: refused by its ratio.
+    let mut bomb = ball_files();
+    bomb.push(("zeros.bin".into(), vec![0u8; 8 << 20]));
+    let (s, v) = svc.upload("application/zip", zip_of(&bomb)).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("'zeros.bin' declares 8388608 bytes") && msg.contains("ratio over 100:1"), "{msg}");
+    assert_no_scene_files(data.path());
+
+    // A tar.gz: refused at the header of the entry that passes the limit.
+    let mut bomb = ball_files();
+    bomb.push(("zeros.bin".into(), vec![0u8; 32 << 20]));
+    let (s, v) = svc.upload("application/gzip", tar_gz_of(&bomb)).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("'zeros.bin' declares 33554432 bytes") && msg.contains(limit), "{msg}");
+    assert_no_scene_files(data.path());
+
+    // The same dataset without the bomb is stored.
+    let (s, v) = svc.upload("application/zip", zip_of(&ball_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
     svc.stop().await;
 }
 
@@ -194,6 +244,7 @@ async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
         (json!({ "format": "avi" }), StatusCode::BAD_REQUEST),
         (json!({ "width": 100000 }), StatusCode::BAD_REQUEST),
         (json!({ "surprise": 1 }), StatusCode::BAD_REQUEST),
+        (json!({ "width": 33, "height": 17, "format": "mp4" }), StatusCode::BAD_REQUEST),
     ];
     for (body, want) in bad_videos {
         let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), body.clone()).await;
@@ -227,6 +278,25 @@ async fn job_requests_are_checked() {
         assert_eq!(s, want, "{body}: {v}");
         assert!(v["error"]["code"].is_string(), "{v}");
     }
+    // A configuration out of range: each failing field is named, in the
+    // message and in the details.
+    let mut config = serde_json::to_value(ModelConfig::preset("instant-tiny").unwrap()).unwrap();
+    config["grid"]["log2_table"] = json!(40);
+    config["hidden"] = json!(0);
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "steps": 1 }, "config": config });
+    let (s, v) = svc.post_json("/v1/jobs", body).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert_error(&v, "bad_request");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("grid.log2_table is 40, allowed 8..=24") && msg.contains("hidden is 0"), "{msg}");
+    assert!(!msg.contains("geo_features"), "only the failing fields are named: {msg}");
+    assert_eq!(
+        v["error"]["details"],
+        json!({ "fields": [
+            { "field": "grid.log2_table", "value": 40, "allowed": "8..=24" },
+            { "field": "hidden", "value": 0, "allowed": "1..=256" },
+        ] })
+    );
     let (s, v) = svc.get("/v1/jobs?status=sleeping").await;
     assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
     let (s, _) = svc.post_json("/v1/jobs/job_nope/cancel", json!({})).await;
@@ -324,13 +394,59 @@ async fn api_key_is_required_when_configured() {
     let (s, v) = svc.get("/v1/scenes").await;
     assert_eq!(s, StatusCode::UNAUTHORIZED);
     assert_error(&v, "unauthorized");
-    let r = svc.client.get(svc.url("/v1/scenes")).bearer_auth("wrong").send().await.unwrap();
-    assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
-    let r = svc.client.get(svc.url("/v1/scenes")).bearer_auth("s3cret").send().await.unwrap();
-    assert_eq!(r.status(), StatusCode::OK);
+    // The scheme name is case-insensitive (RFC 9110); every 401 carries the
+    // challenge.
+    let cases = [
+        (None, StatusCode::UNAUTHORIZED),
+        (Some("Bearer wrong"), StatusCode::UNAUTHORIZED),
+        (Some("Basic s3cret"), StatusCode::UNAUTHORIZED),
+        (Some("Bearers3cret"), StatusCode::UNAUTHORIZED),
+        (Some("Bearer s3cret"), StatusCode::OK),
+        (Some("bearer s3cret"), StatusCode::OK),
+        (Some("BEARER s3cret"), StatusCode::OK),
+    ];
+    for (header, want) in cases {
+        let mut req = svc.client.get(svc.url("/v1/scenes"));
+        if let Some(h) = header {
+            req = req.header("authorization", h);
+        }
+        let r = req.send().await.unwrap();
+        assert_eq!(r.status(), want, "{header:?}");
+        let challenge = r.headers().get("www-authenticate").map(|v| v.to_str().unwrap().to_string());
+        let want_challenge = (want == StatusCode::UNAUTHORIZED).then(|| r#"Bearer realm="radiance""#.to_string());
+        assert_eq!(challenge, want_challenge, "{header:?}");
+    }
     let (s, _) = svc.get("/healthz").await;
     assert_eq!(s, StatusCode::OK);
     svc.stop().await;
+}
+
+#[test]
+fn serve_refuses_an_empty_api_key() {
+    let data = tempfile::tempdir().unwrap();
+    let by_env = ["RADIANCE_API_KEY", ""];
+    for (args, env) in [(&[][..], Some(by_env)), (&["--api-key", ""][..], None), (&["--api-key", "  "][..], None)] {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_radiance"));
+        cmd.args(["serve", "--addr", "127.0.0.1:0", "--data-dir"]).arg(data.path()).args(args);
+        cmd.env_remove("RADIANCE_API_KEY");
+        if let Some([k, v]) = env {
+            cmd.env(k, v);
+        }
+        let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap();
+        let t0 = Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            if t0.elapsed() > Duration::from_secs(20) {
+                child.kill().unwrap();
+                panic!("{args:?} {env:?}: the server started with an empty API key");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} {env:?}");
+        assert!(stderr.contains("RADIANCE_API_KEY / --api-key is set but empty"), "{args:?} {env:?}: {stderr}");
+        assert!(out.stdout.is_empty(), "it never listened: {}", String::from_utf8_lossy(&out.stdout));
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -427,6 +543,21 @@ async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
     let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
     assert_eq!(m["model"], "instant-tiny");
     assert!(m["test_psnr"].as_f64().unwrap() > 26.0, "{m}");
+
+    // Depth is composited over the far plane: a camera at z = 3 looking
+    // down -z sees the ball (radius 0.6) at 2.4 in its centre pixel; looking
+    // up +z it sees nothing, which is white, the far plane.
+    let far = m["view"]["far"].as_f64().unwrap();
+    let depth = |c2w: &str| format!("/v1/models/{model}/render?c2w={c2w}&width=17&height=17&output=depth");
+    let img = svc.png(&depth("1,0,0,0,0,1,0,0,0,0,1,3")).await.into_luma16();
+    let (centre, corner) = (img.get_pixel(8, 8)[0] as f64, img.get_pixel(0, 0)[0]);
+    let want = 2.4 / far * 65535.0;
+    // Within 0.3: the expected depth of a small model spreads around the
+    // surface, and a centre opacity short of 1 adds its share of the far plane.
+    assert!((centre - want).abs() < 0.3 / far * 65535.0, "centre {centre}, want {want} (far {far})");
+    assert!(corner > 60000, "the corner misses the ball: {corner}");
+    let img = svc.png(&depth("-1,0,0,0,0,1,0,0,0,0,-1,3")).await.into_luma16();
+    assert!(img.pixels().all(|p| p[0] == 65535), "{:?}", img.as_raw());
     assert_eq!((p["diverged_steps"].as_u64(), p["rollbacks"].as_u64()), (Some(0), Some(0)), "{done}");
     let (s, _) = svc.get("/v1/jobs/job_nope/events").await;
     assert_eq!(s, StatusCode::NOT_FOUND);
@@ -488,6 +619,7 @@ async fn router_and_openapi_list_the_same_routes() {
         for method in ["GET", "POST", "DELETE", "PUT", "PATCH"] {
             let r = svc.client.request(method.parse().unwrap(), &url).send().await.unwrap();
             let status = r.status();
+            let allow = r.headers().get("allow").map(|a| a.to_str().unwrap().to_string());
             let body = r.text().await.unwrap();
             let in_spec = routes.iter().any(|(m, p)| m == method && p == path);
             if in_spec {
@@ -495,8 +627,58 @@ async fn router_and_openapi_list_the_same_routes() {
                 assert!(status != StatusCode::METHOD_NOT_ALLOWED && !body.contains("no route"), "{method} {path}");
             } else {
                 assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED, "{method} {path} is served but not in the spec");
+                // The JSON envelope, naming the method, the path and the
+                // methods allowed, and the `Allow` header listing them.
+                let v: Value = serde_json::from_str(&body).unwrap_or_else(|e| panic!("{method} {path}: {e}: {body:?}"));
+                assert_error(&v, "method_not_allowed");
+                let allow = allow.unwrap_or_else(|| panic!("{method} {path}: no Allow header"));
+                let msg = v["error"]["message"].as_str().unwrap();
+                for (m, _) in routes.iter().filter(|(_, p)| p == path) {
+                    assert!(allow.split(',').any(|a| a.trim() == m), "{method} {path}: Allow: {allow}");
+                    assert!(msg.contains(m.as_str()), "{msg}");
+                }
+                assert!(msg.contains(method) && msg.contains(&path.replace("{id}", "x_none")), "{msg}");
             }
         }
     }
+    // An answer to HEAD has no body, 405 or not.
+    let r = svc.client.head(svc.url("/v1/jobs/x_none/cancel")).send().await.unwrap();
+    assert_eq!((r.status(), r.headers()["allow"].to_str().unwrap()), (StatusCode::METHOD_NOT_ALLOWED, "POST"));
+    assert!(r.bytes().await.unwrap().is_empty());
+    svc.stop().await;
+}
+
+/// The width and height in an MP4's track header (16.16 fixed point, at the
+/// end of `tkhd`).
+fn mp4_track_size(mp4: &[u8]) -> (u32, u32) {
+    let tkhd = mp4_child(mp4, &["moov", "trak", "tkhd"]);
+    let at = |i: usize| u32::from_be_bytes(tkhd[i..i + 4].try_into().unwrap()) >> 16;
+    (at(tkhd.len() - 8), at(tkhd.len() - 4))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mp4_of_an_odd_sized_scene_is_the_size_its_job_says() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let dir = tempfile::tempdir().unwrap();
+    BallScene { size: 17, views: 8, ..Default::default() }.write_blender(dir.path()).unwrap();
+    let (s, v) = svc.upload("application/zip", zip_of(&files(dir.path()))).await;
+    assert_eq!((s, &v["resolution"]), (StatusCode::CREATED, &json!([17, 17])), "{v}");
+    let id = svc.job(v["id"].as_str().unwrap(), json!({ "steps": 2 })).await;
+    let job = svc.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    let model = job["model_id"].as_str().unwrap_or_else(|| panic!("{job}"));
+
+    // The cameras' 17x17 becomes 16x16, in the job and in the file.
+    let (job, mp4, _) = svc.video(model, json!({ "frames": 2, "fps": 10, "format": "mp4" })).await;
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(16), Some(16)), "{job}");
+    assert_eq!(mp4_track_size(&mp4), (16, 16));
+    // Asked for explicitly, an odd side is refused, naming the even sizes.
+    let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), json!({ "width": 33, "height": 17 })).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("33x17") && msg.contains("32x16 or 34x18") && msg.contains("gif"), "{msg}");
+    // GIF keeps the cameras' size.
+    let (job, _, _) = svc.video(model, json!({ "frames": 2, "fps": 10, "format": "gif" })).await;
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(17), Some(17)), "{job}");
     svc.stop().await;
 }

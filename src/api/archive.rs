@@ -2,10 +2,14 @@
 //!
 //! Every entry name must be a relative path of plain components (no `..`,
 //! no root, no drive prefix, no backslash); only regular files and folders
-//! are accepted (links, devices and fifos are refused); the unpacked size is
-//! counted on the bytes actually written, not the sizes the archive claims,
-//! so a decompression bomb stops at the limit. The caller extracts into a
-//! fresh temporary folder and removes it on any error.
+//! are accepted (links, devices and fifos are refused). Sizes are checked
+//! twice. First from what the archive declares, before anything is written:
+//! a zip's central directory (the declared total, and each entry's
+//! compression ratio), a tar entry's header before that entry is copied; so
+//! a decompression bomb is refused without unpacking it. Then on the bytes
+//! actually written, since declared sizes can lie: extraction stops at the
+//! limit. The caller extracts into a fresh temporary folder and removes it on
+//! any error.
 
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, Read};
@@ -71,6 +75,19 @@ pub fn safe_relative(name: &str) -> Result<Option<PathBuf>, ArchiveError> {
     Ok((!out.as_os_str().is_empty()).then_some(out))
 }
 
+/// Entries declaring more than this unpacked are checked for their
+/// compression ratio; smaller ones cannot do harm whatever their ratio.
+pub const RATIO_CHECKED_ABOVE: u64 = 4 << 20;
+
+/// The largest compression ratio accepted for an entry over
+/// [`RATIO_CHECKED_ABOVE`]. Datasets are images that are already compressed
+/// (about 1:1) and JSON or NumPy files (a few to a few tens to one); only
+/// near-constant data packs better, and that is what bombs are made of
+/// (deflate packs zeros at up to about 1030:1, or 230:1 at its fastest
+/// level). 100:1 is Apache POI's bound for zip bombs, and catches a bomb
+/// packed at any level while leaving a wide margin for real data.
+pub const MAX_RATIO: u64 = 100;
+
 /// Counts entries and bytes against the limits while writing.
 struct Budget {
     limits: Limits,
@@ -79,6 +96,19 @@ struct Budget {
 }
 
 impl Budget {
+    /// Refuses an entry whose declared size would take the total past the
+    /// limit, before any of it is written.
+    fn declared(&self, size: u64, name: &str) -> Result<(), ArchiveError> {
+        let limit = self.limits.max_unpacked_bytes;
+        if self.bytes.saturating_add(size) > limit {
+            return Err(ArchiveError::TooLarge(format!(
+                "archive entry '{name}' declares {size} bytes, which would unpack the archive past the limit of \
+                 {limit} bytes"
+            )));
+        }
+        Ok(())
+    }
+
     fn entry(&mut self) -> Result<(), ArchiveError> {
         self.entries += 1;
         if self.entries > self.limits.max_entries {
@@ -146,6 +176,7 @@ pub fn extract(kind: ArchiveKind, bytes: &[u8], dest: &Path, limits: Limits) -> 
 fn extract_zip(bytes: &[u8], dest: &Path, budget: &mut Budget) -> Result<(), ArchiveError> {
     let mut zip = zip::ZipArchive::new(io::Cursor::new(bytes))
         .map_err(|e| ArchiveError::Bad(format!("not a valid zip archive: {e}")))?;
+    check_zip_declared(&mut zip, budget.limits)?;
     for i in 0..zip.len() {
         budget.entry()?;
         let mut f = zip.by_index(i).map_err(|e| ArchiveError::Bad(format!("zip entry {i}: {e}")))?;
@@ -165,6 +196,34 @@ fn extract_zip(bytes: &[u8], dest: &Path, budget: &mut Budget) -> Result<(), Arc
     Ok(())
 }
 
+/// Refuses a zip from its central directory alone: when the declared sizes
+/// add up to more than the limit, or when an entry over
+/// [`RATIO_CHECKED_ABOVE`] declares a ratio over [`MAX_RATIO`]:1.
+fn check_zip_declared(zip: &mut zip::ZipArchive<io::Cursor<&[u8]>>, limits: Limits) -> Result<(), ArchiveError> {
+    let (mut total, mut bomb) = (0u64, None);
+    for i in 0..zip.len() {
+        let f = zip.by_index_raw(i).map_err(|e| ArchiveError::Bad(format!("zip entry {i}: {e}")))?;
+        let (size, packed) = (f.size(), f.compressed_size());
+        total = total.saturating_add(size);
+        if bomb.is_none() && size > RATIO_CHECKED_ABOVE && size / packed.max(1) > MAX_RATIO {
+            bomb = Some((String::from_utf8_lossy(f.name_raw()).into_owned(), size, packed));
+        }
+    }
+    let limit = limits.max_unpacked_bytes;
+    if total > limit {
+        return Err(ArchiveError::TooLarge(format!(
+            "archive declares {total} bytes unpacked, more than the limit of {limit} bytes"
+        )));
+    }
+    if let Some((name, size, packed)) = bomb {
+        return Err(ArchiveError::TooLarge(format!(
+            "archive entry '{name}' declares {size} bytes packed into {packed}: a ratio over {MAX_RATIO}:1 \
+             (for entries over {RATIO_CHECKED_ABOVE} bytes) is refused as a decompression bomb"
+        )));
+    }
+    Ok(())
+}
+
 fn extract_tar<R: Read>(reader: R, dest: &Path, budget: &mut Budget) -> Result<(), ArchiveError> {
     use tar::EntryType as T;
     let mut ar = tar::Archive::new(reader);
@@ -180,7 +239,10 @@ fn extract_tar<R: Read>(reader: R, dest: &Path, budget: &mut Budget) -> Result<(
         let name = String::from_utf8_lossy(&raw).into_owned();
         let Some(rel) = safe_relative(&name)? else { continue };
         match kind {
-            T::Regular | T::Continuous => budget.copy(&mut e, &dest.join(rel), &name)?,
+            T::Regular | T::Continuous => {
+                budget.declared(e.size(), &name)?;
+                budget.copy(&mut e, &dest.join(rel), &name)?;
+            }
             T::Directory => fs::create_dir_all(dest.join(rel))?,
             T::Symlink | T::Link => {
                 return Err(ArchiveError::Bad(format!("archive entry '{name}' is a link (not allowed)")));
@@ -248,5 +310,142 @@ mod tests {
         assert_eq!(ArchiveKind::from_content_type("application/zip"), Some(ArchiveKind::Zip));
         assert_eq!(ArchiveKind::from_content_type("application/gzip; x=1"), Some(ArchiveKind::TarGz));
         assert_eq!(ArchiveKind::from_content_type("text/plain"), None);
+    }
+
+    use std::io::Write;
+
+    fn limits(max_unpacked_bytes: u64) -> Limits {
+        Limits { max_unpacked_bytes, max_entries: 100 }
+    }
+
+    /// A zip of `entries`, deflated at `level` (`None`: the default).
+    fn zip_of(entries: &[(&str, &[u8])], level: Option<i64>) -> Vec<u8> {
+        let mut w = zip::ZipWriter::new(io::Cursor::new(Vec::new()));
+        let opts = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Deflated)
+            .compression_level(level);
+        for (name, data) in entries {
+            w.start_file(*name, opts).unwrap();
+            w.write_all(data).unwrap();
+        }
+        w.finish().unwrap().into_inner()
+    }
+
+    /// Bytes that do not compress (a xorshift stream).
+    fn noise(n: usize) -> Vec<u8> {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        (0..n)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                x as u8
+            })
+            .collect()
+    }
+
+    /// Extracts into a fresh folder; returns the result and the names left in it.
+    fn extract_listing(kind: ArchiveKind, bytes: &[u8], limits: Limits) -> (Result<u64, ArchiveError>, Vec<String>) {
+        let dir = tempfile::tempdir().unwrap();
+        let r = extract(kind, bytes, dir.path(), limits);
+        let left = fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into()).collect();
+        (r, left)
+    }
+
+    fn too_large(r: Result<u64, ArchiveError>) -> String {
+        match r {
+            Err(ArchiveError::TooLarge(m)) => m,
+            other => panic!("expected TooLarge, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn zip_declaring_more_than_the_limit_is_refused_before_writing() {
+        let zeros = vec![0u8; 64 << 20];
+        let zip = zip_of(&[("a.txt", b"hello"), ("zeros.bin", &zeros)], None);
+        assert!(zip.len() < 100 << 10, "{} bytes", zip.len());
+        let (r, left) = extract_listing(ArchiveKind::Zip, &zip, limits(16 << 20));
+        let m = too_large(r);
+        // The message gives the declared total and the limit: it was read
+        // from the central directory, not counted while writing.
+        assert!(m.contains(&format!("declares {} bytes", (64 << 20) + 5)) && m.contains("16777216"), "{m}");
+        assert!(left.is_empty(), "written before refusing: {left:?}");
+    }
+
+    #[test]
+    fn zip_entries_with_absurd_ratios_are_refused_before_writing() {
+        // 8 MiB of zeros: deflate packs them about 230:1 at its fastest
+        // level and 1000:1 at its default; both are bombs.
+        let zeros = vec![0u8; 8 << 20];
+        for level in [Some(1), None] {
+            let zip = zip_of(&[("a.txt", b"hello"), ("zeros.bin", &zeros)], level);
+            let (r, left) = extract_listing(ArchiveKind::Zip, &zip, limits(1 << 30));
+            let m = too_large(r);
+            assert!(m.contains("'zeros.bin' declares 8388608 bytes") && m.contains("ratio over 100:1"), "{m}");
+            assert!(left.is_empty(), "written before refusing: {left:?}");
+        }
+        // Small entries may pack as well as they like; large ones of real data pass.
+        let zip = zip_of(&[("small.bin", &vec![0u8; 2 << 20]), ("large.bin", &noise(6 << 20))], None);
+        let (r, left) = extract_listing(ArchiveKind::Zip, &zip, limits(1 << 30));
+        assert_eq!(r.unwrap(), 8 << 20);
+        assert_eq!(left.len(), 2);
+    }
+
+    #[test]
+    fn zip_lying_about_its_sizes_stops_at_the_limit() {
+        // 8 MiB of zeros whose headers claim 1000 bytes: the declared checks
+        // pass; extraction still stops (the zip reader refuses data past the
+        // declared size, and the bytes written are counted against the limit).
+        let mut zip = zip_of(&[("zeros.bin", &vec![0u8; 8 << 20])], None);
+        let patch = |zip: &mut Vec<u8>, signature: &[u8], offset: usize| {
+            let at = zip.windows(4).position(|w| w == signature).unwrap();
+            zip[at + offset..at + offset + 4].copy_from_slice(&1000u32.to_le_bytes());
+        };
+        patch(&mut zip, b"PK\x03\x04", 22);
+        patch(&mut zip, b"PK\x01\x02", 24);
+        let dir = tempfile::tempdir().unwrap();
+        let r = extract(ArchiveKind::Zip, &zip, dir.path(), limits(1 << 20));
+        assert!(r.is_err(), "{r:?}");
+        assert!(dir_size(dir.path()) <= 1 << 20, "{} bytes written", dir_size(dir.path()));
+    }
+
+    /// A tar.gz with one entry whose header declares `declared` bytes,
+    /// followed by `data` (possibly fewer bytes: a truncated archive).
+    fn tar_gz_declaring(declared: u64, data: &[u8]) -> Vec<u8> {
+        let mut h = tar::Header::new_gnu();
+        h.set_path("big.bin").unwrap();
+        h.set_size(declared);
+        h.set_mode(0o644);
+        h.set_entry_type(tar::EntryType::Regular);
+        h.set_cksum();
+        let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        let mut first = tar::Builder::new(Vec::new());
+        let mut small = tar::Header::new_gnu();
+        small.set_size(5);
+        small.set_mode(0o644);
+        small.set_entry_type(tar::EntryType::Regular);
+        first.append_data(&mut small, "a.txt", &b"hello"[..]).unwrap();
+        let mut head = first.into_inner().unwrap();
+        head.truncate(head.len() - 1024); // without the end-of-archive blocks
+        gz.write_all(&head).unwrap();
+        gz.write_all(h.as_bytes()).unwrap();
+        gz.write_all(data).unwrap();
+        gz.finish().unwrap()
+    }
+
+    #[test]
+    fn tar_entries_declaring_past_the_limit_are_refused_before_copying() {
+        // A header claiming 1 GiB with a few bytes behind it: refused from
+        // the header (413), not read to its end (which would be "corrupt").
+        let (r, left) = extract_listing(ArchiveKind::TarGz, &tar_gz_declaring(1 << 30, b"x"), limits(16 << 20));
+        let m = too_large(r);
+        assert!(m.contains("'big.bin' declares 1073741824 bytes") && m.contains("16777216"), "{m}");
+        assert_eq!(left, ["a.txt"], "the entry over the limit is not started");
+        // Within the limit, the same layout unpacks.
+        let data = vec![7u8; 1024];
+        let (r, mut left) = extract_listing(ArchiveKind::TarGz, &tar_gz_declaring(1024, &data), limits(16 << 20));
+        assert_eq!(r.unwrap(), 1029);
+        left.sort();
+        assert_eq!(left, ["a.txt", "big.bin"]);
     }
 }

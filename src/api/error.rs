@@ -4,7 +4,8 @@
 //! logged with their detail and answered with a generic message.
 
 use axum::Json;
-use axum::http::StatusCode;
+use axum::http::header::WWW_AUTHENTICATE;
+use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde_json::{Value, json};
 
@@ -14,6 +15,7 @@ pub enum Code {
     BadRequest,
     Unauthorized,
     NotFound,
+    MethodNotAllowed,
     Conflict,
     PayloadTooLarge,
     UnsupportedMediaType,
@@ -33,6 +35,7 @@ impl Code {
             Code::BadRequest => ("bad_request", StatusCode::BAD_REQUEST),
             Code::Unauthorized => ("unauthorized", StatusCode::UNAUTHORIZED),
             Code::NotFound => ("not_found", StatusCode::NOT_FOUND),
+            Code::MethodNotAllowed => ("method_not_allowed", StatusCode::METHOD_NOT_ALLOWED),
             Code::Conflict => ("conflict", StatusCode::CONFLICT),
             Code::PayloadTooLarge => ("payload_too_large", StatusCode::PAYLOAD_TOO_LARGE),
             Code::UnsupportedMediaType => ("unsupported_media_type", StatusCode::UNSUPPORTED_MEDIA_TYPE),
@@ -44,6 +47,10 @@ impl Code {
         }
     }
 }
+
+/// The challenge every 401 carries (RFC 9110 section 11.6.1 requires one),
+/// telling the client which scheme the service takes.
+pub const BEARER_CHALLENGE: &str = "Bearer realm=\"radiance\"";
 
 /// `{"error": {"code", "message", "details"}}` with the code's status.
 #[derive(Debug)]
@@ -117,6 +124,10 @@ impl IntoResponse for ApiError {
             self.message
         };
         let body = json!({ "error": { "code": name, "message": message, "details": self.details } });
-        (status, Json(body)).into_response()
+        let mut response = (status, Json(body)).into_response();
+        if self.code == Code::Unauthorized {
+            response.headers_mut().insert(WWW_AUTHENTICATE, HeaderValue::from_static(BEARER_CHALLENGE));
+        }
+        response
     }
 }

@@ -13,7 +13,7 @@ use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, Code, limits};
 use crate::engine::estimate;
-use crate::engine::model_config::{DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
+use crate::engine::model_config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
 use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec};
 
 /// `POST /v1/jobs` body.
@@ -56,7 +56,7 @@ fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
         }
         config = c;
     }
-    config.check().map_err(ApiError::bad_request)?;
+    config.check().map_err(config_error)?;
     let b = r.budget;
     if b.seconds.is_none() && b.steps.is_none() && b.target_psnr.is_none() {
         return Err(ApiError::bad_request("budget needs seconds, steps or target_psnr"));
@@ -81,6 +81,13 @@ fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
         return Err(ApiError::bad_request("batch_rays must be in 1..=65536"));
     }
     Ok(TrainSpec { scene_id: r.scene_id, model: r.model, config, budget: b, seed: r.seed, batch_rays })
+}
+
+/// A refused model configuration: the message names every failing field;
+/// `details.fields` lists them as `{field, value, allowed}` for programs.
+fn config_error(e: ConfigError) -> ApiError {
+    let details = serde_json::json!({ "fields": e.fields });
+    ApiError::bad_request(e.to_string()).with_details(details)
 }
 
 pub(crate) fn sched_error(e: SchedError) -> ApiError {

@@ -13,7 +13,8 @@ use std::sync::{Arc, Mutex};
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request, State};
-use axum::http::header::AUTHORIZATION;
+use axum::http::StatusCode;
+use axum::http::header::{ALLOW, AUTHORIZATION};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
@@ -113,24 +114,56 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/videos/{id}", get(videos::get_one).delete(videos::delete))
         .route("/metrics", get(health::metrics))
         .route_layer(middleware::from_fn_with_state(state.clone(), auth));
-    Router::new().route("/healthz", get(health::healthz)).merge(v1).fallback(not_found).with_state(state)
+    let routes = Router::new().route("/healthz", get(health::healthz)).merge(v1).fallback(not_found).with_state(state);
+    // Around the whole router rather than its routes: axum adds the `Allow`
+    // header of a 405 as the answer leaves the route, after any route layer.
+    Router::new().fallback_service(routes).layer(middleware::from_fn(method_not_allowed))
 }
 
 async fn not_found(req: Request) -> ApiError {
     ApiError::new(Code::NotFound, format!("no route for {} {}", req.method(), req.uri().path()))
 }
 
-/// Bearer-token check, when an API key is configured.
+/// Gives axum's 405 answers (a known path, another method) the JSON error
+/// envelope every other error has. A middleware rather than
+/// `Router::method_not_allowed_fallback`, because only the finished answer
+/// carries the `Allow` header that axum computes, which the message quotes
+/// and the answer keeps. (axum still drops the body of an answer to HEAD.)
+async fn method_not_allowed(req: Request, next: Next) -> Response {
+    let (method, path) = (req.method().clone(), req.uri().path().to_string());
+    let response = next.run(req).await;
+    if response.status() != StatusCode::METHOD_NOT_ALLOWED {
+        return response;
+    }
+    let allow = response.headers().get(ALLOW).cloned();
+    let allowed = allow.as_ref().and_then(|a| a.to_str().ok()).unwrap_or("none").replace(',', ", ");
+    let mut envelope =
+        ApiError::new(Code::MethodNotAllowed, format!("{method} is not allowed on {path} (allowed: {allowed})"))
+            .into_response();
+    if let Some(a) = allow {
+        envelope.headers_mut().insert(ALLOW, a);
+    }
+    envelope
+}
+
+/// Bearer-token check, when an API key is configured. The 401 carries a
+/// `WWW-Authenticate` challenge (see [`ApiError`]'s response).
 async fn auth(State(s): State<AppState>, req: Request, next: Next) -> Response {
     if let Some(key) = &s.config.api_key {
-        let given =
-            req.headers().get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
+        let given = req.headers().get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(bearer_token);
         if !given.is_some_and(|g| constant_time_eq(g.as_bytes(), key.as_bytes())) {
             return ApiError::new(Code::Unauthorized, "missing or wrong API key (Authorization: Bearer KEY)")
                 .into_response();
         }
     }
     next.run(req).await
+}
+
+/// The token of an `Authorization: Bearer TOKEN` value. The scheme name is
+/// case-insensitive (RFC 9110 section 11.1), so `bearer` and `BEARER` work too.
+fn bearer_token(value: &str) -> Option<&str> {
+    let (scheme, token) = value.split_once(' ')?;
+    scheme.eq_ignore_ascii_case("bearer").then(|| token.trim_matches(' '))
 }
 
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {

@@ -9,7 +9,6 @@ use axum::extract::{Path, Query, State};
 use axum::http::StatusCode;
 use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
-use image::{ImageBuffer, ImageEncoder, Luma, codecs::png::PngEncoder};
 use serde::{Deserialize, Serialize};
 
 use super::jobs::sched_error;
@@ -87,7 +86,9 @@ pub struct RenderQuery {
     pub height: Option<u32>,
     /// Horizontal field of view in degrees.
     pub fov: Option<f32>,
-    /// `rgb` (default), `depth` (16-bit, far plane = white) or `alpha`.
+    /// `rgb` (default), `depth` (16-bit: distance / far * 65535, composited
+    /// over the far plane, so nothing hit is white; see
+    /// [`png::depth_u16`]) or `alpha`.
     pub output: Option<String>,
     /// `white` (default), `black` or `transparent` (RGBA).
     pub background: Option<String>,
@@ -233,41 +234,15 @@ fn cached_model(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
     Ok(model)
 }
 
+/// Encodes a rendered view as the requested PNG (the encoders live in
+/// `media`; this only picks one).
 fn encode(v: &View, output: Output, background: Background, far: f32) -> std::io::Result<Vec<u8>> {
-    let (w, h) = (v.width, v.height);
     match (output, background) {
-        (Output::Rgb, Background::Colour(_)) => png::encode_rgb(w, h, &png::quantise_rgb(&v.rgb)),
-        (Output::Rgb, Background::Transparent) => {
-            // Rendered on black, the colour is premultiplied: divide it out.
-            let mut rgba = Vec::with_capacity(v.opacity.len() * 4);
-            for (c, &a) in v.rgb.chunks_exact(3).zip(&v.opacity) {
-                let inv = if a > 1e-6 { 1.0 / a } else { 0.0 };
-                rgba.extend(c.iter().map(|&x| png::to_u8(x * inv)));
-                rgba.push(png::to_u8(a));
-            }
-            let mut out = Vec::new();
-            PngEncoder::new(&mut out)
-                .write_image(&rgba, w, h, image::ExtendedColorType::Rgba8)
-                .map_err(std::io::Error::other)?;
-            Ok(out)
-        }
-        (Output::Alpha, _) => {
-            let a: Vec<u8> = v.opacity.iter().map(|&x| png::to_u8(x)).collect();
-            let mut out = Vec::new();
-            PngEncoder::new(&mut out)
-                .write_image(&a, w, h, image::ExtendedColorType::L8)
-                .map_err(std::io::Error::other)?;
-            Ok(out)
-        }
-        (Output::Depth, _) => {
-            let scale = if far > 0.0 { 65535.0 / far } else { 0.0 };
-            let px: Vec<u16> = v.depth.iter().map(|&d| (d * scale).clamp(0.0, 65535.0) as u16).collect();
-            let img: ImageBuffer<Luma<u16>, Vec<u16>> =
-                ImageBuffer::from_raw(w, h, px).ok_or_else(|| std::io::Error::other("depth buffer size"))?;
-            let mut out = std::io::Cursor::new(Vec::new());
-            img.write_to(&mut out, image::ImageFormat::Png).map_err(std::io::Error::other)?;
-            Ok(out.into_inner())
-        }
+        (Output::Rgb, Background::Colour(_)) => png::encode_rgb(v.width, v.height, &png::quantise_rgb(&v.rgb)),
+        // Rendered on black, the colour is premultiplied: divide it out.
+        (Output::Rgb, Background::Transparent) => png::encode_rgba(v),
+        (Output::Alpha, _) => png::encode_alpha(v),
+        (Output::Depth, _) => png::encode_depth(v, far),
     }
 }
 

@@ -52,7 +52,15 @@ pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> R
     if !(1..=60).contains(&fps) {
         return Err("fps must be in 1..=60".into());
     }
-    let (width, height) = view.frame_size(r.width, r.height);
+    let format = match r.format.as_deref() {
+        None if cfg!(feature = "mp4") => VideoFormat::Mp4,
+        None => VideoFormat::Gif,
+        Some(f) => f.parse::<VideoFormat>().map_err(|_| format!("unknown video format '{f}' (expected mp4 or gif)"))?,
+    };
+    if !format.is_available() {
+        return Err(format!("{format} videos are not available in this build (cargo feature `mp4`); ask for gif"));
+    }
+    let (width, height) = frame_size(&r, view, format)?;
     let max_side = 4096;
     if !(16..=max_side).contains(&width)
         || !(16..=max_side).contains(&height)
@@ -74,16 +82,32 @@ pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> R
     if !(fov.is_finite() && fov > 1.0 && fov < 179.0) {
         return Err("fov must be between 1 and 179 degrees".into());
     }
-    let format = match r.format.as_deref() {
-        None if cfg!(feature = "mp4") => VideoFormat::Mp4,
-        None => VideoFormat::Gif,
-        Some(f) => f.parse::<VideoFormat>().map_err(|_| format!("unknown video format '{f}' (expected mp4 or gif)"))?,
-    };
-    if !format.is_available() {
-        return Err(format!("{format} videos are not available in this build (cargo feature `mp4`); ask for gif"));
-    }
     crate::media::video::validate(format, width, height, fps).map_err(|e| e.to_string())?;
     Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format })
+}
+
+/// The frame size: the requested sides, the others from the training
+/// cameras. H.264 4:2:0 (MP4) needs even sides, and the encoder would pad an
+/// odd one, making the video a pixel larger than its record says: so for MP4
+/// an odd side that was asked for is refused, naming the even sizes around
+/// it, and an odd side taken from the cameras is rounded down to even.
+fn frame_size(r: &CreateVideo, view: &ViewDefaults, format: VideoFormat) -> Result<(u32, u32), String> {
+    let (width, height) = view.frame_size(r.width, r.height);
+    if format != VideoFormat::Mp4 {
+        return Ok((width, height));
+    }
+    let odd = |asked: Option<u32>| asked.is_some_and(|v| v % 2 == 1);
+    if odd(r.width) || odd(r.height) {
+        let (w, h) = (r.width.unwrap_or(width), r.height.unwrap_or(height));
+        let even = |v: u32, up: bool| if up { v.next_multiple_of(2) } else { v & !1 };
+        let (below, above) = ((even(w, false), even(h, false)), (even(w, true), even(h, true)));
+        return Err(format!(
+            "MP4 frames need even sides (H.264 4:2:0) but {w}x{h} was asked for: ask for {}x{} or {}x{}, \
+             or for format gif",
+            below.0, below.1, above.0, above.1
+        ));
+    }
+    Ok((width & !1, height & !1))
 }
 
 pub async fn create(
@@ -164,5 +188,38 @@ mod tests {
         }
         let e = to_spec(CreateVideo { width: Some(2000), height: Some(2000), ..Default::default() }, &view(), 1 << 20);
         assert!(e.unwrap_err().contains("pixels"));
+    }
+
+    fn mp4(width: Option<u32>, height: Option<u32>) -> CreateVideo {
+        CreateVideo { width, height, format: Some("mp4".into()), ..Default::default() }
+    }
+
+    #[test]
+    #[cfg(feature = "mp4")]
+    fn mp4_refuses_odd_sides_asked_for() {
+        let e = to_spec(mp4(Some(33), Some(17)), &view(), 1 << 20).unwrap_err();
+        assert!(e.contains("33x17") && e.contains("32x16") && e.contains("34x18") && e.contains("gif"), "{e}");
+        let e = to_spec(mp4(Some(32), Some(17)), &view(), 1 << 20).unwrap_err();
+        assert!(e.contains("32x17") && e.contains("32x16 or 32x18"), "{e}");
+        // The same sizes are fine as GIF, and even ones as MP4.
+        let gif = CreateVideo { format: Some("gif".into()), ..mp4(Some(33), Some(17)) };
+        let s = to_spec(gif, &view(), 1 << 20).unwrap();
+        assert_eq!((s.width, s.height), (33, 17));
+        let s = to_spec(mp4(Some(34), Some(18)), &view(), 1 << 20).unwrap();
+        assert_eq!((s.width, s.height), (34, 18));
+    }
+
+    #[test]
+    #[cfg(feature = "mp4")]
+    fn mp4_rounds_odd_default_sides_down_to_even() {
+        let odd = ViewDefaults { width: 33, height: 17, ..view() };
+        let s = to_spec(mp4(None, None), &odd, 1 << 20).unwrap();
+        assert_eq!((s.width, s.height, s.format), (32, 16, VideoFormat::Mp4));
+        // A height taken from the aspect ratio of an asked-for width: 42 * 17 / 33 = 21.6 -> 21, odd -> 20.
+        let s = to_spec(mp4(Some(42), None), &odd, 1 << 20).unwrap();
+        assert_eq!((s.width, s.height), (42, 20));
+        // GIF keeps the cameras' size.
+        let s = to_spec(CreateVideo { format: Some("gif".into()), ..Default::default() }, &odd, 1 << 20).unwrap();
+        assert_eq!((s.width, s.height), (33, 17));
     }
 }

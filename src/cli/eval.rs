@@ -23,7 +23,8 @@ pub struct RenderArgs {
     /// Output folder (created if missing).
     #[arg(long)]
     pub out: PathBuf,
-    /// Also write 16-bit depth maps as NAME_depth.png.
+    /// Also write 16-bit depth maps as NAME_depth.png: distance / far * 65535,
+    /// composited over the far plane (a pixel that hits nothing is white).
     #[arg(long)]
     pub depth: bool,
     #[command(flatten)]
@@ -88,8 +89,7 @@ pub fn render(a: RenderArgs) -> anyhow::Result<()> {
         png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
         if a.depth {
             let p = a.out.join(format!("{}_depth.png", f.name));
-            png::write_depth(&p, v.width, v.height, &v.depth, ds.far)
-                .with_context(|| format!("writing {}", p.display()))?;
+            png::write_depth(&p, &v, ds.far).with_context(|| format!("writing {}", p.display()))?;
         }
         println!("{}  {:.0} ms", path.display(), secs * 1000.0);
     }

@@ -68,6 +68,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .try_init();
+    let api_key = api_key(a.api_key)?;
     let threads = a.common.init_threads()?;
     anyhow::ensure!(a.checkpoint_every.is_finite() && a.checkpoint_every > 0.0, "--checkpoint-every must be positive");
     anyhow::ensure!(a.max_concurrent_jobs > 0, "--max-concurrent-jobs must be at least 1");
@@ -77,7 +78,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
     config.max_upload_bytes = a.max_upload_mb << 20;
     config.max_unpacked_bytes = a.max_unpacked_mb << 20;
     config.max_render_pixels = a.max_render_pixels;
-    config.api_key = a.api_key.filter(|k| !k.is_empty());
+    config.api_key = api_key;
     let budget = a.memory_budget_mb.map_or_else(default_memory_budget, |m| m << 20);
     let per_job = a.max_job_memory_mb.map_or(budget, |m| m << 20);
     anyhow::ensure!(budget > 0 && per_job > 0, "--memory-budget-mb and --max-job-memory-mb must be positive");
@@ -116,6 +117,19 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         server.shutdown().await.context("shutting down")?;
         Ok(())
     })
+}
+
+/// The API key to require, if any. A key that is set but empty (as
+/// `RADIANCE_API_KEY=` in a compose file with a missing secret gives) is
+/// refused: serving without authentication is then never what was meant.
+fn api_key(key: Option<String>) -> anyhow::Result<Option<String>> {
+    match key {
+        Some(k) if k.trim().is_empty() => anyhow::bail!(
+            "RADIANCE_API_KEY / --api-key is set but empty: give a key, or unset it to serve without \
+             authentication"
+        ),
+        other => Ok(other),
+    }
 }
 
 /// Ctrl-C or SIGTERM.

@@ -88,7 +88,7 @@ mod tests {
         assert!(err("grid.nope=1").contains("no field 'grid.nope'"), "{}", err("grid.nope=1"));
         assert!(err("grid=3").contains("group of settings"));
         assert!(err("hidden=wide").contains("--set"));
-        assert!(err("grid.log2_table=40").contains("out of range"));
+        assert!(err("grid.log2_table=40").contains("--set: instant config: grid.log2_table is 40, allowed 8..=24"));
         assert!(err("hidden").contains("KEY=VALUE"));
         assert!(err("kind=nerf").contains("--model"));
     }

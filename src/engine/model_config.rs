@@ -4,12 +4,15 @@
 //! The CLI and the job runner both build models through this, so they train
 //! the same way.
 
+use std::ops::RangeInclusive;
+
 use super::adam::{Adam, AdamConfig};
 use super::hashgrid::HashGridConfig;
 use super::instant::{InstantConfig, InstantModel};
 use super::model::Model;
 use super::nerf::{NerfConfig, NerfModel};
 use super::nerf_net::NetConfig;
+use super::occupancy::OccupancyConfig;
 use super::scene::Scene;
 use super::trainer::{Budget, TrainConfig};
 
@@ -85,57 +88,16 @@ impl ModelConfig {
         }
     }
 
-    /// Refuses configurations that would allocate absurdly or not run,
-    /// naming the allowed ranges.
-    pub fn check(&self) -> Result<(), String> {
+    /// Refuses configurations that would allocate absurdly or not run.
+    /// Every field out of range is reported, each with its value and the
+    /// allowed range, so a client fixes them all in one go.
+    pub fn check(&self) -> Result<(), ConfigError> {
+        let mut c = Checks { kind: self.kind(), fields: Vec::new() };
         match self {
-            ModelConfig::Nerf(c) => {
-                let n = &c.net;
-                let ok = (1..=1024).contains(&n.width)
-                    && (1..=32).contains(&n.depth)
-                    && n.skip < n.depth
-                    && n.pos_freqs <= 24
-                    && n.dir_freqs <= 24
-                    && (1..=1024).contains(&n.dir_width)
-                    && (1..=1024).contains(&c.coarse_samples)
-                    && c.fine_samples <= 1024
-                    && (1..=4096).contains(&c.chunk_rays)
-                    && c.min_transmittance.is_finite()
-                    && (0.0..1.0).contains(&c.min_transmittance)
-                    && c.occupancy.as_ref().is_none_or(|o| occupancy_ok(o) && o.dilate != Some(false));
-                ok.then_some(()).ok_or_else(|| {
-                    "nerf config out of range (net.width, net.dir_width 1..=1024, net.depth 1..=32, \
-                     net.skip < net.depth, freqs <= 24, coarse_samples 1..=1024, fine_samples <= 1024, \
-                     chunk_rays 1..=4096, min_transmittance in [0, 1), occupancy resolution 1..=256, \
-                     sweep >= 1, update_every >= 1, occupancy.dilate not false: the sampler steps half a cell)"
-                        .into()
-                })
-            }
-            ModelConfig::Instant(c) => {
-                let g = &c.grid;
-                let ok = (1..=32).contains(&g.levels)
-                    && (8..=24).contains(&g.log2_table)
-                    && (2..=4096).contains(&g.base_resolution)
-                    && (g.base_resolution..=8192).contains(&g.finest_resolution)
-                    && (1..=256).contains(&c.hidden)
-                    && (1..=64).contains(&c.geo_features)
-                    && occupancy_ok(&c.occupancy)
-                    && (16..=8192).contains(&c.steps_per_diagonal)
-                    && (1..=8192).contains(&c.max_samples)
-                    && ((1 << 8)..=(1 << 20)).contains(&c.samples_per_step)
-                    && c.min_transmittance.is_finite()
-                    && (0.0..1.0).contains(&c.min_transmittance)
-                    && (1..=4096).contains(&c.chunk_rays);
-                ok.then_some(()).ok_or_else(|| {
-                    "instant config out of range (grid.levels 1..=32, grid.log2_table 8..=24, \
-                     grid.base_resolution 2..=4096, grid.finest_resolution base..=8192, hidden 1..=256, \
-                     geo_features 1..=64, occupancy resolution 1..=256, sweep >= 1, update_every >= 1, \
-                     steps_per_diagonal 16..=8192, max_samples 1..=8192, samples_per_step 256..=1048576, \
-                     min_transmittance in [0, 1), chunk_rays 1..=4096)"
-                        .into()
-                })
-            }
+            ModelConfig::Nerf(n) => check_nerf(n, &mut c),
+            ModelConfig::Instant(i) => check_instant(i, &mut c),
         }
+        c.finish()
     }
 
     /// A freshly initialised model for `scene`.
@@ -180,13 +142,135 @@ impl ModelConfig {
     }
 }
 
-fn occupancy_ok(o: &super::occupancy::OccupancyConfig) -> bool {
-    (1..=256).contains(&o.resolution)
-        && o.sweep >= 1
-        && o.update_every >= 1
-        && o.threshold.is_finite()
-        && o.decay.is_finite()
-        && (0.0..=1.0).contains(&o.decay)
+fn check_nerf(n: &NerfConfig, c: &mut Checks) {
+    let net = &n.net;
+    c.int("net.width", net.width, 1..=1024);
+    c.int("net.depth", net.depth, 1..=32);
+    if net.skip >= net.depth {
+        // The skip connection feeds a later layer: it must exist.
+        c.fail("net.skip", FieldValue::Int(net.skip as u64), format!("0..{}", net.depth));
+    }
+    c.int("net.pos_freqs", net.pos_freqs, 0..=24);
+    c.int("net.dir_freqs", net.dir_freqs, 0..=24);
+    c.int("net.dir_width", net.dir_width, 1..=1024);
+    c.int("coarse_samples", n.coarse_samples, 1..=1024);
+    c.int("fine_samples", n.fine_samples, 0..=1024);
+    c.int("chunk_rays", n.chunk_rays, 1..=4096);
+    c.unit_open("min_transmittance", n.min_transmittance);
+    if let Some(o) = &n.occupancy {
+        check_occupancy(o, c);
+        if o.dilate == Some(false) {
+            // The classic sampler steps half a cell: undilated bits would
+            // skip the edges of occupied cells.
+            c.fail("occupancy.dilate", FieldValue::Bool(false), "true or null (the sampler steps half a cell)".into());
+        }
+    }
+}
+
+fn check_instant(i: &InstantConfig, c: &mut Checks) {
+    let g = &i.grid;
+    c.int("grid.levels", g.levels, 1..=32);
+    c.int("grid.log2_table", g.log2_table, 8..=24);
+    c.int("grid.base_resolution", g.base_resolution, 2..=4096);
+    // The finest level is at least as fine as the coarsest; the range names
+    // the number, not the other field, so each message names one field.
+    c.int("grid.finest_resolution", g.finest_resolution, u64::from(g.base_resolution)..=8192);
+    c.int("hidden", i.hidden, 1..=256);
+    c.int("geo_features", i.geo_features, 1..=64);
+    check_occupancy(&i.occupancy, c);
+    c.int("steps_per_diagonal", i.steps_per_diagonal, 16..=8192);
+    c.int("max_samples", i.max_samples, 1..=8192);
+    c.int("samples_per_step", i.samples_per_step, (1 << 8)..=(1 << 20));
+    c.unit_open("min_transmittance", i.min_transmittance);
+    c.int("chunk_rays", i.chunk_rays, 1..=4096);
+}
+
+fn check_occupancy(o: &OccupancyConfig, c: &mut Checks) {
+    c.int("occupancy.resolution", o.resolution, 1..=256);
+    c.int("occupancy.sweep", o.sweep, 1..=u64::MAX);
+    c.int("occupancy.update_every", o.update_every, 1..=u64::MAX);
+    if !o.threshold.is_finite() {
+        c.fail("occupancy.threshold", FieldValue::Float(o.threshold), "a finite number".into());
+    }
+    if !(o.decay.is_finite() && (0.0..=1.0).contains(&o.decay)) {
+        c.fail("occupancy.decay", FieldValue::Float(o.decay), "[0, 1]".into());
+    }
+}
+
+/// A configuration refused by [`ModelConfig::check`]: every field out of
+/// range, in the order they appear in the configuration.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("{kind} config: {}", .fields.iter().map(|f| f.to_string()).collect::<Vec<_>>().join("; "))]
+pub struct ConfigError {
+    /// `instant` or `nerf`.
+    pub kind: &'static str,
+    pub fields: Vec<FieldError>,
+}
+
+/// One field out of range: its dotted path, its value and what is allowed.
+/// Serialised as the API's error details (`{"field", "value", "allowed"}`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, thiserror::Error)]
+#[error("{field} is {value}, allowed {allowed}")]
+pub struct FieldError {
+    pub field: &'static str,
+    pub value: FieldValue,
+    pub allowed: String,
+}
+
+/// A field's value as found (a JSON number or boolean; NaN serialises as
+/// `null`, which JSON input cannot produce anyway).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[serde(untagged)]
+pub enum FieldValue {
+    Int(u64),
+    Float(f32),
+    Bool(bool),
+}
+
+impl std::fmt::Display for FieldValue {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FieldValue::Int(v) => write!(f, "{v}"),
+            FieldValue::Float(v) => write!(f, "{v}"),
+            FieldValue::Bool(v) => write!(f, "{v}"),
+        }
+    }
+}
+
+/// Collects the failures of one configuration.
+struct Checks {
+    kind: &'static str,
+    fields: Vec<FieldError>,
+}
+
+impl Checks {
+    /// An integer field that must lie in `allowed` (`N..=u64::MAX` reads
+    /// `>= N`).
+    fn int(&mut self, field: &'static str, value: impl TryInto<u64>, allowed: RangeInclusive<u64>) {
+        let value = value.try_into().unwrap_or(u64::MAX);
+        if !allowed.contains(&value) {
+            let text = match *allowed.end() {
+                u64::MAX => format!(">= {}", allowed.start()),
+                end => format!("{}..={end}", allowed.start()),
+            };
+            self.fail(field, FieldValue::Int(value), text);
+        }
+    }
+
+    /// A float field in [0, 1).
+    fn unit_open(&mut self, field: &'static str, value: f32) {
+        if !(value.is_finite() && (0.0..1.0).contains(&value)) {
+            self.fail(field, FieldValue::Float(value), "[0, 1)".into());
+        }
+    }
+
+    fn fail(&mut self, field: &'static str, value: FieldValue, allowed: String) {
+        self.fields.push(FieldError { field, value, allowed });
+    }
+
+    fn finish(self) -> Result<(), ConfigError> {
+        if self.fields.is_empty() { Ok(()) } else { Err(ConfigError { kind: self.kind, fields: self.fields }) }
+    }
 }
 
 #[cfg(test)]
@@ -220,10 +304,10 @@ mod tests {
     fn out_of_range_configs_are_refused() {
         let ModelConfig::Instant(mut c) = ModelConfig::preset("instant").unwrap() else { unreachable!() };
         c.grid.log2_table = 40;
-        assert!(ModelConfig::Instant(c).check().unwrap_err().contains("log2_table"));
+        assert!(ModelConfig::Instant(c).check().unwrap_err().to_string().contains("log2_table"));
         let ModelConfig::Nerf(mut n) = ModelConfig::preset("nerf").unwrap() else { unreachable!() };
         n.net.skip = n.net.depth;
-        assert!(ModelConfig::Nerf(n).check().unwrap_err().contains("skip"));
+        assert!(ModelConfig::Nerf(n).check().unwrap_err().to_string().contains("skip"));
         // The classic sampler steps half a cell: its grid must be dilated.
         let ModelConfig::Nerf(mut n) = ModelConfig::preset("nerf").unwrap() else { unreachable!() };
         let mut o = n.occupancy.clone().expect("the preset skips");
@@ -232,10 +316,112 @@ mod tests {
             n.occupancy = Some(o.clone());
             let r = ModelConfig::Nerf(n.clone()).check();
             assert_eq!(r.is_ok(), ok, "{dilate:?}: {r:?}");
-            assert!(ok || r.unwrap_err().contains("occupancy.dilate"));
+            assert!(ok || r.unwrap_err().to_string().contains("occupancy.dilate"));
         }
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
         let c = ModelConfig::preset("nerf-tiny").unwrap();
         assert!(c.build_with_adam(Scene::from_dataset(&ds), 0, Some(f32::NAN)).is_err());
+    }
+
+    type Instant = fn(&mut InstantConfig);
+    type Nerf = fn(&mut NerfConfig);
+
+    /// One bad value per checked field of the fast model.
+    const INSTANT_CASES: [(&str, Instant); 16] = [
+        ("grid.levels", |c| c.grid.levels = 0),
+        ("grid.log2_table", |c| c.grid.log2_table = 40),
+        ("grid.base_resolution", |c| c.grid.base_resolution = 1),
+        ("grid.finest_resolution", |c| c.grid.finest_resolution = 9000),
+        ("hidden", |c| c.hidden = 0),
+        ("geo_features", |c| c.geo_features = 65),
+        ("occupancy.resolution", |c| c.occupancy.resolution = 257),
+        ("occupancy.sweep", |c| c.occupancy.sweep = 0),
+        ("occupancy.update_every", |c| c.occupancy.update_every = 0),
+        ("occupancy.threshold", |c| c.occupancy.threshold = f32::INFINITY),
+        ("occupancy.decay", |c| c.occupancy.decay = 1.5),
+        ("steps_per_diagonal", |c| c.steps_per_diagonal = 8),
+        ("max_samples", |c| c.max_samples = 0),
+        ("samples_per_step", |c| c.samples_per_step = 1 << 21),
+        ("min_transmittance", |c| c.min_transmittance = 1.0),
+        ("chunk_rays", |c| c.chunk_rays = 5000),
+    ];
+
+    /// One bad value per checked field of the classic model.
+    const NERF_CASES: [(&str, Nerf); 15] = [
+        ("net.width", |c| c.net.width = 0),
+        ("net.depth", |c| c.net.depth = 33),
+        ("net.skip", |c| c.net.skip = 100),
+        ("net.pos_freqs", |c| c.net.pos_freqs = 25),
+        ("net.dir_freqs", |c| c.net.dir_freqs = 25),
+        ("net.dir_width", |c| c.net.dir_width = 2000),
+        ("coarse_samples", |c| c.coarse_samples = 0),
+        ("fine_samples", |c| c.fine_samples = 1025),
+        ("chunk_rays", |c| c.chunk_rays = 0),
+        ("min_transmittance", |c| c.min_transmittance = f32::NAN),
+        ("occupancy.resolution", |c| c.occupancy.as_mut().unwrap().resolution = 0),
+        ("occupancy.sweep", |c| c.occupancy.as_mut().unwrap().sweep = 0),
+        ("occupancy.update_every", |c| c.occupancy.as_mut().unwrap().update_every = 0),
+        ("occupancy.decay", |c| c.occupancy.as_mut().unwrap().decay = -0.5),
+        ("occupancy.dilate", |c| c.occupancy.as_mut().unwrap().dilate = Some(false)),
+    ];
+
+    /// Checks that `bad` fails on `field` alone and that its message names
+    /// that field, with its value, and no other field of `all`.
+    fn assert_names_only(bad: ModelConfig, field: &str, all: &[&str]) {
+        let e = bad.check().expect_err(field);
+        let fields: Vec<&str> = e.fields.iter().map(|f| f.field).collect();
+        assert_eq!(fields, [field]);
+        let msg = e.to_string();
+        assert!(
+            msg.starts_with(&format!("{} config: {field} is {}, allowed ", bad.kind(), e.fields[0].value)),
+            "{msg}"
+        );
+        for other in all.iter().filter(|&&o| o != field) {
+            assert!(!msg.contains(other), "{field}: the message also names {other}: {msg}");
+        }
+    }
+
+    #[test]
+    fn each_field_out_of_range_is_named_alone() {
+        let names: Vec<&str> = INSTANT_CASES.iter().map(|(n, _)| *n).collect();
+        for (field, spoil) in INSTANT_CASES {
+            let ModelConfig::Instant(mut c) = ModelConfig::preset("instant").unwrap() else { unreachable!() };
+            spoil(&mut c);
+            assert_names_only(ModelConfig::Instant(c), field, &names);
+        }
+        let names: Vec<&str> = NERF_CASES.iter().map(|(n, _)| *n).collect();
+        for (field, spoil) in NERF_CASES {
+            let ModelConfig::Nerf(mut c) = ModelConfig::preset("nerf").unwrap() else { unreachable!() };
+            spoil(&mut c);
+            assert_names_only(ModelConfig::Nerf(c), field, &names);
+        }
+    }
+
+    #[test]
+    fn every_failing_field_is_reported_with_its_value_and_range() {
+        let ModelConfig::Instant(mut c) = ModelConfig::preset("instant").unwrap() else { unreachable!() };
+        c.grid.log2_table = 40;
+        c.hidden = 0;
+        c.occupancy.decay = 1.5;
+        let e = ModelConfig::Instant(c).check().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "instant config: grid.log2_table is 40, allowed 8..=24; hidden is 0, allowed 1..=256; \
+             occupancy.decay is 1.5, allowed [0, 1]"
+        );
+        assert_eq!(
+            serde_json::to_value(&e.fields).unwrap(),
+            serde_json::json!([
+                { "field": "grid.log2_table", "value": 40, "allowed": "8..=24" },
+                { "field": "hidden", "value": 0, "allowed": "1..=256" },
+                { "field": "occupancy.decay", "value": 1.5, "allowed": "[0, 1]" },
+            ])
+        );
+        let ModelConfig::Nerf(mut n) = ModelConfig::preset("nerf").unwrap() else { unreachable!() };
+        n.net.skip = 9;
+        n.net.depth = 8;
+        n.occupancy.as_mut().unwrap().sweep = 0;
+        let e = ModelConfig::Nerf(n).check().unwrap_err();
+        assert_eq!(e.to_string(), "nerf config: net.skip is 9, allowed 0..8; occupancy.sweep is 0, allowed >= 1");
     }
 }

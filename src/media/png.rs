@@ -6,6 +6,7 @@ use std::path::Path;
 use image::{ImageBuffer, ImageEncoder, Luma, Rgb, codecs::png::PngEncoder};
 
 use crate::engine::fsio::write_atomic;
+use crate::engine::render::View;
 
 /// Quantises a value in [0, 1] to 8 bits (NaN becomes 0).
 pub fn to_u8(v: f32) -> u8 {
@@ -32,18 +33,108 @@ pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[f32]) -> io::Resul
     write_atomic(path, &bytes)
 }
 
-/// Writes a depth map as a 16-bit greyscale PNG, `max_depth` mapping to white.
-pub fn write_depth(path: &Path, width: u32, height: u32, depth: &[f32], max_depth: f32) -> io::Result<()> {
-    let scale = if max_depth > 0.0 { 65535.0 / max_depth } else { 0.0 };
-    let px: Vec<u16> = depth.iter().map(|&d| (d * scale).clamp(0.0, 65535.0) as u16).collect();
-    let img: ImageBuffer<Luma<u16>, Vec<u16>> =
-        ImageBuffer::from_raw(width, height, px).ok_or_else(|| io::Error::other("depth buffer size mismatch"))?;
+/// The 16-bit depth of each pixel of a view: the expected distance along
+/// the ray composited over the far plane, scaled so the far plane is white,
+/// `(D + (1 - A) far) / far * 65535` with `D = sum w_i t_i` the view's depth
+/// and `A` its opacity. A ray that hits nothing reads 65535 ("at or beyond
+/// the far plane"), a surface at distance `d` reads `d / far * 65535`, and
+/// only the camera itself reads 0 (without compositing, empty pixels read 0
+/// too and could not be told from surfaces at the camera).
+pub fn depth_u16(view: &View, far: f32) -> io::Result<Vec<u16>> {
+    if !(far.is_finite() && far > 0.0) {
+        return Err(io::Error::new(io::ErrorKind::InvalidInput, format!("the far plane must be positive, not {far}")));
+    }
+    let scale = 65535.0 / far;
+    let px = view.depth.iter().zip(&view.opacity).map(|(&d, &a)| {
+        let composited = d + (1.0 - a.clamp(0.0, 1.0)) * far;
+        (composited * scale).round().clamp(0.0, 65535.0) as u16
+    });
+    Ok(px.collect())
+}
+
+/// Encodes a view's depth ([`depth_u16`]) as a 16-bit greyscale PNG.
+pub fn encode_depth(view: &View, far: f32) -> io::Result<Vec<u8>> {
+    let px = depth_u16(view, far)?;
+    let img: ImageBuffer<Luma<u16>, Vec<u16>> = ImageBuffer::from_raw(view.width, view.height, px)
+        .ok_or_else(|| io::Error::other("depth buffer size mismatch"))?;
     let mut out = std::io::Cursor::new(Vec::new());
     img.write_to(&mut out, image::ImageFormat::Png).map_err(io::Error::other)?;
-    write_atomic(path, out.get_ref())
+    Ok(out.into_inner())
+}
+
+/// Writes a view's depth ([`depth_u16`]) as a 16-bit PNG, atomically.
+pub fn write_depth(path: &Path, view: &View, far: f32) -> io::Result<()> {
+    write_atomic(path, &encode_depth(view, far)?)
+}
+
+/// Encodes a view's opacity as an 8-bit greyscale PNG.
+pub fn encode_alpha(view: &View) -> io::Result<Vec<u8>> {
+    let a: Vec<u8> = view.opacity.iter().map(|&x| to_u8(x)).collect();
+    let mut out = Vec::new();
+    PngEncoder::new(&mut out)
+        .write_image(&a, view.width, view.height, image::ExtendedColorType::L8)
+        .map_err(io::Error::other)?;
+    Ok(out)
+}
+
+/// Encodes a view rendered on black as an 8-bit RGBA PNG: the colour,
+/// premultiplied by the opacity on black, is divided by it again.
+pub fn encode_rgba(view: &View) -> io::Result<Vec<u8>> {
+    let mut rgba = Vec::with_capacity(view.opacity.len() * 4);
+    for (c, &a) in view.rgb.chunks_exact(3).zip(&view.opacity) {
+        let inv = if a > 1e-6 { 1.0 / a } else { 0.0 };
+        rgba.extend(c.iter().map(|&x| to_u8(x * inv)));
+        rgba.push(to_u8(a));
+    }
+    let mut out = Vec::new();
+    PngEncoder::new(&mut out)
+        .write_image(&rgba, view.width, view.height, image::ExtendedColorType::Rgba8)
+        .map_err(io::Error::other)?;
+    Ok(out)
 }
 
 /// Decodes a PNG into 8-bit RGB (tests and tools).
 pub fn decode_rgb(bytes: &[u8]) -> Result<ImageBuffer<Rgb<u8>, Vec<u8>>, image::ImageError> {
     Ok(image::load_from_memory(bytes)?.to_rgb8())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::model::BatchStats;
+
+    /// A 3x1 view: nothing hit, a surface at 2 of a far plane at 8, and a
+    /// half-transparent surface at 2 (half its weight, half the far plane).
+    fn view() -> View {
+        View {
+            width: 3,
+            height: 1,
+            rgb: vec![0.0; 9],
+            depth: vec![0.0, 2.0, 0.5 * 2.0],
+            opacity: vec![0.0, 1.0, 0.5],
+            stats: BatchStats::default(),
+        }
+    }
+
+    #[test]
+    fn depth_is_composited_over_the_far_plane() {
+        let px = depth_u16(&view(), 8.0).unwrap();
+        // 65535 for nothing; 2 / 8 of it for the surface; (1 + 0.5 * 8) / 8.
+        assert_eq!(px, [65535, 16384, 40959]);
+        let png = encode_depth(&view(), 8.0).unwrap();
+        let decoded = image::load_from_memory(&png).unwrap().into_luma16();
+        assert_eq!(decoded.as_raw(), &px);
+        assert!(depth_u16(&view(), 0.0).is_err());
+        assert!(depth_u16(&view(), f32::NAN).is_err());
+    }
+
+    #[test]
+    fn alpha_and_rgba_keep_the_opacity() {
+        let mut v = view();
+        v.rgb = vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.25, 0.0, 0.0];
+        let a = image::load_from_memory(&encode_alpha(&v).unwrap()).unwrap().into_luma8();
+        assert_eq!(a.as_raw(), &[0, 255, 128]);
+        let rgba = image::load_from_memory(&encode_rgba(&v).unwrap()).unwrap().into_rgba8();
+        assert_eq!(rgba.as_raw(), &[0, 0, 0, 0, 255, 0, 0, 255, 128, 0, 0, 128]);
+    }
 }
