@@ -3,7 +3,7 @@
 //! ```text
 //! DATA/scenes/ID/scene.json   scene record (written before the folder appears)
 //! DATA/scenes/ID/data/...     the uploaded dataset as extracted
-//! DATA/models/ID.ckpt         checkpoint (engine::persist, atomic)
+//! DATA/models/ID.ckpt         checkpoint (engine::io::persist, atomic)
 //! DATA/models/ID.json         model record
 //! DATA/videos/ID.bin, ID.json video file and record
 //! DATA/jobs.redb              job records (redb; only enqueued, started and final states)
@@ -25,7 +25,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use redb::{ReadableDatabase, ReadableTable};
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 
-use crate::engine::fsio::write_atomic;
+use crate::engine::io::fsio::write_atomic;
 
 /// Paths of the data directory.
 #[derive(Clone, Debug)]
@@ -240,7 +240,7 @@ impl Storage {
 }
 
 /// Removes every temporary file of an interrupted atomic write
-/// ([`crate::engine::fsio::is_temporary`]) below `dir`, except inside the
+/// ([`crate::engine::io::fsio::is_temporary`]) below `dir`, except inside the
 /// uploaded datasets (`scenes/ID/data/`, the user's files, which no atomic
 /// write of ours touches). Returns how many it removed. Only for start-up:
 /// a running writer's temporary file would be removed too.
@@ -255,7 +255,7 @@ fn remove_stale_temporaries(dir: &Path, scenes: &Path) -> io::Result<usize> {
             if !dataset {
                 removed += remove_stale_temporaries(&path, scenes)?;
             }
-        } else if kind.is_file() && crate::engine::fsio::is_temporary(&e.file_name()) {
+        } else if kind.is_file() && crate::engine::io::fsio::is_temporary(&e.file_name()) {
             std::fs::remove_file(&path)?;
             removed += 1;
         }

@@ -2,16 +2,16 @@
 
 use std::sync::atomic::AtomicBool;
 
-use radiance::engine::adam::{Adam, AdamConfig};
 use radiance::engine::dataset::Dataset;
-use radiance::engine::model::Model;
-use radiance::engine::nerf::{NerfConfig, NerfModel};
-use radiance::engine::nerf_net::NetConfig;
-use radiance::engine::occupancy::OccupancyConfig;
-use radiance::engine::persist;
-use radiance::engine::scene::Scene;
-use radiance::engine::synthetic::BallScene;
-use radiance::engine::trainer::{Budget, TrainConfig, TrainState, Trainer};
+use radiance::engine::dataset::synthetic::BallScene;
+use radiance::engine::geometry::scene::Scene;
+use radiance::engine::io::persist;
+use radiance::engine::models::Model;
+use radiance::engine::models::nerf::{NerfConfig, NerfModel};
+use radiance::engine::nn::adam::{Adam, AdamConfig};
+use radiance::engine::nn::nerf_net::NetConfig;
+use radiance::engine::sampling::occupancy::OccupancyConfig;
+use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
 
 fn tiny_model(ds: &Dataset) -> NerfModel {
     let config = NerfConfig {

@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use radiance::engine::synthetic::BallScene;
+use radiance::engine::dataset::synthetic::BallScene;
 
 fn radiance(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_radiance")).args(args).env("RAYON_NUM_THREADS", "2").output().unwrap()

@@ -7,7 +7,7 @@
 
 use std::process::Command;
 
-use radiance::engine::synthetic::BallScene;
+use radiance::engine::dataset::synthetic::BallScene;
 
 /// `(estimated MiB, measured MiB)` of a short training run.
 fn estimate_and_peak(data: &str, out: &str, model: &str, sets: &[&str]) -> (f64, f64) {

@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use radiance::api::limits::scene_data;
-use radiance::engine::estimate;
-use radiance::engine::model_config::ModelConfig;
+use radiance::engine::models::config::ModelConfig;
+use radiance::engine::train::estimate;
 use radiance::storage::SceneInfo;
 use reqwest::StatusCode;
 use serde_json::{Value, json};
@@ -108,7 +108,7 @@ fn temporaries(dir: &Path) -> Vec<PathBuf> {
         let p = e.unwrap().path();
         if p.is_dir() {
             out.extend(temporaries(&p));
-        } else if radiance::engine::fsio::is_temporary(p.file_name().unwrap()) {
+        } else if radiance::engine::io::fsio::is_temporary(p.file_name().unwrap()) {
             out.push(p);
         }
     }
@@ -162,7 +162,7 @@ async fn a_job_that_takes_the_server_down_twice_is_failed_at_the_next_start() {
 fn helper_hangs_mid_write() {
     use std::io::Write;
     let dir = PathBuf::from(std::env::var("RADIANCE_TEST_WRITE_DIR").expect("run by the test that needs it"));
-    radiance::engine::fsio::write_atomic_with(&dir.join("models/mdl_x.ckpt"), |w| {
+    radiance::engine::io::fsio::write_atomic_with(&dir.join("models/mdl_x.ckpt"), |w| {
         w.write_all(&vec![7u8; 1 << 20])?;
         w.flush()?;
         std::fs::write(dir.join("writing"), b"")?;

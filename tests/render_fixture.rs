@@ -9,9 +9,9 @@
 
 use std::path::{Path, PathBuf};
 
-use radiance::engine::camera::{Camera, look_at};
-use radiance::engine::math::Vec3;
-use radiance::engine::persist;
+use radiance::engine::geometry::camera::{Camera, look_at};
+use radiance::engine::geometry::math::Vec3;
+use radiance::engine::io::persist;
 use radiance::engine::render::{View, render_view};
 use radiance::media::png;
 
@@ -115,16 +115,16 @@ fn checkpoints_from_before_the_refactor_render_to_the_same_bytes() {
 fn write_fixtures() {
     // Kept as it ran, so the fixtures can be understood (and regenerated only
     // if the checkpoint format itself ever changes).
-    use radiance::engine::adam::{Adam, AdamConfig};
-    use radiance::engine::hashgrid::HashGridConfig;
-    use radiance::engine::instant::{InstantConfig, InstantModel};
-    use radiance::engine::model::Model;
-    use radiance::engine::nerf::{NerfConfig, NerfModel};
-    use radiance::engine::nerf_net::NetConfig;
-    use radiance::engine::occupancy::OccupancyConfig;
-    use radiance::engine::scene::Scene;
-    use radiance::engine::synthetic::BallScene;
-    use radiance::engine::trainer::{Budget, TrainConfig, TrainState, Trainer};
+    use radiance::engine::dataset::synthetic::BallScene;
+    use radiance::engine::geometry::scene::Scene;
+    use radiance::engine::models::Model;
+    use radiance::engine::models::instant::{InstantConfig, InstantModel};
+    use radiance::engine::models::nerf::{NerfConfig, NerfModel};
+    use radiance::engine::nn::adam::{Adam, AdamConfig};
+    use radiance::engine::nn::hashgrid::HashGridConfig;
+    use radiance::engine::nn::nerf_net::NetConfig;
+    use radiance::engine::sampling::occupancy::OccupancyConfig;
+    use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
     use std::sync::atomic::AtomicBool;
 
     let ds = BallScene { size: 24, views: 12, ..Default::default() }.dataset();

@@ -7,8 +7,8 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use common::*;
-use radiance::engine::model_config::ModelConfig;
-use radiance::engine::synthetic::BallScene;
+use radiance::engine::dataset::synthetic::BallScene;
+use radiance::engine::models::config::ModelConfig;
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 

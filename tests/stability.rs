@@ -10,11 +10,11 @@ use std::sync::atomic::AtomicBool;
 
 use proptest::prelude::*;
 
-use radiance::engine::camera::{Camera, Distortion};
-use radiance::engine::encoding::{encode, encode_backward, encoded_width};
+use radiance::engine::geometry::camera::{Camera, Distortion};
+use radiance::engine::nn::encoding::{encode, encode_backward, encoded_width};
+use radiance::engine::render::composite::{composite, composite_backward};
 use radiance::engine::rng::Rng;
-use radiance::engine::sampler::sample_pdf;
-use radiance::engine::volume::{composite, composite_backward};
+use radiance::engine::sampling::stratified::sample_pdf;
 
 // ---------------------------------------------------------------------------
 // Volume rendering with extreme inputs.
@@ -590,19 +590,19 @@ proptest! {
 // Whole models: odd rays, scale, degenerate datasets, long runs, the
 // divergence guard and determinism.
 
-use radiance::engine::adam::{Adam, AdamConfig};
 use radiance::engine::dataset::Split;
-use radiance::engine::math::{Ray, Vec3};
+use radiance::engine::dataset::synthetic::BallScene;
+use radiance::engine::geometry::math::{Ray, Vec3};
+use radiance::engine::geometry::scene::Scene;
+use radiance::engine::io::persist;
 use radiance::engine::metrics::psnr;
-use radiance::engine::model::{Model, RayOutput, StepCtx, TrainRay};
-use radiance::engine::nerf::{NerfConfig, NerfModel};
-use radiance::engine::nerf_net::NetConfig;
-use radiance::engine::occupancy::OccupancyConfig;
-use radiance::engine::persist;
+use radiance::engine::models::nerf::{NerfConfig, NerfModel};
+use radiance::engine::models::{Model, RayOutput, StepCtx, TrainRay};
+use radiance::engine::nn::adam::{Adam, AdamConfig};
+use radiance::engine::nn::nerf_net::NetConfig;
 use radiance::engine::render::render_view;
-use radiance::engine::scene::Scene;
-use radiance::engine::synthetic::BallScene;
-use radiance::engine::trainer::{Budget, DivergenceGuard, StopReason, TrainConfig, TrainState, Trainer};
+use radiance::engine::sampling::occupancy::OccupancyConfig;
+use radiance::engine::train::trainer::{Budget, DivergenceGuard, StopReason, TrainConfig, TrainState, Trainer};
 
 /// A very small classic model (tests/checkpoint_resume.rs's shape).
 fn micro_config(occupancy: bool) -> NerfConfig {
@@ -815,7 +815,7 @@ fn old_train_states_default_to_full_learning_rate() {
 
 /// Trains the micro model with occupancy for `steps` on a 2-thread pool and
 /// returns the checkpoint.
-fn train_checkpoint(ds: &Dataset, steps: u64) -> radiance::engine::checkpoint::Checkpoint {
+fn train_checkpoint(ds: &Dataset, steps: u64) -> radiance::engine::io::checkpoint::Checkpoint {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
     pool.install(|| {
         let model = NerfModel::new(micro_config(true), Scene::from_dataset(ds), 5);
@@ -848,8 +848,8 @@ fn same_data_config_seed_and_threads_give_a_bit_identical_checkpoint() {
     a.save(&pa).unwrap();
     c.save(&pb).unwrap();
     let (la, lb) = (
-        radiance::engine::checkpoint::Checkpoint::load(&pa).unwrap(),
-        radiance::engine::checkpoint::Checkpoint::load(&pb).unwrap(),
+        radiance::engine::io::checkpoint::Checkpoint::load(&pa).unwrap(),
+        radiance::engine::io::checkpoint::Checkpoint::load(&pb).unwrap(),
     );
     assert_eq!(persist::identity_bytes(&la), persist::identity_bytes(&lb));
     assert_eq!(persist::load(&pb).unwrap().state.elapsed, 12345.0);

@@ -3,17 +3,17 @@
 
 use std::sync::atomic::AtomicBool;
 
-use radiance::engine::adam::{Adam, AdamConfig};
+use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::dataset::{Dataset, Split};
-use radiance::engine::hashgrid::HashGridConfig;
-use radiance::engine::instant::{InstantConfig, InstantModel};
-use radiance::engine::math::Ray;
+use radiance::engine::geometry::math::Ray;
+use radiance::engine::geometry::scene::Scene;
 use radiance::engine::metrics::psnr;
-use radiance::engine::model::Model;
+use radiance::engine::models::Model;
+use radiance::engine::models::instant::{InstantConfig, InstantModel};
+use radiance::engine::nn::adam::{Adam, AdamConfig};
+use radiance::engine::nn::hashgrid::HashGridConfig;
 use radiance::engine::render::{View, render_view};
-use radiance::engine::scene::Scene;
-use radiance::engine::synthetic::BallScene;
-use radiance::engine::trainer::{Budget, TrainConfig, TrainState, Trainer};
+use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
 
 fn gt(ds: &Dataset, k: usize) -> Vec<f32> {
     let f = &ds.frames[k];
@@ -69,7 +69,7 @@ fn instant_model_learns_and_skipping_is_lossless() {
     assert!(mean > 25.0, "test PSNR {mean:.2} dB");
 
     // Rebuild the same model three ways from its parameters.
-    let ckpt = radiance::engine::persist::to_checkpoint(
+    let ckpt = radiance::engine::io::persist::to_checkpoint(
         &*model,
         &Adam::new(AdamConfig::default(), model.params().len()),
         &TrainConfig::default(),
@@ -78,7 +78,7 @@ fn instant_model_learns_and_skipping_is_lossless() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.ckpt");
     ckpt.save(&path).unwrap();
-    let restored = radiance::engine::persist::load(&path).unwrap().model;
+    let restored = radiance::engine::io::persist::load(&path).unwrap().model;
     let cam = &ds.frames[test[0]].camera;
     let marched = render_view(&*restored, cam, ds.background);
     assert_eq!(marched.rgb, render_view(&*model, cam, ds.background).rgb, "checkpoint round trip");

@@ -2,16 +2,16 @@
 
 use std::sync::atomic::AtomicBool;
 
-use radiance::engine::adam::{Adam, AdamConfig};
 use radiance::engine::dataset::Split;
+use radiance::engine::dataset::synthetic::BallScene;
+use radiance::engine::geometry::scene::Scene;
 use radiance::engine::metrics::psnr;
-use radiance::engine::model::Model;
-use radiance::engine::nerf::{NerfConfig, NerfModel};
-use radiance::engine::nerf_net::NetConfig;
+use radiance::engine::models::Model;
+use radiance::engine::models::nerf::{NerfConfig, NerfModel};
+use radiance::engine::nn::adam::{Adam, AdamConfig};
+use radiance::engine::nn::nerf_net::NetConfig;
 use radiance::engine::render::render_view;
-use radiance::engine::scene::Scene;
-use radiance::engine::synthetic::BallScene;
-use radiance::engine::trainer::{Budget, TrainConfig, TrainState, Trainer};
+use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
 
 fn test_psnr(model: &dyn Model, ds: &radiance::engine::dataset::Dataset) -> f64 {
     let mut total = 0.0;

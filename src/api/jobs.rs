@@ -12,8 +12,8 @@ use futures_util::Stream;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, Code, limits};
-use crate::engine::estimate;
-use crate::engine::model_config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
+use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
+use crate::engine::train::estimate;
 use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec};
 
 /// `POST /v1/jobs` body.

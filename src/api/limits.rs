@@ -7,7 +7,7 @@ use serde_json::json;
 
 use super::{ApiError, Code, ServiceConfig};
 use crate::engine::dataset::DatasetFormat;
-use crate::engine::estimate::{DataSize, Estimate, mib};
+use crate::engine::train::estimate::{DataSize, Estimate, mib};
 use crate::storage::SceneInfo;
 
 /// The dataset a training job will load: every frame of every split at the

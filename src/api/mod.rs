@@ -19,7 +19,7 @@ use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 
-use crate::engine::model::Model;
+use crate::engine::models::Model;
 use crate::jobs::{Scheduler, SchedulerConfig};
 use crate::storage::Storage;
 

@@ -13,11 +13,11 @@ use serde::{Deserialize, Serialize};
 
 use super::jobs::sched_error;
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
-use crate::engine::camera::{Camera, orbit};
-use crate::engine::checkpoint::CheckpointError;
-use crate::engine::math::Vec3;
-use crate::engine::model::Model;
-use crate::engine::persist;
+use crate::engine::geometry::camera::{Camera, orbit};
+use crate::engine::geometry::math::Vec3;
+use crate::engine::io::checkpoint::CheckpointError;
+use crate::engine::io::persist;
+use crate::engine::models::Model;
 use crate::engine::render::{View, render_view};
 use crate::media::png;
 use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};

@@ -17,7 +17,7 @@ use axum::http::{StatusCode, header::CONTENT_TYPE};
 use super::archive::{self, ArchiveError, ArchiveKind, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
 use crate::engine::dataset::{Dataset, LoadOptions};
-use crate::engine::math::Vec3;
+use crate::engine::geometry::math::Vec3;
 use crate::jobs::SchedError;
 use crate::storage::{SceneInfo, SplitCounts, Storage, ViewDefaults, new_id, now_ms, write_json};
 

@@ -12,8 +12,8 @@ use serde::Deserialize;
 
 use super::jobs::sched_error;
 use super::{ApiError, ApiResult, AppState, limits};
-use crate::engine::estimate;
-use crate::engine::model_config::ModelConfig;
+use crate::engine::models::config::ModelConfig;
+use crate::engine::train::estimate;
 use crate::jobs::{Job, JobSpec, VideoSpec};
 use crate::media::video::VideoFormat;
 use crate::storage::ViewDefaults;

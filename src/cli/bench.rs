@@ -16,10 +16,10 @@ use super::Common;
 use super::eval::score;
 use super::setup::{DEFAULT_BATCH_RAYS, MODEL_KINDS, new_model_and_adam};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
-use crate::engine::fsio;
+use crate::engine::geometry::scene::Scene;
+use crate::engine::io::fsio;
 use crate::engine::render::render_view;
-use crate::engine::scene::Scene;
-use crate::engine::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
+use crate::engine::train::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
 
 #[derive(Args, Debug)]
@@ -295,7 +295,7 @@ mod plot {
     use plotters::style::{FontStyle, register_font};
 
     use super::BenchRow;
-    use crate::engine::fsio;
+    use crate::engine::io::fsio;
     use crate::media::png;
 
     const WIDTH: u32 = 800;

@@ -8,8 +8,8 @@ use clap::Args;
 
 use super::{Common, DataArgs};
 use crate::engine::dataset::{Dataset, Frame, LoadOptions};
+use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, ssim};
-use crate::engine::persist;
 use crate::engine::render::{View, render_view};
 use crate::media::png;
 

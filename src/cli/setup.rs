@@ -2,12 +2,12 @@
 //! optimiser and the training settings: through the engine's
 //! [`ModelConfig`], as the service's jobs do.
 
-use crate::engine::adam::Adam;
-use crate::engine::model::Model;
-use crate::engine::model_config::ModelConfig;
-use crate::engine::scene::Scene;
+use crate::engine::geometry::scene::Scene;
+use crate::engine::models::Model;
+use crate::engine::models::config::ModelConfig;
+use crate::engine::nn::adam::Adam;
 
-pub use crate::engine::model_config::DEFAULT_BATCH_RAYS;
+pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
 
 /// The model kinds `--model` accepts.
 pub const MODEL_KINDS: [&str; 2] = ["instant", "nerf"];

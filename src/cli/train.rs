@@ -12,11 +12,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use super::Common;
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
-use crate::engine::estimate::{self, DataSize, mib};
-use crate::engine::model_config::ModelConfig;
-use crate::engine::persist;
-use crate::engine::scene::Scene;
-use crate::engine::trainer::{Budget, StopReason, TrainState, Trainer};
+use crate::engine::geometry::scene::Scene;
+use crate::engine::io::persist;
+use crate::engine::models::config::ModelConfig;
+use crate::engine::train::estimate::{self, DataSize, mib};
+use crate::engine::train::trainer::{Budget, StopReason, TrainState, Trainer};
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]

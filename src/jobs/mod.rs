@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 
-use crate::engine::model_config::ModelConfig;
-use crate::engine::trainer::Budget;
+use crate::engine::models::config::ModelConfig;
+use crate::engine::train::trainer::Budget;
 use crate::media::video::VideoFormat;
 use crate::storage::{Storage, new_id, now_ms};
 

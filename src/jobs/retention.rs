@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use super::lifecycle::writes_model;
 use super::{Job, JobSpec, Shared};
-use crate::engine::persist;
+use crate::engine::io::persist;
 use crate::storage::{ModelInfo, Storage, now_ms, remove_file_if_exists, valid_id, write_json};
 
 /// Longest pause between two sweeps.
@@ -129,7 +129,7 @@ fn strip_model(shared: &Shared, id: &str) -> Result<Option<u64>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::model_config::ModelConfig;
+    use crate::engine::models::config::ModelConfig;
     use crate::jobs::{JobBudget, JobProgress, Status, TrainSpec, VideoSpec};
     use crate::media::video::VideoFormat;
     use crate::storage::ViewDefaults;

@@ -6,13 +6,13 @@ use std::time::Instant;
 
 use super::{Job, Outcome, Shared, TrainSpec, set_progress};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
-use crate::engine::heldout::HeldOutPixels;
+use crate::engine::geometry::scene::Scene;
+use crate::engine::io::persist;
 use crate::engine::metrics::psnr;
-use crate::engine::model::Model;
-use crate::engine::persist;
+use crate::engine::models::Model;
 use crate::engine::render::render_view;
-use crate::engine::scene::Scene;
-use crate::engine::trainer::{StopReason, TrainState, Trainer};
+use crate::engine::train::heldout::HeldOutPixels;
+use crate::engine::train::trainer::{StopReason, TrainState, Trainer};
 use crate::storage::{ModelInfo, SceneInfo, Storage, now_ms, write_json};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.

@@ -9,10 +9,10 @@ use std::time::Instant;
 use image::RgbImage;
 
 use super::{Job, Outcome, Shared, VideoSpec, set_progress};
-use crate::engine::camera::{Camera, orbit};
-use crate::engine::fsio::write_atomic;
-use crate::engine::math::Vec3;
-use crate::engine::persist;
+use crate::engine::geometry::camera::{Camera, orbit};
+use crate::engine::geometry::math::Vec3;
+use crate::engine::io::fsio::write_atomic;
+use crate::engine::io::persist;
 use crate::engine::render::render_view;
 use crate::media::{png, video};
 use crate::storage::{VideoInfo, now_ms, write_json};

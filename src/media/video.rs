@@ -1,6 +1,6 @@
 //! Orbit videos: a sequence of rendered views encoded as an animated GIF or
 //! an H.264 MP4, returned as bytes (the caller writes them, atomically, with
-//! [`crate::engine::fsio::write_atomic`]).
+//! [`crate::engine::io::fsio::write_atomic`]).
 //!
 //! - **GIF** goes through the `image` crate's encoder: one 256-colour palette
 //!   per frame (exact when a frame has at most 256 colours, NeuQuant at

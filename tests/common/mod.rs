@@ -8,7 +8,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use radiance::api::{Server, ServiceConfig};
-use radiance::engine::synthetic::BallScene;
+use radiance::engine::dataset::synthetic::BallScene;
 use reqwest::{Client, StatusCode};
 use serde_json::{Value, json};
 

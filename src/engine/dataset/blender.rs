@@ -13,7 +13,7 @@ use super::images::decode_all;
 use super::json::{self, Obj};
 use super::validate::{check_shared_size, warnings};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions, Split};
-use crate::engine::math::{Aabb, Vec3};
+use crate::engine::geometry::math::{Aabb, Vec3};
 
 pub const DEFAULT_NEAR: f32 = 2.0;
 pub const DEFAULT_FAR: f32 = 6.0;

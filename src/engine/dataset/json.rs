@@ -9,7 +9,7 @@ use serde_json::{Map, Value};
 use super::images::has_image_extension;
 use super::validate::check_pose;
 use super::{DatasetError, Image};
-use crate::engine::camera::{Camera, Distortion};
+use crate::engine::geometry::camera::{Camera, Distortion};
 
 pub(super) type Obj = Map<String, Value>;
 

@@ -23,8 +23,8 @@ use super::images::{decode_all, has_image_extension};
 use super::npy::parse_npy;
 use super::validate::{check_pose, check_shared_size, warnings};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
-use crate::engine::camera::{Camera, Distortion};
-use crate::engine::math::{Aabb, Vec3};
+use crate::engine::geometry::camera::{Camera, Distortion};
+use crate::engine::geometry::math::{Aabb, Vec3};
 
 /// Image folders in order of preference.
 pub const IMAGE_DIRS: [&str; 4] = ["images_8", "images_4", "images_2", "images"];

@@ -5,8 +5,8 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use super::camera::Camera;
-use super::math::{Aabb, Vec3};
+use crate::engine::geometry::camera::Camera;
+use crate::engine::geometry::math::{Aabb, Vec3};
 
 mod blender;
 mod images;
@@ -14,6 +14,7 @@ mod json;
 mod llff;
 mod ngp;
 pub mod npy;
+pub mod synthetic;
 #[cfg(test)]
 mod testutil;
 mod validate;

@@ -25,7 +25,7 @@ use super::images::decode_all;
 use super::json;
 use super::validate::{check_shared_size, warnings};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
-use crate::engine::math::{Aabb, Vec3};
+use crate::engine::geometry::math::{Aabb, Vec3};
 
 pub const DEFAULT_SCALE: f64 = 0.33;
 pub const DEFAULT_OFFSET: [f64; 3] = [0.5, 0.5, 0.5];
@@ -188,7 +188,10 @@ mod tests {
         assert_eq!(f.path, root.join("images/0003.png"));
         let c = &f.camera;
         assert_eq!((c.width, c.height, c.fx, c.fy, c.cx, c.cy), (4, 3, 3.5, 3.25, 1.75, 1.25));
-        assert_eq!(c.distortion, crate::engine::camera::Distortion { k1: 0.05, k2: -0.08, p1: -0.001, p2: 0.0002 });
+        assert_eq!(
+            c.distortion,
+            crate::engine::geometry::camera::Distortion { k1: 0.05, k2: -0.08, p1: -0.001, p2: 0.0002 }
+        );
         assert_eq!(c.origin(), Vec3::new((3.0 * 3f64.cos()) as f32, (3.0 * 3f64.sin()) as f32, 1.0));
         // Default scale 0.33 and offset 0.5: box centred on the origin.
         let half = 0.5 * 4.0 / 0.33;

@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use super::{Dataset, DatasetError, Split};
-use crate::engine::math::Vec3;
+use crate::engine::geometry::math::Vec3;
 
 /// Largest allowed deviation of any entry of `R^T R` from the identity.
 pub const ORTHONORMAL_TOLERANCE: f64 = 1e-3;

@@ -1,7 +1,11 @@
 //! What every model offers the trainer and the renderer.
 
-use super::math::Ray;
-use super::scene::Scene;
+pub mod config;
+pub mod instant;
+pub mod nerf;
+
+use crate::engine::geometry::math::Ray;
+use crate::engine::geometry::scene::Scene;
 
 /// A training ray in model space with its target colour.
 #[derive(Clone, Copy, Debug)]

@@ -4,9 +4,9 @@
 //! layer, and a sigmoid RGB head. Forward returns a context that backward
 //! takes back.
 
-use super::encoding::{encode, encoded_width};
-use super::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid, softplus, softplus_grad};
-use super::rng::Rng;
+use crate::engine::nn::encoding::{encode, encoded_width};
+use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid, softplus, softplus_grad};
+use crate::engine::rng::Rng;
 
 /// The network's shape. `Default` is the paper's.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::fsio;
+use crate::engine::io::fsio;
 
 /// The first eight bytes of every checkpoint.
 pub const MAGIC: [u8; 8] = *b"RADIANCE";

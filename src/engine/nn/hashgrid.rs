@@ -47,7 +47,7 @@ pub struct HashGrid {
 }
 
 impl HashGrid {
-    pub fn new(layout: &mut super::linear::ParamLayout, config: HashGridConfig) -> Self {
+    pub fn new(layout: &mut crate::engine::nn::linear::ParamLayout, config: HashGridConfig) -> Self {
         let t = 1usize << config.log2_table;
         let l = config.levels.max(1);
         let b = if l > 1 {
@@ -75,7 +75,7 @@ impl HashGrid {
     }
 
     /// Small uniform initial values, as in Instant-NGP.
-    pub fn init(&self, params: &mut [f32], rng: &mut super::rng::Rng) {
+    pub fn init(&self, params: &mut [f32], rng: &mut crate::engine::rng::Rng) {
         for p in &mut params[self.params.clone()] {
             *p = (rng.f32() * 2.0 - 1.0) * 1e-4;
         }
@@ -173,7 +173,7 @@ impl HashGrid {
     /// many points it encoded (0 without AVX2/FMA).
     fn forward_simd(&self, params: &[f32], pts: &[f32], out: &mut [f32]) -> usize {
         #[cfg(target_arch = "x86_64")]
-        if super::gemm::has_avx2_fma() {
+        if crate::engine::nn::gemm::has_avx2_fma() {
             let n = pts.len() / 3 / 8 * 8;
             let soa = simd::Soa::new(&pts[..3 * n]);
             for (l, level) in self.levels.iter().enumerate() {
@@ -251,7 +251,7 @@ impl HashGrid {
     /// it handled (0 without AVX2/FMA).
     fn backward_simd(&self, pts: &[f32], dout: &[f32], grads: &mut [f32]) -> usize {
         #[cfg(target_arch = "x86_64")]
-        if super::gemm::has_avx2_fma() {
+        if crate::engine::nn::gemm::has_avx2_fma() {
             let n = pts.len() / 3 / 8 * 8;
             let soa = simd::Soa::new(&pts[..3 * n]);
             for (l, level) in self.levels.iter().enumerate() {
@@ -511,7 +511,7 @@ mod simd {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::linear::ParamLayout;
+    use crate::engine::nn::linear::ParamLayout;
     use crate::engine::rng::Rng;
 
     fn small() -> (HashGrid, usize) {

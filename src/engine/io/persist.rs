@@ -19,13 +19,13 @@ use std::path::Path;
 
 use serde_json::json;
 
-use super::adam::{Adam, AdamConfig};
-use super::checkpoint::{Checkpoint, CheckpointError, Tensor};
-use super::instant::{InstantConfig, InstantModel};
-use super::model::Model;
-use super::nerf::{NerfConfig, NerfModel};
-use super::scene::Scene;
-use super::trainer::{TrainConfig, TrainState};
+use crate::engine::geometry::scene::Scene;
+use crate::engine::io::checkpoint::{Checkpoint, CheckpointError, Tensor};
+use crate::engine::models::Model;
+use crate::engine::models::instant::{InstantConfig, InstantModel};
+use crate::engine::models::nerf::{NerfConfig, NerfModel};
+use crate::engine::nn::adam::{Adam, AdamConfig};
+use crate::engine::train::trainer::{TrainConfig, TrainState};
 
 /// A model restored from a checkpoint, ready to render or to train on.
 pub struct Restored {

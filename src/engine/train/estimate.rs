@@ -16,13 +16,13 @@
 //! `tests/estimate.rs` trains small and large configurations and checks
 //! the measured peak (`VmHWM`) against this estimate.
 
-use super::hashgrid::HashGrid;
-use super::instant::{self, InstantConfig};
-use super::linear::ParamLayout;
-use super::model_config::ModelConfig;
-use super::nerf::NerfConfig;
-use super::nerf_net::NerfNet;
-use super::occupancy::OccupancyConfig;
+use crate::engine::models::config::ModelConfig;
+use crate::engine::models::instant::{self, InstantConfig};
+use crate::engine::models::nerf::NerfConfig;
+use crate::engine::nn::hashgrid::HashGrid;
+use crate::engine::nn::linear::ParamLayout;
+use crate::engine::nn::nerf_net::NerfNet;
+use crate::engine::sampling::occupancy::OccupancyConfig;
 
 /// The size of a dataset in memory: every frame of every split.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -186,13 +186,13 @@ fn nerf_activations(c: &NerfConfig) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::scene::Scene;
-    use crate::engine::synthetic::BallScene;
+    use crate::engine::dataset::synthetic::BallScene;
+    use crate::engine::geometry::scene::Scene;
 
     #[test]
     fn parameter_counts_match_the_built_models() {
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
-        for name in crate::engine::model_config::PRESETS {
+        for name in crate::engine::models::config::PRESETS {
             let c = ModelConfig::preset(name).unwrap();
             let m = c.build(Scene::from_dataset(&ds), 1);
             let e = training(&c, DataSize::uniform(2, 8, 8), 2);

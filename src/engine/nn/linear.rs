@@ -24,7 +24,7 @@ impl ParamLayout {
     }
 }
 
-pub use super::gemm::gemm;
+pub use crate::engine::nn::gemm::gemm;
 
 /// A dense layer `y = [x_1 .. x_k] W + b`.
 #[derive(Clone, Debug)]
@@ -43,7 +43,7 @@ impl Linear {
     }
 
     /// He-uniform weights (for ReLU networks), zero bias.
-    pub fn init(&self, params: &mut [f32], rng: &mut super::rng::Rng) {
+    pub fn init(&self, params: &mut [f32], rng: &mut crate::engine::rng::Rng) {
         let bound = (6.0 / self.inputs as f32).sqrt();
         for p in &mut params[self.w.clone()] {
             *p = (rng.f32() * 2.0 - 1.0) * bound;

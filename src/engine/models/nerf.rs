@@ -2,15 +2,15 @@
 //! samples and fine samples drawn from the coarse weights, both trained with
 //! an L2 loss on colour.
 
-use super::linear::ParamLayout;
-use super::math::Ray;
-use super::model::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
-use super::nerf_net::{NerfNet, NetConfig, NetCtx};
-use super::occupancy::{OccupancyConfig, OccupancyGrid, Segments};
-use super::rng::Rng;
-use super::sampler::{deltas, edges, merge_sorted, sample_pdf, stratified};
-use super::scene::Scene;
-use super::volume::{composite, composite_backward};
+use crate::engine::geometry::math::Ray;
+use crate::engine::geometry::scene::Scene;
+use crate::engine::models::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
+use crate::engine::nn::linear::ParamLayout;
+use crate::engine::nn::nerf_net::{NerfNet, NetConfig, NetCtx};
+use crate::engine::render::composite::{composite, composite_backward};
+use crate::engine::rng::Rng;
+use crate::engine::sampling::occupancy::{OccupancyConfig, OccupancyGrid, Segments};
+use crate::engine::sampling::stratified::{deltas, edges, merge_sorted, sample_pdf, stratified};
 
 /// The classic model's configuration. `Default` is the paper's.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -187,7 +187,7 @@ impl NerfModel {
         ts: &[Vec<f32>],
         min_t: f32,
         grad_scale: Option<f32>,
-        out: &mut Vec<super::volume::Composite>,
+        out: &mut Vec<crate::engine::render::composite::Composite>,
     ) -> f64 {
         let total = w.pts.len() / 3;
         w.weights.resize(total, 0.0);
@@ -257,7 +257,7 @@ impl NerfModel {
         hits: &[Hit],
         fine_t: &[Vec<f32>],
         min_t: f32,
-    ) -> (Vec<super::volume::Composite>, u64) {
+    ) -> (Vec<crate::engine::render::composite::Composite>, u64) {
         const ROUND: usize = 32;
         struct State {
             next: usize,
@@ -312,7 +312,7 @@ impl NerfModel {
                     if trans < min_t {
                         break;
                     }
-                    s.tau += super::volume::optical_depth(w.ctx.sigma[o + j], s.delta[first + j]);
+                    s.tau += crate::engine::render::composite::optical_depth(w.ctx.sigma[o + j], s.delta[first + j]);
                     let wgt = trans - (-s.tau).exp();
                     for c in 0..3 {
                         s.rgb[c] += wgt * w.ctx.rgb[3 * (o + j) + c];
@@ -329,7 +329,7 @@ impl NerfModel {
             .zip(st)
             .map(|(h, s)| {
                 let trans = (-s.tau).exp();
-                super::volume::Composite {
+                crate::engine::render::composite::Composite {
                     rgb: [
                         s.rgb[0] + trans * h.background[0],
                         s.rgb[1] + trans * h.background[1],
@@ -353,7 +353,7 @@ impl NerfModel {
         mut rngs: Vec<Option<Rng>>,
         mut grads: Option<(&mut [f32], f32)>,
         min_t: f32,
-    ) -> (Vec<super::volume::Composite>, BatchStats) {
+    ) -> (Vec<crate::engine::render::composite::Composite>, BatchStats) {
         let mut stats = BatchStats::default();
         let coarse_t: Vec<Vec<f32>> = hits
             .iter()

@@ -1,9 +1,9 @@
 //! Tiny procedurally generated scenes for tests and examples: an analytic
 //! radiance field rendered exactly into posed images around the origin.
 
-use super::camera::{Camera, look_at};
-use super::dataset::{Dataset, DatasetFormat, Frame, Image};
-use super::math::{Aabb, Ray, Vec3};
+use crate::engine::dataset::{Dataset, DatasetFormat, Frame, Image};
+use crate::engine::geometry::camera::{Camera, look_at};
+use crate::engine::geometry::math::{Aabb, Ray, Vec3};
 
 /// A coloured ball (red on +x, green on +y, blue on +z) in an otherwise empty
 /// box, seen from `views` cameras on a ring; images are RGBA with a
@@ -174,6 +174,6 @@ impl BallScene {
             rows.extend(row);
         }
         let shape = [ds.frames.len(), 17];
-        std::fs::write(dir.join("poses_bounds.npy"), super::dataset::npy::npy_bytes(&shape, &rows, 1))
+        std::fs::write(dir.join("poses_bounds.npy"), crate::engine::dataset::npy::npy_bytes(&shape, &rows, 1))
     }
 }

@@ -6,7 +6,7 @@
 //! ray's near end, the last ends at its far end), so the intervals tile
 //! `[near, far]` exactly.
 
-use super::rng::Rng;
+use crate::engine::rng::Rng;
 
 /// `n` stratified samples in `[near, far]`: one per equal bin, jittered
 /// uniformly inside it when `rng` is given, at the bin centre otherwise.

@@ -9,15 +9,15 @@
 
 use rayon::prelude::*;
 
-use super::hashgrid::{HashGrid, HashGridConfig};
-use super::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
-use super::math::{Ray, Vec3};
-use super::model::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
-use super::occupancy::{OccupancyConfig, OccupancyGrid, Probe};
-use super::rng::Rng;
-use super::scene::Scene;
-use super::sh;
-use super::volume::{composite, composite_backward};
+use crate::engine::geometry::math::{Ray, Vec3};
+use crate::engine::geometry::scene::Scene;
+use crate::engine::models::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
+use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
+use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
+use crate::engine::nn::sh;
+use crate::engine::render::composite::{composite, composite_backward};
+use crate::engine::rng::Rng;
+use crate::engine::sampling::occupancy::{OccupancyConfig, OccupancyGrid, Probe};
 
 /// The fast model's configuration. `Default` is what `radiance train` uses.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -174,7 +174,7 @@ fn visible(spans: &[(usize, usize)], sigma: &[f32], delta: &[f32], min_t: f32, k
                 break;
             }
             keep.push(i);
-            tau += super::volume::optical_depth(sigma[i], delta[i]);
+            tau += crate::engine::render::composite::optical_depth(sigma[i], delta[i]);
         }
     }
 }
@@ -627,7 +627,7 @@ impl InstantModel {
                             stats.skipped += (o + n - i) as u64;
                             break;
                         }
-                        st.2 += super::volume::optical_depth(c.sigma[i], m.delta[i]);
+                        st.2 += crate::engine::render::composite::optical_depth(c.sigma[i], m.delta[i]);
                         let w = trans - (-st.2).exp();
                         if dropped[r] + w <= max_dropped {
                             // Nearly empty space: its colour cannot matter.
@@ -711,7 +711,7 @@ impl InstantModel {
                     if !matches!(self.grid.probe(&gr, t), Probe::Occupied { .. }) {
                         r.skipped += 1;
                         r.skipped_above_cutoff += (s >= self.grid.cutoff) as usize;
-                        r.skipped_opacity += 1.0 - (-super::volume::optical_depth(s, self.dt)).exp();
+                        r.skipped_opacity += 1.0 - (-crate::engine::render::composite::optical_depth(s, self.dt)).exp();
                     }
                 }
                 let mut w = vec![0.0; n];
@@ -761,7 +761,7 @@ mod tests {
     /// written before the setting existed are kept (those are dilated).
     #[test]
     fn occupancy_dilation_follows_the_scene_unless_set() {
-        use crate::engine::synthetic::BallScene;
+        use crate::engine::dataset::synthetic::BallScene;
         let mut ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
         let transparent = Scene::from_dataset(&ds);
         assert!(transparent.transparent);

@@ -2,8 +2,8 @@
 //! centred at the origin with its largest half-extent 1, whatever the units
 //! of the capture. Distances along rays scale by the same factor.
 
-use super::dataset::Dataset;
-use super::math::{Aabb, Ray, Vec3};
+use crate::engine::dataset::Dataset;
+use crate::engine::geometry::math::{Aabb, Ray, Vec3};
 
 /// `v / |v|` computed in f64, so that tiny (subnormal) and huge components
 /// normalise exactly; `None` for zero or non-finite vectors.

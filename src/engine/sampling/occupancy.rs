@@ -12,8 +12,8 @@
 
 use rayon::prelude::*;
 
-use super::math::{Aabb, Ray, Vec3};
-use super::rng::Rng;
+use crate::engine::geometry::math::{Aabb, Ray, Vec3};
+use crate::engine::rng::Rng;
 
 /// Grid settings. `Default` suits the classic model.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -5,12 +5,12 @@
 //! pixels cost a fraction of a training step's rays many times over less,
 //! and their mean squared error is an unbiased estimate of the views'.
 
-use super::dataset::{Dataset, Split};
-use super::math::Ray;
-use super::metrics::mse_to_psnr;
-use super::model::Model;
-use super::render::render_rays;
-use super::rng::Rng;
+use crate::engine::dataset::{Dataset, Split};
+use crate::engine::geometry::math::Ray;
+use crate::engine::metrics::mse_to_psnr;
+use crate::engine::models::Model;
+use crate::engine::render::render_rays;
+use crate::engine::rng::Rng;
 
 /// A fixed sample of held-out pixels: their rays and true colours.
 pub struct HeldOutPixels {
@@ -67,10 +67,10 @@ impl HeldOutPixels {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::model_config::ModelConfig;
+    use crate::engine::dataset::synthetic::BallScene;
+    use crate::engine::geometry::scene::Scene;
+    use crate::engine::models::config::ModelConfig;
     use crate::engine::render::render_view;
-    use crate::engine::scene::Scene;
-    use crate::engine::synthetic::BallScene;
 
     /// With every pixel of the held-out views sampled many times, the
     /// estimate agrees with the exact per-view mean squared error.

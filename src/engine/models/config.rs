@@ -6,15 +6,15 @@
 
 use std::ops::RangeInclusive;
 
-use super::adam::{Adam, AdamConfig};
-use super::hashgrid::HashGridConfig;
-use super::instant::{InstantConfig, InstantModel};
-use super::model::Model;
-use super::nerf::{NerfConfig, NerfModel};
-use super::nerf_net::NetConfig;
-use super::occupancy::OccupancyConfig;
-use super::scene::Scene;
-use super::trainer::{Budget, TrainConfig};
+use crate::engine::geometry::scene::Scene;
+use crate::engine::models::Model;
+use crate::engine::models::instant::{InstantConfig, InstantModel};
+use crate::engine::models::nerf::{NerfConfig, NerfModel};
+use crate::engine::nn::adam::{Adam, AdamConfig};
+use crate::engine::nn::hashgrid::HashGridConfig;
+use crate::engine::nn::nerf_net::NetConfig;
+use crate::engine::sampling::occupancy::OccupancyConfig;
+use crate::engine::train::trainer::{Budget, TrainConfig};
 
 /// A model configuration of either kind, tagged by `kind` in JSON.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -276,7 +276,7 @@ impl Checks {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::synthetic::BallScene;
+    use crate::engine::dataset::synthetic::BallScene;
 
     #[test]
     fn presets_are_valid_and_build() {

@@ -21,10 +21,10 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::adam::Adam;
-use super::dataset::Dataset;
-use super::model::{BatchStats, Model, StepCtx, TrainRay};
-use super::rng::Rng;
+use crate::engine::dataset::Dataset;
+use crate::engine::models::{BatchStats, Model, StepCtx, TrainRay};
+use crate::engine::nn::adam::Adam;
+use crate::engine::rng::Rng;
 
 /// When to stop.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]

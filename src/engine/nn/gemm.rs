@@ -124,7 +124,7 @@ mod small {
         static BT: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
     }
 
-    /// See [`super::gemm`]; the caller checked the shapes, strides and CPU.
+    /// See [`crate::engine::nn::gemm`]; the caller checked the shapes, strides and CPU.
     #[allow(clippy::too_many_arguments)]
     pub fn gemm(
         m: usize,

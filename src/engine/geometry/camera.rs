@@ -7,7 +7,7 @@
 //! centre of pixel `(i, j)` is `(i + 0.5, j + 0.5)` and `cx, cy` are given in
 //! the same frame (the COLMAP / instant-ngp / nerfstudio convention).
 
-use super::math::{Ray, Vec3};
+use crate::engine::geometry::math::{Ray, Vec3};
 
 /// OpenCV distortion coefficients (`k1 k2 p1 p2`), acting on normalised
 /// image coordinates.

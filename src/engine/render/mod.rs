@@ -1,10 +1,12 @@
 //! Rendering whole views: one ray per pixel centre, in parallel over tiles.
 
+pub mod composite;
+
 use rayon::prelude::*;
 
-use super::camera::Camera;
-use super::math::Ray;
-use super::model::{BatchStats, Model, RayOutput};
+use crate::engine::geometry::camera::Camera;
+use crate::engine::geometry::math::Ray;
+use crate::engine::models::{BatchStats, Model, RayOutput};
 
 /// A rendered view.
 #[derive(Clone, Debug)]

@@ -1,0 +1,11 @@
+//! Neural-network building blocks over one flat parameter buffer with named
+//! ranges: linear layers and their GEMM, encodings (frequency, spherical
+//! harmonics, multiresolution hash grid), the classic NeRF MLP, and Adam.
+
+pub mod adam;
+pub mod encoding;
+pub mod gemm;
+pub mod hashgrid;
+pub mod linear;
+pub mod nerf_net;
+pub mod sh;
