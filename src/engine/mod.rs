@@ -5,6 +5,7 @@
 //! and long work stops when a cancel flag is set.
 
 pub mod dataset;
+pub mod fields;
 pub mod geometry;
 pub mod io;
 pub mod metrics;

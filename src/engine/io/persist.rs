@@ -22,8 +22,7 @@ use serde_json::json;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::io::checkpoint::{Checkpoint, CheckpointError, Tensor};
 use crate::engine::models::Model;
-use crate::engine::models::instant::{InstantConfig, InstantModel};
-use crate::engine::models::nerf::{NerfConfig, NerfModel};
+use crate::engine::models::config::ModelConfig;
 use crate::engine::nn::adam::{Adam, AdamConfig};
 use crate::engine::train::trainer::{TrainConfig, TrainState};
 
@@ -154,26 +153,13 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
     let scene: Scene = field(&c.meta, "scene", path)?;
     let params = c.take_f32("params").map_err(|e| e.with_path(path))?;
     let nparams = params.len();
-    let model: Box<dyn Model> = match c.kind.as_str() {
-        "nerf" => {
-            let cfg: NerfConfig = field(&c.meta, "model", path)?;
-            let mut m = NerfModel::from_parts(cfg, scene, params).map_err(&bad)?;
-            if m.grid().is_some() {
-                let density = c.take_f32("occupancy.density").map_err(|e| e.with_path(path))?;
-                m.set_grid_state(density, c.step).map_err(&bad)?;
-            }
-            Box::new(m)
-        }
-        "instant" => {
-            let cfg: InstantConfig = field(&c.meta, "model", path)?;
-            let mut m = InstantModel::from_parts(cfg, scene, params).map_err(&bad)?;
-            let density = c.take_f32("occupancy.density").map_err(|e| e.with_path(path))?;
-            let spr = c.f32("samples_per_ray").map_err(|e| e.with_path(path))?.first().copied().unwrap_or(0.0);
-            m.set_state(density, spr as f64, c.step).map_err(&bad)?;
-            Box::new(m)
-        }
-        other => return Err(bad(format!("unknown model kind '{other}'"))),
-    };
+    // The mirror of `to_checkpoint`: the kind and its config rebuild the
+    // model, which takes back the state tensors it saved.
+    let config = ModelConfig::parse(&c.kind, c.meta.get("model").cloned().unwrap_or_default())
+        .map_err(|e| bad(format!("meta.model: {e}")))?;
+    let mut model = config.spec().rebuild(scene, params).map_err(|e| bad(e.to_string()))?;
+    let step = c.step;
+    model.restore_state(&mut |name| c.take_f32(name).ok(), step).map_err(|e| bad(e.to_string()))?;
     let adam_cfg: AdamConfig = field(&c.meta, "adam", path)?;
     let state: TrainState = field(&c.meta, "state", path)?;
     let render_only = is_render_only(&c);

@@ -7,16 +7,48 @@
 use std::ops::RangeInclusive;
 
 use crate::engine::geometry::scene::Scene;
-use crate::engine::models::Model;
-use crate::engine::models::instant::{InstantConfig, InstantModel};
-use crate::engine::models::nerf::{NerfConfig, NerfModel};
+use crate::engine::models::instant::InstantConfig;
+use crate::engine::models::nerf::NerfConfig;
+use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::{Adam, AdamConfig};
 use crate::engine::nn::hashgrid::HashGridConfig;
 use crate::engine::nn::nerf_net::NetConfig;
 use crate::engine::sampling::occupancy::OccupancyConfig;
 use crate::engine::train::trainer::{Budget, TrainConfig};
 
-/// A model configuration of either kind, tagged by `kind` in JSON.
+/// What a model kind's configuration provides: the one interface through
+/// which a kind plugs into checks, building, loading and estimates. Each
+/// model's file implements it for its config.
+pub trait ModelSpec {
+    /// The kind's name, as checkpoints and the API tag it.
+    fn kind(&self) -> &'static str;
+    /// Records every field out of range in `c`.
+    fn check(&self, c: &mut Checks);
+    /// A freshly initialised model for `scene`.
+    fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model>;
+    /// A model with saved parameters (its state then comes back through
+    /// `Model::restore_state`).
+    fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError>;
+    /// The optimiser's settings.
+    fn adam(&self) -> AdamConfig;
+    /// Whether training composites RGBA images on a random colour per ray
+    /// (to learn transparency) rather than on the dataset's background.
+    fn random_background(&self) -> bool;
+    /// Sizes for the memory estimate, with `threads` training threads.
+    fn footprint(&self, threads: u64) -> Footprint;
+}
+
+/// What a model holds, for `train::estimate`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Footprint {
+    pub params: u64,
+    /// Cells of its occupancy grid (0 without one).
+    pub occupancy_cells: u64,
+    /// f32 values of one training thread's activations and scratch.
+    pub activations: u64,
+}
+
+/// A model configuration of any kind, tagged by `kind` in JSON.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum ModelConfig {
@@ -26,6 +58,9 @@ pub enum ModelConfig {
     Nerf(NerfConfig),
 }
 
+/// The kinds, as [`ModelConfig`] tags them.
+pub const KINDS: [&str; 2] = ["instant", "nerf"];
+
 /// The names [`ModelConfig::preset`] knows, the default first.
 pub const PRESETS: [&str; 4] = ["instant", "instant-tiny", "nerf", "nerf-tiny"];
 
@@ -34,6 +69,14 @@ pub const PRESETS: [&str; 4] = ["instant", "instant-tiny", "nerf", "nerf-tiny"];
 pub const DEFAULT_BATCH_RAYS: usize = 1024;
 
 impl ModelConfig {
+    /// The kind's own configuration.
+    pub fn spec(&self) -> &dyn ModelSpec {
+        match self {
+            ModelConfig::Instant(c) => c,
+            ModelConfig::Nerf(c) => c,
+        }
+    }
+
     /// A named configuration:
     /// - `instant`: the fast model (the default);
     /// - `instant-tiny`: a small hash grid and narrow MLPs, for previews and tests;
@@ -73,19 +116,24 @@ impl ModelConfig {
     /// A configuration from a model kind and its untagged JSON (as
     /// `Model::config_json` writes it).
     pub fn from_kind_json(kind: &str, json: serde_json::Value) -> Option<Self> {
-        match kind {
-            "instant" => serde_json::from_value(json).ok().map(ModelConfig::Instant),
-            "nerf" => serde_json::from_value(json).ok().map(ModelConfig::Nerf),
-            _ => None,
-        }
+        Self::parse(kind, json).ok()
+    }
+
+    /// Like [`ModelConfig::from_kind_json`], saying what was wrong.
+    pub fn parse(kind: &str, mut json: serde_json::Value) -> Result<Self, ModelError> {
+        let Some(kind) = KINDS.into_iter().find(|k| *k == kind) else {
+            return Err(ModelError::UnknownKind(kind.to_string()));
+        };
+        let Some(fields) = json.as_object_mut() else {
+            return Err(ModelError::Config { kind, message: format!("expected a JSON object, found {json}") });
+        };
+        fields.insert("kind".into(), kind.into());
+        serde_json::from_value(json).map_err(|e| ModelError::Config { kind, message: e.to_string() })
     }
 
     /// `instant` or `nerf`.
     pub fn kind(&self) -> &'static str {
-        match self {
-            ModelConfig::Instant(_) => "instant",
-            ModelConfig::Nerf(_) => "nerf",
-        }
+        self.spec().kind()
     }
 
     /// Refuses configurations that would allocate absurdly or not run.
@@ -93,28 +141,18 @@ impl ModelConfig {
     /// allowed range, so a client fixes them all in one go.
     pub fn check(&self) -> Result<(), ConfigError> {
         let mut c = Checks { kind: self.kind(), fields: Vec::new() };
-        match self {
-            ModelConfig::Nerf(n) => check_nerf(n, &mut c),
-            ModelConfig::Instant(i) => check_instant(i, &mut c),
-        }
+        self.spec().check(&mut c);
         c.finish()
     }
 
     /// A freshly initialised model for `scene`.
     pub fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model> {
-        match self {
-            ModelConfig::Instant(c) => Box::new(InstantModel::new(c.clone(), scene, seed)),
-            ModelConfig::Nerf(c) => Box::new(NerfModel::new(c.clone(), scene, seed)),
-        }
+        self.spec().build(scene, seed)
     }
 
-    /// Adam's settings: the paper's 5e-4 -> 5e-5 for `nerf`; Instant-NGP's
-    /// 1e-2 with beta2 0.99 and a tiny epsilon for the hash grid.
+    /// Adam's settings for the kind.
     pub fn adam(&self) -> AdamConfig {
-        match self {
-            ModelConfig::Instant(_) => AdamConfig { lr: 1e-2, lr_end: 1e-3, beta1: 0.9, beta2: 0.99, eps: 1e-15 },
-            ModelConfig::Nerf(_) => AdamConfig::default(),
-        }
+        self.spec().adam()
     }
 
     /// A fresh model and its optimiser; `lr` replaces the initial learning
@@ -133,59 +171,14 @@ impl ModelConfig {
         Ok((model, adam))
     }
 
-    /// Training settings. The fast model learns transparency from random
-    /// backgrounds (Instant-NGP); the classic model trains on the dataset's
-    /// background as in the paper.
+    /// Training settings for the kind.
     pub fn train_config(&self, seed: u64, batch_rays: usize, budget: Budget) -> TrainConfig {
-        let random_background = matches!(self, ModelConfig::Instant(_));
-        TrainConfig { seed, batch_rays, budget, random_background }
+        TrainConfig { seed, batch_rays, budget, random_background: self.spec().random_background() }
     }
 }
 
-fn check_nerf(n: &NerfConfig, c: &mut Checks) {
-    let net = &n.net;
-    c.int("net.width", net.width, 1..=1024);
-    c.int("net.depth", net.depth, 1..=32);
-    if net.skip >= net.depth {
-        // The skip connection feeds a later layer: it must exist.
-        c.fail("net.skip", FieldValue::Int(net.skip as u64), format!("0..{}", net.depth));
-    }
-    c.int("net.pos_freqs", net.pos_freqs, 0..=24);
-    c.int("net.dir_freqs", net.dir_freqs, 0..=24);
-    c.int("net.dir_width", net.dir_width, 1..=1024);
-    c.int("coarse_samples", n.coarse_samples, 1..=1024);
-    c.int("fine_samples", n.fine_samples, 0..=1024);
-    c.int("chunk_rays", n.chunk_rays, 1..=4096);
-    c.unit_open("min_transmittance", n.min_transmittance);
-    if let Some(o) = &n.occupancy {
-        check_occupancy(o, c);
-        if o.dilate == Some(false) {
-            // The classic sampler steps half a cell: undilated bits would
-            // skip the edges of occupied cells.
-            c.fail("occupancy.dilate", FieldValue::Bool(false), "true or null (the sampler steps half a cell)".into());
-        }
-    }
-}
-
-fn check_instant(i: &InstantConfig, c: &mut Checks) {
-    let g = &i.grid;
-    c.int("grid.levels", g.levels, 1..=32);
-    c.int("grid.log2_table", g.log2_table, 8..=24);
-    c.int("grid.base_resolution", g.base_resolution, 2..=4096);
-    // The finest level is at least as fine as the coarsest; the range names
-    // the number, not the other field, so each message names one field.
-    c.int("grid.finest_resolution", g.finest_resolution, u64::from(g.base_resolution)..=8192);
-    c.int("hidden", i.hidden, 1..=256);
-    c.int("geo_features", i.geo_features, 1..=64);
-    check_occupancy(&i.occupancy, c);
-    c.int("steps_per_diagonal", i.steps_per_diagonal, 16..=8192);
-    c.int("max_samples", i.max_samples, 1..=8192);
-    c.int("samples_per_step", i.samples_per_step, (1 << 8)..=(1 << 20));
-    c.unit_open("min_transmittance", i.min_transmittance);
-    c.int("chunk_rays", i.chunk_rays, 1..=4096);
-}
-
-fn check_occupancy(o: &OccupancyConfig, c: &mut Checks) {
+/// The occupancy grid's fields, shared by the kinds that have one.
+pub fn check_occupancy(o: &OccupancyConfig, c: &mut Checks) {
     c.int("occupancy.resolution", o.resolution, 1..=256);
     c.int("occupancy.sweep", o.sweep, 1..=u64::MAX);
     c.int("occupancy.update_every", o.update_every, 1..=u64::MAX);
@@ -238,7 +231,7 @@ impl std::fmt::Display for FieldValue {
 }
 
 /// Collects the failures of one configuration.
-struct Checks {
+pub struct Checks {
     kind: &'static str,
     fields: Vec<FieldError>,
 }
@@ -246,7 +239,7 @@ struct Checks {
 impl Checks {
     /// An integer field that must lie in `allowed` (`N..=u64::MAX` reads
     /// `>= N`).
-    fn int(&mut self, field: &'static str, value: impl TryInto<u64>, allowed: RangeInclusive<u64>) {
+    pub fn int(&mut self, field: &'static str, value: impl TryInto<u64>, allowed: RangeInclusive<u64>) {
         let value = value.try_into().unwrap_or(u64::MAX);
         if !allowed.contains(&value) {
             let text = match *allowed.end() {
@@ -258,13 +251,13 @@ impl Checks {
     }
 
     /// A float field in [0, 1).
-    fn unit_open(&mut self, field: &'static str, value: f32) {
+    pub fn unit_open(&mut self, field: &'static str, value: f32) {
         if !(value.is_finite() && (0.0..1.0).contains(&value)) {
             self.fail(field, FieldValue::Float(value), "[0, 1)".into());
         }
     }
 
-    fn fail(&mut self, field: &'static str, value: FieldValue, allowed: String) {
+    pub fn fail(&mut self, field: &'static str, value: FieldValue, allowed: String) {
         self.fields.push(FieldError { field, value, allowed });
     }
 

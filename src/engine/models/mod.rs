@@ -1,4 +1,10 @@
-//! What every model offers the trainer and the renderer.
+//! Models: a field, a sampler and settings, wired together in one file per
+//! kind, and what every model offers the trainer, the renderer and
+//! checkpoints ([`Model`]).
+//!
+//! Adding a model is one file here (its config, a [`Model`] impl built from
+//! the parts in `fields`, `sampling`, `render` and `train::pass`), one arm of
+//! [`config::ModelConfig`] and its presets.
 
 pub mod config;
 pub mod instant;
@@ -15,7 +21,36 @@ pub struct TrainRay {
     pub background: [f32; 3],
     /// Position in the batch: seeds this ray's random stream.
     pub index: u64,
+    /// The dataset frame the ray comes from (fields with per-image
+    /// appearance read it).
+    pub image: u32,
 }
+
+/// Why a model could not be rebuilt from saved parts.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error("{what}: expected {expected} values, found {found}")]
+    Size { what: &'static str, expected: usize, found: usize },
+    #[error("the checkpoint has no '{0}' tensor, which this model saves")]
+    MissingState(String),
+    #[error("unknown model kind '{0}' (known: {known})", known = config::KINDS.join(", "))]
+    UnknownKind(String),
+    #[error("the {kind} model's configuration: {message}")]
+    Config { kind: &'static str, message: String },
+}
+
+impl ModelError {
+    /// Checks that `found` values were given where `expected` are needed.
+    pub fn check_size(what: &'static str, expected: usize, found: usize) -> Result<(), ModelError> {
+        match expected == found {
+            true => Ok(()),
+            false => Err(ModelError::Size { what, expected, found }),
+        }
+    }
+}
+
+/// A model's saved state, taken back by name ([`Model::restore_state`]).
+pub type StateSource<'a> = &'a mut dyn FnMut(&str) -> Option<Vec<f32>>;
 
 /// Per-step context for a batch.
 #[derive(Clone, Copy, Debug)]
@@ -82,6 +117,10 @@ pub trait Model: Send + Sync {
     /// Non-parameter state saved with checkpoints (e.g. the occupancy grid).
     fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
         Vec::new()
+    }
+    /// Takes back what [`Model::state_tensors`] saved, after `step` steps.
+    fn restore_state(&mut self, _state: StateSource<'_>, _step: u64) -> Result<(), ModelError> {
+        Ok(())
     }
     /// The concrete model, for callers that need its own API.
     fn as_any(&self) -> &dyn std::any::Any;

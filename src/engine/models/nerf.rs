@@ -1,16 +1,26 @@
-//! The classic NeRF model: a coarse and a fine network, stratified coarse
-//! samples and fine samples drawn from the coarse weights, both trained with
-//! an L2 loss on colour.
+//! The classic NeRF model: a coarse and a fine MLP field
+//! (`fields::mlp`), stratified coarse samples and fine samples drawn from
+//! the coarse weights along the occupied part of each ray
+//! (`sampling::hierarchical`), both fields trained with the shared pass
+//! (`train::pass`); views are rendered by the shared loop
+//! (`render::rounds`) over the fine samples.
 
+use super::config::{self, Checks, FieldValue, Footprint, ModelSpec};
+use super::{BatchStats, Model, ModelError, RayOutput, StateSource, StepCtx, TrainRay};
+use crate::engine::fields::mlp::MlpField;
+use crate::engine::fields::{Field, Points, densities};
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
-use crate::engine::models::{BatchStats, Model, RayOutput, StepCtx, TrainRay};
+use crate::engine::nn::adam::AdamConfig;
 use crate::engine::nn::linear::ParamLayout;
-use crate::engine::nn::nerf_net::{NerfNet, NetConfig, NetCtx};
-use crate::engine::render::composite::{composite, composite_backward};
+use crate::engine::nn::nerf_net::{NetConfig, NetCtx};
+use crate::engine::render::composite::composite;
+use crate::engine::render::rounds::{RoundSettings, render_in_rounds};
 use crate::engine::rng::Rng;
-use crate::engine::sampling::occupancy::{OccupancyConfig, OccupancyGrid, Segments};
-use crate::engine::sampling::stratified::{deltas, edges, merge_sorted, sample_pdf, stratified};
+use crate::engine::sampling::Samples;
+use crate::engine::sampling::hierarchical::{self, Drawn, SegmentRay};
+use crate::engine::sampling::occupancy::{OccupancyConfig, OccupancyGrid};
+use crate::engine::train::pass::{PassBuffers, train_pass};
 
 /// The classic model's configuration. `Default` is the paper's.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -43,12 +53,83 @@ impl Default for NerfConfig {
     }
 }
 
+impl ModelSpec for NerfConfig {
+    fn kind(&self) -> &'static str {
+        "nerf"
+    }
+
+    fn check(&self, c: &mut Checks) {
+        let n = self;
+        let net = &n.net;
+        c.int("net.width", net.width, 1..=1024);
+        c.int("net.depth", net.depth, 1..=32);
+        if net.skip >= net.depth {
+            // The skip connection feeds a later layer: it must exist.
+            c.fail("net.skip", FieldValue::Int(net.skip as u64), format!("0..{}", net.depth));
+        }
+        c.int("net.pos_freqs", net.pos_freqs, 0..=24);
+        c.int("net.dir_freqs", net.dir_freqs, 0..=24);
+        c.int("net.dir_width", net.dir_width, 1..=1024);
+        c.int("coarse_samples", n.coarse_samples, 1..=1024);
+        c.int("fine_samples", n.fine_samples, 0..=1024);
+        c.int("chunk_rays", n.chunk_rays, 1..=4096);
+        c.unit_open("min_transmittance", n.min_transmittance);
+        if let Some(o) = &n.occupancy {
+            config::check_occupancy(o, c);
+            if o.dilate == Some(false) {
+                // The classic sampler steps half a cell: undilated bits would
+                // skip the edges of occupied cells.
+                c.fail(
+                    "occupancy.dilate",
+                    FieldValue::Bool(false),
+                    "true or null (the sampler steps half a cell)".into(),
+                );
+            }
+        }
+    }
+
+    fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model> {
+        Box::new(NerfModel::new(self.clone(), scene, seed))
+    }
+
+    fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError> {
+        Ok(Box::new(NerfModel::from_parts(self.clone(), scene, params)?))
+    }
+
+    /// The paper's 5e-4 -> 5e-5.
+    fn adam(&self) -> AdamConfig {
+        AdamConfig::default()
+    }
+
+    /// The classic model trains on the dataset's background, as in the paper.
+    fn random_background(&self) -> bool {
+        false
+    }
+
+    /// One worker thread's chunk: the coarse field on the coarse samples,
+    /// the fine one on all of them, with each trunk layer's output kept for
+    /// backward and the same again as gradients.
+    fn footprint(&self, _threads: u64) -> Footprint {
+        let mut ps = ParamLayout::default();
+        layout(&mut ps, self);
+        let n = &self.net;
+        let (xw, dw) = (3 + 6 * n.pos_freqs as u64, 3 + 6 * n.dir_freqs as u64);
+        let per_sample = 2 * (xw + dw + (n.depth as u64 + 1) * n.width as u64 + n.dir_width as u64 + 8);
+        let samples = self.chunk_rays as u64 * (2 * self.coarse_samples as u64 + self.fine_samples as u64);
+        Footprint {
+            params: ps.len as u64,
+            occupancy_cells: self.occupancy.as_ref().map_or(0, |o| (o.resolution as u64).pow(3)),
+            activations: samples * per_sample,
+        }
+    }
+}
+
 /// The classic NeRF.
 pub struct NerfModel {
     pub config: NerfConfig,
     scene: Scene,
-    coarse: NerfNet,
-    fine: NerfNet,
+    coarse: MlpField,
+    fine: MlpField,
     params: Vec<f32>,
     grid: Option<OccupancyGrid>,
 }
@@ -57,38 +138,28 @@ pub struct NerfModel {
 #[derive(Default)]
 struct Work {
     ctx: NetCtx,
-    pts: Vec<f32>,
-    dirs: Vec<f32>,
-    /// distance along the ray of each sample (for depth)
-    tr: Vec<f32>,
-    /// per ray: offset into the sample arrays and sample count
-    spans: Vec<(usize, usize)>,
-    delta: Vec<f32>,
-    weights: Vec<f32>,
-    dsigma: Vec<f32>,
-    drgb: Vec<f32>,
-    tmp: Vec<f32>,
-    ed: Vec<f32>,
+    samples: Samples,
+    pass: PassBuffers,
 }
 
-/// One ray of a chunk that has something to sample. Samples are placed in
-/// occupied-length coordinates `s` in `[near, far] = [0, length]` and mapped
-/// to distances along the ray through `segs`.
-struct Hit {
-    ray: Ray,
-    segs: Segments,
-    near: f32,
-    far: f32,
-    target: [f32; 3],
-    background: [f32; 3],
+/// Samples per ray and round when rendering the fine pass.
+const RENDER_ROUND: usize = 32;
+/// Points whose densities one task evaluates for the occupancy grid.
+const DENSITY_CHUNK: usize = 1024;
+/// The name of the saved occupancy grid.
+const OCCUPANCY: &str = "occupancy.density";
+
+/// Lays out the classic model's parameters for `config` (without
+/// allocating them): the coarse field, then the fine one.
+pub fn layout(layout: &mut ParamLayout, config: &NerfConfig) -> (MlpField, MlpField) {
+    (MlpField::new(layout, "coarse", config.net.clone()), MlpField::new(layout, "fine", config.net.clone()))
 }
 
 impl NerfModel {
     pub fn new(config: NerfConfig, scene: Scene, seed: u64) -> Self {
-        let mut layout = ParamLayout::default();
-        let coarse = NerfNet::new(&mut layout, "coarse", config.net.clone());
-        let fine = NerfNet::new(&mut layout, "fine", config.net.clone());
-        let mut params = vec![0.0; layout.len];
+        let mut ps = ParamLayout::default();
+        let (coarse, fine) = layout(&mut ps, &config);
+        let mut params = vec![0.0; ps.len];
         let mut rng = Rng::new(seed);
         coarse.init(&mut params, &mut rng);
         fine.init(&mut params, &mut rng);
@@ -96,24 +167,12 @@ impl NerfModel {
         Self { config, scene, coarse, fine, params, grid }
     }
 
-    /// Rebuilds a model from saved parts.
-    pub fn from_parts(config: NerfConfig, scene: Scene, params: Vec<f32>) -> Result<Self, String> {
+    /// A model with saved parameters (its state comes back through
+    /// [`Model::restore_state`]).
+    pub fn from_parts(config: NerfConfig, scene: Scene, params: Vec<f32>) -> Result<Self, ModelError> {
         let m = Self::new(config, scene, 0);
-        if params.len() != m.params.len() {
-            return Err(format!("expected {} parameters, found {}", m.params.len(), params.len()));
-        }
+        ModelError::check_size("parameters", m.params.len(), params.len())?;
         Ok(Self { params, ..m })
-    }
-
-    /// The occupied part of a ray, or `None` when it has nothing to sample.
-    fn hit(&self, ray: &Ray, target: [f32; 3], background: [f32; 3]) -> Option<Hit> {
-        let (t0, t1) = self.scene.clip(ray)?;
-        let segs = match &self.grid {
-            Some(g) => g.segments(ray, t0, t1),
-            None => Segments::single(t0, t1),
-        };
-        let far = segs.length();
-        (far > 0.0).then_some(Hit { ray: *ray, segs, near: 0.0, far, target, background })
     }
 
     /// Uses another model's occupancy grid (same configuration).
@@ -126,273 +185,106 @@ impl NerfModel {
         self.grid.as_ref()
     }
 
-    /// Replaces the grid's running densities (from a checkpoint).
-    pub fn set_grid_state(&mut self, density: Vec<f32>, step: u64) -> Result<(), String> {
+    /// Replaces the grid's running densities.
+    pub fn set_grid_state(&mut self, density: Vec<f32>, step: u64) -> Result<(), ModelError> {
         let Some(g) = self.grid.as_mut() else { return Ok(()) };
-        if density.len() != g.density.len() {
-            return Err(format!("occupancy grid has {} cells, expected {}", density.len(), g.density.len()));
-        }
+        ModelError::check_size("occupancy grid cells", g.density.len(), density.len())?;
         g.density = density;
         g.apply(step, &[], &[]);
         Ok(())
     }
 
-    /// Densities of both networks (their maximum) at model-space points.
-    fn max_density(&self, pts: &[f32]) -> Vec<f32> {
-        use rayon::prelude::*;
-        const CHUNK: usize = 1024;
-        let mut out = vec![0.0f32; pts.len() / 3];
-        out.par_chunks_mut(CHUNK).zip(pts.par_chunks(3 * CHUNK)).for_each(|(o, p)| {
-            let n = o.len();
-            let dirs = [0.0f32, 0.0, 1.0].repeat(n);
-            let mut ctx = NetCtx::default();
-            self.coarse.forward(&self.params, p, &dirs, n, &mut ctx);
-            o.copy_from_slice(&ctx.sigma);
-            self.fine.forward(&self.params, p, &dirs, n, &mut ctx);
-            for (a, b) in o.iter_mut().zip(&ctx.sigma) {
-                *a = a.max(*b);
-            }
-        });
-        out
+    /// The occupied part of a model-space ray, if it has one.
+    fn segment_ray(&self, ray: &Ray) -> Option<SegmentRay> {
+        SegmentRay::new(&self.scene, self.grid.as_ref(), ray)
     }
 
-    pub fn macs_per_sample(&self) -> usize {
-        self.coarse.macs_per_sample()
+    /// Network evaluations per ray without skipping (coarse + fine + coarse again).
+    pub fn dense_samples(&self) -> u64 {
+        (2 * self.config.coarse_samples + self.config.fine_samples) as u64
     }
 
-    /// Lays the samples `t` of each hit ray out as points and directions.
-    fn gather(w: &mut Work, hits: &[Hit], ts: &[Vec<f32>]) {
-        w.pts.clear();
-        w.dirs.clear();
-        w.spans.clear();
-        w.tr.clear();
-        for (h, t) in hits.iter().zip(ts) {
-            w.spans.push((w.pts.len() / 3, t.len()));
-            for &si in t {
-                let ti = h.segs.to_t(si);
-                w.tr.push(ti);
-                let p = h.ray.at(ti);
-                w.pts.extend_from_slice(&[p.x, p.y, p.z]);
-                w.dirs.extend_from_slice(&[h.ray.dir.x, h.ray.dir.y, h.ray.dir.z]);
-            }
-        }
-    }
-
-    /// Composites every ray of the last forward pass; with `train`, also
-    /// writes dL/dsigma and dL/drgb for an L2 loss scaled by `loss_scale`.
-    /// Returns per-ray composites and the summed squared error.
-    fn composite_all(
-        w: &mut Work,
-        hits: &[Hit],
-        ts: &[Vec<f32>],
-        min_t: f32,
-        grad_scale: Option<f32>,
-        out: &mut Vec<crate::engine::render::composite::Composite>,
-    ) -> f64 {
-        let total = w.pts.len() / 3;
-        w.weights.resize(total, 0.0);
-        if grad_scale.is_some() {
-            w.dsigma.resize(total, 0.0);
-            w.drgb.resize(total * 3, 0.0);
-        }
-        out.clear();
-        let mut sq = 0.0f64;
-        for (k, (h, t)) in hits.iter().zip(ts).enumerate() {
-            let (o, n) = w.spans[k];
-            deltas(t, h.near, h.far, &mut w.delta);
-            let sigma = &w.ctx.sigma[o..o + n];
-            let rgb = &w.ctx.rgb[3 * o..3 * (o + n)];
-            let tr = &w.tr[o..o + n];
-            let c = composite(sigma, rgb, tr, &w.delta, h.background, min_t, &mut w.weights[o..o + n]);
-            let err = [c.rgb[0] - h.target[0], c.rgb[1] - h.target[1], c.rgb[2] - h.target[2]];
-            sq += err.iter().map(|e| (*e as f64) * (*e as f64)).sum::<f64>() / 3.0;
-            if let Some(s) = grad_scale {
-                let g = [2.0 * s * err[0], 2.0 * s * err[1], 2.0 * s * err[2]];
-                composite_backward(
-                    sigma,
-                    rgb,
-                    tr,
-                    &w.delta,
-                    &w.weights[o..o + n],
-                    h.background,
-                    c.used,
-                    g,
-                    0.0,
-                    &mut w.dsigma[o..o + n],
-                    &mut w.drgb[3 * o..3 * (o + n)],
-                );
-            }
-            out.push(c);
-        }
-        sq
-    }
-
-    /// Fine sample positions for each ray from the coarse weights.
-    fn fine_samples(
-        &self,
-        w: &mut Work,
-        hits: &[Hit],
-        coarse_t: &[Vec<f32>],
-        rngs: &mut [Option<Rng>],
-    ) -> Vec<Vec<f32>> {
-        let mut out = Vec::with_capacity(hits.len());
-        for (k, (h, t)) in hits.iter().zip(coarse_t).enumerate() {
-            let (o, n) = w.spans[k];
-            edges(t, h.near, h.far, &mut w.ed);
-            w.tmp.clear();
-            sample_pdf(&w.ed, &w.weights[o..o + n], self.config.fine_samples, rngs[k].as_mut(), &mut w.tmp);
-            let mut merged = Vec::new();
-            merge_sorted(t, &w.tmp, &mut merged);
-            out.push(merged);
-        }
-        out
-    }
-
-    /// The fine pass for rendering, in rounds of a few samples per ray, so
-    /// that a ray's samples stop being evaluated once its transmittance falls
-    /// below `min_t`. Returns the composites and the samples evaluated.
-    fn fine_in_rounds(
-        &self,
-        w: &mut Work,
-        hits: &[Hit],
-        fine_t: &[Vec<f32>],
-        min_t: f32,
-    ) -> (Vec<crate::engine::render::composite::Composite>, u64) {
-        const ROUND: usize = 32;
-        struct State {
-            next: usize,
-            tau: f32,
-            rgb: [f32; 3],
-            depth: f32,
-            live: bool,
-            delta: Vec<f32>,
-        }
-        let mut st: Vec<State> = hits
-            .iter()
-            .zip(fine_t)
-            .map(|(h, t)| {
-                let mut delta = Vec::new();
-                deltas(t, h.near, h.far, &mut delta);
-                State { next: 0, tau: 0.0, rgb: [0.0; 3], depth: 0.0, live: !t.is_empty(), delta }
-            })
-            .collect();
-        let mut samples = 0u64;
-        loop {
-            w.pts.clear();
-            w.dirs.clear();
-            w.tr.clear();
-            // (ray, its first sample in this round, count)
-            let mut owners = Vec::new();
-            for (k, (h, s)) in hits.iter().zip(&st).enumerate() {
-                if !s.live {
-                    continue;
+    /// Trains both fields on a chunk of rays.
+    fn train_chunk(&self, w: &mut Work, chunk: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
+        let scale = 1.0 / (ctx.batch_rays.max(1) as f32 * 3.0);
+        let mut stats = BatchStats { rays: chunk.len() as u64, ..Default::default() };
+        let (mut rays, mut segs, mut rngs) = (Vec::new(), Vec::new(), Vec::new());
+        for r in chunk {
+            match self.segment_ray(&r.ray) {
+                Some(h) => {
+                    rays.push(*r);
+                    segs.push(h);
+                    rngs.push(Some(Rng::stream(ctx.seed, ctx.step, r.index)));
                 }
-                let t = &fine_t[k];
-                let end = (s.next + ROUND).min(t.len());
-                for &si in &t[s.next..end] {
-                    let ti = h.segs.to_t(si);
-                    w.tr.push(ti);
-                    let p = h.ray.at(ti);
-                    w.pts.extend_from_slice(&[p.x, p.y, p.z]);
-                    w.dirs.extend_from_slice(&[h.ray.dir.x, h.ray.dir.y, h.ray.dir.z]);
+                None => {
+                    // The ray sees only the background: no gradient, but it
+                    // counts in the loss (of both passes).
+                    let e = crate::engine::render::loss::l2(r.background, r.target, 0.0).0;
+                    stats.sq_err += e;
+                    stats.loss += 2.0 * e;
                 }
-                owners.push((k, s.next, end - s.next));
-            }
-            if owners.is_empty() {
-                break;
-            }
-            let n = w.pts.len() / 3;
-            samples += n as u64;
-            self.fine.forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
-            let mut o = 0;
-            for &(k, first, cnt) in &owners {
-                let s = &mut st[k];
-                for j in 0..cnt {
-                    let trans = (-s.tau).exp();
-                    if trans < min_t {
-                        break;
-                    }
-                    s.tau += crate::engine::render::composite::optical_depth(w.ctx.sigma[o + j], s.delta[first + j]);
-                    let wgt = trans - (-s.tau).exp();
-                    for c in 0..3 {
-                        s.rgb[c] += wgt * w.ctx.rgb[3 * (o + j) + c];
-                    }
-                    s.depth += wgt * w.tr[o + j];
-                }
-                s.next = first + cnt;
-                s.live = s.next < fine_t[k].len() && (-s.tau).exp() >= min_t;
-                o += cnt;
             }
         }
-        let comps = hits
-            .iter()
-            .zip(st)
-            .map(|(h, s)| {
-                let trans = (-s.tau).exp();
-                crate::engine::render::composite::Composite {
-                    rgb: [
-                        s.rgb[0] + trans * h.background[0],
-                        s.rgb[1] + trans * h.background[1],
-                        s.rgb[2] + trans * h.background[2],
-                    ],
-                    depth: s.depth,
-                    opacity: 1.0 - trans,
-                    used: s.next,
-                }
-            })
-            .collect();
-        (comps, samples)
+        if segs.is_empty() {
+            return stats;
+        }
+        let coarse = hierarchical::coarse(&segs, self.config.coarse_samples, &mut rngs);
+        hierarchical::pack(&segs, &coarse, &mut w.samples);
+        let c =
+            train_pass(&self.coarse, &self.params, &rays, &mut w.samples, None, scale, &mut w.ctx, &mut w.pass, grads);
+        let spans = &w.samples.spans;
+        let fine = hierarchical::fine(&segs, &coarse, spans, &w.pass.weights, self.config.fine_samples, &mut rngs);
+        hierarchical::pack(&segs, &fine, &mut w.samples);
+        let f =
+            train_pass(&self.fine, &self.params, &rays, &mut w.samples, None, scale, &mut w.ctx, &mut w.pass, grads);
+        stats.samples = c.samples + f.samples;
+        stats.sq_err += f.sq_err;
+        stats.loss += c.sq_err + f.sq_err;
+        stats
     }
 
-    /// Runs the coarse and fine passes over a chunk of hit rays; with
-    /// `grads`, also backpropagates the L2 loss scaled by `grad_scale`.
-    fn run_chunk(
-        &self,
-        w: &mut Work,
-        hits: &[Hit],
-        mut rngs: Vec<Option<Rng>>,
-        mut grads: Option<(&mut [f32], f32)>,
-        min_t: f32,
-    ) -> (Vec<crate::engine::render::composite::Composite>, BatchStats) {
-        let mut stats = BatchStats::default();
-        let coarse_t: Vec<Vec<f32>> = hits
-            .iter()
-            .zip(rngs.iter_mut())
-            .map(|(h, r)| {
-                let mut t = Vec::new();
-                stratified(h.near, h.far, self.config.coarse_samples, r.as_mut(), &mut t);
-                t
-            })
-            .collect();
-        let scale = grads.as_ref().map(|g| g.1);
-        let mut comps = Vec::new();
-        // Coarse pass.
-        Self::gather(w, hits, &coarse_t);
-        let n = w.pts.len() / 3;
-        self.coarse.forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
-        let sq_c = Self::composite_all(w, hits, &coarse_t, min_t, scale, &mut comps);
-        stats.samples += n as u64;
-        if let Some((g, _)) = grads.as_mut() {
-            self.coarse.backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
+    /// Renders a chunk of rays: the coarse field composited (with early
+    /// termination) for the weights the fine samples are drawn from, then
+    /// the fine field through the shared render loop.
+    fn render_chunk(&self, w: &mut Work, chunk: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
+        let min_t = self.config.min_transmittance;
+        let mut stats = BatchStats { rays: chunk.len() as u64, ..Default::default() };
+        let (mut idx, mut segs) = (Vec::new(), Vec::new());
+        for (i, r) in chunk.iter().enumerate() {
+            match self.segment_ray(r) {
+                Some(h) => {
+                    idx.push(i);
+                    segs.push(h);
+                }
+                None => out[i] = RayOutput { rgb: background, depth: 0.0, opacity: 0.0 },
+            }
         }
-        // Fine pass.
-        let fine_t = self.fine_samples(w, hits, &coarse_t, &mut rngs);
-        if grads.is_none() && min_t > 0.0 {
-            let (comps, n) = self.fine_in_rounds(w, hits, &fine_t, min_t);
-            stats.samples += n;
-            return (comps, stats);
+        if segs.is_empty() {
+            return stats;
         }
-        Self::gather(w, hits, &fine_t);
-        let n = w.pts.len() / 3;
-        self.fine.forward(&self.params, &w.pts, &w.dirs, n, &mut w.ctx);
-        let sq_f = Self::composite_all(w, hits, &fine_t, min_t, scale, &mut comps);
-        stats.samples += n as u64;
-        if let Some((g, _)) = grads.as_mut() {
-            self.fine.backward(&self.params, &mut w.ctx, &w.dsigma, &w.drgb, g);
+        let mut rngs = vec![None; segs.len()];
+        let coarse = hierarchical::coarse(&segs, self.config.coarse_samples, &mut rngs);
+        let m = &mut w.samples;
+        hierarchical::pack(&segs, &coarse, m);
+        self.coarse.density(&self.params, Points { pos: &m.pos, dirs: &m.dirs, image: &[] }, &mut w.ctx);
+        self.coarse.color(&self.params, &m.dirs, &mut w.ctx);
+        let (sigma, rgb) = (self.coarse.sigma(&w.ctx), self.coarse.rgb(&w.ctx));
+        w.pass.weights.resize(m.len(), 0.0);
+        for &(o, k) in &m.spans {
+            let (t, d, wt) = (&m.t[o..o + k], &m.delta[o..o + k], &mut w.pass.weights[o..o + k]);
+            composite(&sigma[o..o + k], &rgb[3 * o..3 * (o + k)], t, d, background, min_t, wt);
         }
-        stats.sq_err = sq_f;
-        stats.loss = sq_c + sq_f;
-        (comps, stats)
+        stats.samples += m.len() as u64;
+        let fine = hierarchical::fine(&segs, &coarse, &m.spans, &w.pass.weights, self.config.fine_samples, &mut rngs);
+        let mut drawn = Drawn::new(&segs, &fine);
+        let settings = RoundSettings { round: RENDER_ROUND, min_transmittance: min_t, max_dropped_weight: 0.0 };
+        let mut hit = vec![RayOutput::default(); segs.len()];
+        let s = render_in_rounds(&self.fine, &self.params, &mut drawn, settings, background, &mut w.ctx, m, &mut hit);
+        stats.samples += s.samples;
+        for (&i, o) in idx.iter().zip(hit) {
+            out[i] = o;
+        }
+        stats
     }
 }
 
@@ -419,31 +311,8 @@ impl Model for NerfModel {
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
         let mut w = Work::default();
         let mut stats = BatchStats::default();
-        let scale = 1.0 / (ctx.batch_rays.max(1) as f32 * 3.0);
         for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
-            let mut hits = Vec::with_capacity(chunk.len());
-            let mut rngs = Vec::with_capacity(chunk.len());
-            for r in chunk {
-                stats.rays += 1;
-                match self.hit(&r.ray, r.target, r.background) {
-                    Some(h) => {
-                        hits.push(h);
-                        rngs.push(Some(Rng::stream(ctx.seed, ctx.step, r.index)));
-                    }
-                    None => {
-                        // The ray sees only the background: no gradient, but it counts in the loss.
-                        let e: f64 =
-                            (0..3).map(|k| ((r.background[k] - r.target[k]) as f64).powi(2)).sum::<f64>() / 3.0;
-                        stats.sq_err += e;
-                        stats.loss += 2.0 * e;
-                    }
-                }
-            }
-            if hits.is_empty() {
-                continue;
-            }
-            let (_, s) = self.run_chunk(&mut w, &hits, rngs, Some((grads, scale)), 0.0);
-            stats.add(&BatchStats { rays: 0, ..s });
+            stats.add(&self.train_chunk(&mut w, chunk, ctx, grads));
         }
         stats.skipped = (stats.rays * self.dense_samples()).saturating_sub(stats.samples);
         stats
@@ -455,14 +324,27 @@ impl Model for NerfModel {
             return;
         }
         let (cells, pts) = g.update_points(step, seed);
-        let sigma = self.max_density(&pts);
+        // Either network may put density where the other does not.
+        let mut sigma = densities(&self.coarse, &self.params, &pts, DENSITY_CHUNK);
+        let fine = densities(&self.fine, &self.params, &pts, DENSITY_CHUNK);
+        for (a, b) in sigma.iter_mut().zip(fine) {
+            *a = a.max(b);
+        }
         if let Some(g) = self.grid.as_mut() {
             g.apply(step, &cells, &sigma);
         }
     }
 
     fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
-        self.grid.iter().map(|g| ("occupancy.density".to_string(), g.density.clone())).collect()
+        self.grid.iter().map(|g| (OCCUPANCY.to_string(), g.density.clone())).collect()
+    }
+
+    fn restore_state(&mut self, state: StateSource<'_>, step: u64) -> Result<(), ModelError> {
+        if self.grid.is_none() {
+            return Ok(());
+        }
+        let density = state(OCCUPANCY).ok_or_else(|| ModelError::MissingState(OCCUPANCY.into()))?;
+        self.set_grid_state(density, step)
     }
 
     fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
@@ -470,36 +352,9 @@ impl Model for NerfModel {
         let mut stats = BatchStats::default();
         let per_chunk = self.config.chunk_rays.max(1) * 8;
         for (chunk, outc) in rays.chunks(per_chunk).zip(out.chunks_mut(per_chunk)) {
-            let mut hits = Vec::new();
-            let mut idx = Vec::new();
-            for (i, r) in chunk.iter().enumerate() {
-                stats.rays += 1;
-                match self.hit(r, [0.0; 3], background) {
-                    Some(h) => {
-                        hits.push(h);
-                        idx.push(i);
-                    }
-                    None => outc[i] = RayOutput { rgb: background, depth: 0.0, opacity: 0.0 },
-                }
-            }
-            if hits.is_empty() {
-                continue;
-            }
-            let rngs = vec![None; hits.len()];
-            let (comps, s) = self.run_chunk(&mut w, &hits, rngs, None, self.config.min_transmittance);
-            stats.samples += s.samples;
-            for (&i, c) in idx.iter().zip(comps) {
-                outc[i] = RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity };
-            }
+            stats.add(&self.render_chunk(&mut w, chunk, background, outc));
         }
         stats.skipped = (stats.rays * self.dense_samples()).saturating_sub(stats.samples);
         stats
-    }
-}
-
-impl NerfModel {
-    /// Network evaluations per ray without skipping (coarse + fine + coarse again).
-    pub fn dense_samples(&self) -> u64 {
-        (2 * self.config.coarse_samples + self.config.fine_samples) as u64
     }
 }

@@ -64,6 +64,29 @@ pub struct NetCtx {
     dhd: Vec<f32>,
 }
 
+impl NetCtx {
+    /// Keeps samples `keep` (sorted) of the last forward pass: every saved
+    /// activation, so a backward pass over the kept samples is exact.
+    pub fn compact(&mut self, keep: &[usize]) {
+        let n = self.n;
+        let rows = |v: &mut Vec<f32>| {
+            if let Some(width) = v.len().checked_div(n) {
+                crate::engine::sampling::gather_rows(v, width, keep);
+            }
+        };
+        for v in [&mut self.xenc, &mut self.denc, &mut self.feat, &mut self.hd, &mut self.sigma_raw] {
+            rows(v);
+        }
+        for v in [&mut self.sigma, &mut self.rgb] {
+            rows(v);
+        }
+        for h in &mut self.h {
+            rows(h);
+        }
+        self.n = keep.len();
+    }
+}
+
 fn resize(v: &mut Vec<f32>, len: usize) {
     v.resize(len, 0.0);
 }
@@ -94,11 +117,6 @@ impl NerfNet {
         for l in self.trunk.iter().chain([&self.sigma, &self.feature, &self.dir, &self.rgb]) {
             l.init(params, rng);
         }
-    }
-
-    /// Multiply-adds per sample (forward).
-    pub fn macs_per_sample(&self) -> usize {
-        self.trunk.iter().chain([&self.sigma, &self.feature, &self.dir, &self.rgb]).map(|l| l.inputs * l.outputs).sum()
     }
 
     fn xw(&self) -> usize {

@@ -1,6 +1,8 @@
 //! Rendering whole views: one ray per pixel centre, in parallel over tiles.
 
 pub mod composite;
+pub mod loss;
+pub mod rounds;
 
 use rayon::prelude::*;
 

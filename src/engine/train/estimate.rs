@@ -17,12 +17,6 @@
 //! the measured peak (`VmHWM`) against this estimate.
 
 use crate::engine::models::config::ModelConfig;
-use crate::engine::models::instant::{self, InstantConfig};
-use crate::engine::models::nerf::NerfConfig;
-use crate::engine::nn::hashgrid::HashGrid;
-use crate::engine::nn::linear::ParamLayout;
-use crate::engine::nn::nerf_net::NerfNet;
-use crate::engine::sampling::occupancy::OccupancyConfig;
 
 /// The size of a dataset in memory: every frame of every split.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -88,33 +82,26 @@ pub fn mib(bytes: u64) -> String {
 /// `threads` worker threads.
 pub fn training(config: &ModelConfig, data: DataSize, threads: usize) -> Estimate {
     let threads = threads.max(1) as u64;
-    let (params, occupancy, activations) = match config {
-        ModelConfig::Instant(c) => {
-            (instant_params(c), occupancy_cells(Some(&c.occupancy)), instant_activations(c, threads))
-        }
-        ModelConfig::Nerf(c) => (nerf_params(c), occupancy_cells(c.occupancy.as_ref()), nerf_activations(c)),
-    };
-    let p = params * F32;
+    let f = config.spec().footprint(threads);
+    let p = f.params * F32;
     let parts = vec![
         ("parameters", p),
         ("optimiser moments", 2 * p),
         ("divergence snapshot", 3 * p),
         ("per-thread gradients", threads * p),
         ("checkpoint copy", 3 * p),
-        ("occupancy grid", occupancy * (F32 + 2)),
-        ("per-thread activations", threads * activations * F32),
+        ("occupancy grid", f.occupancy_cells * (F32 + 2)),
+        ("per-thread activations", threads * f.activations * F32),
         ("dataset", data.pixels * PIXEL_BYTES),
     ];
-    Estimate::new(params, occupancy, parts)
+    Estimate::new(f.params, f.occupancy_cells, parts)
 }
 
 /// Peak memory of rendering a video of `frames` frames of `width` x
 /// `height` from a model of `config` (loaded with its optimiser state).
 pub fn video(config: &ModelConfig, frames: u32, width: u32, height: u32, threads: usize) -> Estimate {
-    let (params, occupancy) = match config {
-        ModelConfig::Instant(c) => (instant_params(c), occupancy_cells(Some(&c.occupancy))),
-        ModelConfig::Nerf(c) => (nerf_params(c), occupancy_cells(c.occupancy.as_ref())),
-    };
+    let f = config.spec().footprint(threads.max(1) as u64);
+    let (params, occupancy) = (f.params, f.occupancy_cells);
     let pixels = width as u64 * height as u64;
     let parts = vec![
         // The checkpoint is read whole, then parameters and moments are copied out of it.
@@ -129,58 +116,6 @@ pub fn video(config: &ModelConfig, frames: u32, width: u32, height: u32, threads
     // At most the raw frames: both formats compress.
     e.disk_bytes = frames as u64 * pixels * 3;
     e
-}
-
-/// Trainable parameters of the fast model.
-pub fn instant_params(c: &InstantConfig) -> u64 {
-    let mut layout = ParamLayout::default();
-    instant::layout(&mut layout, c);
-    layout.len as u64
-}
-
-/// Trainable parameters of the classic model (coarse and fine networks).
-pub fn nerf_params(c: &NerfConfig) -> u64 {
-    let mut layout = ParamLayout::default();
-    NerfNet::new(&mut layout, "coarse", c.net.clone());
-    NerfNet::new(&mut layout, "fine", c.net.clone());
-    layout.len as u64
-}
-
-fn occupancy_cells(c: Option<&OccupancyConfig>) -> u64 {
-    c.map_or(0, |o| (o.resolution as u64).pow(3))
-}
-
-/// Floats one worker thread holds for the fast model's largest chunk.
-///
-/// Rays per step start at `samples_per_step / 64` (the model's first guess
-/// of samples per ray) and shrink once it learns the real figure, so the
-/// largest chunk is the first one: `min(chunk_rays, rays per thread)` rays
-/// of up to one sample per marching step each (the occupancy grid is not
-/// warm yet).
-fn instant_activations(c: &InstantConfig, threads: u64) -> u64 {
-    let first_rays = (c.samples_per_step as u64).div_ceil(64).div_ceil(threads);
-    let rays = (c.chunk_rays as u64).min(first_rays).max(1);
-    let per_ray = (c.max_samples as u64).min(c.steps_per_diagonal as u64 + 1);
-    let samples = rays * per_ray;
-    let grid = HashGrid::new(&mut ParamLayout::default(), c.grid.clone()).width() as u64;
-    let (h, g) = (c.hidden as u64, c.geo_features as u64);
-    // Forward: unit position, encoding, density hidden, geometry features,
-    // density, SH direction code (16), two colour hiddens, colour; backward:
-    // two hidden-sized gradients, the features' and the encoding's; and the
-    // marcher's per-sample position, direction, distance and step.
-    let per_sample = (3 + grid + h + g + 1 + 16 + 2 * h + 3) + (2 * h + g + grid) + 12;
-    samples * per_sample
-}
-
-/// Floats one worker thread holds for the classic model's chunk: the coarse
-/// network on the coarse samples, the fine one on all of them, with each
-/// trunk layer's output kept for backward and the same again as gradients.
-fn nerf_activations(c: &NerfConfig) -> u64 {
-    let n = &c.net;
-    let (xw, dw) = (3 + 6 * n.pos_freqs as u64, 3 + 6 * n.dir_freqs as u64);
-    let per_sample = 2 * (xw + dw + (n.depth as u64 + 1) * n.width as u64 + n.dir_width as u64 + 8);
-    let rays = c.chunk_rays as u64;
-    rays * (2 * c.coarse_samples as u64 + c.fine_samples as u64) * per_sample
 }
 
 #[cfg(test)]

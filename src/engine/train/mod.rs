@@ -3,4 +3,5 @@
 
 pub mod estimate;
 pub mod heldout;
+pub mod pass;
 pub mod trainer;

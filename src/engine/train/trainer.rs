@@ -309,7 +309,8 @@ impl<'a> Trainer<'a> {
             .map(|index| {
                 let p = rng.below(total);
                 let k = self.cumulative.partition_point(|&c| c <= p);
-                let frame = &self.dataset.frames[self.dataset.train[k]];
+                let image = self.dataset.train[k];
+                let frame = &self.dataset.frames[image];
                 let local = p - if k == 0 { 0 } else { self.cumulative[k - 1] };
                 let w = frame.camera.width as u64;
                 let (i, j) = ((local % w) as u32, (local / w) as u32);
@@ -320,6 +321,7 @@ impl<'a> Trainer<'a> {
                     target: frame.image.rgb_on(i, j, background),
                     background,
                     index,
+                    image: image as u32,
                 }
             })
             .collect()

@@ -1,0 +1,108 @@
+//! One training pass of a field over packed samples, shared by every model:
+//! densities, optional culling of what early termination would not see,
+//! colours, compositing, the L2 loss and the backward pass.
+
+use crate::engine::fields::{Field, Points};
+use crate::engine::models::TrainRay;
+use crate::engine::render::composite::{composite, composite_backward, optical_depth};
+use crate::engine::render::loss::l2;
+use crate::engine::sampling::Samples;
+
+/// Buffers of a pass, reused across passes by one thread.
+#[derive(Default)]
+pub struct PassBuffers {
+    /// Compositing weight of each sample of the last pass (after culling),
+    /// `[n]`: hierarchical samplers draw from these.
+    pub weights: Vec<f32>,
+    dsigma: Vec<f32>,
+    drgb: Vec<f32>,
+    keep: Vec<usize>,
+    image: Vec<u32>,
+}
+
+/// What a pass measured.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PassStats {
+    /// Sum over rays of the mean squared colour error.
+    pub sq_err: f64,
+    /// Samples the field evaluated.
+    pub samples: u64,
+    /// Samples culled behind the termination point.
+    pub culled: u64,
+}
+
+/// Trains `field` on `rays` whose samples are `samples` (one span per ray,
+/// in order; a ray without samples shows its background). With `cull`, the
+/// samples behind the point where a ray's transmittance falls below it are
+/// dropped after the density pass: they would change its colour by less
+/// than `cull`, and their colour pass and backward are skipped. Gradients of
+/// the loss times `scale` accumulate into `grads`.
+#[allow(clippy::too_many_arguments)]
+pub fn train_pass<F: Field>(
+    field: &F,
+    params: &[f32],
+    rays: &[TrainRay],
+    samples: &mut Samples,
+    cull: Option<f32>,
+    scale: f32,
+    ctx: &mut F::Ctx,
+    buf: &mut PassBuffers,
+    grads: &mut [f32],
+) -> PassStats {
+    let mut stats = PassStats { samples: samples.len() as u64, ..Default::default() };
+    if !samples.is_empty() {
+        buf.image.clear();
+        for (r, &(_, k)) in rays.iter().zip(&samples.spans) {
+            buf.image.extend(std::iter::repeat_n(r.image, k));
+        }
+        field.density(params, Points { pos: &samples.pos, dirs: &samples.dirs, image: &buf.image }, ctx);
+        if let Some(min_t) = cull {
+            visible(&samples.spans, field.sigma(ctx), &samples.delta, min_t, &mut buf.keep);
+            if buf.keep.len() < samples.len() {
+                stats.culled = (samples.len() - buf.keep.len()) as u64;
+                field.compact(ctx, &buf.keep);
+                samples.compact(&buf.keep);
+            }
+        }
+        field.color(params, &samples.dirs, ctx);
+    }
+    let n = samples.len();
+    for v in [&mut buf.weights, &mut buf.dsigma, &mut buf.drgb] {
+        v.clear();
+    }
+    buf.weights.resize(n, 0.0);
+    buf.dsigma.resize(n, 0.0);
+    buf.drgb.resize(3 * n, 0.0);
+    let (sigma, rgb) = if n > 0 { (field.sigma(ctx), field.rgb(ctx)) } else { (&[][..], &[][..]) };
+    for (r, &(o, k)) in rays.iter().zip(&samples.spans) {
+        let (sig, col) = (&sigma[o..o + k], &rgb[3 * o..3 * (o + k)]);
+        let (t, d) = (&samples.t[o..o + k], &samples.delta[o..o + k]);
+        let comp = composite(sig, col, t, d, r.background, 0.0, &mut buf.weights[o..o + k]);
+        let (sq, g) = l2(comp.rgb, r.target, scale);
+        stats.sq_err += sq;
+        if k > 0 {
+            let (ds, dc) = (&mut buf.dsigma[o..o + k], &mut buf.drgb[3 * o..3 * (o + k)]);
+            composite_backward(sig, col, t, d, &buf.weights[o..o + k], r.background, comp.used, g, 0.0, ds, dc);
+        }
+    }
+    if n > 0 {
+        field.backward(params, ctx, &buf.dsigma, &buf.drgb, grads);
+    }
+    stats
+}
+
+/// Indices of the samples in front of the point where each ray's
+/// transmittance falls below `min_t` (from the densities alone).
+fn visible(spans: &[(usize, usize)], sigma: &[f32], delta: &[f32], min_t: f32, keep: &mut Vec<usize>) {
+    keep.clear();
+    for &(o, k) in spans {
+        let mut tau = 0.0f32;
+        for i in o..o + k {
+            if (-tau).exp() < min_t {
+                break;
+            }
+            keep.push(i);
+            tau += optical_depth(sigma[i], delta[i]);
+        }
+    }
+}
