@@ -1,7 +1,8 @@
 //! The tests' tiny models: small enough to train in seconds on the tiny
-//! generated scenes. The engine's config types are imported here only, so
-//! tests that build their own variants take them from this module and a
-//! change of engine paths is fixed in one place.
+//! generated scenes. Tests that build variants of them take the engine's
+//! config types from this module too, so a change of engine paths is fixed
+//! here. (render_fixture.rs's ignored fixture writer keeps its own configs:
+//! it records how the fixtures were made.)
 #![allow(unused_imports)] // the re-exports: each test binary uses its own
 
 pub use radiance::engine::models::instant::{InstantConfig, InstantModel};
