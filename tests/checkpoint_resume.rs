@@ -1,44 +1,22 @@
 //! Checkpoints restore a run exactly, and training is deterministic.
 
+mod common;
+
 use std::sync::atomic::AtomicBool;
 
+use common::tiny::{self, NerfModel};
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::geometry::scene::Scene;
 use radiance::engine::io::persist;
 use radiance::engine::models::Model;
-use radiance::engine::models::nerf::{NerfConfig, NerfModel};
 use radiance::engine::nn::adam::{Adam, AdamConfig};
-use radiance::engine::nn::nerf_net::NetConfig;
-use radiance::engine::sampling::occupancy::OccupancyConfig;
-use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
-
-fn tiny_model(ds: &Dataset) -> NerfModel {
-    let config = NerfConfig {
-        net: NetConfig { pos_freqs: 3, dir_freqs: 1, width: 16, depth: 3, skip: 1, dir_width: 8 },
-        coarse_samples: 8,
-        fine_samples: 8,
-        occupancy: Some(OccupancyConfig {
-            resolution: 8,
-            update_every: 4,
-            sweep: 2,
-            warmup_steps: 8,
-            ..Default::default()
-        }),
-        ..Default::default()
-    };
-    NerfModel::new(config, Scene::from_dataset(ds), 3)
-}
+use radiance::engine::train::trainer::{TrainState, Trainer};
 
 fn trainer(ds: &Dataset, steps: u64) -> Trainer<'_> {
-    let model = tiny_model(ds);
+    let model = NerfModel::new(tiny::nerf_micro(true), Scene::from_dataset(ds), 3);
     let adam = Adam::new(AdamConfig { lr: 5e-3, lr_end: 5e-4, ..Default::default() }, model.params().len());
-    let cfg = TrainConfig {
-        seed: 9,
-        batch_rays: 64,
-        budget: Budget { steps: Some(steps), seconds: None },
-        ..Default::default()
-    };
+    let cfg = tiny::train_config(9, 64, steps);
     Trainer::new(Box::new(model), adam, cfg, TrainState::default(), ds)
 }
 

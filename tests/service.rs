@@ -235,9 +235,9 @@ async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
     assert_eq!(frames[0].buffer().dimensions(), (24, 16));
     let (_, mp4, ct) = svc.video(&model, json!({ "frames": 5, "fps": 10, "width": 32, "height": 16 })).await;
     assert_eq!(ct, "video/mp4");
-    let top: Vec<String> = mp4_boxes(&mp4).into_iter().map(|(k, _)| k).collect();
+    let top: Vec<String> = mp4::boxes(&mp4).into_iter().map(|(k, _)| k).collect();
     assert!(top.starts_with(&["ftyp".to_string()]) && top.contains(&"moov".into()) && top.contains(&"mdat".into()));
-    let stsz = mp4_child(&mp4, &["moov", "trak", "mdia", "minf", "stbl", "stsz"]);
+    let stsz = mp4::child(&mp4, &["moov", "trak", "mdia", "minf", "stbl", "stsz"]);
     assert_eq!(u32::from_be_bytes(stsz[8..12].try_into().unwrap()), 5, "samples in stsz");
     let bad_videos = [
         (json!({ "frames": 0 }), StatusCode::BAD_REQUEST),
@@ -648,14 +648,6 @@ async fn router_and_openapi_list_the_same_routes() {
     svc.stop().await;
 }
 
-/// The width and height in an MP4's track header (16.16 fixed point, at the
-/// end of `tkhd`).
-fn mp4_track_size(mp4: &[u8]) -> (u32, u32) {
-    let tkhd = mp4_child(mp4, &["moov", "trak", "tkhd"]);
-    let at = |i: usize| u32::from_be_bytes(tkhd[i..i + 4].try_into().unwrap()) >> 16;
-    (at(tkhd.len() - 8), at(tkhd.len() - 4))
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn mp4_of_an_odd_sized_scene_is_the_size_its_job_says() {
     let data = tempfile::tempdir().unwrap();
@@ -671,7 +663,7 @@ async fn mp4_of_an_odd_sized_scene_is_the_size_its_job_says() {
     // The cameras' 17x17 becomes 16x16, in the job and in the file.
     let (job, mp4, _) = svc.video(model, json!({ "frames": 2, "fps": 10, "format": "mp4" })).await;
     assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(16), Some(16)), "{job}");
-    assert_eq!(mp4_track_size(&mp4), (16, 16));
+    assert_eq!(mp4::track_size(&mp4), (16, 16));
     // Asked for explicitly, an odd side is refused, naming the even sizes.
     let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), json!({ "width": 33, "height": 17 })).await;
     assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");

@@ -1,50 +1,28 @@
 //! The fast model learns a tiny generated scene; its skipping (occupancy
 //! grid, early termination) does not change what it renders.
 
+mod common;
+
 use std::sync::atomic::AtomicBool;
 
+use common::psnr::test_psnr;
+use common::tiny::{self, InstantModel};
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::dataset::{Dataset, Split};
 use radiance::engine::geometry::math::Ray;
 use radiance::engine::geometry::scene::Scene;
 use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
-use radiance::engine::models::instant::{InstantConfig, InstantModel};
 use radiance::engine::nn::adam::{Adam, AdamConfig};
-use radiance::engine::nn::hashgrid::HashGridConfig;
 use radiance::engine::render::{View, render_view};
-use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
-
-fn gt(ds: &Dataset, k: usize) -> Vec<f32> {
-    let f = &ds.frames[k];
-    (0..f.camera.height)
-        .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
-        .flat_map(|(i, j)| f.image.rgb_on(i, j, ds.background))
-        .collect()
-}
+use radiance::engine::train::trainer::{TrainConfig, TrainState, Trainer};
 
 fn trained() -> (Dataset, Box<dyn Model>) {
     let ds = BallScene::default().dataset();
-    let mut config = InstantConfig {
-        grid: HashGridConfig { levels: 8, log2_table: 14, base_resolution: 4, finest_resolution: 64 },
-        hidden: 32,
-        steps_per_diagonal: 256,
-        samples_per_step: 1 << 13,
-        chunk_rays: 32,
-        ..Default::default()
-    };
-    config.occupancy.resolution = 32;
-    config.occupancy.update_every = 8;
-    config.occupancy.sweep = 2;
-    let model = InstantModel::new(config, Scene::from_dataset(&ds), 2);
+    let model = InstantModel::new(tiny::instant_small(), Scene::from_dataset(&ds), 2);
     let adam =
         Adam::new(AdamConfig { lr: 1e-2, lr_end: 1e-3, beta1: 0.9, beta2: 0.99, eps: 1e-15 }, model.params().len());
-    let cfg = TrainConfig {
-        seed: 2,
-        batch_rays: 0,
-        budget: Budget { steps: Some(200), seconds: None },
-        random_background: true,
-    };
+    let cfg = TrainConfig { random_background: true, ..tiny::train_config(2, 0, 200) };
     let mut t = Trainer::new(Box::new(model), adam, cfg, TrainState::default(), &ds);
     t.run(&AtomicBool::new(false), |_, _| true);
     let model = t.model;
@@ -59,12 +37,7 @@ fn max_diff(a: &View, b: &View) -> f32 {
 fn instant_model_learns_and_skipping_is_lossless() {
     let (ds, model) = trained();
     let test: Vec<usize> = ds.split(Split::Test).to_vec();
-    let mut total = 0.0;
-    for &k in &test {
-        let v = render_view(&*model, &ds.frames[k].camera, ds.background);
-        total += psnr(&v.rgb, &gt(&ds, k));
-    }
-    let mean = total / test.len() as f64;
+    let mean = test_psnr(&*model, &ds);
     eprintln!("instant test PSNR {mean:.2} dB");
     assert!(mean > 25.0, "test PSNR {mean:.2} dB");
 

@@ -1,7 +1,12 @@
-//! Support shared by the service tests: a real server on 127.0.0.1:0 (in
-//! process or as the binary), tiny generated scenes and their archives, and
-//! readers for what the service answers.
+//! Support shared by the tests: a real server on 127.0.0.1:0 (in process or
+//! as the binary), tiny generated scenes and their archives, and readers for
+//! what the service answers; the tiny model configs ([`tiny`]), PSNR
+//! ([`psnr`]) and the MP4 reader ([`mp4`]) in their own modules.
 #![allow(dead_code)] // each test binary uses its own part of this module
+
+pub mod mp4;
+pub mod psnr;
+pub mod tiny;
 
 use std::io::Write;
 use std::path::Path;
@@ -92,29 +97,6 @@ pub fn form_of(entries: &[(String, Vec<u8>)], by_filename: bool) -> reqwest::mul
         form = form.part(if by_filename { "file".to_string() } else { name.clone() }, part);
     }
     form
-}
-
-/// The boxes of an MP4 (ISO BMFF) buffer: `(type, payload)` at one level.
-pub fn mp4_boxes(b: &[u8]) -> Vec<(String, &[u8])> {
-    let mut out = Vec::new();
-    let mut i = 0;
-    while i + 8 <= b.len() {
-        let size = u32::from_be_bytes(b[i..i + 4].try_into().unwrap()) as usize;
-        let kind = String::from_utf8_lossy(&b[i + 4..i + 8]).into_owned();
-        assert!(size >= 8 && i + size <= b.len(), "box {kind} of size {size} at {i} overruns {}", b.len());
-        out.push((kind, &b[i + 8..i + size]));
-        i += size;
-    }
-    assert_eq!(i, b.len(), "trailing bytes after the last box");
-    out
-}
-
-pub fn mp4_child<'a>(b: &'a [u8], path: &[&str]) -> &'a [u8] {
-    let mut cur = b;
-    for name in path {
-        cur = mp4_boxes(cur).into_iter().find(|(k, _)| k == name).unwrap_or_else(|| panic!("no {name} box")).1;
-    }
-    cur
 }
 
 pub struct Svc {

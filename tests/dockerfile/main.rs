@@ -1,0 +1,49 @@
+//! The Dockerfile against the binary and the README: the image must build the
+//! real binary, run a real subcommand with real flags, set only environment
+//! variables `radiance serve` reads, expose and health-check the port it
+//! listens on, and keep its data on the declared volume; the README's
+//! `docker build` / `docker run` commands and `radiance serve` lines must agree.
+//!
+//! Docker is not available on CI, so this reads the files (hadolint lints the
+//! Dockerfile's style in `.ci/run`). The flags and environment variables come
+//! from the built binary's `--help` (clap), not from a list kept here. The
+//! `mutation_*` tests break one fact at a time and check that it is reported.
+//!
+//! Modules: `help` reads the binary's `--help`, `parse` the Dockerfile,
+//! `readme` the README's commands; `checks` compares them, and `mutations`
+//! shows that each check can fail.
+
+mod checks;
+mod help;
+mod mutations;
+mod parse;
+mod readme;
+
+use checks::{Inputs, problems};
+use help::{help_of, subcommands};
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+fn read(name: &str) -> String {
+    std::fs::read_to_string(format!("{ROOT}/{name}")).unwrap_or_else(|e| panic!("reading {name}: {e}"))
+}
+
+#[test]
+fn dockerfile_and_readme_match_the_binary() {
+    let p = problems(&Inputs::real());
+    assert!(p.is_empty(), "{} problem(s):\n  {}", p.len(), p.join("\n  "));
+}
+
+#[test]
+fn help_is_parsed() {
+    // Guards the parser itself: if clap's help format changes, say so here.
+    let h = help_of("serve").expect("serve is a subcommand");
+    for f in ["--addr", "--data-dir", "--api-key", "--threads", "--help"] {
+        assert!(h.flags.contains(f), "{f} in {:?}", h.flags);
+    }
+    for e in ["RADIANCE_ADDR", "RADIANCE_DATA_DIR", "RADIANCE_API_KEY"] {
+        assert!(h.envs.contains(e), "{e} in {:?}", h.envs);
+    }
+    assert_eq!(h.defaults.get("--addr").map(String::as_str), Some("127.0.0.1:8080"), "{:?}", h.defaults);
+    assert!(subcommands().contains("train") && !subcommands().contains("help"), "{:?}", subcommands());
+}
