@@ -95,13 +95,6 @@ impl Image {
         let c = |v: u8, b: f32| v as f32 / 255.0 * a + b * (1.0 - a);
         [c(p[0], background[0]), c(p[1], background[1]), c(p[2], background[2])]
     }
-
-    /// The pixel at `(i, j)` as straight f32 RGBA in [0, 1].
-    pub fn rgba_f32(&self, i: u32, j: u32) -> [f32; 4] {
-        let k = 4 * (j as usize * self.width as usize + i as usize);
-        let p = &self.rgba[k..k + 4];
-        [p[0] as f32 / 255.0, p[1] as f32 / 255.0, p[2] as f32 / 255.0, p[3] as f32 / 255.0]
-    }
 }
 
 /// One posed view.

@@ -79,3 +79,85 @@ pub fn densities<F: Field>(field: &F, params: &[f32], pos: &[f32], chunk: usize)
     });
     out
 }
+
+/// A field small enough to check by hand, for tests of the parts that take
+/// any field: density `softplus(a . p + b)`, colour channel `k`
+/// `sigmoid(c . p + d + k / 4)`, parameters `[a0 a1 a2 b c0 c1 c2 d]`.
+#[cfg(test)]
+pub mod toy {
+    use super::{Field, Points};
+    use crate::engine::nn::linear::{sigmoid, softplus, softplus_grad};
+    use crate::engine::sampling::gather_rows;
+
+    pub struct Toy;
+
+    #[derive(Default)]
+    pub struct ToyCtx {
+        pos: Vec<f32>,
+        raw: Vec<f32>,
+        sigma: Vec<f32>,
+        rgb: Vec<f32>,
+    }
+
+    fn dot(w: &[f32], p: &[f32]) -> f32 {
+        w[0] * p[0] + w[1] * p[1] + w[2] * p[2]
+    }
+
+    impl Field for Toy {
+        type Ctx = ToyCtx;
+
+        fn density(&self, w: &[f32], pts: Points<'_>, ctx: &mut ToyCtx) {
+            ctx.pos = pts.pos.to_vec();
+            ctx.raw = pts.pos.chunks_exact(3).map(|p| dot(&w[0..3], p) + w[3]).collect();
+            ctx.sigma = ctx.raw.iter().map(|&r| softplus(r)).collect();
+        }
+
+        fn compact(&self, ctx: &mut ToyCtx, keep: &[usize]) {
+            gather_rows(&mut ctx.pos, 3, keep);
+            gather_rows(&mut ctx.raw, 1, keep);
+            gather_rows(&mut ctx.sigma, 1, keep);
+        }
+
+        fn color(&self, w: &[f32], _dirs: &[f32], ctx: &mut ToyCtx) {
+            ctx.rgb = ctx
+                .pos
+                .chunks_exact(3)
+                .flat_map(|p| {
+                    let z = dot(&w[4..7], p) + w[7];
+                    [sigmoid(z), sigmoid(z + 0.25), sigmoid(z + 0.5)]
+                })
+                .collect();
+        }
+
+        fn sigma<'c>(&self, ctx: &'c ToyCtx) -> &'c [f32] {
+            &ctx.sigma
+        }
+
+        fn rgb<'c>(&self, ctx: &'c ToyCtx) -> &'c [f32] {
+            &ctx.rgb
+        }
+
+        fn save_row(&self, ctx: &ToyCtx, i: usize, rows: &mut Vec<f32>) {
+            rows.extend_from_slice(&ctx.pos[3 * i..3 * i + 3]);
+        }
+
+        fn color_rows(&self, w: &[f32], rows: Vec<f32>, dirs: &[f32], ctx: &mut ToyCtx) {
+            ctx.pos = rows;
+            self.color(w, dirs, ctx);
+        }
+
+        fn backward(&self, _w: &[f32], ctx: &mut ToyCtx, dsigma: &[f32], drgb: &[f32], grads: &mut [f32]) {
+            for (i, p) in ctx.pos.chunks_exact(3).enumerate() {
+                let ds = dsigma[i] * softplus_grad(ctx.raw[i]);
+                let s = &ctx.rgb[3 * i..3 * i + 3];
+                let dz: f32 = (0..3).map(|k| drgb[3 * i + k] * s[k] * (1.0 - s[k])).sum();
+                for a in 0..3 {
+                    grads[a] += ds * p[a];
+                    grads[4 + a] += dz * p[a];
+                }
+                grads[3] += ds;
+                grads[7] += dz;
+            }
+        }
+    }
+}

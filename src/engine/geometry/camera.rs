@@ -132,14 +132,6 @@ impl Camera {
     pub fn pixel_ray(&self, i: u32, j: u32) -> Ray {
         self.ray(i as f32 + 0.5, j as f32 + 0.5)
     }
-
-    /// Returns this camera scaled to another resolution (intrinsics scale
-    /// with the image).
-    pub fn resized(&self, width: u32, height: u32) -> Self {
-        let sx = width as f32 / self.width as f32;
-        let sy = height as f32 / self.height as f32;
-        Self { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy, ..self.clone() }
-    }
 }
 
 /// A camera-to-world pose looking from `eye` at `target` with `up` as the

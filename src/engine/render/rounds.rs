@@ -133,3 +133,104 @@ pub fn render_in_rounds<F: Field>(
     }
     stats
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::fields::toy::{Toy, ToyCtx};
+    use crate::engine::geometry::math::{Ray, Vec3};
+    use crate::engine::render::composite::composite;
+
+    const W: [f32; 8] = [1.5, -0.5, 0.8, 0.4, -1.0, 0.7, 0.3, -0.2];
+    const BG: [f32; 3] = [0.9, 0.2, 0.6];
+
+    /// Fixed samples per ray, `delta` apart.
+    struct Fixed {
+        rays: Vec<Ray>,
+        t: Vec<Vec<f32>>,
+        next: Vec<usize>,
+    }
+
+    impl RaySampler for Fixed {
+        fn has_samples(&self, r: usize) -> bool {
+            !self.t[r].is_empty()
+        }
+        fn next(&mut self, r: usize, limit: usize, out: &mut Samples) -> bool {
+            let end = (self.next[r] + limit).min(self.t[r].len());
+            for &t in &self.t[r][self.next[r]..end] {
+                out.push(&self.rays[r], t, 0.05);
+            }
+            self.next[r] = end;
+            end < self.t[r].len()
+        }
+    }
+
+    /// Five rays through the toy field: 40, 7, 0 (background), 1 and 90
+    /// samples.
+    fn sampler() -> Fixed {
+        let counts = [40usize, 7, 0, 1, 90];
+        let rays = (0..counts.len())
+            .map(|k| Ray { origin: Vec3::new(-1.0, 0.1 * k as f32, 0.2), dir: Vec3::new(0.8, 0.0, 0.6) })
+            .collect();
+        let t = counts.iter().map(|&n| (0..n).map(|i| 0.5 + 0.05 * i as f32).collect()).collect();
+        Fixed { rays, t, next: vec![0; counts.len()] }
+    }
+
+    /// Each ray composited whole by the compositor.
+    fn reference() -> Vec<RayOutput> {
+        let s = sampler();
+        (0..s.rays.len())
+            .map(|r| {
+                let mut m = Samples::default();
+                for &t in &s.t[r] {
+                    m.push(&s.rays[r], t, 0.05);
+                }
+                let mut ctx = ToyCtx::default();
+                Toy.density(&W, Points { pos: &m.pos, dirs: &m.dirs, image: &[] }, &mut ctx);
+                Toy.color(&W, &m.dirs, &mut ctx);
+                let mut w = vec![0.0; m.len()];
+                let c = composite(Toy.sigma(&ctx), Toy.rgb(&ctx), &m.t, &m.delta, BG, 0.0, &mut w);
+                RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity }
+            })
+            .collect()
+    }
+
+    fn render(round: usize, min_transmittance: f32, max_dropped_weight: f32) -> (Vec<RayOutput>, BatchStats) {
+        let settings = RoundSettings { round, min_transmittance, max_dropped_weight };
+        let mut out = vec![RayOutput::default(); 5];
+        let (mut ctx, mut m) = (ToyCtx::default(), Samples::default());
+        let stats = render_in_rounds(&Toy, &W, &mut sampler(), settings, BG, &mut ctx, &mut m, &mut out);
+        (out, stats)
+    }
+
+    #[test]
+    fn without_termination_or_dropping_it_is_the_compositor_bit_for_bit_in_any_rounds() {
+        let want = reference();
+        assert_eq!(want[2], RayOutput { rgb: BG, depth: 0.0, opacity: 0.0 });
+        assert!(want[4].opacity > 0.9, "the long ray becomes opaque: {:?}", want[4]);
+        for round in [1, 3, 16, 1000] {
+            let (got, stats) = render(round, 0.0, 0.0);
+            assert_eq!(got, want, "round {round}");
+            assert_eq!((stats.rays, stats.samples), (5, 138));
+        }
+    }
+
+    #[test]
+    fn termination_and_dropping_change_a_pixel_by_at_most_their_thresholds() {
+        let want = reference();
+        for (min_t, drop) in [(1e-2f32, 0.0f32), (0.0, 0.05), (1e-2, 0.05)] {
+            let (got, stats) = render(4, min_t, drop);
+            for (g, w) in got.iter().zip(&want) {
+                for k in 0..3 {
+                    // Both cut weights from the sum; colours and the
+                    // background are in [0, 1].
+                    assert!((g.rgb[k] - w.rgb[k]).abs() <= min_t + drop + 1e-6, "{min_t} {drop}: {g:?} {w:?}");
+                }
+            }
+            if min_t > 0.0 {
+                // The long ray stops before its end.
+                assert!(stats.samples < 138, "{stats:?}");
+            }
+        }
+    }
+}

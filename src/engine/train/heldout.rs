@@ -39,14 +39,6 @@ impl HeldOutPixels {
         Some(Self { rays, target, background: ds.background, split })
     }
 
-    pub fn len(&self) -> usize {
-        self.rays.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.rays.is_empty()
-    }
-
     /// Mean squared error of `model` on the pixels (in f64).
     pub fn mse(&self, model: &dyn Model) -> f64 {
         let (out, _) = render_rays(model, &self.rays, self.background);

@@ -106,3 +106,80 @@ fn visible(spans: &[(usize, usize)], sigma: &[f32], delta: &[f32], min_t: f32, k
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::fields::toy::{Toy, ToyCtx};
+    use crate::engine::geometry::math::{Ray, Vec3};
+
+    const W: [f32; 8] = [1.5, -0.5, 0.8, 0.4, -1.0, 0.7, 0.3, -0.2];
+
+    fn rays() -> Vec<TrainRay> {
+        (0..4)
+            .map(|k| TrainRay {
+                ray: Ray { origin: Vec3::new(-1.0, 0.2 * k as f32, 0.1), dir: Vec3::new(0.6, 0.0, 0.8) },
+                target: [0.1 * k as f32, 0.7, 0.3],
+                background: [1.0, 0.5 * k as f32 / 3.0, 0.0],
+                index: k,
+                image: 0,
+            })
+            .collect()
+    }
+
+    fn samples(rays: &[TrainRay]) -> Samples {
+        let mut m = Samples::default();
+        for (k, r) in rays.iter().enumerate() {
+            let start = m.len();
+            for i in 0..[12, 0, 30, 5][k] {
+                m.push(&r.ray, 0.3 + 0.07 * i as f32, 0.07);
+            }
+            m.end_span(start);
+        }
+        m
+    }
+
+    /// The mean over rays of the loss, and its gradient.
+    fn run(w: &[f32], cull: Option<f32>) -> (f64, Vec<f32>) {
+        let rays = rays();
+        let mut m = samples(&rays);
+        let (mut ctx, mut buf) = (ToyCtx::default(), PassBuffers::default());
+        let mut grads = vec![0.0; 8];
+        let scale = 1.0 / (3.0 * rays.len() as f32);
+        let s = train_pass(&Toy, w, &rays, &mut m, cull, scale, &mut ctx, &mut buf, &mut grads);
+        (s.sq_err / rays.len() as f64, grads)
+    }
+
+    #[test]
+    fn gradients_match_finite_differences_in_f64() {
+        let (_, grads) = run(&W, None);
+        for i in 0..8 {
+            let h = 1e-2f32;
+            let (mut a, mut b) = (W, W);
+            a[i] += h;
+            b[i] -= h;
+            let num = (run(&a, None).0 - run(&b, None).0) / (2.0 * h as f64);
+            assert!((num - grads[i] as f64).abs() < 1e-3 * (1.0 + num.abs()), "w{i}: {num} vs {}", grads[i]);
+        }
+    }
+
+    #[test]
+    fn culling_drops_samples_but_not_the_loss_or_gradient() {
+        let (loss, grads) = run(&W, None);
+        let mut w = W;
+        w[3] = 8.0; // dense: rays become opaque early, so there is something to cull
+        let (dense_loss, dense_grads) = run(&w, None);
+        let rays = rays();
+        let mut m = samples(&rays);
+        let (mut ctx, mut buf) = (ToyCtx::default(), PassBuffers::default());
+        let s = train_pass(&Toy, &w, &rays, &mut m, Some(1e-4), 1.0, &mut ctx, &mut buf, &mut vec![0.0; 8]);
+        assert!(s.culled > 0 && s.samples == 47, "{s:?}");
+        let (culled_loss, culled_grads) = run(&w, Some(1e-4));
+        assert!((culled_loss - dense_loss).abs() < 1e-4, "{culled_loss} {dense_loss}");
+        for (a, b) in culled_grads.iter().zip(&dense_grads) {
+            assert!((a - b).abs() < 1e-3 * (1.0 + b.abs()), "{culled_grads:?} {dense_grads:?}");
+        }
+        // Nothing to cull at the first weights' transmittance: the same numbers.
+        assert_eq!(run(&W, Some(1e-9)), (loss, grads));
+    }
+}
