@@ -172,7 +172,7 @@ mod tests {
         let rays = rays();
         let mut m = samples(&rays);
         let (mut ctx, mut buf) = (ToyCtx::default(), PassBuffers::default());
-        let s = train_pass(&Toy, &w, &rays, &mut m, Some(1e-4), 1.0, &mut ctx, &mut buf, &mut vec![0.0; 8]);
+        let s = train_pass(&Toy, &w, &rays, &mut m, Some(1e-4), 1.0, &mut ctx, &mut buf, &mut [0.0; 8]);
         assert!(s.culled > 0 && s.samples == 47, "{s:?}");
         let (culled_loss, culled_grads) = run(&w, Some(1e-4));
         assert!((culled_loss - dense_loss).abs() < 1e-4, "{culled_loss} {dense_loss}");
