@@ -1,6 +1,8 @@
-//! Training: the optimisation loop, held-out estimates and the memory and
-//! disk estimate of a run.
+//! Training: the optimisation loop, the session that resumes, saves and
+//! reports around it, held-out estimates and the memory and disk estimate of
+//! a run.
 
 pub mod estimate;
 pub mod heldout;
+pub mod session;
 pub mod trainer;
