@@ -1,6 +1,6 @@
 //! `radiance train`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -13,10 +13,10 @@ use super::Common;
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::geometry::scene::Scene;
-use crate::engine::io::persist;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate::{self, DataSize, mib};
-use crate::engine::train::trainer::{Budget, StopReason, TrainState, Trainer};
+use crate::engine::train::session::{Event, Session, SessionConfig, Start, Stop};
+use crate::engine::train::trainer::Budget;
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
@@ -87,25 +87,47 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
-    let config = model_config(&a.model, !a.no_skip, &a.set)?.train_config(a.seed, a.batch_rays, budget);
-    let (model, adam, state) = match &a.resume {
-        Some(p) => {
-            let r = persist::load_resumable(p)?;
-            anyhow::ensure!(
-                r.model.kind() == a.model,
-                "{} holds a '{}' model, not '{}'",
-                p.display(),
-                r.model.kind(),
-                a.model
-            );
-            (r.model, r.adam, r.state)
+    let mut session = open_session(&a, budget, &ds)?;
+    describe(&a, &session, &ds, threads);
+    let cancel = Arc::new(AtomicBool::new(false));
+    {
+        let c = cancel.clone();
+        ctrlc::set_handler(move || c.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
+    }
+    let wall = Instant::now();
+    let stop = train_with_bar(&mut session, budget, &cancel)?;
+    match stop {
+        Stop::Cancelled => eprintln!("interrupted: saved the model at step {}", session.trainer().state.step),
+        Stop::Budget | Stop::TargetReached { .. } | Stop::Aborted => {}
+        Stop::Diverged { .. } => {
+            // The trainer restored the last good parameters: keep them.
+            session.save()?;
+            anyhow::bail!("{stop}; they were saved to {}", a.out.display());
         }
+    }
+    summary(&session, wall, &a.out);
+    Ok(())
+}
+
+/// A session saving to `--out`: resumed from `--resume`, else on a fresh
+/// model of `--model`.
+fn open_session<'a>(a: &TrainArgs, budget: Budget, ds: &'a Dataset) -> anyhow::Result<Session<'a>> {
+    let train = model_config(&a.model, !a.no_skip, &a.set)?.train_config(a.seed, a.batch_rays, budget);
+    let start = match &a.resume {
+        Some(p) => Start::Resume { from: p.clone(), kind: Some(a.model.clone()) },
         None => {
             let (_, model, adam) =
-                new_model_and_adam(&a.model, Scene::from_dataset(&ds), a.seed, !a.no_skip, a.lr, &a.set)?;
-            (model, adam, TrainState::default())
+                new_model_and_adam(&a.model, Scene::from_dataset(ds), a.seed, !a.no_skip, a.lr, &a.set)?;
+            Start::Fresh { model, adam }
         }
     };
+    let config = SessionConfig { train, out: a.out.clone(), checkpoint_every: a.checkpoint_every, held_out: None };
+    Ok(Session::new(start, config, ds)?)
+}
+
+/// What is about to train, and the estimate of its peak memory.
+fn describe(a: &TrainArgs, session: &Session<'_>, ds: &Dataset, threads: usize) {
+    let model = &*session.trainer().model;
     eprintln!(
         "training '{}' on {} ({} views, {}x{}), {} parameters, {} threads",
         model.kind(),
@@ -116,30 +138,25 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
         model.params().len(),
         threads
     );
-    if let Some(c) = ModelConfig::of_model(&*model) {
+    if let Some(c) = ModelConfig::of_model(model) {
         let data =
             DataSize { frames: ds.frames.len(), pixels: ds.frames.iter().map(|f| f.image.rgba.len() as u64 / 4).sum() };
         let e = estimate::training(&c, data, threads);
         eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
     }
-    let cancel = Arc::new(AtomicBool::new(false));
-    {
-        let c = cancel.clone();
-        ctrlc::set_handler(move || c.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
-    }
-    let mut trainer = Trainer::new(model, adam, config, state, &ds);
+}
+
+/// Runs the session under a progress bar: by steps, or by tenths of a
+/// second when the budget is only a time.
+fn train_with_bar(session: &mut Session<'_>, budget: Budget, cancel: &AtomicBool) -> anyhow::Result<Stop> {
     let bar = match budget.steps {
         Some(n) if budget.seconds.is_none() => ProgressBar::new(n),
         _ => ProgressBar::new((budget.seconds.unwrap_or(0.0) * 10.0) as u64),
     };
     bar.set_style(ProgressStyle::with_template("{bar:30} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()));
     let by_time = budget.seconds.is_some() && budget.steps.is_none();
-    let wall = Instant::now();
-    let start_state = trainer.state.clone();
-    let mut last_save = trainer.state.elapsed;
-    let mut save_error = None;
-    let out = a.out.clone();
-    let reason = trainer.run(&cancel, |t, p| {
+    let stop = session.run(cancel, |event| {
+        let Event::Step { progress: p, .. } = event else { return true };
         bar.set_position(if by_time { (p.elapsed * 10.0) as u64 } else { p.step });
         if p.step % 5 == 0 || p.step < 5 {
             bar.set_message(format!(
@@ -151,43 +168,29 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
                 p.eta.map_or("?".into(), fmt_secs)
             ));
         }
-        if p.elapsed - last_save >= a.checkpoint_every {
-            last_save = p.elapsed;
-            if let Err(e) = persist::save(&out, &*t.model, &t.adam, &t.config, &t.state) {
-                save_error = Some(e);
-                return false;
-            }
-        }
         true
     });
     bar.finish_and_clear();
-    if let Some(e) = save_error {
-        return Err(e).context("saving a checkpoint");
-    }
-    persist::save(&a.out, &*trainer.model, &trainer.adam, &trainer.config, &trainer.state)
-        .with_context(|| format!("saving {}", a.out.display()))?;
-    let s = &trainer.state;
-    let secs = (s.elapsed - start_state.elapsed).max(1e-9);
-    let rays = s.rays - start_state.rays;
-    let samples = s.samples - start_state.samples;
-    let p = trainer.progress(f64::NAN);
-    match reason {
-        StopReason::Cancelled => eprintln!("interrupted: saved the model at step {}", s.step),
-        StopReason::Budget | StopReason::Callback => {}
-        StopReason::Diverged { .. } => anyhow::bail!("{reason}; they were saved to {}", a.out.display()),
-    }
-    println!("steps          {}", s.step - start_state.step);
+    Ok(stop?)
+}
+
+/// What this run did: its steps, speed and training PSNR.
+fn summary(session: &Session<'_>, wall: Instant, out: &Path) {
+    let (s, start) = (&session.trainer().state, session.started());
+    let secs = (s.elapsed - start.elapsed).max(1e-9);
+    let rays = s.rays - start.rays;
+    let samples = s.samples - start.samples;
+    println!("steps          {}", s.step - start.step);
     println!("training time  {:.1} s (wall {:.1} s)", secs, wall.elapsed().as_secs_f64());
     println!("rays/s         {:.1}", rays as f64 / secs);
     println!("samples/s      {:.0}", samples as f64 / secs);
     println!("samples/ray    {:.1}", samples as f64 / rays.max(1) as f64);
-    println!("train PSNR     {:.2} dB", p.train_psnr);
+    println!("train PSNR     {:.2} dB", session.trainer().progress(f64::NAN).train_psnr);
     if s.diverged_steps > 0 {
         println!("skipped steps  {} (non-finite loss or gradient)", s.diverged_steps);
     }
     if let Some(peak) = peak_memory() {
         println!("peak memory    {}", mib(peak));
     }
-    println!("model          {}", a.out.display());
-    Ok(())
+    println!("model          {}", out.display());
 }

@@ -1,18 +1,20 @@
-//! A training job: load the scene, build or restore the model, train with
-//! periodic checkpoints, measure the result on held-out views.
+//! A training job: load the scene, run a training session on the job's
+//! checkpoint (resumed when the job was interrupted), report its progress
+//! and keep the model record beside the checkpoint, then measure the result
+//! on held-out views.
 
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::{Job, Outcome, Shared, TrainSpec, set_progress};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::geometry::scene::Scene;
-use crate::engine::io::persist;
 use crate::engine::metrics::psnr;
 use crate::engine::models::Model;
 use crate::engine::render::render_view;
-use crate::engine::train::heldout::HeldOutPixels;
-use crate::engine::train::trainer::{StopReason, TrainState, Trainer};
+use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
+use crate::engine::train::trainer::{Progress, TrainState};
 use crate::storage::{ModelInfo, SceneInfo, Storage, now_ms, write_json};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.
@@ -42,88 +44,87 @@ fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> R
         return Err("the scene has no training views".into());
     }
     let model_id = job.reserved_model_id();
-    let ckpt = storage.checkpoint(&model_id);
-    let config = spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine());
-    let (model, adam, state) = if ckpt.is_file() {
-        let r = persist::load_resumable(&ckpt).map_err(|e| format!("resuming from the checkpoint: {e}"))?;
-        tracing::info!(job = %job.id, step = r.state.step, "resuming from checkpoint");
-        (r.model, r.adam, r.state)
-    } else {
-        let (model, adam) = spec.config.build_with_adam(Scene::from_dataset(&ds), spec.seed, None)?;
-        (model, adam, TrainState::default())
+    let mut session = open_session(shared, job, spec, &ds, storage.checkpoint(&model_id))?;
+    let record = ModelRecord {
+        shared,
+        job,
+        spec,
+        model_id: &model_id,
+        scene: &scene,
+        config: session.trainer().model.config_json(),
+        created_at: now_ms(),
     };
-    let mut trainer = Trainer::new(model, adam, config, state, &ds);
-    let record = ModelRecord { shared, job, spec, model_id: &model_id, scene: &scene, created_at: now_ms() };
-    let held_out = HeldOutPixels::new(&ds, HELD_OUT_PIXELS, spec.seed);
-    let target = spec.budget.target_psnr;
-    let mut heldout_every = shared.config.heldout_every;
-    let mut last_heldout = trainer.state.elapsed;
-    let mut last_save = trainer.state.elapsed;
-    let mut last_report = Instant::now();
-    let mut save_error = None;
-    let mut reached = None;
-    let (mut rays0, mut t0) = (trainer.state.rays, trainer.state.elapsed);
-    let reason = trainer.run(cancel, |t, p| {
-        let c = &shared.counters;
-        c.train_steps.fetch_add(1, Ordering::Relaxed);
-        // The held-out estimate: every `heldout_every` seconds of training,
-        // spaced so that it never costs more than a fifth of the training time.
-        let mut estimate = None;
-        if let Some(h) = &held_out
-            && p.elapsed - last_heldout >= heldout_every
-        {
-            last_heldout = p.elapsed;
-            let started = Instant::now();
-            let v = h.psnr(&*t.model);
-            heldout_every = heldout_every.max(4.0 * started.elapsed().as_secs_f64());
-            estimate = Some(v);
-            if target.is_some_and(|goal| v >= goal) {
-                reached = Some(v);
-            }
+    let mut report = Report::new(shared, job, spec, &session.trainer().state);
+    let mut record_error = None;
+    let stop = session.run(cancel, |event| match event {
+        Event::Step { progress, held_out_psnr } => {
+            report.step(&progress, held_out_psnr);
+            true
         }
-        if estimate.is_some() || reached.is_some() || last_report.elapsed().as_secs_f64() >= 0.1 {
-            last_report = Instant::now();
-            let dt = (p.elapsed - t0).max(1e-9);
-            let rate = (p.rays - rays0) as f64 / dt;
-            c.train_rays.fetch_add(p.rays - rays0, Ordering::Relaxed);
-            c.train_micros.fetch_add((dt * 1e6) as u64, Ordering::Relaxed);
-            (rays0, t0) = (p.rays, p.elapsed);
-            set_progress(shared, &job.id, |j| {
-                let g = &mut j.progress;
-                g.step = p.step;
-                g.total_steps = spec.budget.steps;
-                g.loss = p.loss;
-                g.train_psnr = p.train_psnr;
-                g.elapsed = p.elapsed;
-                g.eta = p.eta;
-                g.rays_per_second = rate;
-                g.diverged_steps = p.diverged_steps;
-                g.rollbacks = p.rollbacks;
-                if let Some(v) = estimate {
-                    (g.test_psnr, g.test_psnr_step) = (Some(v), Some(p.step));
-                }
-            });
-        }
-        if p.elapsed - last_save >= shared.config.checkpoint_every {
-            last_save = p.elapsed;
-            if let Err(e) = record.save(t, false, None) {
-                save_error = Some(e);
-                return false;
-            }
-        }
-        reached.is_none()
+        Event::Saved { progress } => record.write(&progress, false, None).map_err(|e| record_error = Some(e)).is_ok(),
     });
-    if let Some(e) = save_error {
+    let stop = stop.map_err(|e| e.to_string())?;
+    if let Some(e) = record_error {
         return Err(e);
     }
-    if let StopReason::Diverged { .. } = reason {
+    finish(shared, &session, &record, &ds, stop, cancel)
+}
+
+/// A session on the job's checkpoint: resumed from it when it exists (a job
+/// that was interrupted), else on a fresh model.
+fn open_session<'a>(
+    shared: &Shared,
+    job: &Job,
+    spec: &TrainSpec,
+    ds: &'a Dataset,
+    ckpt: PathBuf,
+) -> Result<Session<'a>, String> {
+    let resume = ckpt.is_file();
+    let start = if resume {
+        Start::Resume { from: ckpt.clone(), kind: None }
+    } else {
+        let (model, adam) = spec.config.build_with_adam(Scene::from_dataset(ds), spec.seed, None)?;
+        Start::Fresh { model, adam }
+    };
+    let config = SessionConfig {
+        train: spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine()),
+        out: ckpt,
+        checkpoint_every: shared.config.checkpoint_every,
+        held_out: Some(HeldOut {
+            pixels: HELD_OUT_PIXELS,
+            every: shared.config.heldout_every,
+            target_psnr: spec.budget.target_psnr,
+        }),
+    };
+    let session = Session::new(start, config, ds).map_err(|e| e.to_string())?;
+    if resume {
+        tracing::info!(job = %job.id, step = session.started().step, "resuming from checkpoint");
+    }
+    Ok(session)
+}
+
+/// After the session: fails a diverged job, keeps a cancelled one's model,
+/// and measures a finished one on held-out views.
+fn finish(
+    shared: &Shared,
+    session: &Session<'_>,
+    record: &ModelRecord<'_>,
+    ds: &Dataset,
+    stop: Stop,
+    cancel: &AtomicBool,
+) -> Result<Outcome, String> {
+    let job = record.job;
+    match stop {
         // Repeated divergence fails the job; the last periodic checkpoint stays.
-        return Err(reason.to_string());
+        Stop::Diverged { .. } => return Err(stop.to_string()),
+        Stop::TargetReached { psnr } => {
+            tracing::info!(job = %job.id, step = session.trainer().state.step, psnr, "target PSNR reached");
+        }
+        // Aborted: only when a model record could not be written, which
+        // `train` returned as the job's error before coming here.
+        Stop::Budget | Stop::Cancelled | Stop::Aborted => {}
     }
-    if let Some(v) = reached {
-        tracing::info!(job = %job.id, step = trainer.state.step, psnr = v, "target PSNR reached");
-    }
-    let p = trainer.progress(f64::NAN);
+    let p = session.trainer().progress(f64::NAN);
     set_progress(shared, &job.id, |j| {
         j.progress.step = p.step;
         j.progress.elapsed = p.elapsed;
@@ -131,15 +132,15 @@ fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> R
         j.progress.diverged_steps = p.diverged_steps;
         j.progress.rollbacks = p.rollbacks;
     });
-    if reason == StopReason::Cancelled {
+    if stop == Stop::Cancelled {
         // Canceled or shut down: keep what was learnt as a usable model.
-        record.save(&trainer, true, None)?;
+        record.write(&p, true, None)?;
         return Ok(Outcome::Stopped);
     }
-    record.save(&trainer, false, None)?;
-    let metric = evaluate(&*trainer.model, &ds, shared.config.eval_views, cancel);
+    record.write(&p, false, None)?;
+    let metric = evaluate(&*session.trainer().model, ds, shared.config.eval_views, cancel);
     if cancel.load(Ordering::SeqCst) {
-        record.save(&trainer, true, None)?;
+        record.write(&p, true, None)?;
         return Ok(Outcome::Stopped);
     }
     set_progress(shared, &job.id, |j| {
@@ -147,8 +148,57 @@ fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> R
             (j.progress.test_psnr, j.progress.test_psnr_step) = (Some(m.0), Some(p.step));
         }
     });
-    record.save(&trainer, true, metric)?;
+    record.write(&p, true, metric)?;
     Ok(Outcome::Succeeded)
+}
+
+/// The job's side of the session's step events: the service's counters on
+/// every step, and the job's progress at most every 0.1 s (and with every
+/// held-out estimate).
+struct Report<'a> {
+    shared: &'a Shared,
+    job: &'a Job,
+    total_steps: Option<u64>,
+    last: Instant,
+    /// Rays and training time at the last report.
+    rays0: u64,
+    t0: f64,
+}
+
+impl<'a> Report<'a> {
+    fn new(shared: &'a Shared, job: &'a Job, spec: &TrainSpec, state: &TrainState) -> Self {
+        let total_steps = spec.budget.steps;
+        Self { shared, job, total_steps, last: Instant::now(), rays0: state.rays, t0: state.elapsed }
+    }
+
+    fn step(&mut self, p: &Progress, estimate: Option<f64>) {
+        let c = &self.shared.counters;
+        c.train_steps.fetch_add(1, Ordering::Relaxed);
+        if estimate.is_none() && self.last.elapsed().as_secs_f64() < 0.1 {
+            return;
+        }
+        self.last = Instant::now();
+        let dt = (p.elapsed - self.t0).max(1e-9);
+        let rate = (p.rays - self.rays0) as f64 / dt;
+        c.train_rays.fetch_add(p.rays - self.rays0, Ordering::Relaxed);
+        c.train_micros.fetch_add((dt * 1e6) as u64, Ordering::Relaxed);
+        (self.rays0, self.t0) = (p.rays, p.elapsed);
+        set_progress(self.shared, &self.job.id, |j| {
+            let g = &mut j.progress;
+            g.step = p.step;
+            g.total_steps = self.total_steps;
+            g.loss = p.loss;
+            g.train_psnr = p.train_psnr;
+            g.elapsed = p.elapsed;
+            g.eta = p.eta;
+            g.rays_per_second = rate;
+            g.diverged_steps = p.diverged_steps;
+            g.rollbacks = p.rollbacks;
+            if let Some(v) = estimate {
+                (g.test_psnr, g.test_psnr_step) = (Some(v), Some(p.step));
+            }
+        });
+    }
 }
 
 /// Mean PSNR over up to `max_views` held-out views (test split, else val).
@@ -171,31 +221,32 @@ fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBo
     (n > 0).then(|| (sum / n as f64, n))
 }
 
-/// Writes the checkpoint and the model record beside it.
+/// The model record beside the job's checkpoint (which the session saves).
 struct ModelRecord<'a> {
     shared: &'a Shared,
     job: &'a Job,
     spec: &'a TrainSpec,
     model_id: &'a str,
     scene: &'a SceneInfo,
+    /// The model's configuration, as its checkpoint stores it.
+    config: serde_json::Value,
     created_at: u64,
 }
 
 impl ModelRecord<'_> {
-    fn save(&self, t: &Trainer<'_>, complete: bool, metric: Option<(f64, usize)>) -> Result<(), String> {
+    /// Writes the record of the checkpoint saved at `p.step`.
+    fn write(&self, p: &Progress, complete: bool, metric: Option<(f64, usize)>) -> Result<(), String> {
         let storage = &self.shared.storage;
         let path = storage.checkpoint(self.model_id);
-        persist::save(&path, &*t.model, &t.adam, &t.config, &t.state)
-            .map_err(|e| format!("saving the checkpoint: {e}"))?;
         let previous = storage.load_model(self.model_id).ok().flatten();
         let info = ModelInfo {
             id: self.model_id.to_string(),
             scene_id: self.scene.id.clone(),
             job_id: self.job.id.clone(),
             model: self.spec.model.clone(),
-            config: t.model.config_json(),
-            steps: t.state.step,
-            training_seconds: t.state.elapsed,
+            config: self.config.clone(),
+            steps: p.step,
+            training_seconds: p.elapsed,
             test_psnr: metric.map(|m| m.0),
             test_views: metric.map_or(0, |m| m.1),
             size_bytes: std::fs::metadata(&path).map_or(0, |m| m.len()),
