@@ -64,57 +64,100 @@ pub fn render_in_rounds<F: Field>(
     let mut kept = Kept::default();
     let mut owners = Vec::new();
     loop {
-        samples.clear();
-        owners.clear();
-        for (r, st) in state.iter_mut().enumerate() {
-            if !st.live {
-                continue;
-            }
-            let start = samples.len();
-            st.live = sampler.next(r, settings.round, samples);
-            if samples.len() > start {
-                samples.end_span(start);
-                owners.push(r);
-            }
-        }
+        next_samples(sampler, settings.round, &mut state, samples, &mut owners);
         stats.skipped += std::mem::take(&mut samples.skipped);
         if samples.is_empty() {
             break;
         }
         stats.samples += samples.len() as u64;
-        let pts = Points { pos: &samples.pos, dirs: &samples.dirs, image: &[] };
-        field.density(params, pts, ctx);
-        let sigma = field.sigma(ctx);
-        for (&r, &(o, n)) in owners.iter().zip(&samples.spans) {
-            let st = &mut state[r];
-            for i in o..o + n {
-                let trans = (-st.tau).exp();
-                if trans < settings.min_transmittance {
-                    st.live = false;
-                    stats.skipped += (o + n - i) as u64;
-                    break;
-                }
-                st.tau += optical_depth(sigma[i], samples.delta[i]);
-                let w = trans - (-st.tau).exp();
-                if st.dropped + w <= settings.max_dropped_weight {
-                    // Nearly empty space: its colour cannot matter.
-                    st.dropped += w;
-                    continue;
-                }
-                kept.ray.push(r);
-                kept.w.push(w);
-                kept.t.push(samples.t[i]);
-                field.save_row(ctx, i, &mut kept.rows);
-                kept.dirs.extend_from_slice(&samples.dirs[3 * i..3 * i + 3]);
-            }
-            if (-st.tau).exp() < settings.min_transmittance {
-                st.live = false;
-            }
+        field.density(params, Points { pos: &samples.pos, dirs: &samples.dirs, image: &[] }, ctx);
+        stats.skipped += composite_round(field, ctx, samples, &owners, settings, &mut state, &mut kept);
+    }
+    finish(field, params, ctx, kept, &state, background, out);
+    stats
+}
+
+/// The next round's samples of every live ray, one span each; `owners`
+/// gets the ray of each span.
+fn next_samples(
+    sampler: &mut impl RaySampler,
+    round: usize,
+    state: &mut [RayState],
+    samples: &mut Samples,
+    owners: &mut Vec<usize>,
+) {
+    samples.clear();
+    owners.clear();
+    for (r, st) in state.iter_mut().enumerate() {
+        if !st.live {
+            continue;
+        }
+        let start = samples.len();
+        st.live = sampler.next(r, round, samples);
+        if samples.len() > start {
+            samples.end_span(start);
+            owners.push(r);
         }
     }
+}
+
+/// Composites one round's densities in order along each ray, retiring rays
+/// that became opaque and keeping the samples that need a colour; returns
+/// the samples left behind by retired rays.
+fn composite_round<F: Field>(
+    field: &F,
+    ctx: &F::Ctx,
+    samples: &Samples,
+    owners: &[usize],
+    settings: RoundSettings,
+    state: &mut [RayState],
+    kept: &mut Kept,
+) -> u64 {
+    let sigma = field.sigma(ctx);
+    let mut skipped = 0;
+    for (&r, &(o, n)) in owners.iter().zip(&samples.spans) {
+        let st = &mut state[r];
+        for i in o..o + n {
+            let trans = (-st.tau).exp();
+            if trans < settings.min_transmittance {
+                st.live = false;
+                skipped += (o + n - i) as u64;
+                break;
+            }
+            st.tau += optical_depth(sigma[i], samples.delta[i]);
+            let w = trans - (-st.tau).exp();
+            if st.dropped + w <= settings.max_dropped_weight {
+                // Nearly empty space: its colour cannot matter.
+                st.dropped += w;
+                continue;
+            }
+            kept.ray.push(r);
+            kept.w.push(w);
+            kept.t.push(samples.t[i]);
+            field.save_row(ctx, i, &mut kept.rows);
+            kept.dirs.extend_from_slice(&samples.dirs[3 * i..3 * i + 3]);
+        }
+        if (-st.tau).exp() < settings.min_transmittance {
+            st.live = false;
+        }
+    }
+    skipped
+}
+
+/// Colours the kept samples in one pass and writes each ray's colour,
+/// depth and opacity, over the background.
+fn finish<F: Field>(
+    field: &F,
+    params: &[f32],
+    ctx: &mut F::Ctx,
+    kept: Kept,
+    state: &[RayState],
+    background: [f32; 3],
+    out: &mut [RayOutput],
+) {
     out.fill(RayOutput::default());
     if !kept.ray.is_empty() {
-        field.color_rows(params, std::mem::take(&mut kept.rows), &kept.dirs, ctx);
+        field.color_rows(params, kept.rows, &kept.dirs, ctx);
         let rgb = field.rgb(ctx);
         for (i, &r) in kept.ray.iter().enumerate() {
             let o = &mut out[r];
@@ -124,14 +167,13 @@ pub fn render_in_rounds<F: Field>(
             o.depth += kept.w[i] * kept.t[i];
         }
     }
-    for (o, st) in out.iter_mut().zip(&state) {
+    for (o, st) in out.iter_mut().zip(state) {
         let trans = (-st.tau).exp();
         o.opacity = 1.0 - trans;
         for ch in 0..3 {
             o.rgb[ch] += trans * background[ch];
         }
     }
-    stats
 }
 
 #[cfg(test)]
