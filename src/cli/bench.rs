@@ -210,31 +210,64 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         test_views: views.len(),
         rows: Vec::new(),
     };
-    let max_budget = *budgets.last().unwrap_or(&0.0);
     let mut failure: Option<anyhow::Error> = None;
     println!("{HEADER}");
     for kind in &a.model {
+        let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel };
+        if let Err(e) = run.model(kind, &mut report) {
+            failure = Some(e);
+            break;
+        }
+    }
+    if let Some(path) = &a.json {
+        write_json(path, &report)?;
+    }
+    if let Some(path) = &a.plot {
+        plot::psnr_vs_time(path, &report.rows).with_context(|| format!("drawing {}", path.display()))?;
+    }
+    match failure {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
+
+/// One bench invocation's inputs.
+struct Run<'a> {
+    args: &'a BenchArgs,
+    ds: &'a Dataset,
+    views: &'a [usize],
+    budgets: &'a [f64],
+    threads: usize,
+    cancel: &'a AtomicBool,
+}
+
+impl Run<'_> {
+    /// Trains model `kind` once, scoring it each time the training clock
+    /// passes a budget (scoring is not training time); rows go to stdout
+    /// and `report` (and its JSON file after each row).
+    fn model(&self, kind: &str, report: &mut BenchReport) -> anyhow::Result<()> {
+        let (a, ds, budgets) = (self.args, self.ds, self.budgets);
         reset_peak_memory();
-        let (cfg, model, adam) = new_model_and_adam(kind, Scene::from_dataset(&ds), a.seed, true, a.lr, &a.set)?;
-        let budget = Budget { steps: None, seconds: Some(max_budget) };
+        let (cfg, model, adam) = new_model_and_adam(kind, Scene::from_dataset(ds), a.seed, true, a.lr, &a.set)?;
+        let budget = Budget { steps: None, seconds: Some(*budgets.last().unwrap_or(&0.0)) };
         let config = cfg.train_config(a.seed, DEFAULT_BATCH_RAYS, budget);
         eprintln!(
             "bench '{}' on {} ({} training views, {} test views scored), {} parameters, {} threads",
             kind,
             a.data.display(),
             ds.train.len(),
-            views.len(),
+            self.views.len(),
             model.params().len(),
-            threads
+            self.threads
         );
-        let mut trainer = Trainer::new(model, adam, config, TrainState::default(), &ds);
+        let mut trainer = Trainer::new(model, adam, config, TrainState::default(), ds);
         let mut next = 0;
         let mut error = None;
-        let reason = trainer.run(&cancel, |t, p| {
+        let reason = trainer.run(self.cancel, |t, p| {
             if next >= budgets.len() || p.elapsed < budgets[next] {
                 return true;
             }
-            let row = match measure(t, p, &ds, &views, kind, budgets[next]) {
+            let row = match measure(t, p, ds, self.views, kind, budgets[next]) {
                 Ok(r) => r,
                 Err(e) => {
                     error = Some(e);
@@ -249,7 +282,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
                 next += 1;
             }
             if let Some(path) = &a.json
-                && let Err(e) = write_json(path, &report)
+                && let Err(e) = write_json(path, report)
             {
                 error = Some(e);
                 return false;
@@ -257,29 +290,16 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
             true
         });
         if let Some(e) = error {
-            failure = Some(e.context(format!("benchmarking '{kind}'")));
-            break;
+            return Err(e.context(format!("benchmarking '{kind}'")));
         }
         match reason {
             StopReason::Budget | StopReason::Callback => {}
-            StopReason::Cancelled => {
-                failure = Some(anyhow::anyhow!("interrupted during '{kind}'"));
-                break;
-            }
+            StopReason::Cancelled => anyhow::bail!("interrupted during '{kind}'"),
             StopReason::Diverged { .. } => {
                 eprintln!("warning: '{kind}': {reason}; its remaining budgets are not scored");
             }
         }
-    }
-    if let Some(path) = &a.json {
-        write_json(path, &report)?;
-    }
-    if let Some(path) = &a.plot {
-        plot::psnr_vs_time(path, &report.rows).with_context(|| format!("drawing {}", path.display()))?;
-    }
-    match failure {
-        Some(e) => Err(e),
-        None => Ok(()),
+        Ok(())
     }
 }
 
