@@ -9,8 +9,8 @@ use crate::engine::nn::adam::Adam;
 
 pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
 
-/// The model kinds `--model` accepts.
-pub const MODEL_KINDS: [&str; 2] = ["instant", "nerf"];
+/// The model kinds `--model` accepts (each is also a preset).
+pub use crate::engine::models::config::KINDS as MODEL_KINDS;
 
 /// The configuration of `kind`. `skip: false` samples the whole clipped ray,
 /// without the occupancy grid (nerf only). `sets` are `--set KEY=VALUE`
@@ -18,10 +18,11 @@ pub const MODEL_KINDS: [&str; 2] = ["instant", "nerf"];
 pub fn model_config(kind: &str, skip: bool, sets: &[String]) -> anyhow::Result<ModelConfig> {
     anyhow::ensure!(MODEL_KINDS.contains(&kind), "unknown model '{kind}' (available: {})", MODEL_KINDS.join(", "));
     let mut cfg = apply_sets(ModelConfig::preset(kind).expect("every model kind is a preset"), sets)?;
-    match &mut cfg {
-        ModelConfig::Nerf(c) if !skip => c.occupancy = None,
-        ModelConfig::Instant(_) => anyhow::ensure!(skip, "--no-skip applies to the nerf model only"),
-        ModelConfig::Nerf(_) => {}
+    if !skip {
+        match &mut cfg {
+            ModelConfig::Nerf(c) => c.occupancy = None,
+            _ => anyhow::bail!("--no-skip applies to the nerf model only"),
+        }
     }
     Ok(cfg)
 }
