@@ -420,7 +420,7 @@ pub struct ModelInfo {
     pub id: String,
     pub scene_id: String,
     pub job_id: String,
-    /// Preset name (`nerf`, `nerf-tiny`).
+    /// Preset name (one of `engine::models::config::PRESETS`: `instant`, `instant-tiny`, `nerf`, `nerf-tiny`).
     pub model: String,
     pub config: serde_json::Value,
     pub steps: u64,
