@@ -83,7 +83,8 @@ fn open_session<'a>(
     let start = if resume {
         Start::Resume { from: ckpt.clone(), kind: None }
     } else {
-        let (model, adam) = spec.config.build_with_adam(Scene::from_dataset(ds), spec.seed, None)?;
+        let (model, adam) =
+            spec.config.build_with_adam(Scene::from_dataset(ds), spec.seed, None).map_err(|e| e.to_string())?;
         Start::Fresh { model, adam }
     };
     let config = SessionConfig {

@@ -157,11 +157,16 @@ impl ModelConfig {
 
     /// A fresh model and its optimiser; `lr` replaces the initial learning
     /// rate and scales the final one with it.
-    pub fn build_with_adam(&self, scene: Scene, seed: u64, lr: Option<f32>) -> Result<(Box<dyn Model>, Adam), String> {
+    pub fn build_with_adam(
+        &self,
+        scene: Scene,
+        seed: u64,
+        lr: Option<f32>,
+    ) -> Result<(Box<dyn Model>, Adam), ModelError> {
         let mut cfg = self.adam();
         if let Some(lr) = lr {
             if !(lr.is_finite() && lr > 0.0) {
-                return Err(format!("the learning rate must be a positive number, not {lr}"));
+                return Err(ModelError::LearningRate(lr));
             }
             cfg.lr_end = lr * cfg.lr_end / cfg.lr;
             cfg.lr = lr;

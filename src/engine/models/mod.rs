@@ -35,6 +35,8 @@ pub enum ModelError {
     MissingState(String),
     #[error("unknown model kind '{0}' (known: {known})", known = config::KINDS.join(", "))]
     UnknownKind(String),
+    #[error("the learning rate must be a positive number, not {0}")]
+    LearningRate(f32),
     #[error("the {kind} model's configuration: {message}")]
     Config { kind: &'static str, message: String },
 }
