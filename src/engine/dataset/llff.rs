@@ -20,7 +20,7 @@
 use std::path::{Path, PathBuf};
 
 use super::images::{decode_all, has_image_extension};
-use super::npy::parse_npy;
+use super::npy::{NpyArray, parse_npy};
 use super::validate::{check_pose, check_shared_size, warnings};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
 use crate::engine::geometry::camera::{Camera, Distortion};
@@ -61,25 +61,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         });
     }
 
-    // Poses in the OpenGL convention, and raw intrinsics and bounds.
-    let mut poses = Vec::with_capacity(n);
-    let mut hwf = Vec::with_capacity(n);
-    let (mut bmin, mut bmax) = (f64::INFINITY, f64::NEG_INFINITY);
-    for i in 0..n {
-        let row = arr.row(i).ok_or_else(|| invalid(format!("row {i} is missing")))?;
-        let (pose, h, w, f, b0, b1) = parse_row(row).ok_or_else(|| invalid(format!("row {i} is short")))?;
-        check_pose(&pose, &npy_path, i)?;
-        if !(h > 0.0 && w > 0.0 && f > 0.0 && h.is_finite() && w.is_finite() && f.is_finite()) {
-            return Err(invalid(format!("row {i}: [H, W, focal] = [{h}, {w}, {f}] is not positive")));
-        }
-        if !(b0 > 0.0 && b1 >= b0 && b1.is_finite()) {
-            return Err(invalid(format!("row {i}: bounds [{b0}, {b1}] are not 0 < near <= far")));
-        }
-        bmin = bmin.min(b0);
-        bmax = bmax.max(b1);
-        poses.push(pose);
-        hwf.push((h, w, f));
-    }
+    let Rows { mut poses, hwf, near: bmin, far: bmax } = read_rows(&arr, n, &npy_path)?;
     let sc = 1.0 / (bmin * BD_FACTOR);
     for p in &mut poses {
         for r in p.iter_mut() {
@@ -90,34 +72,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let poses = recenter(&poses)
         .ok_or_else(|| invalid("cannot recentre the poses: the average camera orientation is degenerate".into()))?;
 
-    let paths: Vec<(PathBuf, PathBuf)> = files.into_iter().map(|p| (p, npy_path.clone())).collect();
-    let images = decode_all(&paths)?;
-    let mut frames = Vec::with_capacity(n);
-    let mut extra_warnings = Vec::new();
-    for (i, (image, (path, _))) in images.into_iter().zip(paths).enumerate() {
-        let (h, w, f) = hwf[i];
-        let (iw, ih) = (image.width, image.height);
-        let fx = (f * iw as f64 / w) as f32;
-        if (ih as f64 / iw as f64 - h / w).abs() > 0.01 * (h / w) && extra_warnings.is_empty() {
-            extra_warnings.push(format!(
-                "{}: aspect ratio {iw}x{ih} differs from poses_bounds.npy ({w}x{h}); focal scaled by width",
-                path.display()
-            ));
-        }
-        let c2w = check_pose(&poses[i], &npy_path, i)?;
-        let camera = Camera {
-            width: iw,
-            height: ih,
-            fx,
-            fy: fx,
-            cx: 0.5 * iw as f32,
-            cy: 0.5 * ih as f32,
-            distortion: Distortion::default(),
-            c2w,
-        };
-        let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        frames.push(Frame { name, path, camera, image });
-    }
+    let (frames, extra_warnings) = frames(files, &poses, &hwf, &npy_path)?;
     check_shared_size(frames.iter().map(|f| (f.path.as_path(), f.image.width, f.image.height, false)))?;
 
     let near = (0.9 * bmin) as f32;
@@ -146,6 +101,77 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
 }
 
 /// The image files of `dir` sorted by name.
+/// The poses (OpenGL convention), raw `[H, W, focal]` and the bounds of
+/// every row of `poses_bounds.npy`.
+struct Rows {
+    poses: Vec<Pose>,
+    hwf: Vec<(f64, f64, f64)>,
+    near: f64,
+    far: f64,
+}
+
+fn read_rows(arr: &NpyArray, n: usize, npy_path: &Path) -> Result<Rows, DatasetError> {
+    let invalid = |message: String| DatasetError::Invalid { path: npy_path.to_path_buf(), message };
+    let mut rows =
+        Rows { poses: Vec::with_capacity(n), hwf: Vec::with_capacity(n), near: f64::INFINITY, far: f64::NEG_INFINITY };
+    for i in 0..n {
+        let row = arr.row(i).ok_or_else(|| invalid(format!("row {i} is missing")))?;
+        let (pose, h, w, f, b0, b1) = parse_row(row).ok_or_else(|| invalid(format!("row {i} is short")))?;
+        check_pose(&pose, npy_path, i)?;
+        if !(h > 0.0 && w > 0.0 && f > 0.0 && h.is_finite() && w.is_finite() && f.is_finite()) {
+            return Err(invalid(format!("row {i}: [H, W, focal] = [{h}, {w}, {f}] is not positive")));
+        }
+        if !(b0 > 0.0 && b1 >= b0 && b1.is_finite()) {
+            return Err(invalid(format!("row {i}: bounds [{b0}, {b1}] are not 0 < near <= far")));
+        }
+        rows.near = rows.near.min(b0);
+        rows.far = rows.far.max(b1);
+        rows.poses.push(pose);
+        rows.hwf.push((h, w, f));
+    }
+    Ok(rows)
+}
+
+/// The frames of the image `files` with their (recentred) `poses`: the
+/// focal scales with each image's width; a first aspect-ratio mismatch
+/// with `hwf` is returned as a warning.
+fn frames(
+    files: Vec<PathBuf>,
+    poses: &[Pose],
+    hwf: &[(f64, f64, f64)],
+    npy_path: &Path,
+) -> Result<(Vec<Frame>, Vec<String>), DatasetError> {
+    let paths: Vec<(PathBuf, PathBuf)> = files.into_iter().map(|p| (p, npy_path.to_path_buf())).collect();
+    let images = decode_all(&paths)?;
+    let mut frames = Vec::with_capacity(paths.len());
+    let mut warnings = Vec::new();
+    for (i, (image, (path, _))) in images.into_iter().zip(paths).enumerate() {
+        let (h, w, f) = hwf[i];
+        let (iw, ih) = (image.width, image.height);
+        let fx = (f * iw as f64 / w) as f32;
+        if (ih as f64 / iw as f64 - h / w).abs() > 0.01 * (h / w) && warnings.is_empty() {
+            warnings.push(format!(
+                "{}: aspect ratio {iw}x{ih} differs from poses_bounds.npy ({w}x{h}); focal scaled by width",
+                path.display()
+            ));
+        }
+        let c2w = check_pose(&poses[i], npy_path, i)?;
+        let camera = Camera {
+            width: iw,
+            height: ih,
+            fx,
+            fy: fx,
+            cx: 0.5 * iw as f32,
+            cy: 0.5 * ih as f32,
+            distortion: Distortion::default(),
+            c2w,
+        };
+        let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        frames.push(Frame { name, path, camera, image });
+    }
+    Ok((frames, warnings))
+}
+
 fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
     let io = |e| DatasetError::Io { path: dir.to_path_buf(), source: e };
     let mut files = Vec::new();
