@@ -22,7 +22,7 @@ use std::path::Path;
 use serde_json::Value;
 
 use super::images::decode_all;
-use super::json;
+use super::json::{self, Obj};
 use super::validate::{check_shared_size, warnings};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
 use crate::engine::geometry::math::{Aabb, Vec3};
@@ -42,35 +42,10 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let invalid = |message: String| DatasetError::Invalid { path: path.clone(), message };
     let mut extra_warnings = Vec::new();
 
-    match top.get("camera_model") {
-        None | Some(Value::Null) => {}
-        Some(Value::String(m)) if PINHOLE_MODELS.iter().any(|p| m.eq_ignore_ascii_case(p)) => {}
-        Some(m) => {
-            return Err(invalid(format!(
-                "unsupported camera_model {m} (only pinhole cameras with OpenCV k1 k2 p1 p2 distortion are supported)"
-            )));
-        }
-    }
-    if top.get("is_fisheye").and_then(Value::as_bool) == Some(true) {
-        return Err(invalid("fisheye cameras (is_fisheye) are not supported".into()));
-    }
-
+    check_camera_model(&top, &path)?;
     let aabb_scale = json::opt_positive(&top, "aabb_scale", &path)?.unwrap_or(DEFAULT_AABB_SCALE);
     let scale = json::opt_positive(&top, "scale", &path)?.unwrap_or(DEFAULT_SCALE);
-    let offset = match top.get("offset") {
-        None | Some(Value::Null) => DEFAULT_OFFSET,
-        Some(Value::Array(a)) if a.len() == 3 => {
-            let mut o = [0.0; 3];
-            for (dst, v) in o.iter_mut().zip(a) {
-                *dst = v
-                    .as_f64()
-                    .filter(|x| x.is_finite())
-                    .ok_or_else(|| invalid("'offset' is not an array of 3 numbers".into()))?;
-            }
-            o
-        }
-        Some(_) => return Err(invalid("'offset' is not an array of 3 numbers".into())),
-    };
+    let offset = offset(&top, &path)?;
 
     let frames = json::frames(&top, &path)?;
     let mut poses = Vec::with_capacity(frames.len());
@@ -135,6 +110,43 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     ds.warnings = warnings(&ds);
     ds.warnings.extend(extra_warnings);
     Ok(ds)
+}
+
+/// Refuses camera models other than pinhole (with OpenCV distortion).
+fn check_camera_model(top: &Obj, path: &Path) -> Result<(), DatasetError> {
+    let invalid = |message: String| DatasetError::Invalid { path: path.to_path_buf(), message };
+    match top.get("camera_model") {
+        None | Some(Value::Null) => {}
+        Some(Value::String(m)) if PINHOLE_MODELS.iter().any(|p| m.eq_ignore_ascii_case(p)) => {}
+        Some(m) => {
+            return Err(invalid(format!(
+                "unsupported camera_model {m} (only pinhole cameras with OpenCV k1 k2 p1 p2 distortion are supported)"
+            )));
+        }
+    }
+    if top.get("is_fisheye").and_then(Value::as_bool) == Some(true) {
+        return Err(invalid("fisheye cameras (is_fisheye) are not supported".into()));
+    }
+    Ok(())
+}
+
+/// The `offset` of the scene box (Instant-NGP's default when absent).
+fn offset(top: &Obj, path: &Path) -> Result<[f64; 3], DatasetError> {
+    let invalid = |message: String| DatasetError::Invalid { path: path.to_path_buf(), message };
+    Ok(match top.get("offset") {
+        None | Some(Value::Null) => DEFAULT_OFFSET,
+        Some(Value::Array(a)) if a.len() == 3 => {
+            let mut o = [0.0; 3];
+            for (dst, v) in o.iter_mut().zip(a) {
+                *dst = v
+                    .as_f64()
+                    .filter(|x| x.is_finite())
+                    .ok_or_else(|| invalid("'offset' is not an array of 3 numbers".into()))?;
+            }
+            o
+        }
+        Some(_) => return Err(invalid("'offset' is not an array of 3 numbers".into())),
+    })
 }
 
 #[cfg(test)]
