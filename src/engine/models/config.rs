@@ -59,7 +59,7 @@ pub enum ModelConfig {
 }
 
 /// The kinds, as [`ModelConfig`] tags them.
-pub const KINDS: [&str; 2] = ["instant", "nerf"];
+pub const KINDS: [&str; 2] = [super::instant::KIND, super::nerf::KIND];
 
 /// The names [`ModelConfig::preset`] knows, the default first.
 pub const PRESETS: [&str; 4] = ["instant", "instant-tiny", "nerf", "nerf-tiny"];

@@ -27,6 +27,9 @@ use crate::engine::sampling::marcher::GridMarcher;
 use crate::engine::sampling::occupancy::{OccupancyConfig, OccupancyGrid, Probe};
 use crate::engine::train::pass::{PassBuffers, train_pass};
 
+/// The kind's name in checkpoints, the API and `--model`.
+pub const KIND: &str = "instant";
+
 /// The fast model's configuration. `Default` is what `radiance train` uses.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct InstantConfig {
@@ -89,7 +92,7 @@ fn default_max_dropped_weight() -> f32 {
 
 impl ModelSpec for InstantConfig {
     fn kind(&self) -> &'static str {
-        "instant"
+        KIND
     }
 
     fn check(&self, c: &mut Checks) {
@@ -283,7 +286,7 @@ impl InstantModel {
 
 impl Model for InstantModel {
     fn kind(&self) -> &'static str {
-        "instant"
+        KIND
     }
     fn scene(&self) -> &Scene {
         &self.scene

@@ -22,6 +22,9 @@ use crate::engine::sampling::hierarchical::{self, Drawn, SegmentRay};
 use crate::engine::sampling::occupancy::{OccupancyConfig, OccupancyGrid};
 use crate::engine::train::pass::{PassBuffers, train_pass};
 
+/// The kind's name in checkpoints, the API and `--model`.
+pub const KIND: &str = "nerf";
+
 /// The classic model's configuration. `Default` is the paper's.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct NerfConfig {
@@ -55,7 +58,7 @@ impl Default for NerfConfig {
 
 impl ModelSpec for NerfConfig {
     fn kind(&self) -> &'static str {
-        "nerf"
+        KIND
     }
 
     fn check(&self, c: &mut Checks) {
@@ -290,7 +293,7 @@ impl NerfModel {
 
 impl Model for NerfModel {
     fn kind(&self) -> &'static str {
-        "nerf"
+        KIND
     }
     fn scene(&self) -> &Scene {
         &self.scene
