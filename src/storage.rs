@@ -25,6 +25,8 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use redb::{ReadableDatabase, ReadableTable};
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 
+use crate::engine::geometry::camera::Orbit;
+use crate::engine::geometry::math::Vec3;
 use crate::engine::io::fsio::write_atomic;
 
 /// Paths of the data directory.
@@ -393,6 +395,12 @@ impl ViewDefaults {
             None => self.height,
         });
         (w, h)
+    }
+
+    /// The orbit around the scene centre, about its up axis, at
+    /// `elevation_deg` above the horizon and `radius` from the centre.
+    pub fn orbit(&self, elevation_deg: f32, radius: f32) -> Orbit {
+        Orbit { centre: Vec3::from_array(self.centre), up: Vec3::from_array(self.up), elevation_deg, radius }
     }
 }
 
