@@ -6,7 +6,8 @@
 //! DATA/models/ID.ckpt         checkpoint (engine::io::persist, atomic)
 //! DATA/models/ID.json         model record
 //! DATA/videos/ID.bin, ID.json video file and record
-//! DATA/jobs.redb              job records (redb; only enqueued, started and final states)
+//! DATA/jobs.redb              job records (redb; only enqueued, started and final states;
+//!                             held open by the scheduler, see jobs::store)
 //! DATA/tmp/                   uploads being extracted, scenes being deleted
 //! ```
 //!
@@ -19,20 +20,19 @@
 use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use redb::{ReadableDatabase, ReadableTable};
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 
+use crate::engine::geometry::camera::Orbit;
+use crate::engine::geometry::math::Vec3;
 use crate::engine::io::fsio::write_atomic;
 
 /// Paths of the data directory.
 #[derive(Clone, Debug)]
 pub struct Storage {
     pub root: PathBuf,
-    /// Serialises the job database's transactions within the process.
-    jobs_lock: Arc<Mutex<()>>,
 }
 
 /// The job table: id -> the job record as JSON.
@@ -42,11 +42,71 @@ fn db_error(e: impl std::fmt::Display) -> io::Error {
     io::Error::other(format!("job database: {e}"))
 }
 
+/// The open job database: job records as JSON by id. Each write is one
+/// committed transaction (atomic and durable when it returns).
+pub struct JobDb(redb::Database);
+
+impl JobDb {
+    /// Writes a job record.
+    pub fn put<T: Serialize>(&self, id: &str, job: &T) -> io::Result<()> {
+        let bytes = serde_json::to_vec(job).map_err(io::Error::other)?;
+        let tx = self.0.begin_write().map_err(db_error)?;
+        {
+            let mut t = tx.open_table(JOBS).map_err(db_error)?;
+            t.insert(id, bytes.as_slice()).map_err(db_error)?;
+        }
+        tx.commit().map_err(db_error)
+    }
+
+    /// Every job record (in id order).
+    pub fn list<T: DeserializeOwned>(&self) -> io::Result<Vec<T>> {
+        let tx = self.0.begin_read().map_err(db_error)?;
+        let t = match tx.open_table(JOBS) {
+            Ok(t) => t,
+            Err(redb::TableError::TableDoesNotExist(_)) => return Ok(Vec::new()),
+            Err(e) => return Err(db_error(e)),
+        };
+        let mut v = Vec::new();
+        for row in t.iter().map_err(db_error)? {
+            let (k, bytes) = row.map_err(db_error)?;
+            let job =
+                serde_json::from_slice(bytes.value()).map_err(|e| db_error(format!("record '{}': {e}", k.value())))?;
+            v.push(job);
+        }
+        Ok(v)
+    }
+
+    /// One job record.
+    pub fn get<T: DeserializeOwned>(&self, id: &str) -> io::Result<Option<T>> {
+        let tx = self.0.begin_read().map_err(db_error)?;
+        let t = match tx.open_table(JOBS) {
+            Ok(t) => t,
+            Err(redb::TableError::TableDoesNotExist(_)) => return Ok(None),
+            Err(e) => return Err(db_error(e)),
+        };
+        match t.get(id).map_err(db_error)? {
+            Some(bytes) => serde_json::from_slice(bytes.value()).map(Some).map_err(db_error),
+            None => Ok(None),
+        }
+    }
+
+    /// Removes a job record; `false` if there was none.
+    pub fn remove(&self, id: &str) -> io::Result<bool> {
+        let tx = self.0.begin_write().map_err(db_error)?;
+        let removed = {
+            let mut t = tx.open_table(JOBS).map_err(db_error)?;
+            t.remove(id).map_err(db_error)?.is_some()
+        };
+        tx.commit().map_err(db_error)?;
+        Ok(removed)
+    }
+}
+
 impl Storage {
     /// Creates the layout (if missing) and clears leftovers of interrupted
     /// uploads and deletions.
     pub fn open(root: &Path) -> io::Result<Self> {
-        let s = Self { root: root.to_path_buf(), jobs_lock: Arc::default() };
+        let s = Self { root: root.to_path_buf() };
         for d in ["scenes", "models", "videos"] {
             std::fs::create_dir_all(s.root.join(d))?;
         }
@@ -87,75 +147,17 @@ impl Storage {
         self.root.join("jobs.redb")
     }
 
-    /// Runs `f` on the job database, opened for this call only (the file
-    /// is locked while open; job records change a few times per job).
-    fn with_jobs<T>(&self, f: impl FnOnce(&redb::Database) -> Result<T, io::Error>) -> io::Result<T> {
-        let _guard = self.jobs_lock.lock().unwrap_or_else(|e| e.into_inner());
-        let db = redb::Database::create(self.jobs_db()).map_err(db_error)?;
-        f(&db)
+    /// Opens the job database (creating it if missing). redb locks the file
+    /// while it is open: the scheduler opens it once and holds it; see
+    /// `jobs::store`.
+    pub fn open_jobs(&self) -> io::Result<JobDb> {
+        redb::Database::create(self.jobs_db()).map(JobDb).map_err(db_error)
     }
 
-    /// Writes a job record (one committed transaction).
-    pub fn put_job<T: Serialize>(&self, id: &str, job: &T) -> io::Result<()> {
-        let bytes = serde_json::to_vec(job).map_err(io::Error::other)?;
-        self.with_jobs(|db| {
-            let tx = db.begin_write().map_err(db_error)?;
-            {
-                let mut t = tx.open_table(JOBS).map_err(db_error)?;
-                t.insert(id, bytes.as_slice()).map_err(db_error)?;
-            }
-            tx.commit().map_err(db_error)
-        })
-    }
-
-    /// Every job record (in id order).
-    pub fn list_jobs<T: DeserializeOwned>(&self) -> io::Result<Vec<T>> {
-        self.with_jobs(|db| {
-            let tx = db.begin_read().map_err(db_error)?;
-            let t = match tx.open_table(JOBS) {
-                Ok(t) => t,
-                Err(redb::TableError::TableDoesNotExist(_)) => return Ok(Vec::new()),
-                Err(e) => return Err(db_error(e)),
-            };
-            let mut v = Vec::new();
-            for row in t.iter().map_err(db_error)? {
-                let (k, bytes) = row.map_err(db_error)?;
-                let job = serde_json::from_slice(bytes.value())
-                    .map_err(|e| db_error(format!("record '{}': {e}", k.value())))?;
-                v.push(job);
-            }
-            Ok(v)
-        })
-    }
-
-    /// One job record.
+    /// One job record, read from a database opened for this call: for tools
+    /// and tests while no server holds it.
     pub fn get_job<T: DeserializeOwned>(&self, id: &str) -> io::Result<Option<T>> {
-        self.with_jobs(|db| {
-            let tx = db.begin_read().map_err(db_error)?;
-            let t = match tx.open_table(JOBS) {
-                Ok(t) => t,
-                Err(redb::TableError::TableDoesNotExist(_)) => return Ok(None),
-                Err(e) => return Err(db_error(e)),
-            };
-            match t.get(id).map_err(db_error)? {
-                Some(bytes) => serde_json::from_slice(bytes.value()).map(Some).map_err(db_error),
-                None => Ok(None),
-            }
-        })
-    }
-
-    /// Removes a job record (one committed transaction); `false` if there
-    /// was none.
-    pub fn remove_job(&self, id: &str) -> io::Result<bool> {
-        self.with_jobs(|db| {
-            let tx = db.begin_write().map_err(db_error)?;
-            let removed = {
-                let mut t = tx.open_table(JOBS).map_err(db_error)?;
-                t.remove(id).map_err(db_error)?.is_some()
-            };
-            tx.commit().map_err(db_error)?;
-            Ok(removed)
-        })
+        self.open_jobs()?.get(id)
     }
 
     pub fn load_scene(&self, id: &str) -> io::Result<Option<SceneInfo>> {
@@ -394,6 +396,12 @@ impl ViewDefaults {
         });
         (w, h)
     }
+
+    /// The orbit around the scene centre, about its up axis, at
+    /// `elevation_deg` above the horizon and `radius` from the centre.
+    pub fn orbit(&self, elevation_deg: f32, radius: f32) -> Orbit {
+        Orbit { centre: Vec3::from_array(self.centre), up: Vec3::from_array(self.up), elevation_deg, radius }
+    }
 }
 
 /// A stored scene.
@@ -470,14 +478,20 @@ mod tests {
     fn job_records_round_trip_through_the_database() {
         let dir = tempfile::tempdir().unwrap();
         let s = Storage::open(dir.path()).unwrap();
-        assert_eq!(s.list_jobs::<serde_json::Value>().unwrap(), Vec::<serde_json::Value>::new());
-        assert_eq!(s.get_job::<serde_json::Value>("job_a").unwrap(), None);
-        s.put_job("job_b", &serde_json::json!({ "id": "job_b", "n": 1 })).unwrap();
-        s.put_job("job_a", &serde_json::json!({ "id": "job_a" })).unwrap();
-        s.put_job("job_b", &serde_json::json!({ "id": "job_b", "n": 2 })).unwrap();
+        let db = s.open_jobs().unwrap();
+        assert_eq!(db.list::<serde_json::Value>().unwrap(), Vec::<serde_json::Value>::new());
+        assert_eq!(db.get::<serde_json::Value>("job_a").unwrap(), None);
+        db.put("job_b", &serde_json::json!({ "id": "job_b", "n": 1 })).unwrap();
+        db.put("job_a", &serde_json::json!({ "id": "job_a" })).unwrap();
+        db.put("job_b", &serde_json::json!({ "id": "job_b", "n": 2 })).unwrap();
+        db.put("job_c", &serde_json::json!({ "id": "job_c" })).unwrap();
+        assert!(db.remove("job_c").unwrap() && !db.remove("job_c").unwrap());
+        // The file is locked while open: a second handle waits for a restart.
+        assert!(s.open_jobs().is_err());
+        drop(db);
         // A second handle (as after a restart) sees what was committed.
         let again = Storage::open(dir.path()).unwrap();
-        let all: Vec<serde_json::Value> = again.list_jobs().unwrap();
+        let all: Vec<serde_json::Value> = again.open_jobs().unwrap().list().unwrap();
         assert_eq!(all, vec![serde_json::json!({ "id": "job_a" }), serde_json::json!({ "id": "job_b", "n": 2 })]);
         assert_eq!(again.get_job::<serde_json::Value>("job_b").unwrap().unwrap()["n"], 2);
     }

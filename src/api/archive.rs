@@ -44,14 +44,22 @@ pub struct Limits {
     pub max_entries: usize,
 }
 
+/// A limit an upload passed, and its value.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Limit {
+    Bytes(u64),
+    Entries(usize),
+    Ratio(u64),
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum ArchiveError {
     /// Malformed, truncated, or with a forbidden entry.
     #[error("{0}")]
     Bad(String),
-    /// Over the unpacked-size or entry-count limit.
-    #[error("{0}")]
-    TooLarge(String),
+    /// Over the unpacked-size, entry-count or compression-ratio limit.
+    #[error("{message}")]
+    TooLarge { message: String, limit: Limit },
     #[error("writing the extracted files: {0}")]
     Io(#[from] io::Error),
 }
@@ -101,10 +109,11 @@ impl Budget {
     fn declared(&self, size: u64, name: &str) -> Result<(), ArchiveError> {
         let limit = self.limits.max_unpacked_bytes;
         if self.bytes.saturating_add(size) > limit {
-            return Err(ArchiveError::TooLarge(format!(
+            let message = format!(
                 "archive entry '{name}' declares {size} bytes, which would unpack the archive past the limit of \
                  {limit} bytes"
-            )));
+            );
+            return Err(ArchiveError::TooLarge { message, limit: Limit::Bytes(limit) });
         }
         Ok(())
     }
@@ -112,7 +121,9 @@ impl Budget {
     fn entry(&mut self) -> Result<(), ArchiveError> {
         self.entries += 1;
         if self.entries > self.limits.max_entries {
-            return Err(ArchiveError::TooLarge(format!("archive has more than {} entries", self.limits.max_entries)));
+            let (message, max) =
+                (format!("archive has more than {} entries", self.limits.max_entries), self.limits.max_entries);
+            return Err(ArchiveError::TooLarge { message, limit: Limit::Entries(max) });
         }
         Ok(())
     }
@@ -133,10 +144,9 @@ impl Budget {
         let n = copy_reading(&mut r.take(left + 1), &mut f, name)?;
         self.bytes += n;
         if self.bytes > self.limits.max_unpacked_bytes {
-            return Err(ArchiveError::TooLarge(format!(
-                "archive unpacks to more than {} bytes",
-                self.limits.max_unpacked_bytes
-            )));
+            let max = self.limits.max_unpacked_bytes;
+            let message = format!("archive unpacks to more than {max} bytes");
+            return Err(ArchiveError::TooLarge { message, limit: Limit::Bytes(max) });
         }
         Ok(())
     }
@@ -211,15 +221,15 @@ fn check_zip_declared(zip: &mut zip::ZipArchive<io::Cursor<&[u8]>>, limits: Limi
     }
     let limit = limits.max_unpacked_bytes;
     if total > limit {
-        return Err(ArchiveError::TooLarge(format!(
-            "archive declares {total} bytes unpacked, more than the limit of {limit} bytes"
-        )));
+        let message = format!("archive declares {total} bytes unpacked, more than the limit of {limit} bytes");
+        return Err(ArchiveError::TooLarge { message, limit: Limit::Bytes(limit) });
     }
     if let Some((name, size, packed)) = bomb {
-        return Err(ArchiveError::TooLarge(format!(
+        let message = format!(
             "archive entry '{name}' declares {size} bytes packed into {packed}: a ratio over {MAX_RATIO}:1 \
              (for entries over {RATIO_CHECKED_ABOVE} bytes) is refused as a decompression bomb"
-        )));
+        );
+        return Err(ArchiveError::TooLarge { message, limit: Limit::Ratio(MAX_RATIO) });
     }
     Ok(())
 }
@@ -354,7 +364,7 @@ mod tests {
 
     fn too_large(r: Result<u64, ArchiveError>) -> String {
         match r {
-            Err(ArchiveError::TooLarge(m)) => m,
+            Err(ArchiveError::TooLarge { message, .. }) => message,
             other => panic!("expected TooLarge, got {other:?}"),
         }
     }

@@ -11,10 +11,10 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use futures_util::Stream;
 use serde::Deserialize;
 
-use super::{ApiError, ApiResult, AppState, Code, limits};
+use super::{ApiError, ApiResult, AppState, limits};
 use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
 use crate::engine::train::estimate;
-use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec};
+use crate::jobs::{Job, JobBudget, JobSpec, Status, TrainSpec};
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize)]
@@ -90,22 +90,6 @@ fn config_error(e: ConfigError) -> ApiError {
     ApiError::bad_request(e.to_string()).with_details(details)
 }
 
-pub(crate) fn sched_error(e: SchedError) -> ApiError {
-    match e {
-        SchedError::SceneNotFound(_)
-        | SchedError::JobNotFound(_)
-        | SchedError::ModelNotFound(_)
-        | SchedError::VideoNotFound(_) => ApiError::new(Code::NotFound, e.to_string()),
-        SchedError::QueueFull(_) => ApiError::new(Code::QueueFull, e.to_string()),
-        SchedError::SceneInUse { .. }
-        | SchedError::AlreadyFinal { .. }
-        | SchedError::JobNotFinal { .. }
-        | SchedError::ModelInUse { .. }
-        | SchedError::VideoInUse { .. } => ApiError::conflict(e.to_string()),
-        SchedError::Io(io) => ApiError::internal(io),
-    }
-}
-
 pub async fn create(
     State(s): State<AppState>,
     body: Result<Json<CreateJob>, JsonRejection>,
@@ -123,7 +107,7 @@ pub async fn create(
             }
             None => 0,
         };
-        s.scheduler.enqueue(JobSpec::Train(Box::new(spec)), None, memory).map_err(sched_error)
+        Ok(s.scheduler.enqueue(JobSpec::Train(Box::new(spec)), None, memory)?)
     })
     .await??;
     tracing::info!(job = %job.id, kind = "train", "job queued");
@@ -137,9 +121,15 @@ pub struct ListQuery {
 
 pub async fn list(State(s): State<AppState>, q: Result<Query<ListQuery>, QueryRejection>) -> ApiResult<Json<Vec<Job>>> {
     let Query(q) = q?;
-    let status = q.status.map(|v| v.parse::<Status>()).transpose().map_err(ApiError::bad_request)?;
+    let status = match q.status {
+        Some(v) => Some(v.parse::<Status>().map_err(|m| ApiError::bad_field(m, "status", &v, STATUSES))?),
+        None => None,
+    };
     Ok(Json(s.scheduler.list(status)))
 }
+
+/// What `?status=` takes.
+const STATUSES: &str = "queued, running, succeeded, failed or canceled";
 
 pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<Json<Job>> {
     s.scheduler.get(&id).map(Json).ok_or_else(|| ApiError::not_found("job", &id))
@@ -149,7 +139,7 @@ pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiRe
 /// training step, keeping its last state as a usable model.
 pub async fn cancel(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<(StatusCode, Json<Job>)> {
     let sched = s.scheduler.clone();
-    let job = tokio::task::spawn_blocking(move || sched.cancel(&id)).await?.map_err(sched_error)?;
+    let job = tokio::task::spawn_blocking(move || sched.cancel(&id)).await??;
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
 
@@ -157,7 +147,7 @@ pub async fn cancel(State(s): State<AppState>, Path(id): Path<String>) -> ApiRes
 /// running job is a conflict (409): cancel it first.
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let sched = s.scheduler.clone();
-    tokio::task::spawn_blocking(move || sched.delete_job(&id)).await?.map_err(sched_error)?;
+    tokio::task::spawn_blocking(move || sched.delete_job(&id)).await??;
     Ok(StatusCode::NO_CONTENT)
 }
 

@@ -11,15 +11,13 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
 
-use super::jobs::sched_error;
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
-use crate::engine::geometry::camera::{Camera, orbit};
-use crate::engine::geometry::math::Vec3;
+use crate::engine::geometry::camera::Camera;
 use crate::engine::io::checkpoint::CheckpointError;
 use crate::engine::io::persist;
 use crate::engine::models::Model;
-use crate::engine::render::{View, render_view};
-use crate::media::png;
+use crate::engine::render::render_view;
+use crate::media::png::{self, ViewImage};
 use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
 
 /// A model as the API shows it: its record and the disk use of its videos.
@@ -64,7 +62,7 @@ pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiRe
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let sched = s.scheduler.clone();
     let id2 = id.clone();
-    tokio::task::spawn_blocking(move || sched.delete_model(&id2)).await?.map_err(sched_error)?;
+    tokio::task::spawn_blocking(move || sched.delete_model(&id2)).await??;
     s.model_cache.lock().unwrap_or_else(|e| e.into_inner()).retain(|c| c.id != id);
     Ok(StatusCode::NO_CONTENT)
 }
@@ -136,49 +134,60 @@ pub fn parse_c2w(s: &str) -> Result<[[f32; 4]; 3], String> {
     Ok(m)
 }
 
-/// The camera pose of an orbit position around the scene centre.
-pub fn orbit_pose(view: &ViewDefaults, azimuth_deg: f32, elevation_deg: f32, radius: f32) -> Option<[[f32; 4]; 3]> {
-    orbit(Vec3::from_array(view.centre), Vec3::from_array(view.up), azimuth_deg, elevation_deg, radius)
-}
+/// What `c2w` takes.
+const C2W: &str = "12 or 16 comma-separated numbers: a rigid transform, row-major";
 
 fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResult<(Camera, Output, Background)> {
     let orbit = q.azimuth.is_some() || q.elevation.is_some() || q.radius.is_some();
     let pose = match &q.c2w {
         Some(_) if orbit => return Err(ApiError::bad_request("give either c2w or azimuth/elevation/radius, not both")),
-        Some(m) => parse_c2w(m).map_err(ApiError::bad_request)?,
+        Some(m) => parse_c2w(m).map_err(|e| ApiError::bad_field(e, "c2w", m, C2W))?,
         None => {
             let (az, el, r) = (q.azimuth.unwrap_or(0.0), q.elevation.unwrap_or(30.0), q.radius.unwrap_or(view.radius));
-            if !(az.is_finite() && el.is_finite() && (-90.0..=90.0).contains(&el) && r.is_finite() && r > 0.0) {
-                return Err(ApiError::bad_request("orbit needs finite azimuth, elevation in [-90, 90], radius > 0"));
+            let orbit_error = |field: &str, value: f32, allowed: &str| {
+                let message = "orbit needs finite azimuth, elevation in [-90, 90], radius > 0";
+                ApiError::bad_field(message, field, value, allowed)
+            };
+            if !az.is_finite() {
+                return Err(orbit_error("azimuth", az, "finite"));
             }
-            orbit_pose(view, az, el, r)
+            if !(el.is_finite() && (-90.0..=90.0).contains(&el)) {
+                return Err(orbit_error("elevation", el, "[-90, 90]"));
+            }
+            if !(r.is_finite() && r > 0.0) {
+                return Err(orbit_error("radius", r, "> 0"));
+            }
+            view.orbit(el, r)
+                .pose(az)
                 .ok_or_else(|| ApiError::bad_request("this orbit position gives no well-defined camera"))?
         }
     };
     let (width, height) = view.frame_size(q.width, q.height);
     if width == 0 || height == 0 || width > 8192 || height > 8192 || width as u64 * height as u64 > max_pixels {
-        return Err(ApiError::bad_request(format!(
-            "render size {width}x{height} is out of range (at most {max_pixels} pixels, sides 1..=8192)"
-        )));
+        let allowed = format!("at most {max_pixels} pixels, sides 1..=8192");
+        let message = format!("render size {width}x{height} is out of range ({allowed})");
+        return Err(ApiError::bad_field(message, "width,height", [width, height], &allowed));
     }
     let fov = q.fov.unwrap_or(view.fov);
     if !(fov.is_finite() && fov > 1.0 && fov < 179.0) {
-        return Err(ApiError::bad_request("fov must be between 1 and 179 degrees"));
+        return Err(ApiError::bad_field("fov must be between 1 and 179 degrees", "fov", fov, "(1, 179)"));
     }
     let output = match q.output.as_deref().unwrap_or("rgb") {
         "rgb" => Output::Rgb,
         "depth" => Output::Depth,
         "alpha" => Output::Alpha,
-        o => return Err(ApiError::bad_request(format!("unknown output '{o}' (expected rgb, depth or alpha)"))),
+        o => {
+            let message = format!("unknown output '{o}' (expected rgb, depth or alpha)");
+            return Err(ApiError::bad_field(message, "output", o, "rgb, depth, alpha"));
+        }
     };
     let background = match q.background.as_deref().unwrap_or("white") {
         "white" => Background::Colour([1.0; 3]),
         "black" => Background::Colour([0.0; 3]),
         "transparent" => Background::Transparent,
         b => {
-            return Err(ApiError::bad_request(format!(
-                "unknown background '{b}' (expected white, black or transparent)"
-            )));
+            let message = format!("unknown background '{b}' (expected white, black or transparent)");
+            return Err(ApiError::bad_field(message, "background", b, "white, black, transparent"));
         }
     };
     Ok((Camera::from_fov(width, height, fov.to_radians(), pose), output, background))
@@ -190,7 +199,10 @@ pub async fn render(
     q: Result<Query<RenderQuery>, QueryRejection>,
 ) -> ApiResult<impl IntoResponse> {
     let Query(q) = q?;
-    let info = s.storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id))?;
+    let storage = s.storage.clone();
+    let info =
+        tokio::task::spawn_blocking(move || storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id)))
+            .await??;
     let (camera, output, background) = parse_query(&q, &info.view, s.config.max_render_pixels)?;
     let _slot = s.render_slots.acquire().await.map_err(ApiError::internal)?;
     let t0 = Instant::now();
@@ -202,7 +214,7 @@ pub async fn render(
             Background::Transparent => [0.0; 3],
         };
         let v = render_view(&*model, &camera, bg);
-        encode(&v, output, background, info.view.far).map_err(ApiError::internal)
+        png::encode_view(&v, image_of(output, background, info.view.far)).map_err(ApiError::internal)
     })
     .await??;
     let mut r = s.renders.lock().unwrap_or_else(|e| e.into_inner());
@@ -224,7 +236,7 @@ fn cached_model(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
         CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
             ApiError::not_found("model", &info.id)
         }
-        e => ApiError::internal(e),
+        e => e.into(),
     })?;
     let model: Arc<dyn Model> = Arc::from(restored.model);
     let mut cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
@@ -234,21 +246,52 @@ fn cached_model(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
     Ok(model)
 }
 
-/// Encodes a rendered view as the requested PNG (the encoders live in
-/// `media`; this only picks one).
-fn encode(v: &View, output: Output, background: Background, far: f32) -> std::io::Result<Vec<u8>> {
+/// The image the query asked for.
+fn image_of(output: Output, background: Background, far: f32) -> ViewImage {
     match (output, background) {
-        (Output::Rgb, Background::Colour(_)) => png::encode_rgb(v.width, v.height, &png::quantise_rgb(&v.rgb)),
-        // Rendered on black, the colour is premultiplied: divide it out.
-        (Output::Rgb, Background::Transparent) => png::encode_rgba(v),
-        (Output::Alpha, _) => png::encode_alpha(v),
-        (Output::Depth, _) => png::encode_depth(v, far),
+        (Output::Rgb, Background::Colour(_)) => ViewImage::Rgb,
+        // Rendered on black, the colour is premultiplied: media divides it out.
+        (Output::Rgb, Background::Transparent) => ViewImage::Rgba,
+        (Output::Alpha, _) => ViewImage::Alpha,
+        (Output::Depth, _) => ViewImage::Depth { far },
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn view() -> ViewDefaults {
+        ViewDefaults { width: 8, height: 8, fov: 50.0, centre: [0.0; 3], up: [0.0, 0.0, 1.0], radius: 4.0, far: 6.0 }
+    }
+
+    /// The `details` of the error a render query gets.
+    fn details_of(q: RenderQuery) -> serde_json::Value {
+        let e = parse_query(&q, &view(), 1 << 20).expect_err("refused");
+        assert_eq!(e.code, crate::api::Code::BadRequest);
+        e.details
+    }
+
+    #[test]
+    fn bad_render_parameters_are_named_with_their_value() {
+        use serde_json::json;
+        let fov = details_of(RenderQuery { fov: Some(0.0), ..Default::default() });
+        assert_eq!(fov, json!({ "field": "fov", "value": 0.0, "allowed": "(1, 179)" }));
+        let out = details_of(RenderQuery { output: Some("nope".into()), ..Default::default() });
+        assert_eq!(out, json!({ "field": "output", "value": "nope", "allowed": "rgb, depth, alpha" }));
+        let bg = details_of(RenderQuery { background: Some("red".into()), ..Default::default() });
+        assert_eq!((bg["field"].as_str(), bg["value"].as_str()), (Some("background"), Some("red")));
+        let el = details_of(RenderQuery { elevation: Some(91.0), ..Default::default() });
+        assert_eq!(el, json!({ "field": "elevation", "value": 91.0, "allowed": "[-90, 90]" }));
+        let r = details_of(RenderQuery { radius: Some(-1.0), ..Default::default() });
+        assert_eq!((r["field"].as_str(), r["value"].as_f64()), (Some("radius"), Some(-1.0)));
+        let size = details_of(RenderQuery { width: Some(2000), height: Some(2000), ..Default::default() });
+        assert_eq!((size["field"].as_str(), &size["value"]), (Some("width,height"), &json!([2000, 2000])));
+        assert!(size["allowed"].as_str().unwrap().contains("1048576 pixels"), "{size}");
+        let c2w = details_of(RenderQuery { c2w: Some("1,2,3".into()), ..Default::default() });
+        assert_eq!((c2w["field"].as_str(), c2w["value"].as_str()), (Some("c2w"), Some("1,2,3")));
+        assert!(parse_query(&RenderQuery::default(), &view(), 1 << 20).is_ok());
+    }
 
     #[test]
     fn c2w_checks() {
@@ -257,25 +300,5 @@ mod tests {
         assert!(parse_c2w("1,0,0,0, 0,1,0,0, 0,0,1").is_err());
         assert!(parse_c2w("2,0,0,0, 0,1,0,0, 0,0,1,4").is_err());
         assert!(parse_c2w("NaN,0,0,0, 0,1,0,0, 0,0,1,4").is_err());
-    }
-
-    #[test]
-    fn orbit_looks_at_centre() {
-        let view = ViewDefaults {
-            width: 8,
-            height: 8,
-            fov: 50.0,
-            centre: [1.0, 2.0, 3.0],
-            up: [0.0, 0.0, 1.0],
-            radius: 4.0,
-            far: 6.0,
-        };
-        let m = orbit_pose(&view, 90.0, 30.0, 4.0).unwrap();
-        let cam = Camera::from_fov(8, 8, 1.0, m);
-        let r = cam.ray(4.0, 4.0);
-        let to_centre = (Vec3::from_array(view.centre) - cam.origin()).normalized().unwrap();
-        assert!((r.dir.dot(to_centre) - 1.0).abs() < 1e-5);
-        assert!(((cam.origin() - Vec3::from_array(view.centre)).norm() - 4.0).abs() < 1e-4);
-        assert!(cam.origin().y > 2.0 && cam.origin().z > 3.0);
     }
 }

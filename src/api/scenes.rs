@@ -14,7 +14,7 @@ use axum::extract::multipart::MultipartError;
 use axum::extract::{FromRequest, Multipart, Path as UrlPath, Request, State};
 use axum::http::{StatusCode, header::CONTENT_TYPE};
 
-use super::archive::{self, ArchiveError, ArchiveKind, Limits};
+use super::archive::{self, ArchiveKind, Limit, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
 use crate::engine::dataset::{Dataset, LoadOptions};
 use crate::engine::geometry::math::Vec3;
@@ -25,7 +25,8 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
     let ct = req.headers().get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
     let limits = Limits { max_unpacked_bytes: s.config.max_unpacked_bytes, max_entries: s.config.max_archive_entries };
     let too_large = |s: &AppState| {
-        ApiError::new(Code::PayloadTooLarge, format!("upload is larger than {} bytes", s.config.max_upload_bytes))
+        let max = s.config.max_upload_bytes;
+        ApiError::too_large(format!("upload is larger than {max} bytes"), Limit::Bytes(max))
     };
     let info = if ct.to_ascii_lowercase().starts_with("multipart/form-data") {
         let multipart = Multipart::from_request(req, &()).await.map_err(|e| ApiError::bad_request(e.body_text()))?;
@@ -69,13 +70,7 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
         let storage = s.storage.clone();
         tokio::task::spawn_blocking(move || {
             let (id, staging) = staging(&storage);
-            ingest(&storage, &id, &staging, |data| {
-                archive::extract(kind, &body, data, limits).map_err(|e| match e {
-                    ArchiveError::Bad(m) => ApiError::bad_request(m),
-                    ArchiveError::TooLarge(m) => ApiError::new(Code::PayloadTooLarge, m),
-                    ArchiveError::Io(e) => ApiError::internal(e),
-                })
-            })
+            ingest(&storage, &id, &staging, |data| Ok(archive::extract(kind, &body, data, limits)?))
         })
         .await??
     };
@@ -125,9 +120,10 @@ async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) ->
         };
         entries += 1;
         if entries > limits.max_entries {
-            return Err(PartError::Api(ApiError::new(
-                Code::PayloadTooLarge,
-                format!("upload has more than {} files", limits.max_entries),
+            let max = limits.max_entries;
+            return Err(PartError::Api(ApiError::too_large(
+                format!("upload has more than {max} files"),
+                Limit::Entries(max),
             )));
         }
         let rel = archive::safe_relative(&name)
@@ -147,9 +143,10 @@ async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) ->
         while let Some(chunk) = field.chunk().await? {
             total += chunk.len() as u64;
             if total > limits.max_unpacked_bytes {
-                return Err(PartError::Api(ApiError::new(
-                    Code::PayloadTooLarge,
-                    format!("upload holds more than {} bytes", limits.max_unpacked_bytes),
+                let max = limits.max_unpacked_bytes;
+                return Err(PartError::Api(ApiError::too_large(
+                    format!("upload holds more than {max} bytes"),
+                    Limit::Bytes(max),
                 )));
             }
             f.write_all(&chunk).await?;
@@ -177,11 +174,10 @@ fn ingest(
         let root = archive::dataset_root(&data);
         let ds = Dataset::load(&root, &LoadOptions::default()).map_err(|e| {
             // Name files relative to the upload, not the server's folders.
+            let mut e = ApiError::from(e);
             let prefix = format!("{}/", data.display());
-            ApiError::new(
-                Code::InvalidDataset,
-                e.to_string().replace(&prefix, "").replace(&*data.to_string_lossy(), "."),
-            )
+            e.message = e.message.replace(&prefix, "").replace(&*data.to_string_lossy(), ".");
+            e
         })?;
         if ds.train.is_empty() {
             return Err(ApiError::new(Code::InvalidDataset, "the dataset has no training views"));
@@ -238,28 +234,32 @@ pub async fn list(State(s): State<AppState>) -> ApiResult<Json<Vec<SceneInfo>>> 
 }
 
 pub async fn get_one(State(s): State<AppState>, UrlPath(id): UrlPath<String>) -> ApiResult<Json<SceneInfo>> {
-    s.storage.load_scene(&id)?.map(Json).ok_or_else(|| ApiError::not_found("scene", &id))
+    let (storage, id2) = (s.storage.clone(), id.clone());
+    let scene = tokio::task::spawn_blocking(move || storage.load_scene(&id2)).await??;
+    scene.map(Json).ok_or_else(|| ApiError::not_found("scene", &id))
 }
 
 /// Deletes a scene unless a queued or running job uses it (409). Models
 /// trained on it stay usable.
 pub async fn delete(State(s): State<AppState>, UrlPath(id): UrlPath<String>) -> ApiResult<StatusCode> {
-    if s.storage.load_scene(&id)?.is_none() {
-        return Err(ApiError::not_found("scene", &id));
-    }
-    let storage = s.storage.clone();
-    let trash = storage.tmp_dir().join(format!("deleted_{id}"));
-    let (t2, id2) = (trash.clone(), id.clone());
-    s.scheduler
-        .delete_scene(&id, move || {
-            // One rename makes the scene disappear; the files go after.
-            std::fs::rename(storage.scene_dir(&id2), &t2)
-        })
-        .map_err(|e| match e {
-            SchedError::SceneInUse { .. } => ApiError::conflict(e.to_string()),
-            SchedError::Io(io) if io.kind() == std::io::ErrorKind::NotFound => ApiError::not_found("scene", &id),
-            other => ApiError::internal(other),
-        })?;
-    tokio::task::spawn_blocking(move || std::fs::remove_dir_all(trash)).await??;
+    let (storage, sched) = (s.storage.clone(), s.scheduler.clone());
+    tokio::task::spawn_blocking(move || -> ApiResult<()> {
+        if storage.load_scene(&id)?.is_none() {
+            return Err(ApiError::not_found("scene", &id));
+        }
+        let trash = storage.tmp_dir().join(format!("deleted_{id}"));
+        sched
+            .delete_scene(&id, || {
+                // One rename makes the scene disappear; the files go after.
+                std::fs::rename(storage.scene_dir(&id), &trash)
+            })
+            .map_err(|e| match e {
+                // Deleted meanwhile.
+                SchedError::Io(io) if io.kind() == std::io::ErrorKind::NotFound => SchedError::SceneNotFound(id),
+                e => e,
+            })?;
+        Ok(std::fs::remove_dir_all(trash)?)
+    })
+    .await??;
     Ok(StatusCode::NO_CONTENT)
 }

@@ -10,7 +10,6 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use serde::Deserialize;
 
-use super::jobs::sched_error;
 use super::{ApiError, ApiResult, AppState, limits};
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate;
@@ -43,22 +42,26 @@ pub struct CreateVideo {
 pub const MAX_FRAMES: u32 = 600;
 
 /// Checks a request against the model's view defaults and the render cap.
-pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> Result<VideoSpec, String> {
+pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> ApiResult<VideoSpec> {
     let frames = r.frames.unwrap_or(60);
     if !(1..=MAX_FRAMES).contains(&frames) {
-        return Err(format!("frames must be in 1..={MAX_FRAMES}"));
+        let allowed = format!("1..={MAX_FRAMES}");
+        return Err(ApiError::bad_field(format!("frames must be in {allowed}"), "frames", frames, &allowed));
     }
     let fps = r.fps.unwrap_or(30);
     if !(1..=60).contains(&fps) {
-        return Err("fps must be in 1..=60".into());
+        return Err(ApiError::bad_field("fps must be in 1..=60", "fps", fps, "1..=60"));
     }
     let format = match r.format.as_deref() {
         None if cfg!(feature = "mp4") => VideoFormat::Mp4,
         None => VideoFormat::Gif,
-        Some(f) => f.parse::<VideoFormat>().map_err(|_| format!("unknown video format '{f}' (expected mp4 or gif)"))?,
+        Some(f) => f.parse::<VideoFormat>().map_err(|_| {
+            ApiError::bad_field(format!("unknown video format '{f}' (expected mp4 or gif)"), "format", f, "mp4, gif")
+        })?,
     };
     if !format.is_available() {
-        return Err(format!("{format} videos are not available in this build (cargo feature `mp4`); ask for gif"));
+        let message = format!("{format} videos are not available in this build (cargo feature `mp4`); ask for gif");
+        return Err(ApiError::bad_field(message, "format", format.to_string(), "gif"));
     }
     let (width, height) = frame_size(&r, view, format)?;
     let max_side = 4096;
@@ -66,23 +69,24 @@ pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> R
         || !(16..=max_side).contains(&height)
         || width as u64 * height as u64 > max_render_pixels
     {
-        return Err(format!(
-            "video frame size {width}x{height} is out of range (sides 16..={max_side}, at most {max_render_pixels} pixels)"
-        ));
+        let allowed = format!("sides 16..={max_side}, at most {max_render_pixels} pixels");
+        let message = format!("video frame size {width}x{height} is out of range ({allowed})");
+        return Err(ApiError::bad_field(message, "width,height", [width, height], &allowed));
     }
     let elevation = r.elevation.unwrap_or(30.0);
     if !(elevation.is_finite() && (-89.0..=89.0).contains(&elevation)) {
-        return Err("elevation must be in [-89, 89] degrees".into());
+        let message = "elevation must be in [-89, 89] degrees";
+        return Err(ApiError::bad_field(message, "elevation", elevation, "[-89, 89]"));
     }
     let radius = r.radius.unwrap_or(view.radius);
     if !(radius.is_finite() && radius > 0.0) {
-        return Err("radius must be a positive number".into());
+        return Err(ApiError::bad_field("radius must be a positive number", "radius", radius, "> 0"));
     }
     let fov = r.fov.unwrap_or(view.fov);
     if !(fov.is_finite() && fov > 1.0 && fov < 179.0) {
-        return Err("fov must be between 1 and 179 degrees".into());
+        return Err(ApiError::bad_field("fov must be between 1 and 179 degrees", "fov", fov, "(1, 179)"));
     }
-    crate::media::video::validate(format, width, height, fps).map_err(|e| e.to_string())?;
+    crate::media::video::validate(format, width, height, fps)?;
     Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format })
 }
 
@@ -91,7 +95,7 @@ pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> R
 /// odd one, making the video a pixel larger than its record says: so for MP4
 /// an odd side that was asked for is refused, naming the even sizes around
 /// it, and an odd side taken from the cameras is rounded down to even.
-fn frame_size(r: &CreateVideo, view: &ViewDefaults, format: VideoFormat) -> Result<(u32, u32), String> {
+fn frame_size(r: &CreateVideo, view: &ViewDefaults, format: VideoFormat) -> ApiResult<(u32, u32)> {
     let (width, height) = view.frame_size(r.width, r.height);
     if format != VideoFormat::Mp4 {
         return Ok((width, height));
@@ -101,11 +105,12 @@ fn frame_size(r: &CreateVideo, view: &ViewDefaults, format: VideoFormat) -> Resu
         let (w, h) = (r.width.unwrap_or(width), r.height.unwrap_or(height));
         let even = |v: u32, up: bool| if up { v.next_multiple_of(2) } else { v & !1 };
         let (below, above) = ((even(w, false), even(h, false)), (even(w, true), even(h, true)));
-        return Err(format!(
+        let message = format!(
             "MP4 frames need even sides (H.264 4:2:0) but {w}x{h} was asked for: ask for {}x{} or {}x{}, \
              or for format gif",
             below.0, below.1, above.0, above.1
-        ));
+        );
+        return Err(ApiError::bad_field(message, "width,height", [w, h], "even sides for mp4"));
     }
     Ok((width & !1, height & !1))
 }
@@ -116,15 +121,15 @@ pub async fn create(
     body: Result<Json<CreateVideo>, JsonRejection>,
 ) -> ApiResult<(StatusCode, Json<Job>)> {
     let Json(req) = body?;
-    let info = s.storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id))?;
-    let spec = to_spec(req, &info.view, s.config.max_render_pixels).map_err(ApiError::bad_request)?;
-    let config = ModelConfig::preset(&info.model)
-        .and_then(|preset| ModelConfig::from_kind_json(preset.kind(), info.config.clone()))
-        .ok_or_else(|| ApiError::internal(format!("model '{id}' has an unreadable configuration")))?;
-    let e = estimate::video(&config, spec.frames, spec.width, spec.height, rayon::current_num_threads());
     let job = tokio::task::spawn_blocking(move || -> ApiResult<Job> {
+        let info = s.storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id))?;
+        let spec = to_spec(req, &info.view, s.config.max_render_pixels)?;
+        let config = ModelConfig::preset(&info.model)
+            .and_then(|preset| ModelConfig::from_kind_json(preset.kind(), info.config.clone()))
+            .ok_or_else(|| ApiError::internal(format!("model '{id}' has an unreadable configuration")))?;
+        let e = estimate::video(&config, spec.frames, spec.width, spec.height, rayon::current_num_threads());
         limits::check(&e, &s.config)?;
-        s.scheduler.enqueue(JobSpec::Video(spec), Some(id), e.memory_bytes).map_err(sched_error)
+        Ok(s.scheduler.enqueue(JobSpec::Video(spec), Some(id), e.memory_bytes)?)
     })
     .await??;
     tracing::info!(job = %job.id, kind = "video", "job queued");
@@ -132,16 +137,20 @@ pub async fn create(
 }
 
 pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
-    let info = s.storage.load_video(&id)?.ok_or_else(|| ApiError::not_found("video", &id))?;
-    let bytes = tokio::fs::read(s.storage.video_file(&id)).await?;
-    Ok(([(CONTENT_TYPE, info.format.content_type())], bytes))
+    let storage = s.storage.clone();
+    let video = tokio::task::spawn_blocking(move || -> ApiResult<_> {
+        let info = storage.load_video(&id)?.ok_or_else(|| ApiError::not_found("video", &id))?;
+        Ok((info.format, std::fs::read(storage.video_file(&id))?))
+    })
+    .await??;
+    Ok(([(CONTENT_TYPE, video.0.content_type())], video.1))
 }
 
 /// Deletes a video (record, then file): 204, 404, or 409 while its job
 /// has not ended.
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let sched = s.scheduler.clone();
-    tokio::task::spawn_blocking(move || sched.delete_video(&id)).await?.map_err(sched_error)?;
+    tokio::task::spawn_blocking(move || sched.delete_video(&id)).await??;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -183,11 +192,19 @@ mod tests {
             (CreateVideo { format: Some("avi".into()), ..Default::default() }, "avi"),
         ];
         for (req, word) in cases {
-            let e = to_spec(req, &view(), 1 << 20).unwrap_err();
+            let e = to_spec(req, &view(), 1 << 20).unwrap_err().message;
             assert!(e.contains(word), "{e} should name {word}");
         }
         let e = to_spec(CreateVideo { width: Some(2000), height: Some(2000), ..Default::default() }, &view(), 1 << 20);
-        assert!(e.unwrap_err().contains("pixels"));
+        let e = e.unwrap_err();
+        assert!(e.message.contains("pixels"));
+        let allowed = "sides 16..=4096, at most 1048576 pixels";
+        assert_eq!(
+            e.details,
+            serde_json::json!({ "field": "width,height", "value": [2000, 2000], "allowed": allowed })
+        );
+        let e = to_spec(CreateVideo { fps: Some(1000), ..Default::default() }, &view(), 1 << 20).unwrap_err();
+        assert_eq!(e.details, serde_json::json!({ "field": "fps", "value": 1000, "allowed": "1..=60" }));
     }
 
     fn mp4(width: Option<u32>, height: Option<u32>) -> CreateVideo {
@@ -197,9 +214,9 @@ mod tests {
     #[test]
     #[cfg(feature = "mp4")]
     fn mp4_refuses_odd_sides_asked_for() {
-        let e = to_spec(mp4(Some(33), Some(17)), &view(), 1 << 20).unwrap_err();
+        let e = to_spec(mp4(Some(33), Some(17)), &view(), 1 << 20).unwrap_err().message;
         assert!(e.contains("33x17") && e.contains("32x16") && e.contains("34x18") && e.contains("gif"), "{e}");
-        let e = to_spec(mp4(Some(32), Some(17)), &view(), 1 << 20).unwrap_err();
+        let e = to_spec(mp4(Some(32), Some(17)), &view(), 1 << 20).unwrap_err().message;
         assert!(e.contains("32x17") && e.contains("32x16 or 32x18"), "{e}");
         // The same sizes are fine as GIF, and even ones as MP4.
         let gif = CreateVideo { format: Some("gif".into()), ..mp4(Some(33), Some(17)) };

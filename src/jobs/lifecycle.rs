@@ -2,23 +2,31 @@
 //! Each check ("is anything queued or running that needs it?") and its
 //! deletion happen under the scheduler's lock, so no job can be enqueued
 //! on a model between the check and the removal (enqueueing checks that
-//! the model exists under the same lock).
+//! the model exists under the same lock, and a job being enqueued counts
+//! as queued). These deletions are of files, not of job records: no job
+//! database write happens under the lock.
 
 use super::{Job, JobSpec, SchedError, Scheduler, State};
 
 impl Scheduler {
-    /// Removes a finished job's record, from memory and from the job
-    /// database in one step under the lock. What it made (a model, a
-    /// video) stays. A queued or running job must be canceled first.
+    /// Removes a finished job's record: from the job database (outside the
+    /// lock), then from memory, so that if the database fails the job is
+    /// still listed. What it made (a model, a video) stays. A queued or
+    /// running job must be canceled first.
     pub fn delete_job(&self, id: &str) -> Result<(), SchedError> {
-        let mut st = self.shared.lock();
-        let Some(job) = st.jobs.get(id) else { return Err(SchedError::JobNotFound(id.into())) };
-        if !job.status.is_final() {
-            return Err(SchedError::JobNotFinal { id: id.into(), status: job.status.name() });
-        }
-        // The database first: if it fails, the job is still listed.
-        self.shared.storage.remove_job(id)?;
-        st.jobs.remove(id);
+        let rev = {
+            let mut st = self.shared.lock();
+            let Some(job) = st.jobs.get(id) else { return Err(SchedError::JobNotFound(id.into())) };
+            if !job.status.is_final() {
+                return Err(SchedError::JobNotFinal { id: id.into(), status: job.status.name() });
+            }
+            // Numbered like a record, so a final record still on its way to
+            // the database cannot bring the job back.
+            let job = job.clone();
+            st.record(job).rev
+        };
+        self.shared.store.remove(id, rev)?;
+        self.shared.lock().jobs.remove(id);
         Ok(())
     }
 
@@ -64,7 +72,7 @@ pub(crate) fn writes_model(job: &Job, id: &str) -> bool {
     matches!(job.spec, JobSpec::Train(_)) && (job.reserved_model_id() == id || job.model_id.as_deref() == Some(id))
 }
 
-/// A queued or running job that writes or renders model `id`.
+/// A queued, running or enqueuing job that writes or renders model `id`.
 fn model_user<'a>(st: &'a State, id: &str) -> Option<&'a Job> {
-    st.jobs.values().find(|j| !j.status.is_final() && uses_model(j, id))
+    st.active().find(|j| uses_model(j, id))
 }

@@ -1,9 +1,10 @@
-//! Jobs: their records and states, the persisted store, and the scheduler
-//! that runs at most `max_concurrent` of them at once.
+//! Jobs: their records and states (`job`), the persisted store (`store`),
+//! and the scheduler that runs at most `max_concurrent` of them at once.
 //!
 //! Only the enqueued, started, interrupted (written back as queued by a
 //! clean shutdown) and final states are written to disk (the job database,
-//! one committed transaction each): progress lives in memory. On start-up a
+//! one committed transaction each, written outside the scheduler's lock:
+//! see `store`): progress lives in memory. On start-up a
 //! job found `queued` or `running` is queued again in its original order; a
 //! training job whose checkpoint exists resumes from it. One found `running`
 //! was cut short by the process dying: see [`MAX_CRASHES`].
@@ -15,204 +16,16 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use serde::{Deserialize, Serialize};
-
-use crate::engine::models::config::ModelConfig;
-use crate::engine::train::trainer::Budget;
-use crate::media::video::VideoFormat;
 use crate::storage::{Storage, new_id, now_ms};
+pub use job::{Job, JobBudget, JobProgress, JobSpec, Status, TrainSpec, VideoSpec};
+use store::{JobStore, Record};
 
+mod job;
 mod lifecycle;
 mod retention;
+mod store;
 pub mod train;
 pub mod video;
-
-/// A job's state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Status {
-    Queued,
-    Running,
-    Succeeded,
-    Failed,
-    Canceled,
-}
-
-impl Status {
-    pub const ALL: [Status; 5] = [Status::Queued, Status::Running, Status::Succeeded, Status::Failed, Status::Canceled];
-    pub fn name(self) -> &'static str {
-        match self {
-            Status::Queued => "queued",
-            Status::Running => "running",
-            Status::Succeeded => "succeeded",
-            Status::Failed => "failed",
-            Status::Canceled => "canceled",
-        }
-    }
-    pub fn is_final(self) -> bool {
-        matches!(self, Status::Succeeded | Status::Failed | Status::Canceled)
-    }
-}
-
-impl std::str::FromStr for Status {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        Status::ALL
-            .into_iter()
-            .find(|v| v.name() == s)
-            .ok_or_else(|| format!("unknown status '{s}' (expected queued, running, succeeded, failed or canceled)"))
-    }
-}
-
-/// What a training job trains.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct TrainSpec {
-    pub scene_id: String,
-    /// Preset name (`instant`, `instant-tiny`, `nerf`, `nerf-tiny`).
-    pub model: String,
-    /// The model configuration (the preset's, or the one given).
-    pub config: ModelConfig,
-    pub budget: JobBudget,
-    pub seed: u64,
-    pub batch_rays: usize,
-}
-
-/// When a training job stops: at the first limit reached.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct JobBudget {
-    pub seconds: Option<f64>,
-    pub steps: Option<u64>,
-    /// Held-out PSNR (dB) at which training stops early.
-    pub target_psnr: Option<f64>,
-}
-
-impl JobBudget {
-    /// Training time allowed when only a target PSNR is given.
-    pub const DEFAULT_CAP_SECONDS: f64 = 3600.0;
-
-    /// The engine's budget: steps and seconds (a target-only budget is
-    /// capped at [`Self::DEFAULT_CAP_SECONDS`]).
-    pub fn engine(&self) -> Budget {
-        let seconds = match (self.seconds, self.steps) {
-            (None, None) => Some(Self::DEFAULT_CAP_SECONDS),
-            (s, _) => s,
-        };
-        Budget { steps: self.steps, seconds }
-    }
-}
-
-/// What a video job renders: an orbit around the scene centre of the job's
-/// model (`Job::model_id`).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct VideoSpec {
-    pub frames: u32,
-    pub fps: u32,
-    pub width: u32,
-    pub height: u32,
-    /// Degrees above the horizon.
-    pub elevation: f32,
-    /// Distance from the scene centre, world units.
-    pub radius: f32,
-    /// Horizontal field of view, degrees.
-    pub fov: f32,
-    pub format: VideoFormat,
-}
-
-/// A job's kind and what it does.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "lowercase")]
-pub enum JobSpec {
-    Train(Box<TrainSpec>),
-    Video(VideoSpec),
-}
-
-impl JobSpec {
-    pub fn name(&self) -> &'static str {
-        match self {
-            JobSpec::Train(_) => "train",
-            JobSpec::Video(_) => "video",
-        }
-    }
-    /// The scene a training job reads.
-    pub fn scene_id(&self) -> Option<&str> {
-        match self {
-            JobSpec::Train(t) => Some(&t.scene_id),
-            JobSpec::Video(_) => None,
-        }
-    }
-}
-
-/// Where a job is, as clients see it.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct JobProgress {
-    /// Training steps done, or video frames rendered.
-    pub step: u64,
-    /// Steps (or frames) in all, when known in advance.
-    #[serde(default)]
-    pub total_steps: Option<u64>,
-    pub loss: f64,
-    pub train_psnr: f64,
-    /// Seconds of training (across restarts), or of rendering.
-    pub elapsed: f64,
-    pub eta: Option<f64>,
-    /// Mean PSNR on held-out views: estimated on a sample of held-out pixels
-    /// as training goes, then measured on whole views at the end.
-    pub test_psnr: Option<f64>,
-    /// Training step of the last `test_psnr`.
-    #[serde(default)]
-    pub test_psnr_step: Option<u64>,
-    pub rays_per_second: f64,
-    /// Steps skipped because the loss or a gradient was not finite.
-    #[serde(default)]
-    pub diverged_steps: u64,
-    /// Rollbacks to the last good parameters, each halving the learning rate.
-    #[serde(default)]
-    pub rollbacks: u32,
-}
-
-/// A job record.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct Job {
-    pub id: String,
-    /// Enqueue order.
-    pub seq: u64,
-    pub status: Status,
-    #[serde(flatten)]
-    pub spec: JobSpec,
-    pub created_at: u64,
-    pub started_at: Option<u64>,
-    pub finished_at: Option<u64>,
-    pub error: Option<String>,
-    /// Training: set once a checkpoint exists. Video: the model rendered.
-    pub model_id: Option<String>,
-    /// Video: set when the video is ready at `/v1/videos/{video_id}`.
-    #[serde(default)]
-    pub video_id: Option<String>,
-    pub progress: JobProgress,
-    /// Times the job was started (more than one after a restart).
-    #[serde(default)]
-    pub attempts: u32,
-    /// Estimated peak memory of the job (bytes), checked against the
-    /// server's limits before it was queued and before it starts.
-    #[serde(default)]
-    pub memory_estimate_bytes: u64,
-    /// Runs in a row that ended with the server process dying (killed, or
-    /// out of memory) without the job saving anything new; at two the job
-    /// is failed instead of being run again.
-    #[serde(default)]
-    pub crashes: u32,
-}
-
-impl Job {
-    /// The id its model gets: the job id with the `mdl` prefix.
-    pub fn reserved_model_id(&self) -> String {
-        format!("mdl{}", self.id.trim_start_matches("job"))
-    }
-    /// The id its video gets: the job id with the `vid` prefix.
-    pub fn reserved_video_id(&self) -> String {
-        format!("vid{}", self.id.trim_start_matches("job"))
-    }
-}
 
 /// Scheduler settings.
 #[derive(Clone, Debug)]
@@ -307,17 +120,37 @@ struct Running {
 #[derive(Default)]
 struct State {
     jobs: BTreeMap<String, Job>,
+    /// Jobs being enqueued whose record is not yet committed: not listed nor
+    /// run, but counted by the queue limit and by the checks of deletions.
+    enqueuing: BTreeMap<String, Job>,
     queue: VecDeque<String>,
     running: HashMap<String, Running>,
     threads: Vec<JoinHandle<()>>,
     next_seq: u64,
+    /// The revision of the last record handed out (see `store`).
+    rev: u64,
     shutting_down: bool,
+}
+
+impl State {
+    /// A record of `job` as it is now, to write once the lock is released.
+    fn record(&mut self, job: Job) -> Record {
+        self.rev += 1;
+        Record { rev: self.rev, job }
+    }
+
+    /// Queued, running and enqueuing jobs.
+    fn active(&self) -> impl Iterator<Item = &Job> {
+        self.jobs.values().filter(|j| !j.status.is_final()).chain(self.enqueuing.values())
+    }
 }
 
 pub(crate) struct Shared {
     state: Mutex<State>,
     wake: Condvar,
     storage: Storage,
+    /// The job database, written outside `state`'s lock.
+    store: JobStore,
     config: SchedulerConfig,
     pub counters: Counters,
     /// Held while a model's files change outside its training job (deleted,
@@ -330,6 +163,14 @@ pub(crate) struct Shared {
 impl Shared {
     fn lock(&self) -> MutexGuard<'_, State> {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Writes a record where a failure cannot be answered to a client:
+    /// logged, and the job goes on (as before a restart would show).
+    fn persist_logged(&self, record: &Record, what: &str) {
+        if let Err(e) = self.store.put(record) {
+            tracing::error!(job = %record.job.id, error = %e, "cannot persist the job's {what}");
+        }
     }
 }
 
@@ -346,12 +187,13 @@ impl Scheduler {
     /// scheduler thread.
     pub fn open(storage: Storage, config: SchedulerConfig) -> io::Result<Self> {
         let mut st = State::default();
-        let mut jobs: Vec<Job> = storage.list_jobs()?;
+        let (store, mut jobs) = JobStore::open(&storage)?;
         jobs.sort_by_key(|j| j.seq);
         for mut j in jobs {
             st.next_seq = st.next_seq.max(j.seq + 1);
             if j.status == Status::Running {
-                count_crash(&storage, &mut j)?;
+                count_crash(&storage, &mut j);
+                store.put(&st.record(j.clone()))?;
             }
             if !j.status.is_final() {
                 // It was waiting or interrupted: run it again, in order.
@@ -367,6 +209,7 @@ impl Scheduler {
             state: Mutex::new(st),
             wake: Condvar::new(),
             storage,
+            store,
             config,
             counters: Counters::default(),
             model_files: Mutex::new(()),
@@ -381,9 +224,30 @@ impl Scheduler {
         &self.shared.counters
     }
 
-    /// Registers a job and answers with its queued record. A training job
-    /// needs its scene; a video job needs a model (`model_id`).
+    /// Registers a job and answers with its queued record, once that is
+    /// committed. A training job needs its scene; a video job needs a model
+    /// (`model_id`).
     pub fn enqueue(&self, spec: JobSpec, model_id: Option<String>, memory_estimate: u64) -> Result<Job, SchedError> {
+        let record = self.reserve(spec, model_id, memory_estimate)?;
+        // Outside the lock; the job is `enqueuing` meanwhile, so deleting its
+        // scene or model is refused as when it is queued.
+        let written = self.shared.store.put(&record);
+        let mut st = self.shared.lock();
+        let job = st.enqueuing.remove(&record.job.id).unwrap_or(record.job);
+        written?;
+        // In enqueue order, should a later enqueue have committed first.
+        let at =
+            st.queue.iter().position(|q| st.jobs.get(q).is_some_and(|j| j.seq > job.seq)).unwrap_or(st.queue.len());
+        st.queue.insert(at, job.id.clone());
+        st.jobs.insert(job.id.clone(), job.clone());
+        drop(st);
+        self.shared.wake.notify_all();
+        Ok(job)
+    }
+
+    /// Checks an enqueue under the lock and holds the new job as
+    /// `enqueuing`; its record is to be written.
+    fn reserve(&self, spec: JobSpec, model_id: Option<String>, memory_estimate: u64) -> Result<Record, SchedError> {
         let mut st = self.shared.lock();
         let storage = &self.shared.storage;
         match &spec {
@@ -399,8 +263,9 @@ impl Scheduler {
                 }
             }
         }
-        if st.queue.len() >= self.shared.config.max_queued {
-            return Err(SchedError::QueueFull(st.queue.len()));
+        let waiting = st.queue.len() + st.enqueuing.len();
+        if waiting >= self.shared.config.max_queued {
+            return Err(SchedError::QueueFull(waiting));
         }
         let job = Job {
             id: new_id("job"),
@@ -418,13 +283,9 @@ impl Scheduler {
             memory_estimate_bytes: memory_estimate,
             crashes: 0,
         };
-        storage.put_job(&job.id, &job)?;
         st.next_seq += 1;
-        st.queue.push_back(job.id.clone());
-        st.jobs.insert(job.id.clone(), job.clone());
-        drop(st);
-        self.shared.wake.notify_all();
-        Ok(job)
+        st.enqueuing.insert(job.id.clone(), job.clone());
+        Ok(st.record(job))
     }
 
     pub fn get(&self, id: &str) -> Option<Job> {
@@ -452,27 +313,32 @@ impl Scheduler {
     /// Cancels a queued job at once, or asks a running one to stop (it
     /// checkpoints and becomes `canceled` within about a step).
     pub fn cancel(&self, id: &str) -> Result<Job, SchedError> {
-        let mut st = self.shared.lock();
-        let Some(job) = st.jobs.get(id) else { return Err(SchedError::JobNotFound(id.into())) };
-        match job.status {
-            s if s.is_final() => Err(SchedError::AlreadyFinal { id: id.into(), status: s.name() }),
-            Status::Running => {
-                if let Some(r) = st.running.get_mut(id) {
-                    r.user_cancel = true;
-                    r.cancel.store(true, Ordering::SeqCst);
+        let record = {
+            let mut st = self.shared.lock();
+            let Some(status) = st.jobs.get(id).map(|j| j.status) else {
+                return Err(SchedError::JobNotFound(id.into()));
+            };
+            match status {
+                s if s.is_final() => return Err(SchedError::AlreadyFinal { id: id.into(), status: s.name() }),
+                Status::Running => {
+                    if let Some(r) = st.running.get_mut(id) {
+                        r.user_cancel = true;
+                        r.cancel.store(true, Ordering::SeqCst);
+                    }
+                    return Ok(st.jobs[id].clone());
                 }
-                Ok(st.jobs[id].clone())
+                _ => {
+                    st.queue.retain(|q| q != id);
+                    let job = st.jobs.get_mut(id).expect("checked above");
+                    job.status = Status::Canceled;
+                    job.finished_at = Some(now_ms());
+                    let job = job.clone();
+                    st.record(job)
+                }
             }
-            _ => {
-                st.queue.retain(|q| q != id);
-                let job = st.jobs.get_mut(id).expect("checked above");
-                job.status = Status::Canceled;
-                job.finished_at = Some(now_ms());
-                let job = job.clone();
-                self.shared.storage.put_job(id, &job)?;
-                Ok(job)
-            }
-        }
+        };
+        self.shared.store.put(&record)?;
+        Ok(record.job)
     }
 
     /// Runs `delete` (which removes the scene) unless a queued or running
@@ -480,7 +346,7 @@ impl Scheduler {
     /// meanwhile.
     pub fn delete_scene(&self, scene_id: &str, delete: impl FnOnce() -> io::Result<()>) -> Result<(), SchedError> {
         let st = self.shared.lock();
-        if let Some(j) = st.jobs.values().find(|j| j.spec.scene_id() == Some(scene_id) && !j.status.is_final()) {
+        if let Some(j) = st.active().find(|j| j.spec.scene_id() == Some(scene_id)) {
             return Err(SchedError::SceneInUse { scene: scene_id.into(), job: j.id.clone(), status: j.status.name() });
         }
         delete()?;
@@ -505,6 +371,8 @@ impl Scheduler {
         for t in threads {
             let _ = t.join();
         }
+        // Every job thread has written its last record.
+        self.shared.store.close();
     }
 }
 
@@ -518,7 +386,7 @@ pub const MAX_CRASHES: u32 = 2;
 /// progress (a restart then resumes it); fails it at [`MAX_CRASHES`], so a
 /// job that takes the process down (out of memory) cannot do so at every
 /// start.
-fn count_crash(storage: &Storage, j: &mut Job) -> io::Result<()> {
+fn count_crash(storage: &Storage, j: &mut Job) {
     let saved_since_start = match &j.spec {
         JobSpec::Train(_) => storage
             .load_model(&j.reserved_model_id())
@@ -538,16 +406,23 @@ fn count_crash(storage: &Storage, j: &mut Job) -> io::Result<()> {
         ));
         tracing::error!(job = %j.id, crashes = j.crashes, "job failed: it crashed the server repeatedly");
     }
-    storage.put_job(&j.id, &*j)
 }
 
-/// The scheduler thread: `tick` until shutdown, and the retention sweep
-/// (without the lock) at start-up, when a job ends and once a minute.
+/// The scheduler thread: `tick` until shutdown, writing the records it
+/// hands out after releasing the lock, and the retention sweep (without the
+/// lock) at start-up, when a job ends and once a minute.
 fn scheduler_loop(shared: &Arc<Shared>) {
     let mut last_sweep: Option<Instant> = None;
     let mut st = shared.lock();
     while !st.shutting_down {
-        tick(shared, &mut st);
+        let records = tick(shared, &mut st);
+        if !records.is_empty() {
+            drop(st);
+            for r in &records {
+                shared.persist_logged(r, "end");
+            }
+            st = shared.lock();
+        }
         if retention::sweep_due(shared, last_sweep) {
             drop(st);
             retention::sweep(shared);
@@ -561,12 +436,17 @@ fn scheduler_loop(shared: &Arc<Shared>) {
 /// One round of scheduling, in order:
 /// 1. forget the threads of jobs that have finished;
 /// 2. while fewer than `max_concurrent` jobs run, take the oldest queued job,
-///    mark it running (and persist that), and start it on its own thread,
-///    whose heavy work runs on the global rayon pool.
-fn tick(shared: &Arc<Shared>, st: &mut State) {
+///    mark it running, and start it on its own thread (which first persists
+///    that), whose heavy work runs on the global rayon pool; a job that
+///    cannot start is failed.
+///
+/// Returns the records of the jobs it failed, for the caller to write
+/// once the lock is released.
+fn tick(shared: &Arc<Shared>, st: &mut State) -> Vec<Record> {
+    let mut failed = Vec::new();
     st.threads.retain(|t| !t.is_finished());
     if !shared.config.run_jobs {
-        return;
+        return failed;
     }
     while st.running.len() < shared.config.max_concurrent.max(1) {
         let Some(id) = st.queue.front().cloned() else { break };
@@ -580,7 +460,7 @@ fn tick(shared: &Arc<Shared>, st: &mut State) {
             let limit = shared.config.max_job_memory_bytes >> 20;
             let msg =
                 format!("the job needs about {} MiB, more than the server now allows a job ({limit} MiB)", need >> 20);
-            finish(shared, st, &id, Outcome::Failed(msg));
+            failed.extend(finish(shared, st, &id, Outcome::Failed(msg)));
             continue;
         }
         let used: u64 = st.running.keys().filter_map(|r| st.jobs.get(r)).map(|j| j.memory_estimate_bytes).sum();
@@ -593,22 +473,22 @@ fn tick(shared: &Arc<Shared>, st: &mut State) {
         job.started_at = Some(now_ms());
         job.attempts += 1;
         job.error = None;
-        if let Err(e) = shared.storage.put_job(&id, &*job) {
-            tracing::error!(job = %id, error = %e, "cannot persist job start");
-        }
+        let job = job.clone();
+        let started = st.record(job);
         let cancel = Arc::new(AtomicBool::new(false));
         st.running.insert(id.clone(), Running { cancel: cancel.clone(), user_cancel: false });
-        let job = job.clone();
         let s2 = shared.clone();
-        let spawned = std::thread::Builder::new().name(format!("job-{id}")).spawn(move || run_job(&s2, job, cancel));
+        let spawned =
+            std::thread::Builder::new().name(format!("job-{id}")).spawn(move || run_job(&s2, started, cancel));
         match spawned {
             Ok(h) => st.threads.push(h),
             Err(e) => {
                 st.running.remove(&id);
-                finish(shared, st, &id, Outcome::Failed(format!("cannot start a thread: {e}")));
+                failed.extend(finish(shared, st, &id, Outcome::Failed(format!("cannot start a thread: {e}"))));
             }
         }
     }
+    failed
 }
 
 /// How a job run ended.
@@ -620,7 +500,11 @@ pub(crate) enum Outcome {
     Stopped,
 }
 
-fn run_job(shared: &Arc<Shared>, job: Job, cancel: Arc<AtomicBool>) {
+/// A job's thread: persists its start (`started`, handed out by `tick`),
+/// runs it, records its end.
+fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
+    shared.persist_logged(&started, "start");
+    let job = started.job;
     let id = job.id.clone();
     tracing::info!(job = %id, kind = job.spec.name(), "job started");
     let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &job.spec {
@@ -628,17 +512,19 @@ fn run_job(shared: &Arc<Shared>, job: Job, cancel: Arc<AtomicBool>) {
         JobSpec::Video(spec) => video::run(shared, &job, spec, &cancel),
     }))
     .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
-    let mut st = shared.lock();
-    finish(shared, &mut st, &id, outcome);
-    drop(st);
+    let record = finish(shared, &mut shared.lock(), &id, outcome);
     shared.wake.notify_all();
+    // Before the thread ends: shutdown joins it, then closes the database.
+    if let Some(r) = record {
+        shared.persist_logged(&r, "end");
+    }
 }
 
-/// Records the end of a run (in memory and, unless interrupted by a
-/// shutdown, on disk).
-fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) {
+/// Records the end of a run in memory, and returns the record to write:
+/// the final state, or, when interrupted by a shutdown, the job queued again.
+fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) -> Option<Record> {
     let user_cancel = st.running.remove(id).is_some_and(|r| r.user_cancel);
-    let Some(job) = st.jobs.get_mut(id) else { return };
+    let job = st.jobs.get_mut(id)?;
     let status = match outcome {
         Outcome::Succeeded => Status::Succeeded,
         Outcome::Failed(e) => {
@@ -650,21 +536,17 @@ fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) {
             tracing::info!(job = %id, step = job.progress.step, "job interrupted by shutdown; it resumes at the next start");
             // Queued again on disk: a job found `running` at start-up was
             // cut short by the process dying, which counts as a crash.
-            let mut record = job.clone();
-            record.status = Status::Queued;
-            if let Err(e) = shared.storage.put_job(id, &record) {
-                tracing::error!(job = %id, error = %e, "cannot persist the interrupted job");
-            }
-            return;
+            let mut interrupted = job.clone();
+            interrupted.status = Status::Queued;
+            return Some(st.record(interrupted));
         }
     };
     job.status = status;
     job.finished_at = Some(now_ms());
     shared.sweep_requested.store(true, Ordering::SeqCst);
     tracing::info!(job = %id, status = status.name(), error = job.error.as_deref().unwrap_or(""), "job finished");
-    if let Err(e) = shared.storage.put_job(id, &*job) {
-        tracing::error!(job = %id, error = %e, "cannot persist job end");
-    }
+    let job = job.clone();
+    Some(st.record(job))
 }
 
 /// Updates a job's in-memory progress.

@@ -6,11 +6,7 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use image::RgbImage;
-
 use super::{Job, Outcome, Shared, VideoSpec, set_progress};
-use crate::engine::geometry::camera::{Camera, orbit};
-use crate::engine::geometry::math::Vec3;
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::io::persist;
 use crate::engine::render::render_view;
@@ -32,7 +28,7 @@ fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> 
         .map_err(|e| e.to_string())?
         .ok_or_else(|| format!("model '{model_id}' no longer exists"))?;
     let model = persist::load(&storage.checkpoint(&model_id)).map_err(|e| format!("loading the model: {e}"))?.model;
-    let (centre, up) = (Vec3::from_array(info.view.centre), Vec3::from_array(info.view.up));
+    let orbit = info.view.orbit(spec.elevation, spec.radius);
     let started = Instant::now();
     let mut frames = Vec::with_capacity(spec.frames as usize);
     for k in 0..spec.frames {
@@ -40,12 +36,11 @@ fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> 
             return Ok(Outcome::Stopped);
         }
         let azimuth = 360.0 * k as f32 / spec.frames as f32;
-        let pose = orbit(centre, up, azimuth, spec.elevation, spec.radius)
+        let camera = orbit
+            .camera(azimuth, spec.width, spec.height, spec.fov)
             .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?;
-        let camera = Camera::from_fov(spec.width, spec.height, spec.fov.to_radians(), pose);
         let view = render_view(&*model, &camera, [1.0; 3]);
-        let rgb = png::quantise_rgb(&view.rgb);
-        frames.push(RgbImage::from_raw(spec.width, spec.height, rgb).ok_or("a rendered frame has the wrong size")?);
+        frames.push(png::rgb_image(&view).map_err(|e| e.to_string())?);
         let done = k as u64 + 1;
         let elapsed = started.elapsed().as_secs_f64();
         set_progress(shared, &job.id, |j| {

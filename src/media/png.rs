@@ -3,7 +3,7 @@
 use std::io;
 use std::path::Path;
 
-use image::{ImageBuffer, ImageEncoder, Luma, Rgb, codecs::png::PngEncoder};
+use image::{ImageBuffer, ImageEncoder, Luma, Rgb, RgbImage, codecs::png::PngEncoder};
 
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::render::View;
@@ -16,6 +16,37 @@ pub fn to_u8(v: f32) -> u8 {
 /// 8-bit RGB of an `[h x w x 3]` float image.
 pub fn quantise_rgb(rgb: &[f32]) -> Vec<u8> {
     rgb.iter().map(|&v| to_u8(v)).collect()
+}
+
+/// The colour of a view as an 8-bit RGB image (a PNG's pixels, a video's
+/// frame).
+pub fn rgb_image(view: &View) -> io::Result<RgbImage> {
+    RgbImage::from_raw(view.width, view.height, quantise_rgb(&view.rgb))
+        .ok_or_else(|| io::Error::other("a rendered view's colour buffer does not match its size"))
+}
+
+/// Which image of a rendered view a PNG holds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ViewImage {
+    /// 8-bit colour, as composited on the view's background.
+    Rgb,
+    /// 8-bit colour and opacity, of a view rendered on black ([`encode_rgba`]).
+    Rgba,
+    /// 8-bit opacity ([`encode_alpha`]).
+    Alpha,
+    /// 16-bit depth, the far plane white ([`depth_u16`]).
+    Depth { far: f32 },
+}
+
+/// Encodes one image of a rendered view as PNG bytes: the one place the
+/// service's renders become files.
+pub fn encode_view(view: &View, image: ViewImage) -> io::Result<Vec<u8>> {
+    match image {
+        ViewImage::Rgb => encode_rgb(view.width, view.height, rgb_image(view)?.as_raw()),
+        ViewImage::Rgba => encode_rgba(view),
+        ViewImage::Alpha => encode_alpha(view),
+        ViewImage::Depth { far } => encode_depth(view, far),
+    }
 }
 
 /// Encodes an 8-bit RGB image as PNG bytes.
@@ -136,5 +167,24 @@ mod tests {
         assert_eq!(a.as_raw(), &[0, 255, 128]);
         let rgba = image::load_from_memory(&encode_rgba(&v).unwrap()).unwrap().into_rgba8();
         assert_eq!(rgba.as_raw(), &[0, 0, 0, 0, 255, 0, 0, 255, 128, 0, 0, 128]);
+    }
+
+    #[test]
+    fn encode_view_picks_each_image() {
+        let mut v = view();
+        v.rgb = vec![0.0, 0.0, 0.0, 1.0, 0.5, 0.0, 0.25, 0.0, 0.0];
+        let rgb = image::load_from_memory(&encode_view(&v, ViewImage::Rgb).unwrap()).unwrap();
+        assert_eq!(rgb.as_rgb8().unwrap().as_raw(), &[0, 0, 0, 255, 128, 0, 64, 0, 0]);
+        let pairs = [
+            (ViewImage::Rgba, encode_rgba(&v)),
+            (ViewImage::Alpha, encode_alpha(&v)),
+            (ViewImage::Depth { far: 8.0 }, encode_depth(&v, 8.0)),
+        ];
+        for (image, direct) in pairs {
+            assert_eq!(encode_view(&v, image).unwrap(), direct.unwrap(), "{image:?}");
+        }
+        assert!(encode_view(&v, ViewImage::Depth { far: 0.0 }).is_err());
+        v.rgb.pop();
+        assert!(encode_view(&v, ViewImage::Rgb).is_err(), "a colour buffer of the wrong size");
     }
 }

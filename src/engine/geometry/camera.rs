@@ -143,19 +143,40 @@ pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Option<[[f32; 4]; 3]> {
     Some([[right.x, up.x, back.x, eye.x], [right.y, up.y, back.y, eye.y], [right.z, up.z, back.z, eye.z]])
 }
 
-/// The pose of a camera on an orbit around `centre`, looking at it:
-/// `azimuth_deg` around `up` (0 is world +x projected on the horizon, or +y
-/// when `up` is close to x), `elevation_deg` above the horizon, at distance
-/// `radius`. `None` when degenerate (zero `up`, looking straight along it).
-pub fn orbit(centre: Vec3, up: Vec3, azimuth_deg: f32, elevation_deg: f32, radius: f32) -> Option<[[f32; 4]; 3]> {
-    let up = up.normalized()?;
-    let x = Vec3::new(1.0, 0.0, 0.0);
-    let reference = if up.dot(x).abs() > 0.9 { Vec3::new(0.0, 1.0, 0.0) } else { x };
-    let a = (reference - up * up.dot(reference)).normalized()?;
-    let b = up.cross(a);
-    let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
-    let dir = (a * az.cos() + b * az.sin()) * el.cos() + up * el.sin();
-    look_at(centre + dir * radius, centre, up)
+/// An orbit around `centre`, looking at it: the one place where orbit
+/// renders and orbit videos get their cameras. Azimuth 0 is world +x
+/// projected on the horizon (or +y when `up` is close to x).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Orbit {
+    pub centre: Vec3,
+    /// The scene's up axis (need not be unit length).
+    pub up: Vec3,
+    /// Degrees above the horizon.
+    pub elevation_deg: f32,
+    /// Distance from the centre, world units.
+    pub radius: f32,
+}
+
+impl Orbit {
+    /// The pose at `azimuth_deg` around `up`. `None` when degenerate (zero
+    /// `up`, or looking straight along it).
+    pub fn pose(&self, azimuth_deg: f32) -> Option<[[f32; 4]; 3]> {
+        let up = self.up.normalized()?;
+        let x = Vec3::new(1.0, 0.0, 0.0);
+        let reference = if up.dot(x).abs() > 0.9 { Vec3::new(0.0, 1.0, 0.0) } else { x };
+        let a = (reference - up * up.dot(reference)).normalized()?;
+        let b = up.cross(a);
+        let (az, el) = (azimuth_deg.to_radians(), self.elevation_deg.to_radians());
+        let dir = (a * az.cos() + b * az.sin()) * el.cos() + up * el.sin();
+        look_at(self.centre + dir * self.radius, self.centre, up)
+    }
+
+    /// The camera at `azimuth_deg` with a `width x height` image and a
+    /// horizontal field of view of `fov_deg` degrees (`None` as for
+    /// [`Orbit::pose`]).
+    pub fn camera(&self, azimuth_deg: f32, width: u32, height: u32, fov_deg: f32) -> Option<Camera> {
+        Some(Camera::from_fov(width, height, fov_deg.to_radians(), self.pose(azimuth_deg)?))
+    }
 }
 
 #[cfg(test)]
@@ -196,5 +217,23 @@ mod tests {
         let to_target = (Vec3::splat(0.0) - eye).normalized().unwrap();
         assert!((r.dir.dot(to_target) - 1.0).abs() < 1e-6);
         assert!(look_at(eye, eye, Vec3::new(0.0, 0.0, 1.0)).is_none());
+    }
+
+    #[test]
+    fn orbit_looks_at_its_centre_from_its_radius() {
+        let centre = Vec3::new(1.0, 2.0, 3.0);
+        let orbit = Orbit { centre, up: Vec3::new(0.0, 0.0, 2.0), elevation_deg: 30.0, radius: 4.0 };
+        let cam = orbit.camera(90.0, 8, 8, 50.0).unwrap();
+        assert_eq!((cam.width, cam.height), (8, 8));
+        // 50 degrees across 8 pixels: fx = 4 / tan(25 degrees).
+        assert!((cam.fx - 4.0 / 25f32.to_radians().tan()).abs() < 1e-4);
+        let to_centre = (centre - cam.origin()).normalized().unwrap();
+        assert!((cam.ray(4.0, 4.0).dir.dot(to_centre) - 1.0).abs() < 1e-5);
+        assert!(((cam.origin() - centre).norm() - 4.0).abs() < 1e-4);
+        // Azimuth 90 turns from +x towards +y; 30 degrees up: z = 3 + 4 sin 30.
+        assert!(cam.origin().y > 2.0 && (cam.origin().z - 5.0).abs() < 1e-4);
+        assert_eq!(orbit.pose(90.0), Some(cam.c2w));
+        // A zero up axis has no camera.
+        assert!(Orbit { up: Vec3::splat(0.0), ..orbit }.camera(0.0, 8, 8, 50.0).is_none());
     }
 }
