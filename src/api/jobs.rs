@@ -43,42 +43,43 @@ const MAX_SECONDS: f64 = 7.0 * 86400.0;
 
 fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
     let mut config = ModelConfig::preset(&r.model).ok_or_else(|| {
-        ApiError::bad_request(format!("unknown model '{}' (available: {})", r.model, PRESETS.join(", ")))
+        let message = format!("unknown model '{}' (available: {})", r.model, PRESETS.join(", "));
+        ApiError::bad_field(message, "model", &r.model, &PRESETS.join(", "))
     })?;
     if let Some(c) = r.config {
         if c.kind() != config.kind() {
-            return Err(ApiError::bad_request(format!(
-                "config.kind is '{}' but model '{}' is a '{}' model",
-                c.kind(),
-                r.model,
-                config.kind()
-            )));
+            let message =
+                format!("config.kind is '{}' but model '{}' is a '{}' model", c.kind(), r.model, config.kind());
+            return Err(ApiError::bad_field(message, "config.kind", c.kind(), config.kind()));
         }
         config = c;
     }
     config.check().map_err(config_error)?;
     let b = r.budget;
     if b.seconds.is_none() && b.steps.is_none() && b.target_psnr.is_none() {
-        return Err(ApiError::bad_request("budget needs seconds, steps or target_psnr"));
+        let allowed = "at least one of seconds, steps, target_psnr";
+        return Err(ApiError::bad_field("budget needs seconds, steps or target_psnr", "budget", b, allowed));
     }
     if let Some(s) = b.seconds
         && !(s.is_finite() && s > 0.0 && s <= MAX_SECONDS)
     {
-        return Err(ApiError::bad_request(format!("budget.seconds must be in (0, {MAX_SECONDS}]")));
+        let allowed = format!("(0, {MAX_SECONDS}]");
+        return Err(ApiError::bad_field(format!("budget.seconds must be in {allowed}"), "budget.seconds", s, &allowed));
     }
     if let Some(n) = b.steps
         && !(1..=1_000_000_000).contains(&n)
     {
-        return Err(ApiError::bad_request("budget.steps must be in 1..=1000000000"));
+        return Err(ApiError::bad_field("budget.steps must be in 1..=1000000000", "budget.steps", n, "1..=1000000000"));
     }
     if let Some(p) = b.target_psnr
         && !(p.is_finite() && p > 0.0 && p <= 100.0)
     {
-        return Err(ApiError::bad_request("budget.target_psnr must be in (0, 100] dB"));
+        let message = "budget.target_psnr must be in (0, 100] dB";
+        return Err(ApiError::bad_field(message, "budget.target_psnr", p, "(0, 100]"));
     }
     let batch_rays = r.batch_rays.unwrap_or(DEFAULT_BATCH_RAYS);
     if !(1..=65536).contains(&batch_rays) {
-        return Err(ApiError::bad_request("batch_rays must be in 1..=65536"));
+        return Err(ApiError::bad_field("batch_rays must be in 1..=65536", "batch_rays", batch_rays, "1..=65536"));
     }
     Ok(TrainSpec { scene_id: r.scene_id, model: r.model, config, budget: b, seed: r.seed, batch_rays })
 }
@@ -186,3 +187,47 @@ pub async fn events(
 }
 
 const EVENT_POLL: std::time::Duration = std::time::Duration::from_millis(50);
+
+#[cfg(test)]
+mod tests {
+    use serde_json::{Value, json};
+
+    use super::*;
+
+    /// The details of the error `to_spec` gives for a job body.
+    fn details(body: Value) -> Value {
+        let mut b = json!({ "scene_id": "scn_x", "budget": { "steps": 10 } });
+        for (k, v) in body.as_object().unwrap() {
+            b[k] = v.clone();
+        }
+        let r: CreateJob = serde_json::from_value(b).unwrap();
+        let e = to_spec(r).expect_err("a bad body");
+        assert_eq!(e.code.info().0, "bad_request");
+        e.details
+    }
+
+    #[test]
+    fn bad_job_fields_are_named_with_their_value_and_range() {
+        let d = details(json!({ "model": "fast" }));
+        assert_eq!((&d["field"], &d["value"]), (&json!("model"), &json!("fast")));
+        assert!(d["allowed"].as_str().unwrap().contains("instant-tiny"), "{d}");
+        let d = details(json!({ "budget": { "seconds": -1.0 } }));
+        assert_eq!(d, json!({ "field": "budget.seconds", "value": -1.0, "allowed": "(0, 604800]" }));
+        let d = details(json!({ "budget": { "steps": 0 } }));
+        assert_eq!(d, json!({ "field": "budget.steps", "value": 0, "allowed": "1..=1000000000" }));
+        let d = details(json!({ "budget": { "target_psnr": 150.0 } }));
+        assert_eq!(d, json!({ "field": "budget.target_psnr", "value": 150.0, "allowed": "(0, 100]" }));
+        let d = details(json!({ "budget": {} }));
+        assert_eq!(d["field"], "budget");
+        let d = details(json!({ "batch_rays": 0 }));
+        assert_eq!(d, json!({ "field": "batch_rays", "value": 0, "allowed": "1..=65536" }));
+        let d = details(json!({ "model": "nerf", "config": ModelConfig::preset("instant").unwrap() }));
+        assert_eq!(d, json!({ "field": "config.kind", "value": "instant", "allowed": "nerf" }));
+        // Out-of-range model settings list every field.
+        let mut c = serde_json::to_value(ModelConfig::preset("instant").unwrap()).unwrap();
+        c["hidden"] = json!(0);
+        c["grid"]["log2_table"] = json!(40);
+        let d = details(json!({ "config": c }));
+        assert_eq!(d["fields"].as_array().map(Vec::len), Some(2), "{d}");
+    }
+}
