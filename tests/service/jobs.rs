@@ -1,0 +1,279 @@
+//! Training jobs: a short job and its renders, request checks, cancel, events, videos.
+
+use std::time::{Duration, Instant};
+
+use radiance::engine::dataset::synthetic::BallScene;
+use radiance::engine::models::config::ModelConfig;
+use reqwest::StatusCode;
+use serde_json::{Value, json};
+
+use crate::common::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn short_job_succeeds_and_renders_by_matrix_and_orbit() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let scene = svc.upload_ball().await;
+    let id = svc.job(&scene, json!({ "steps": 40 })).await;
+    let job = svc.wait_job(&id, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    assert_eq!(job["status"], "succeeded", "{job}");
+    assert_eq!(job["progress"]["step"], 40);
+    assert!(job["finished_at"].as_u64().is_some());
+    let model = job["model_id"].as_str().unwrap().to_string();
+
+    let (s, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert_eq!(s, StatusCode::OK, "{m}");
+    assert_eq!(
+        (m["steps"].as_u64(), m["scene_id"].as_str(), m["complete"].as_bool()),
+        (Some(40), Some(&*scene), Some(true))
+    );
+    assert!(m["test_psnr"].as_f64().is_some_and(|p| p.is_finite()), "{m}");
+    assert!(m["size_bytes"].as_u64().unwrap() > 0);
+    let (_, list) = svc.get("/v1/models").await;
+    assert_eq!(list.as_array().unwrap().len(), 1);
+    let (_, done) = svc.get("/v1/jobs?status=succeeded").await;
+    assert_eq!(done.as_array().unwrap().len(), 1);
+    assert_eq!(job["kind"], "train");
+    assert!(job["progress"]["test_psnr"].as_f64().is_some(), "{job}");
+    let (_, none) = svc.get("/v1/jobs?status=running").await;
+    assert_eq!(none, json!([]));
+
+    // By matrix: a camera at z = 3 looking down -z at the ball; default size.
+    let img = svc.png(&format!("/v1/models/{model}/render?c2w=1,0,0,0,0,1,0,0,0,0,1,3")).await;
+    assert_eq!((img.width(), img.height()), (16, 16));
+    // By orbit, with a size and the other outputs.
+    let img = svc.png(&format!("/v1/models/{model}/render?azimuth=45&elevation=20&width=24&height=20")).await;
+    assert_eq!((img.width(), img.height()), (24, 20));
+    let img = svc.png(&format!("/v1/models/{model}/render?azimuth=0&output=depth&background=black")).await;
+    assert_eq!(img.width(), 16);
+    let img = svc.png(&format!("/v1/models/{model}/render?background=transparent")).await;
+    assert!(img.color().has_alpha());
+
+    for bad in ["width=100000&height=100000", "c2w=1,2,3", "c2w=2,0,0,0,0,1,0,0,0,0,1,3", "output=nope", "fov=0"] {
+        let (s, v) = svc.get(&format!("/v1/models/{model}/render?{bad}")).await;
+        assert_eq!(s, StatusCode::BAD_REQUEST, "{bad}: {v}");
+        assert_error(&v, "bad_request");
+    }
+    let (s, _) = svc.get("/v1/models/mdl_missing/render").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+
+    // Orbit videos, as jobs: a GIF that decodes to its frames, an MP4 whose
+    // boxes hold one H.264 sample per frame.
+    let (job, gif, ct) =
+        svc.video(&model, json!({ "frames": 6, "fps": 12, "width": 24, "height": 16, "format": "gif" })).await;
+    assert_eq!(ct, "image/gif");
+    assert_eq!(job["format"], "gif");
+    use image::AnimationDecoder;
+    let frames = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(&gif)).unwrap().into_frames();
+    let frames = frames.collect_frames().unwrap();
+    assert_eq!(frames.len(), 6);
+    assert_eq!(frames[0].buffer().dimensions(), (24, 16));
+    let (_, mp4, ct) = svc.video(&model, json!({ "frames": 5, "fps": 10, "width": 32, "height": 16 })).await;
+    assert_eq!(ct, "video/mp4");
+    let top: Vec<String> = mp4::boxes(&mp4).into_iter().map(|(k, _)| k).collect();
+    assert!(top.starts_with(&["ftyp".to_string()]) && top.contains(&"moov".into()) && top.contains(&"mdat".into()));
+    let stsz = mp4::child(&mp4, &["moov", "trak", "mdia", "minf", "stbl", "stsz"]);
+    assert_eq!(u32::from_be_bytes(stsz[8..12].try_into().unwrap()), 5, "samples in stsz");
+    let bad_videos = [
+        (json!({ "frames": 0 }), StatusCode::BAD_REQUEST),
+        (json!({ "format": "avi" }), StatusCode::BAD_REQUEST),
+        (json!({ "width": 100000 }), StatusCode::BAD_REQUEST),
+        (json!({ "surprise": 1 }), StatusCode::BAD_REQUEST),
+        (json!({ "width": 33, "height": 17, "format": "mp4" }), StatusCode::BAD_REQUEST),
+    ];
+    for (body, want) in bad_videos {
+        let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), body.clone()).await;
+        assert_eq!(s, want, "{body}: {v}");
+    }
+    let (s, _) = svc.post_json("/v1/models/mdl_missing/videos", json!({})).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    let (s, _) = svc.get("/v1/videos/vid_missing").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+
+    let metrics = svc.client.get(svc.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(metrics.contains("radiance_jobs{status=\"succeeded\"} 3"), "{metrics}");
+    assert!(metrics.contains("radiance_render_seconds_count 4"), "{metrics}");
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn job_requests_are_checked() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let scene = svc.upload_ball().await;
+    let cases = [
+        (json!({ "scene_id": "scn_nope", "budget": { "steps": 1 } }), StatusCode::NOT_FOUND),
+        (json!({ "scene_id": scene, "budget": {} }), StatusCode::BAD_REQUEST),
+        (json!({ "scene_id": scene, "budget": { "seconds": -1 } }), StatusCode::BAD_REQUEST),
+        (json!({ "scene_id": scene, "model": "gpt", "budget": { "steps": 1 } }), StatusCode::BAD_REQUEST),
+        (json!({ "scene_id": scene, "budget": { "steps": 1 }, "surprise": 1 }), StatusCode::BAD_REQUEST),
+    ];
+    for (body, want) in cases {
+        let (s, v) = svc.post_json("/v1/jobs", body.clone()).await;
+        assert_eq!(s, want, "{body}: {v}");
+        assert!(v["error"]["code"].is_string(), "{v}");
+    }
+    // A configuration out of range: each failing field is named, in the
+    // message and in the details.
+    let mut config = serde_json::to_value(ModelConfig::preset("instant-tiny").unwrap()).unwrap();
+    config["grid"]["log2_table"] = json!(40);
+    config["hidden"] = json!(0);
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "steps": 1 }, "config": config });
+    let (s, v) = svc.post_json("/v1/jobs", body).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert_error(&v, "bad_request");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("grid.log2_table is 40, allowed 8..=24") && msg.contains("hidden is 0"), "{msg}");
+    assert!(!msg.contains("geo_features"), "only the failing fields are named: {msg}");
+    assert_eq!(
+        v["error"]["details"],
+        json!({ "fields": [
+            { "field": "grid.log2_table", "value": 40, "allowed": "8..=24" },
+            { "field": "hidden", "value": 0, "allowed": "1..=256" },
+        ] })
+    );
+    let (s, v) = svc.get("/v1/jobs?status=sleeping").await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    let (s, _) = svc.post_json("/v1/jobs/job_nope/cancel", json!({})).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_stops_a_running_job_and_keeps_its_model() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let scene = svc.upload_ball().await;
+    let id = svc.job(&scene, json!({ "seconds": 600 })).await;
+    let queued = svc.job(&scene, json!({ "steps": 5 })).await;
+    svc.wait_job(&id, 60.0, |v| v["status"] == "running" && v["progress"]["step"].as_u64() > Some(5)).await;
+
+    // The scene is in use.
+    let r = svc.client.delete(svc.url(&format!("/v1/scenes/{scene}"))).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::CONFLICT);
+    assert_error(&r.json().await.unwrap(), "conflict");
+
+    // A queued job is canceled at once.
+    let (s, v) = svc.post_json(&format!("/v1/jobs/{queued}/cancel"), json!({})).await;
+    assert_eq!((s, v["status"].as_str()), (StatusCode::ACCEPTED, Some("canceled")), "{v}");
+
+    let t0 = Instant::now();
+    let (s, _) = svc.post_json(&format!("/v1/jobs/{id}/cancel"), json!({})).await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    let job = svc.wait_job(&id, 5.0, |v| v["status"] == "canceled").await;
+    assert!(t0.elapsed() < Duration::from_secs(2), "cancel took {:?}", t0.elapsed());
+    let (s, v) = svc.post_json(&format!("/v1/jobs/{id}/cancel"), json!({})).await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+
+    let model = job["model_id"].as_str().expect("a canceled job keeps its model");
+    let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert!(m["steps"].as_u64().unwrap() > 5, "{m}");
+    let img = svc.png(&format!("/v1/models/{model}/render?azimuth=90")).await;
+    assert_eq!(img.width(), 16);
+
+    let r = svc.client.delete(svc.url(&format!("/v1/scenes/{scene}"))).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    // Models outlive their scene.
+    svc.png(&format!("/v1/models/{model}/render?azimuth=10")).await;
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn instant_job_streams_events_and_stops_at_its_target_psnr() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    // The ball scene passes 26 dB within 0.15 s on a fast machine and levels
+    // off near 30 dB: with a 28 dB target and an estimate every 0.02 s,
+    // several estimates (and stream polls) fall below the target on any
+    // machine (with 16 dB and 0.2 s, the first estimate reached it and the
+    // stream went straight to the end).
+    cfg.scheduler.heldout_every = 0.02;
+    let svc = Svc::start(cfg).await;
+    let scene = svc.upload_ball().await;
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "target_psnr": 28.0, "seconds": 60 } });
+    let (s, job) = svc.post_json("/v1/jobs", body).await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{job}");
+    assert_eq!((job["kind"].as_str(), job["config"]["kind"].as_str()), (Some("train"), Some("instant")), "{job}");
+    let id = job["id"].as_str().unwrap();
+
+    // The event stream: progress events, then one `end` event, then it closes.
+    let r = svc.client.get(svc.url(&format!("/v1/jobs/{id}/events"))).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()["content-type"], "text/event-stream");
+    let text = tokio::time::timeout(Duration::from_secs(120), r.text()).await.expect("the stream ends").unwrap();
+    let mut events: Vec<(String, Value)> = Vec::new();
+    for block in text.split("\n\n").filter(|b| b.contains("data:")) {
+        let name = block.lines().find_map(|l| l.strip_prefix("event: ")).unwrap_or("").to_string();
+        let data: String = block.lines().filter_map(|l| l.strip_prefix("data: ")).collect();
+        events.push((name, serde_json::from_str(&data).unwrap()));
+    }
+    let (last, progress) = events.split_last().expect("events");
+    assert_eq!(last.0, "end");
+    assert!(progress.iter().all(|(n, _)| n == "progress"));
+    assert!(progress.len() >= 2, "{} progress events", progress.len());
+    let steps: Vec<u64> = progress.iter().map(|(_, j)| j["progress"]["step"].as_u64().unwrap()).collect();
+    assert!(steps.windows(2).all(|w| w[0] <= w[1]), "{steps:?}");
+    let estimates: Vec<f64> = progress
+        .iter()
+        .filter(|(_, j)| j["status"] == "running")
+        .filter_map(|(_, j)| j["progress"]["test_psnr"].as_f64())
+        .collect();
+    eprintln!("held-out estimates while running: {estimates:?}, done after {} s", last.1["progress"]["elapsed"]);
+    assert!(!estimates.is_empty(), "a held-out estimate is reported while training");
+
+    // It stopped at the target, long before its time budget.
+    let done = &last.1;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let p = &done["progress"];
+    assert!(p["elapsed"].as_f64().unwrap() < 50.0, "{done}");
+    let model = done["model_id"].as_str().unwrap();
+    let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert_eq!(m["model"], "instant-tiny");
+    assert!(m["test_psnr"].as_f64().unwrap() > 26.0, "{m}");
+
+    // Depth is composited over the far plane: a camera at z = 3 looking
+    // down -z sees the ball (radius 0.6) at 2.4 in its centre pixel; looking
+    // up +z it sees nothing, which is white, the far plane.
+    let far = m["view"]["far"].as_f64().unwrap();
+    let depth = |c2w: &str| format!("/v1/models/{model}/render?c2w={c2w}&width=17&height=17&output=depth");
+    let img = svc.png(&depth("1,0,0,0,0,1,0,0,0,0,1,3")).await.into_luma16();
+    let (centre, corner) = (img.get_pixel(8, 8)[0] as f64, img.get_pixel(0, 0)[0]);
+    let want = 2.4 / far * 65535.0;
+    // Within 0.3: the expected depth of a small model spreads around the
+    // surface, and a centre opacity short of 1 adds its share of the far plane.
+    assert!((centre - want).abs() < 0.3 / far * 65535.0, "centre {centre}, want {want} (far {far})");
+    assert!(corner > 60000, "the corner misses the ball: {corner}");
+    let img = svc.png(&depth("-1,0,0,0,0,1,0,0,0,0,-1,3")).await.into_luma16();
+    assert!(img.pixels().all(|p| p[0] == 65535), "{:?}", img.as_raw());
+    assert_eq!((p["diverged_steps"].as_u64(), p["rollbacks"].as_u64()), (Some(0), Some(0)), "{done}");
+    let (s, _) = svc.get("/v1/jobs/job_nope/events").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    svc.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mp4_of_an_odd_sized_scene_is_the_size_its_job_says() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let dir = tempfile::tempdir().unwrap();
+    BallScene { size: 17, views: 8, ..Default::default() }.write_blender(dir.path()).unwrap();
+    let (s, v) = svc.upload("application/zip", zip_of(&files(dir.path()))).await;
+    assert_eq!((s, &v["resolution"]), (StatusCode::CREATED, &json!([17, 17])), "{v}");
+    let id = svc.job(v["id"].as_str().unwrap(), json!({ "steps": 2 })).await;
+    let job = svc.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    let model = job["model_id"].as_str().unwrap_or_else(|| panic!("{job}"));
+
+    // The cameras' 17x17 becomes 16x16, in the job and in the file.
+    let (job, mp4, _) = svc.video(model, json!({ "frames": 2, "fps": 10, "format": "mp4" })).await;
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(16), Some(16)), "{job}");
+    assert_eq!(mp4::track_size(&mp4), (16, 16));
+    // Asked for explicitly, an odd side is refused, naming the even sizes.
+    let (s, v) = svc.post_json(&format!("/v1/models/{model}/videos"), json!({ "width": 33, "height": 17 })).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("33x17") && msg.contains("32x16 or 34x18") && msg.contains("gif"), "{msg}");
+    // GIF keeps the cameras' size.
+    let (job, _, _) = svc.video(model, json!({ "frames": 2, "fps": 10, "format": "gif" })).await;
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(17), Some(17)), "{job}");
+    svc.stop().await;
+}

@@ -1,0 +1,12 @@
+//! The REST service end to end: the real server on 127.0.0.1:0 with a
+//! temporary data directory and a tiny generated scene; one module per
+//! concern, in one test binary.
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod auth;
+mod jobs;
+mod openapi;
+mod restart;
+mod uploads;
