@@ -17,7 +17,7 @@ pub fn scene_data(scene: &SceneInfo) -> DataSize {
     let i = &scene.images;
     let frames = match scene.format {
         DatasetFormat::Blender => i.train + i.val + i.test,
-        DatasetFormat::Ngp | DatasetFormat::Llff => i.train + i.test.max(i.val),
+        DatasetFormat::Ngp | DatasetFormat::Llff | DatasetFormat::Colmap => i.train + i.test.max(i.val),
     };
     DataSize::uniform(frames, scene.resolution[0], scene.resolution[1])
 }

@@ -62,7 +62,7 @@ impl Common {
 /// Dataset location and the split to use.
 #[derive(Args, Debug, Clone)]
 pub struct DataArgs {
-    /// Dataset folder (Blender transforms_*.json, transforms.json, or LLFF poses_bounds.npy).
+    /// Dataset folder (Blender transforms_*.json, transforms.json, LLFF poses_bounds.npy, or a COLMAP sparse/0 model).
     #[arg(long)]
     pub data: PathBuf,
     /// Which split to use.

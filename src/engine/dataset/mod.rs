@@ -9,6 +9,8 @@ use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::math::{Aabb, Vec3};
 
 mod blender;
+mod colmap;
+pub mod colmap_model;
 mod images;
 mod json;
 mod llff;
@@ -31,6 +33,8 @@ pub enum DatasetFormat {
     Ngp,
     /// LLFF: `poses_bounds.npy` + `images_N/`.
     Llff,
+    /// COLMAP: a sparse model in `sparse/0/` + `images/`.
+    Colmap,
 }
 
 impl fmt::Display for DatasetFormat {
@@ -39,6 +43,7 @@ impl fmt::Display for DatasetFormat {
             Self::Blender => "blender",
             Self::Ngp => "transforms",
             Self::Llff => "llff",
+            Self::Colmap => "colmap",
         })
     }
 }
@@ -153,6 +158,7 @@ impl Dataset {
             DatasetFormat::Blender => blender::load(root, opts),
             DatasetFormat::Ngp => ngp::load(root, opts),
             DatasetFormat::Llff => llff::load(root, opts),
+            DatasetFormat::Colmap => colmap::load(root, opts),
         }
     }
 
@@ -186,6 +192,8 @@ pub fn detect_format(root: &Path) -> Result<DatasetFormat, DatasetError> {
         Ok(DatasetFormat::Ngp)
     } else if root.join("poses_bounds.npy").is_file() {
         Ok(DatasetFormat::Llff)
+    } else if colmap::model_dir(root).is_some() {
+        Ok(DatasetFormat::Colmap)
     } else {
         Err(DatasetError::UnknownFormat(root.to_path_buf()))
     }
@@ -196,7 +204,9 @@ pub fn detect_format(root: &Path) -> Result<DatasetFormat, DatasetError> {
 pub enum DatasetError {
     #[error("dataset folder {0} does not exist")]
     NotFound(PathBuf),
-    #[error("{0}: unknown dataset format (expected transforms_train.json, transforms.json or poses_bounds.npy)")]
+    #[error(
+        "{0}: unknown dataset format (expected transforms_train.json, transforms.json, poses_bounds.npy or a COLMAP model in sparse/0)"
+    )]
     UnknownFormat(PathBuf),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },

@@ -1,0 +1,186 @@
+//! Unit tests of `colmap.rs` and `colmap_model.rs`: models written by the
+//! test itself from the generated ball scene, in both formats.
+
+use super::super::colmap_model::{Model, write};
+use super::*;
+use crate::engine::dataset::synthetic::BallScene;
+
+/// A rotation matrix as a unit quaternion `w, x, y, z` (Shepperd's method;
+/// independent of the loader's quaternion -> matrix).
+fn quaternion(r: [[f64; 3]; 3]) -> [f64; 4] {
+    let tr = r[0][0] + r[1][1] + r[2][2];
+    if tr > 0.0 {
+        let s = 2.0 * (1.0 + tr).sqrt();
+        [0.25 * s, (r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s]
+    } else if r[0][0] > r[1][1] && r[0][0] > r[2][2] {
+        let s = 2.0 * (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt();
+        [(r[2][1] - r[1][2]) / s, 0.25 * s, (r[0][1] + r[1][0]) / s, (r[0][2] + r[2][0]) / s]
+    } else if r[1][1] > r[2][2] {
+        let s = 2.0 * (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt();
+        [(r[0][2] - r[2][0]) / s, (r[0][1] + r[1][0]) / s, 0.25 * s, (r[1][2] + r[2][1]) / s]
+    } else {
+        let s = 2.0 * (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt();
+        [(r[1][0] - r[0][1]) / s, (r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, 0.25 * s]
+    }
+}
+
+/// COLMAP's world-to-camera pose (OpenCV axes) of an OpenGL camera-to-world.
+fn colmap_pose(c2w: &[[f32; 4]; 3]) -> ([f64; 4], [f64; 3]) {
+    // OpenCV camera-to-world: flip the y and z axes; R is its transpose.
+    let sign = [1.0, -1.0, -1.0];
+    let mut r = [[0.0f64; 3]; 3];
+    for a in 0..3 {
+        for b in 0..3 {
+            r[b][a] = sign[b] * c2w[a][b] as f64;
+        }
+    }
+    let c = [c2w[0][3] as f64, c2w[1][3] as f64, c2w[2][3] as f64];
+    let t = [0, 1, 2].map(|k| -(0..3).map(|j| r[k][j] * c[j]).sum::<f64>());
+    (quaternion(r), t)
+}
+
+/// The ball scene as a COLMAP model (one PINHOLE camera) with its images
+/// written to `root/images`, sparse points on the ball and three strays.
+fn ball_model(root: &Path) -> (Dataset, Model) {
+    let ds = BallScene { size: 16, views: 10, ..Default::default() }.dataset();
+    let c0 = &ds.frames[0].camera;
+    let camera = CameraModel {
+        id: 7,
+        model: "PINHOLE",
+        width: c0.width as u64,
+        height: c0.height as u64,
+        params: vec![c0.fx as f64, c0.fy as f64, c0.cx as f64, c0.cy as f64],
+    };
+    let mut images = Vec::new();
+    for (k, f) in ds.frames.iter().enumerate() {
+        let (qvec, tvec) = colmap_pose(&f.camera.c2w);
+        let name = format!("img_{k:02}.png");
+        let img = image::RgbaImage::from_raw(f.image.width, f.image.height, f.image.rgba.clone()).unwrap();
+        std::fs::create_dir_all(root.join("images")).unwrap();
+        img.save(root.join("images").join(&name)).unwrap();
+        // COLMAP numbers images in its own order.
+        images.push(ImagePose { id: 100 - k as u32, qvec, tvec, camera_id: 7, name });
+    }
+    images.reverse();
+    let mut points: Vec<[f64; 3]> = (0..200)
+        .map(|i| [0.5 * (i as f64 * 0.1).cos(), 0.5 * (i as f64 * 0.1).sin(), (i % 9) as f64 * 0.1 - 0.4])
+        .collect();
+    points.extend([[1000.0, 0.0, 0.0], [0.0, -900.0, 0.0], [0.0, 0.0, 5e6]]);
+    (ds, Model { cameras: vec![camera], images, points })
+}
+
+fn load_dir(root: &Path) -> Result<Dataset, DatasetError> {
+    Dataset::load(root, &LoadOptions::default())
+}
+
+#[test]
+fn binary_and_text_models_load_to_the_cameras_they_were_made_from() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (bin, txt) = (tmp.path().join("bin"), tmp.path().join("txt"));
+    let (truth, model) = ball_model(&bin);
+    ball_model(&txt);
+    write(&model, &bin.join("sparse/0"), true).unwrap();
+    write(&model, &txt.join("sparse/0"), false).unwrap();
+    assert_eq!(colmap_model::read(&bin.join("sparse/0")).unwrap(), model);
+    assert_eq!(colmap_model::read(&txt.join("sparse/0")).unwrap(), model);
+    let (b, t) = (load_dir(&bin).unwrap(), load_dir(&txt).unwrap());
+    assert_eq!((b.format, t.format), (DatasetFormat::Colmap, DatasetFormat::Colmap));
+    assert_eq!(b.frames.len(), truth.frames.len());
+    for ((fb, ft), want) in b.frames.iter().zip(&t.frames).zip(&truth.frames) {
+        assert_eq!(fb.camera, ft.camera, "binary and text differ");
+        let (g, w) = (&fb.camera, &want.camera);
+        assert_eq!((g.width, g.height, g.fx, g.fy, g.cx, g.cy), (w.width, w.height, w.fx, w.fy, w.cx, w.cy));
+        for r in 0..3 {
+            for c in 0..4 {
+                assert!((g.c2w[r][c] - w.c2w[r][c]).abs() < 1e-5, "{}: {:?} vs {:?}", fb.name, g.c2w, w.c2w);
+            }
+        }
+        assert_eq!(fb.image, want.image);
+    }
+    // Every 8th image in name order is held out.
+    assert_eq!(b.test, vec![0, 8]);
+    assert_eq!(b.train.len() + b.test.len(), 14);
+    // The box holds the cameras and the ball, not the stray points.
+    let bx = b.aabb;
+    for f in &b.frames {
+        let o = f.camera.origin();
+        assert!(o.x >= bx.min.x && o.y >= bx.min.y && o.z >= bx.min.z && o.x <= bx.max.x && o.z <= bx.max.z);
+    }
+    assert!(bx.max.x < 10.0 && bx.min.y > -10.0 && bx.max.z < 10.0, "{bx:?}");
+}
+
+#[test]
+fn unregistered_photos_are_left_out_with_a_warning_and_missing_ones_are_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (_, model) = ball_model(root);
+    write(&model, &root.join("sparse/0"), true).unwrap();
+    std::fs::copy(root.join("images/img_00.png"), root.join("images/extra.png")).unwrap();
+    let ds = load_dir(root).unwrap();
+    assert_eq!(ds.frames.len(), 14);
+    assert!(
+        ds.warnings.iter().any(|w| w.contains("registered 14 of 15") && w.contains("extra.png")),
+        "{:?}",
+        ds.warnings
+    );
+    std::fs::remove_file(root.join("images/img_03.png")).unwrap();
+    let e = load_dir(root).unwrap_err().to_string();
+    assert!(e.contains("1 registered images are missing: img_03.png"), "{e}");
+}
+
+#[test]
+fn unsupported_and_unknown_camera_models_are_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (_, mut model) = ball_model(root);
+    model.cameras[0].model = "OPENCV_FISHEYE";
+    model.cameras[0].params = vec![20.0, 20.0, 8.0, 8.0, 0.1, 0.0, 0.0, 0.0];
+    write(&model, &root.join("sparse/0"), false).unwrap();
+    let e = load_dir(root).unwrap_err().to_string();
+    assert!(e.contains("OPENCV_FISHEYE is not supported"), "{e}");
+    let cams = root.join("sparse/0/cameras.txt");
+    std::fs::write(&cams, "7 PANORAMA 16 16 1 2 3\n").unwrap();
+    assert!(load_dir(root).unwrap_err().to_string().contains("unknown camera model 'PANORAMA'"));
+    std::fs::write(&cams, "7 PINHOLE 16 16 1 2 3\n").unwrap();
+    let e = load_dir(root).unwrap_err().to_string();
+    assert!(e.contains("PINHOLE has 4 parameters, found 3"), "{e}");
+    // An image of a camera the model lacks.
+    std::fs::write(&cams, "8 PINHOLE 16 16 20 20 8 8\n").unwrap();
+    assert!(load_dir(root).unwrap_err().to_string().contains("uses camera 7, which the model lacks"));
+}
+
+#[test]
+fn corrupt_binary_models_are_errors_at_every_length_and_count() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("sparse/0");
+    let (_, model) = ball_model(tmp.path());
+    write(&model, &dir, true).unwrap();
+    for name in ["cameras.bin", "images.bin", "points3D.bin"] {
+        let p = dir.join(name);
+        let full = std::fs::read(&p).unwrap();
+        // Every truncation is an error naming the file (never a panic).
+        for len in (0..full.len()).step_by(7).chain([full.len() - 1]) {
+            std::fs::write(&p, &full[..len]).unwrap();
+            let e = colmap_model::read(&dir).unwrap_err().to_string();
+            assert!(e.contains(name), "{name} cut at {len}: {e}");
+        }
+        // An absurd count is refused before anything is allocated.
+        let mut absurd = full.clone();
+        absurd[..8].copy_from_slice(&u64::MAX.to_le_bytes());
+        std::fs::write(&p, &absurd).unwrap();
+        let e = colmap_model::read(&dir).unwrap_err().to_string();
+        assert!(e.contains("but only"), "{name}: {e}");
+        // Trailing bytes are an error too.
+        let mut long = full.clone();
+        long.push(0);
+        std::fs::write(&p, &long).unwrap();
+        assert!(colmap_model::read(&dir).unwrap_err().to_string().contains("after the last record"));
+        std::fs::write(&p, &full).unwrap();
+    }
+    // An unknown model id.
+    let p = dir.join("cameras.bin");
+    let mut bad = std::fs::read(&p).unwrap();
+    bad[12..16].copy_from_slice(&99i32.to_le_bytes());
+    std::fs::write(&p, &bad).unwrap();
+    assert!(colmap_model::read(&dir).unwrap_err().to_string().contains("unknown camera model id 99"));
+}
