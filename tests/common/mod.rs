@@ -88,6 +88,13 @@ pub fn llff_files() -> Vec<(String, Vec<u8>)> {
     files(d.path())
 }
 
+/// The ball scene as a COLMAP dataset, its model binary or text.
+pub fn colmap_files(binary: bool) -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    ball().write_colmap(d.path(), binary).unwrap();
+    files(d.path())
+}
+
 /// A multipart form with one part per file; `by_filename` names the parts
 /// `file` and puts the path in the filename, else the field name is the path.
 pub fn form_of(entries: &[(String, Vec<u8>)], by_filename: bool) -> reqwest::multipart::Form {

@@ -190,8 +190,16 @@ async fn upload_each_format_as_archive_and_as_multipart() {
     let (s, v) = svc.upload_form(form_of(&llff_files(), true)).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
     assert_eq!(v["format"], "llff");
+    // COLMAP, a binary model in a zip and a text model as multipart
+    let (s, v) = svc.upload("application/zip", zip_of(&colmap_files(true))).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!(v["format"], "colmap");
+    assert_eq!(v["images"], json!({ "train": 10, "val": 2, "test": 2 }));
+    let (s, v) = svc.upload_form(form_of(&colmap_files(false), true)).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert_eq!((v["format"].as_str(), v["resolution"].clone()), (Some("colmap"), json!([16, 16])));
     let (_, list) = svc.get("/v1/scenes").await;
-    assert_eq!(list.as_array().unwrap().len(), 4);
+    assert_eq!(list.as_array().unwrap().len(), 6);
 
     // Bad multipart uploads leave nothing behind.
     let mut evil = ball_files();
@@ -207,6 +215,6 @@ async fn upload_each_format_as_archive_and_as_multipart() {
     let left: Vec<_> = std::fs::read_dir(data.path().join("tmp")).unwrap().collect();
     assert!(left.is_empty(), "tmp/ holds {left:?}");
     let (_, list) = svc.get("/v1/scenes").await;
-    assert_eq!(list.as_array().unwrap().len(), 4);
+    assert_eq!(list.as_array().unwrap().len(), 6);
     svc.stop().await;
 }

@@ -3,41 +3,7 @@
 
 use super::super::colmap_model::{Model, write};
 use super::*;
-use crate::engine::dataset::synthetic::BallScene;
-
-/// A rotation matrix as a unit quaternion `w, x, y, z` (Shepperd's method;
-/// independent of the loader's quaternion -> matrix).
-fn quaternion(r: [[f64; 3]; 3]) -> [f64; 4] {
-    let tr = r[0][0] + r[1][1] + r[2][2];
-    if tr > 0.0 {
-        let s = 2.0 * (1.0 + tr).sqrt();
-        [0.25 * s, (r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s]
-    } else if r[0][0] > r[1][1] && r[0][0] > r[2][2] {
-        let s = 2.0 * (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt();
-        [(r[2][1] - r[1][2]) / s, 0.25 * s, (r[0][1] + r[1][0]) / s, (r[0][2] + r[2][0]) / s]
-    } else if r[1][1] > r[2][2] {
-        let s = 2.0 * (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt();
-        [(r[0][2] - r[2][0]) / s, (r[0][1] + r[1][0]) / s, 0.25 * s, (r[1][2] + r[2][1]) / s]
-    } else {
-        let s = 2.0 * (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt();
-        [(r[1][0] - r[0][1]) / s, (r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, 0.25 * s]
-    }
-}
-
-/// COLMAP's world-to-camera pose (OpenCV axes) of an OpenGL camera-to-world.
-fn colmap_pose(c2w: &[[f32; 4]; 3]) -> ([f64; 4], [f64; 3]) {
-    // OpenCV camera-to-world: flip the y and z axes; R is its transpose.
-    let sign = [1.0, -1.0, -1.0];
-    let mut r = [[0.0f64; 3]; 3];
-    for a in 0..3 {
-        for b in 0..3 {
-            r[b][a] = sign[b] * c2w[a][b] as f64;
-        }
-    }
-    let c = [c2w[0][3] as f64, c2w[1][3] as f64, c2w[2][3] as f64];
-    let t = [0, 1, 2].map(|k| -(0..3).map(|j| r[k][j] * c[j]).sum::<f64>());
-    (quaternion(r), t)
-}
+use crate::engine::dataset::synthetic::{BallScene, colmap_pose};
 
 /// The ball scene as a COLMAP model (one PINHOLE camera) with its images
 /// written to `root/images`, sparse points on the ball and three strays.

@@ -177,3 +177,73 @@ impl BallScene {
         std::fs::write(dir.join("poses_bounds.npy"), crate::engine::dataset::npy::npy_bytes(&shape, &rows, 1))
     }
 }
+
+impl BallScene {
+    /// Writes the scene as a COLMAP dataset: a model in `sparse/0` (binary
+    /// or text; one PINHOLE camera, points on the ball) and RGB PNGs
+    /// (composited on white) in `images/`.
+    pub fn write_colmap(&self, dir: &std::path::Path, binary: bool) -> std::io::Result<()> {
+        use crate::engine::dataset::colmap_model::{self, CameraModel, ImagePose, Model};
+        let ds = self.dataset();
+        std::fs::create_dir_all(dir.join("images"))?;
+        let c0 = &ds.frames[0].camera;
+        let params = vec![c0.fx as f64, c0.fy as f64, c0.cx as f64, c0.cy as f64];
+        let camera = CameraModel { id: 1, model: "PINHOLE", width: c0.width as u64, height: c0.height as u64, params };
+        let mut images = Vec::new();
+        for (k, f) in ds.frames.iter().enumerate() {
+            let (w, h) = (f.image.width, f.image.height);
+            let rgb: Vec<u8> = (0..h)
+                .flat_map(|j| (0..w).map(move |i| (i, j)))
+                .flat_map(|(i, j)| f.image.rgb_on(i, j, [1.0; 3]))
+                .map(|v| (v * 255.0).round() as u8)
+                .collect();
+            let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| std::io::Error::other("image size"))?;
+            let name = format!("img{k:03}.png");
+            img.save(dir.join("images").join(&name)).map_err(std::io::Error::other)?;
+            let (qvec, tvec) = colmap_pose(&f.camera.c2w);
+            images.push(ImagePose { id: k as u32 + 1, qvec, tvec, camera_id: 1, name });
+        }
+        let r = (self.radius * self.scale) as f64;
+        let points = (0..64)
+            .map(|i| {
+                let (a, b) = (i as f64 * 0.7, i as f64 * 0.3);
+                [r * a.cos() * b.sin(), r * a.sin() * b.sin(), r * b.cos()]
+            })
+            .collect();
+        colmap_model::write(&Model { cameras: vec![camera], images, points }, &dir.join("sparse/0"), binary)
+    }
+}
+
+/// A rotation matrix as a unit quaternion `w, x, y, z` (Shepperd's method;
+/// independent of the loader's quaternion -> matrix).
+pub fn quaternion(r: [[f64; 3]; 3]) -> [f64; 4] {
+    let tr = r[0][0] + r[1][1] + r[2][2];
+    if tr > 0.0 {
+        let s = 2.0 * (1.0 + tr).sqrt();
+        [0.25 * s, (r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s]
+    } else if r[0][0] > r[1][1] && r[0][0] > r[2][2] {
+        let s = 2.0 * (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt();
+        [(r[2][1] - r[1][2]) / s, 0.25 * s, (r[0][1] + r[1][0]) / s, (r[0][2] + r[2][0]) / s]
+    } else if r[1][1] > r[2][2] {
+        let s = 2.0 * (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt();
+        [(r[0][2] - r[2][0]) / s, (r[0][1] + r[1][0]) / s, 0.25 * s, (r[1][2] + r[2][1]) / s]
+    } else {
+        let s = 2.0 * (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt();
+        [(r[1][0] - r[0][1]) / s, (r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, 0.25 * s]
+    }
+}
+
+/// COLMAP's world-to-camera pose (OpenCV axes) of an OpenGL camera-to-world.
+pub fn colmap_pose(c2w: &[[f32; 4]; 3]) -> ([f64; 4], [f64; 3]) {
+    // OpenCV camera-to-world: flip the y and z axes; R is its transpose.
+    let sign = [1.0, -1.0, -1.0];
+    let mut r = [[0.0f64; 3]; 3];
+    for a in 0..3 {
+        for b in 0..3 {
+            r[b][a] = sign[b] * c2w[a][b] as f64;
+        }
+    }
+    let c = [c2w[0][3] as f64, c2w[1][3] as f64, c2w[2][3] as f64];
+    let t = [0, 1, 2].map(|k| -(0..3).map(|j| r[k][j] * c[j]).sum::<f64>());
+    (quaternion(r), t)
+}
