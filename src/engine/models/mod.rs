@@ -10,6 +10,33 @@ pub mod config;
 pub mod instant;
 pub mod nerf;
 
+/// The accessors every model implements alike, inside its `impl Model`:
+/// from the `KIND` constant of its file and its `config`, `scene` and
+/// `params` fields.
+macro_rules! model_accessors {
+    () => {
+        fn kind(&self) -> &'static str {
+            KIND
+        }
+        fn scene(&self) -> &Scene {
+            &self.scene
+        }
+        fn params(&self) -> &[f32] {
+            &self.params
+        }
+        fn params_mut(&mut self) -> &mut [f32] {
+            &mut self.params
+        }
+        fn as_any(&self) -> &dyn std::any::Any {
+            self
+        }
+        fn config_json(&self) -> serde_json::Value {
+            serde_json::to_value(&self.config).unwrap_or(serde_json::Value::Null)
+        }
+    };
+}
+pub(crate) use model_accessors;
+
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 

@@ -292,24 +292,7 @@ impl NerfModel {
 }
 
 impl Model for NerfModel {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-    fn scene(&self) -> &Scene {
-        &self.scene
-    }
-    fn params(&self) -> &[f32] {
-        &self.params
-    }
-    fn params_mut(&mut self) -> &mut [f32] {
-        &mut self.params
-    }
-    fn as_any(&self) -> &dyn std::any::Any {
-        self
-    }
-    fn config_json(&self) -> serde_json::Value {
-        serde_json::to_value(&self.config).unwrap_or(serde_json::Value::Null)
-    }
+    super::model_accessors!();
 
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
         let mut w = Work::default();
