@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use super::colmap_model::{self, CameraModel, ImagePose};
 use super::images::{decode_all, has_image_extension};
 use super::llff::IMAGE_DIRS;
-use super::validate::{check_pose, check_shared_size, warnings};
+use super::validate::{check_pose, check_shared_size, unsplit};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
 use crate::engine::geometry::camera::{Camera, Distortion};
 use crate::engine::geometry::math::{Aabb, Vec3};
@@ -26,9 +26,6 @@ pub const MODEL_DIRS: [&str; 2] = ["sparse/0", "sparse"];
 
 /// The camera models this loader takes (the others are refused by name).
 pub const SUPPORTED_MODELS: [&str; 5] = ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"];
-
-/// Every `HOLDOUT`-th image (in name order) is held out for evaluation.
-pub const HOLDOUT: usize = 8;
 
 /// The lower and upper percentiles of the sparse points kept in the box.
 const POINT_PERCENTILES: (f64, f64) = (0.02, 0.98);
@@ -54,6 +51,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             message: format!("no image folder (looked for {})", IMAGE_DIRS.join(", ")),
         })?;
     let mut images = model.images.clone();
+    // Held-out frames are every 8th in name order, whatever ids COLMAP gave.
     images.sort_by(|a, b| a.name.cmp(&b.name));
     let mut extra_warnings = Vec::new();
     let files = image_files(&image_dir, &images, &dir, &mut extra_warnings)?;
@@ -78,23 +76,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let centre = aabb.centre();
     let cam_dist = frames.iter().map(|f| (f.camera.origin() - centre).norm()).fold(0.0f32, f32::max);
     let far = (aabb.max - aabb.min).norm() + cam_dist;
-    let (held, train): (Vec<usize>, Vec<usize>) = (0..frames.len()).partition(|i| i % HOLDOUT == 0);
-    let mut ds = Dataset {
-        format: DatasetFormat::Colmap,
-        root: root.to_path_buf(),
-        frames,
-        train,
-        val: held.clone(),
-        test: held,
-        near: 0.0,
-        far,
-        aabb,
-        background: opts.background,
-        warnings: Vec::new(),
-    };
-    ds.warnings = warnings(&ds);
-    ds.warnings.extend(extra_warnings);
-    Ok(ds)
+    Ok(unsplit(DatasetFormat::Colmap, root, frames, (0.0, far, aabb), opts.background, extra_warnings))
 }
 
 /// The file of each registered image (all must exist), and a warning

@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 
 use super::images::{decode_all, has_image_extension};
 use super::npy::{NpyArray, parse_npy};
-use super::validate::{check_pose, check_shared_size, warnings};
+use super::validate::{check_pose, check_shared_size, unsplit};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
 use crate::engine::geometry::camera::{Camera, Distortion};
 use crate::engine::geometry::math::{Aabb, Vec3};
@@ -30,8 +30,6 @@ use crate::engine::geometry::math::{Aabb, Vec3};
 pub const IMAGE_DIRS: [&str; 4] = ["images_8", "images_4", "images_2", "images"];
 /// NeRF's `bd_factor`: the nearest bound ends up at `1 / BD_FACTOR`.
 pub const BD_FACTOR: f64 = 0.75;
-/// Every `HOLDOUT`-th frame is held out for evaluation (NeRF's `llffhold`).
-pub const HOLDOUT: usize = 8;
 /// How much the box grows on each side, relative to its size.
 pub const BOX_MARGIN: f32 = 0.05;
 
@@ -81,23 +79,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     if !(aabb.min.is_finite() && aabb.max.is_finite() && near > 0.0 && far > near) {
         return Err(invalid(format!("degenerate scene bounds (near {near}, far {far})")));
     }
-    let (held, train): (Vec<usize>, Vec<usize>) = (0..n).partition(|i| i % HOLDOUT == 0);
-    let mut ds = Dataset {
-        format: DatasetFormat::Llff,
-        root: root.to_path_buf(),
-        frames,
-        train,
-        val: held.clone(),
-        test: held,
-        near,
-        far,
-        aabb,
-        background: opts.background,
-        warnings: Vec::new(),
-    };
-    ds.warnings = warnings(&ds);
-    ds.warnings.extend(extra_warnings);
-    Ok(ds)
+    Ok(unsplit(DatasetFormat::Llff, root, frames, (near, far, aabb), opts.background, extra_warnings))
 }
 
 /// The image files of `dir` sorted by name.

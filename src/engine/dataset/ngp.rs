@@ -23,15 +23,13 @@ use serde_json::Value;
 
 use super::images::decode_all;
 use super::json::{self, Obj};
-use super::validate::{check_shared_size, warnings};
+use super::validate::{check_shared_size, unsplit};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
 use crate::engine::geometry::math::{Aabb, Vec3};
 
 pub const DEFAULT_SCALE: f64 = 0.33;
 pub const DEFAULT_OFFSET: [f64; 3] = [0.5, 0.5, 0.5];
 pub const DEFAULT_AABB_SCALE: f64 = 1.0;
-/// Every `HOLDOUT`-th frame is held out for evaluation.
-pub const HOLDOUT: usize = 8;
 
 /// Camera models with a pinhole projection that `k1 k2 p1 p2` describe.
 const PINHOLE_MODELS: [&str; 5] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE", "SIMPLE_RADIAL"];
@@ -93,23 +91,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let cam_dist = out.iter().map(|f| (f.camera.origin() - centre).norm()).fold(0.0f32, f32::max);
     let far = (aabb.max - aabb.min).norm() + cam_dist;
 
-    let (held, train): (Vec<usize>, Vec<usize>) = (0..out.len()).partition(|i| i % HOLDOUT == 0);
-    let mut ds = Dataset {
-        format: DatasetFormat::Ngp,
-        root: root.to_path_buf(),
-        frames: out,
-        train,
-        val: held.clone(),
-        test: held,
-        near: 0.0,
-        far,
-        aabb,
-        background: opts.background,
-        warnings: Vec::new(),
-    };
-    ds.warnings = warnings(&ds);
-    ds.warnings.extend(extra_warnings);
-    Ok(ds)
+    Ok(unsplit(DatasetFormat::Ngp, root, out, (0.0, far, aabb), opts.background, extra_warnings))
 }
 
 /// Refuses camera models other than pinhole (with OpenCV distortion).

@@ -3,8 +3,8 @@
 
 use std::path::Path;
 
-use super::{Dataset, DatasetError, Split};
-use crate::engine::geometry::math::Vec3;
+use super::{Dataset, DatasetError, DatasetFormat, Frame, Split};
+use crate::engine::geometry::math::{Aabb, Vec3};
 
 /// Largest allowed deviation of any entry of `R^T R` from the identity.
 pub const ORTHONORMAL_TOLERANCE: f64 = 1e-3;
@@ -74,6 +74,39 @@ pub(super) fn check_shared_size<'a>(
 }
 
 /// Non-fatal observations about a loaded dataset.
+/// Every `HOLDOUT`-th frame of a format without splits (LLFF, instant-ngp,
+/// COLMAP) is held out for evaluation (NeRF's `llffhold`).
+pub(super) const HOLDOUT: usize = 8;
+
+/// A dataset of a format without splits: every [`HOLDOUT`]-th frame held out
+/// (as both `val` and `test`), the general warnings and then the loader's.
+pub(super) fn unsplit(
+    format: DatasetFormat,
+    root: &Path,
+    frames: Vec<Frame>,
+    (near, far, aabb): (f32, f32, Aabb),
+    background: [f32; 3],
+    extra_warnings: Vec<String>,
+) -> Dataset {
+    let (held, train): (Vec<usize>, Vec<usize>) = (0..frames.len()).partition(|i| i % HOLDOUT == 0);
+    let mut ds = Dataset {
+        format,
+        root: root.to_path_buf(),
+        frames,
+        train,
+        val: held.clone(),
+        test: held,
+        near,
+        far,
+        aabb,
+        background,
+        warnings: Vec::new(),
+    };
+    ds.warnings = warnings(&ds);
+    ds.warnings.extend(extra_warnings);
+    ds
+}
+
 pub(super) fn warnings(ds: &Dataset) -> Vec<String> {
     let mut out = Vec::new();
     if ds.train.len() < MIN_TRAIN_VIEWS {
