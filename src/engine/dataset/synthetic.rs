@@ -155,13 +155,7 @@ impl BallScene {
         let mut rows = Vec::new();
         for (k, f) in ds.frames.iter().enumerate() {
             let (w, h) = (f.image.width, f.image.height);
-            let rgb: Vec<u8> = (0..h)
-                .flat_map(|j| (0..w).map(move |i| (i, j)))
-                .flat_map(|(i, j)| f.image.rgb_on(i, j, [1.0; 3]))
-                .map(|v| (v * 255.0).round() as u8)
-                .collect();
-            let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| std::io::Error::other("image size"))?;
-            img.save(dir.join("images").join(format!("img{k:03}.png"))).map_err(std::io::Error::other)?;
+            save_on_white(&f.image, &dir.join("images").join(format!("img{k:03}.png")))?;
             let m = &f.camera.c2w;
             let mut row = Vec::with_capacity(17);
             for r in m {
@@ -178,6 +172,18 @@ impl BallScene {
     }
 }
 
+/// Saves `image` composited on white as an RGB PNG.
+fn save_on_white(image: &Image, path: &std::path::Path) -> std::io::Result<()> {
+    let (w, h) = (image.width, image.height);
+    let rgb: Vec<u8> = (0..h)
+        .flat_map(|j| (0..w).map(move |i| (i, j)))
+        .flat_map(|(i, j)| image.rgb_on(i, j, [1.0; 3]))
+        .map(|v| (v * 255.0).round() as u8)
+        .collect();
+    let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| std::io::Error::other("image size"))?;
+    img.save(path).map_err(std::io::Error::other)
+}
+
 impl BallScene {
     /// Writes the scene as a COLMAP dataset: a model in `sparse/0` (binary
     /// or text; one PINHOLE camera, points on the ball) and RGB PNGs
@@ -191,15 +197,8 @@ impl BallScene {
         let camera = CameraModel { id: 1, model: "PINHOLE", width: c0.width as u64, height: c0.height as u64, params };
         let mut images = Vec::new();
         for (k, f) in ds.frames.iter().enumerate() {
-            let (w, h) = (f.image.width, f.image.height);
-            let rgb: Vec<u8> = (0..h)
-                .flat_map(|j| (0..w).map(move |i| (i, j)))
-                .flat_map(|(i, j)| f.image.rgb_on(i, j, [1.0; 3]))
-                .map(|v| (v * 255.0).round() as u8)
-                .collect();
-            let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| std::io::Error::other("image size"))?;
             let name = format!("img{k:03}.png");
-            img.save(dir.join("images").join(&name)).map_err(std::io::Error::other)?;
+            save_on_white(&f.image, &dir.join("images").join(&name))?;
             let (qvec, tvec) = colmap_pose(&f.camera.c2w);
             images.push(ImagePose { id: k as u32 + 1, qvec, tvec, camera_id: 1, name });
         }
