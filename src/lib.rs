@@ -12,5 +12,6 @@ pub mod cli;
 pub mod engine;
 pub mod jobs;
 pub mod media;
+pub mod poses;
 pub mod storage;
 pub mod system;

@@ -1,4 +1,4 @@
-//! The command line: `radiance train | render | eval | bench | serve`.
+//! The command line: `radiance train | render | eval | bench | poses | serve`.
 
 use std::path::PathBuf;
 
@@ -6,12 +6,14 @@ use clap::{Args, Parser, Subcommand};
 
 mod bench;
 mod eval;
+mod poses;
 mod serve;
 mod setup;
 mod train;
 
 pub use bench::{BenchArgs, BenchReport, BenchRow};
 pub use eval::{EvalArgs, RenderArgs};
+pub use poses::PosesArgs;
 pub use serve::ServeArgs;
 pub use train::TrainArgs;
 
@@ -33,6 +35,8 @@ pub enum Command {
     Eval(EvalArgs),
     /// Train each model once and score its test views at several training-time budgets.
     Bench(BenchArgs),
+    /// Estimate camera poses for plain photos (or a video) with COLMAP; writes a dataset `train` reads.
+    Poses(PosesArgs),
     /// Run the REST service: upload scenes, train as jobs, render views.
     Serve(ServeArgs),
 }
@@ -79,6 +83,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(a) => eval::render(a),
         Command::Eval(a) => eval::eval(a),
         Command::Bench(a) => bench::run(a),
+        Command::Poses(a) => poses::run(a),
         Command::Serve(a) => serve::run(a),
     }
 }

@@ -19,6 +19,7 @@ pub mod npy;
 pub mod synthetic;
 #[cfg(test)]
 mod testutil;
+pub mod textured;
 mod validate;
 
 pub use npy::{NpyArray, parse_npy};

@@ -1,0 +1,452 @@
+//! Camera poses for photos that have none: photos (or a video's frames)
+//! in, a COLMAP-format dataset out, which the engine's loader reads as is.
+//!
+//! [`estimate`] prepares the photos (upright, downscaled to `max_size`),
+//! runs COLMAP's feature extraction, matching and mapping as subprocesses
+//! under one time limit, keeps the largest model if it is good enough
+//! ([`outcome`]), loads the result with the engine's loader to prove it
+//! trains, and only then moves it into place: the output folder appears
+//! whole or not at all, and COLMAP's working files (its database, candidate
+//! frames) are removed either way.
+//!
+//! Like `media`, this is a sibling of the engine: the engine knows nothing
+//! of subprocesses, and this module nothing of ray marching.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+
+use crate::engine::dataset::{Dataset, LoadOptions, colmap_model};
+
+pub mod colmap;
+pub mod outcome;
+pub mod photos;
+pub mod process;
+pub mod video;
+
+pub use colmap::{Colmap, Matcher};
+pub use video::Ffmpeg;
+
+/// Where the report is written in the dataset.
+pub const REPORT_FILE: &str = "poses.json";
+
+/// Default longest side of the photos given to COLMAP (and kept for training).
+pub const DEFAULT_MAX_SIZE: u32 = 800;
+
+/// Default time limit of a whole estimation.
+pub const DEFAULT_TIME_LIMIT: Duration = Duration::from_secs(30 * 60);
+
+/// Up to this many photos every pair is matched; beyond, neighbours in name
+/// order (photos from a phone are numbered in the order they were taken).
+pub const EXHAUSTIVE_UP_TO: usize = 100;
+
+/// Why an estimation did not give a dataset.
+#[derive(Debug, thiserror::Error)]
+pub enum PoseError {
+    /// The photos or the video: none, too few, unreadable, mixed sizes.
+    #[error("{0}")]
+    Input(String),
+    /// COLMAP (or ffmpeg) is missing, crashed or failed.
+    #[error("{0}")]
+    Tool(String),
+    /// COLMAP ran but could not pose enough of the photos.
+    #[error("{0}")]
+    Reconstruction(String),
+    #[error("pose estimation took longer than its time limit during {stage} ({seconds:.0} s); COLMAP was stopped")]
+    TimedOut { stage: &'static str, seconds: f64 },
+    #[error("pose estimation was cancelled")]
+    Cancelled,
+    #[error("{}: {message}", path.display())]
+    Io { path: PathBuf, message: String },
+}
+
+impl PoseError {
+    pub fn io(path: &Path, e: std::io::Error) -> Self {
+        Self::Io { path: path.to_path_buf(), message: e.to_string() }
+    }
+
+    /// A short machine-readable kind, for the API.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::Input(_) => "input",
+            Self::Tool(_) => "tool",
+            Self::Reconstruction(_) => "reconstruction",
+            Self::TimedOut { .. } => "timed_out",
+            Self::Cancelled => "cancelled",
+            Self::Io { .. } => "io",
+        }
+    }
+}
+
+/// The programs an estimation runs.
+#[derive(Debug, Clone)]
+pub struct Tools {
+    pub colmap: Colmap,
+    /// Needed only for videos.
+    pub ffmpeg: Option<Ffmpeg>,
+}
+
+/// An estimation's settings.
+#[derive(Debug, Clone)]
+pub struct PoseOptions {
+    /// Longest side of the photos, in pixels.
+    pub max_size: u32,
+    pub threads: usize,
+    pub time_limit: Duration,
+    /// `None`: exhaustive up to [`EXHAUSTIVE_UP_TO`] photos, sequential
+    /// beyond and for videos.
+    pub matcher: Option<Matcher>,
+    /// Frames taken from a video.
+    pub frames: usize,
+}
+
+impl Default for PoseOptions {
+    fn default() -> Self {
+        Self {
+            max_size: DEFAULT_MAX_SIZE,
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            time_limit: DEFAULT_TIME_LIMIT,
+            matcher: None,
+            frames: video::DEFAULT_FRAMES,
+        }
+    }
+}
+
+/// The stages of an estimation, in order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Stage {
+    Photos,
+    Frames,
+    Features,
+    Matching,
+    Mapping,
+    Checking,
+}
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Photos => "preparing photos",
+            Self::Frames => "extracting video frames",
+            Self::Features => "feature extraction",
+            Self::Matching => "matching",
+            Self::Mapping => "mapping",
+            Self::Checking => "checking the result",
+        }
+    }
+
+    /// The share of the whole run before this stage and this stage's share
+    /// (rough: matching and mapping dominate).
+    fn span(self) -> (f32, f32) {
+        match self {
+            Self::Photos | Self::Frames => (0.0, 0.05),
+            Self::Features => (0.05, 0.15),
+            Self::Matching => (0.20, 0.45),
+            Self::Mapping => (0.65, 0.32),
+            Self::Checking => (0.97, 0.03),
+        }
+    }
+}
+
+/// Where an estimation is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Progress {
+    pub stage: Stage,
+    /// Of this stage, 0 to 1.
+    pub stage_fraction: f32,
+    /// Of the whole estimation, 0 to 1.
+    pub fraction: f32,
+}
+
+/// Wall time of each stage, seconds.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageSeconds {
+    pub prepare: f64,
+    pub features: f64,
+    pub matching: f64,
+    pub mapping: f64,
+    pub total: f64,
+}
+
+/// What an estimation found; written as `poses.json` into the dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PoseReport {
+    /// `photos` or `video`.
+    pub source: String,
+    /// Photos (or frames) given to COLMAP.
+    pub images: usize,
+    /// Of those, posed in the model kept.
+    pub registered: usize,
+    pub unregistered: Vec<String>,
+    /// Sparse points of the model kept.
+    pub points: usize,
+    /// COLMAP's mean reprojection error of the model kept, pixels.
+    pub mean_reprojection_error_px: Option<f64>,
+    /// Models the mapper made (1 unless the photos fell apart into groups).
+    pub models: usize,
+    pub matcher: Matcher,
+    /// Size of the images as given to COLMAP and kept for training.
+    pub width: u32,
+    pub height: u32,
+    pub seconds: StageSeconds,
+    pub colmap_version: String,
+    pub warnings: Vec<String>,
+}
+
+/// Estimates poses for the photos (or the one video) in `input`, a folder or
+/// a video file, and writes a COLMAP-format dataset to `out`, which must not
+/// exist or be an empty folder. `progress` is called as stages advance;
+/// setting `cancel` stops COLMAP and removes its files.
+pub fn estimate(
+    input: &Path,
+    out: &Path,
+    tools: &Tools,
+    opts: &PoseOptions,
+    progress: &mut dyn FnMut(Progress),
+    cancel: &AtomicBool,
+) -> Result<PoseReport, PoseError> {
+    let started = Instant::now();
+    let deadline = started + opts.time_limit;
+    check_output(out)?;
+    let work = Work::new(out)?;
+    let dataset = work.0.join("dataset");
+    let images = dataset.join("images");
+    // Fractions never go back, even when COLMAP's counts do (the mapper
+    // starts over from another image pair when a start fails).
+    let mut last = Progress { stage: Stage::Photos, stage_fraction: 0.0, fraction: 0.0 };
+    let mut report_stage = |stage: Stage, f: f32| {
+        let (a, b) = stage.span();
+        let f = if stage == last.stage { f.max(last.stage_fraction) } else { f };
+        let p = Progress { stage, stage_fraction: f, fraction: (a + b * f).max(last.fraction) };
+        last = p;
+        progress(p);
+    };
+
+    // 1. Photos, or a video's frames, into dataset/images.
+    let Gathered { source, names, size } = gather(input, &work.0, &images, tools, opts, deadline, cancel, &mut report_stage)?;
+    let mut seconds = StageSeconds { prepare: started.elapsed().as_secs_f64(), ..Default::default() };
+
+    // 2. COLMAP.
+    let matcher = opts.matcher.unwrap_or(if source == "video" || names.len() > EXHAUSTIVE_UP_TO {
+        Matcher::Sequential
+    } else {
+        Matcher::Exhaustive
+    });
+    let run = colmap::Run {
+        colmap: &tools.colmap,
+        work: &work.0.join("colmap"),
+        images: &images,
+        image_count: names.len(),
+        threads: opts.threads.max(1),
+        matcher,
+        deadline,
+        cancel,
+    };
+    std::fs::create_dir_all(run.work).map_err(|e| PoseError::io(run.work, e))?;
+    for (step, stage) in [
+        (colmap::Step::Features, Stage::Features),
+        (colmap::Step::Matching, Stage::Matching),
+        (colmap::Step::Mapping, Stage::Mapping),
+    ] {
+        let t = Instant::now();
+        report_stage(stage, 0.0);
+        let result = run.step(step, &mut |f| report_stage(stage, f));
+        if let Err(process::RunError::Failed { tail, .. }) = &result
+            && step == colmap::Step::Mapping
+            && tail.iter().any(|l| l.contains("failed to create sparse model"))
+        {
+            // The mapper found no pair of photos to start from: judged
+            // below as a reconstruction with no model.
+            break;
+        }
+        result.map_err(|e| match e {
+            process::RunError::Cancelled => PoseError::Cancelled,
+            process::RunError::TimedOut { .. } => {
+                PoseError::TimedOut { stage: step.name(), seconds: started.elapsed().as_secs_f64() }
+            }
+            e => PoseError::Tool(format!("COLMAP's {} failed: {e}", step.name())),
+        })?;
+        let s = t.elapsed().as_secs_f64();
+        match step {
+            colmap::Step::Features => seconds.features = s,
+            colmap::Step::Matching => seconds.matching = s,
+            colmap::Step::Mapping => seconds.mapping = s,
+        }
+    }
+
+    // 3. The model to keep.
+    report_stage(Stage::Checking, 0.0);
+    let candidates = run
+        .models()
+        .into_iter()
+        .map(|dir| {
+            let model = colmap_model::read(&dir)
+                .map_err(|e| PoseError::Tool(format!("COLMAP wrote a model that does not read back: {e}")))?;
+            let images = model.images.iter().map(|i| i.name.clone()).collect();
+            Ok(outcome::Candidate { dir, images, points: model.points.len() })
+        })
+        .collect::<Result<Vec<_>, PoseError>>()?;
+    let verdict = outcome::judge(&names, &candidates)?;
+    let best = &candidates[verdict.chosen];
+    let mean_error = run.mean_reprojection_error(&best.dir);
+    let sparse = dataset.join("sparse");
+    std::fs::create_dir_all(&sparse).map_err(|e| PoseError::io(&sparse, e))?;
+    std::fs::rename(&best.dir, sparse.join("0")).map_err(|e| PoseError::io(&best.dir, e))?;
+    // The database and other models go now: the dataset is what remains.
+    let _ = std::fs::remove_dir_all(run.work);
+
+    // 4. The dataset must load as `train` will load it.
+    Dataset::load(&dataset, &LoadOptions::default())
+        .map_err(|e| PoseError::Reconstruction(format!("the posed photos do not make a usable dataset: {e}")))?;
+    seconds.total = started.elapsed().as_secs_f64();
+    let report = PoseReport {
+        source: source.to_string(),
+        images: names.len(),
+        registered: best.images.len(),
+        unregistered: verdict.unregistered,
+        points: best.points,
+        mean_reprojection_error_px: mean_error,
+        models: candidates.len(),
+        matcher,
+        width: size.0,
+        height: size.1,
+        seconds,
+        colmap_version: tools.colmap.version.clone(),
+        warnings: verdict.warnings,
+    };
+    crate::storage::write_json(&dataset.join(REPORT_FILE), &report).map_err(|e| PoseError::io(&dataset, e))?;
+    report_stage(Stage::Checking, 1.0);
+    work.finish(&dataset, out)?;
+    Ok(report)
+}
+
+/// What [`gather`] put into the image folder.
+struct Gathered {
+    /// `photos` or `video`.
+    source: &'static str,
+    names: Vec<String>,
+    /// The images' shared size.
+    size: (u32, u32),
+}
+
+/// Puts the photos (or the video's frames) into `images`.
+#[allow(clippy::too_many_arguments)]
+fn gather(
+    input: &Path,
+    work: &Path,
+    images: &Path,
+    tools: &Tools,
+    opts: &PoseOptions,
+    deadline: Instant,
+    cancel: &AtomicBool,
+    report: &mut dyn FnMut(Stage, f32),
+) -> Result<Gathered, PoseError> {
+    let (root, found) = if input.is_dir() {
+        (input.to_path_buf(), photos::scan(input)?)
+    } else if input.is_file() && photos::has_extension(input, &photos::VIDEO_EXTENSIONS) {
+        (
+            input.parent().unwrap_or(Path::new(".")).to_path_buf(),
+            photos::Found { videos: vec![input.to_path_buf()], ..Default::default() },
+        )
+    } else if input.exists() {
+        return Err(PoseError::Input(format!(
+            "'{}' is neither a folder of photos nor a video ({})",
+            input.display(),
+            photos::VIDEO_EXTENSIONS.join(", ")
+        )));
+    } else {
+        return Err(PoseError::Input(format!("'{}' does not exist", input.display())));
+    };
+    match (found.photos.len(), found.videos.len()) {
+        (0, 0) => {
+            let ignored = if found.ignored.is_empty() {
+                String::new()
+            } else {
+                format!(" (found only: {})", outcome::list(&found.ignored))
+            };
+            Err(PoseError::Input(format!(
+                "no photos (JPEG or PNG) and no video ({}) in '{}'{ignored}",
+                photos::VIDEO_EXTENSIONS.join(", "),
+                input.display()
+            )))
+        }
+        (0, 1) => {
+            let ffmpeg = tools.ffmpeg.as_ref().ok_or_else(|| {
+                PoseError::Tool("a video needs ffmpeg, which was not found (apt-get install ffmpeg)".into())
+            })?;
+            report(Stage::Frames, 0.0);
+            let names = video::extract(
+                ffmpeg,
+                &found.videos[0],
+                images,
+                &work.join("candidates"),
+                opts.frames,
+                opts.max_size,
+                deadline,
+                cancel,
+                &mut |f| report(Stage::Frames, f),
+            )?;
+            let first = image::image_dimensions(images.join(&names[0]))
+                .map_err(|e| PoseError::Io { path: images.join(&names[0]), message: e.to_string() })?;
+            Ok(Gathered { source: "video", names, size: first })
+        }
+        (0, n) => Err(PoseError::Input(format!(
+            "{n} videos found ({}); send one video, or photos",
+            outcome::list(&found.videos.iter().map(|v| v.display().to_string()).collect::<Vec<_>>())
+        ))),
+        (_, 0) => {
+            report(Stage::Photos, 0.0);
+            let prepared = photos::prepare(&root, &found.photos, images, opts.max_size)?;
+            report(Stage::Photos, 1.0);
+            let size = (prepared[0].width, prepared[0].height);
+            Ok(Gathered { source: "photos", names: prepared.into_iter().map(|p| p.name).collect(), size })
+        }
+        (_, _) => Err(PoseError::Input(
+            "found both photos and a video; send one or the other (a video's frames are taken from it)".into(),
+        )),
+    }
+}
+
+/// `out` must be free: missing, or an empty folder.
+fn check_output(out: &Path) -> Result<(), PoseError> {
+    match std::fs::read_dir(out).map(|mut entries| entries.next().is_none()) {
+        Ok(true) => Ok(()),
+        Ok(false) => {
+            Err(PoseError::Input(format!("'{}' already exists and is not empty; choose a new folder", out.display())))
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(_) if out.exists() => Err(PoseError::Input(format!("'{}' exists and is not a folder", out.display()))),
+        Err(e) => Err(PoseError::io(out, e)),
+    }
+}
+
+/// The working folder beside the output (same file system, so the finished
+/// dataset is renamed into place); removed when dropped.
+struct Work(PathBuf);
+
+impl Work {
+    fn new(out: &Path) -> Result<Self, PoseError> {
+        let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "dataset".into());
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+        let dir = out.with_file_name(format!(".{name}.posing-{}-{nanos}", std::process::id()));
+        std::fs::create_dir_all(&dir).map_err(|e| PoseError::io(&dir, e))?;
+        Ok(Self(dir))
+    }
+
+    /// Moves the finished `dataset` to `out` (replacing an empty folder).
+    fn finish(self, dataset: &Path, out: &Path) -> Result<(), PoseError> {
+        if out.is_dir() {
+            std::fs::remove_dir(out).map_err(|e| PoseError::io(out, e))?;
+        }
+        std::fs::rename(dataset, out).map_err(|e| PoseError::io(out, e))
+    }
+}
+
+impl Drop for Work {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}

@@ -1,0 +1,296 @@
+//! The photos a pose estimation starts from: found in a folder (and its
+//! subfolders), checked, turned upright (EXIF orientation), downscaled so
+//! the longer side is at most `max_size`, and written into the dataset's
+//! `images/` folder under flat names.
+
+use std::collections::BTreeMap;
+use std::io::Cursor;
+use std::path::{Path, PathBuf};
+
+use image::{DynamicImage, ImageDecoder, ImageFormat, ImageReader};
+use rayon::prelude::*;
+
+use super::PoseError;
+
+/// Extensions (lower case) taken as photos.
+pub const PHOTO_EXTENSIONS: [&str; 3] = ["jpg", "jpeg", "png"];
+
+/// Extensions taken as a video.
+pub const VIDEO_EXTENSIONS: [&str; 4] = ["mp4", "mov", "m4v", "mkv"];
+
+/// Fewer photos than this cannot be posed.
+pub const MIN_PHOTOS: usize = 3;
+
+/// More than this is refused (a pose estimation of thousands of photos on a
+/// CPU takes days; a video gives its frames through [`super::video`]).
+pub const MAX_PHOTOS: usize = 2000;
+
+/// Folders deeper than this below the input are not searched.
+const MAX_DEPTH: usize = 4;
+
+/// What a folder holds.
+#[derive(Debug, Default)]
+pub struct Found {
+    /// Photos, sorted by their path relative to the folder.
+    pub photos: Vec<PathBuf>,
+    pub videos: Vec<PathBuf>,
+    /// Files that are neither (relative paths), reported as a warning.
+    pub ignored: Vec<String>,
+}
+
+/// Lists the photos and videos in `dir` and its subfolders (hidden files and
+/// folders, like `.DS_Store` or `__MACOSX`, are skipped silently).
+pub fn scan(dir: &Path) -> Result<Found, PoseError> {
+    let mut found = Found::default();
+    walk(dir, dir, 0, &mut found)?;
+    found.photos.sort();
+    found.videos.sort();
+    found.ignored.sort();
+    Ok(found)
+}
+
+fn walk(root: &Path, dir: &Path, depth: usize, found: &mut Found) -> Result<(), PoseError> {
+    let entries = std::fs::read_dir(dir).map_err(|e| PoseError::io(dir, e))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| PoseError::io(dir, e))?;
+        let path = entry.path();
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') || name == "__MACOSX" {
+            continue;
+        }
+        let kind = entry.file_type().map_err(|e| PoseError::io(&path, e))?;
+        if kind.is_dir() {
+            if depth < MAX_DEPTH {
+                walk(root, &path, depth + 1, found)?;
+            }
+        } else if has_extension(&path, &PHOTO_EXTENSIONS) {
+            found.photos.push(path);
+        } else if has_extension(&path, &VIDEO_EXTENSIONS) {
+            found.videos.push(path);
+        } else {
+            found.ignored.push(path.strip_prefix(root).unwrap_or(&path).display().to_string());
+        }
+        if found.photos.len() > MAX_PHOTOS {
+            return Err(PoseError::Input(format!(
+                "more than {MAX_PHOTOS} photos: pick fewer (every few frames of a sequence are enough)"
+            )));
+        }
+    }
+    Ok(())
+}
+
+pub fn has_extension(path: &Path, exts: &[&str]) -> bool {
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| exts.iter().any(|x| e.eq_ignore_ascii_case(x)))
+}
+
+/// One photo as written into the dataset.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The file name in `images/`.
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    /// Whether it was resized (or turned upright) rather than copied.
+    pub converted: bool,
+}
+
+/// Writes `photos` (found below `root`) into `out` (the dataset's image
+/// folder), each upright and with its longer side at most `max_size`.
+/// Photos keep their format (JPEG or PNG, so a PNG's alpha survives); names
+/// are the paths relative to `root` with `/` turned into `_`. All photos must
+/// end up the same size: one camera, one orientation.
+pub fn prepare(root: &Path, photos: &[PathBuf], out: &Path, max_size: u32) -> Result<Vec<Prepared>, PoseError> {
+    if photos.len() < MIN_PHOTOS {
+        return Err(PoseError::Input(format!(
+            "{} photo{} found; pose estimation needs at least {MIN_PHOTOS} overlapping photos of the scene",
+            photos.len(),
+            if photos.len() == 1 { "" } else { "s" }
+        )));
+    }
+    std::fs::create_dir_all(out).map_err(|e| PoseError::io(out, e))?;
+    let names = flat_names(root, photos)?;
+    let results: Vec<Result<Prepared, PoseError>> =
+        photos.par_iter().zip(&names).map(|(src, name)| prepare_one(src, &out.join(name), name, max_size)).collect();
+    let prepared = results.into_iter().collect::<Result<Vec<_>, _>>()?;
+    check_one_size(&prepared)?;
+    Ok(prepared)
+}
+
+/// Names in the flat image folder, unique (`a/x.jpg` and `b/x.jpg` become
+/// `a_x.jpg` and `b_x.jpg`).
+fn flat_names(root: &Path, photos: &[PathBuf]) -> Result<Vec<String>, PoseError> {
+    let mut seen = BTreeMap::new();
+    let mut names = Vec::with_capacity(photos.len());
+    for p in photos {
+        let rel = p.strip_prefix(root).unwrap_or(p);
+        let name: String = rel
+            .components()
+            .map(|c| c.as_os_str().to_string_lossy().into_owned())
+            .collect::<Vec<_>>()
+            .join("_")
+            .chars()
+            .map(|c| if c.is_ascii_alphanumeric() || "._-".contains(c) { c } else { '_' })
+            .collect();
+        if let Some(other) = seen.insert(name.to_ascii_lowercase(), rel.display().to_string()) {
+            return Err(PoseError::Input(format!(
+                "photos '{other}' and '{}' would have the same name '{name}'; rename one",
+                rel.display()
+            )));
+        }
+        names.push(name);
+    }
+    Ok(names)
+}
+
+fn prepare_one(src: &Path, dst: &Path, name: &str, max_size: u32) -> Result<Prepared, PoseError> {
+    let bad = |m: String| PoseError::Input(format!("photo '{}' {m}", src.display()));
+    let bytes = std::fs::read(src).map_err(|e| PoseError::io(src, e))?;
+    let reader = ImageReader::new(Cursor::new(&bytes)).with_guessed_format().map_err(|e| bad(e.to_string()))?;
+    let format = match reader.format() {
+        Some(f @ (ImageFormat::Jpeg | ImageFormat::Png)) => f,
+        _ => return Err(bad("is not a JPEG or PNG image".into())),
+    };
+    let mut decoder = reader.into_decoder().map_err(|e| bad(format!("cannot be read: {e}")))?;
+    let orientation = decoder.orientation().map_err(|e| bad(format!("has an unreadable orientation: {e}")))?;
+    let mut img = DynamicImage::from_decoder(decoder).map_err(|e| bad(format!("cannot be decoded: {e}")))?;
+    if img.width() == 0 || img.height() == 0 {
+        return Err(bad("is empty".into()));
+    }
+    let upright = orientation == image::metadata::Orientation::NoTransforms;
+    img.apply_orientation(orientation);
+    let (w, h) = (img.width(), img.height());
+    let scale = max_size as f64 / w.max(h) as f64;
+    let write_err = |e: image::ImageError| PoseError::Io { path: dst.to_path_buf(), message: e.to_string() };
+    if scale >= 1.0 && upright {
+        std::fs::write(dst, &bytes).map_err(|e| PoseError::io(dst, e))?;
+        return Ok(Prepared { name: name.to_string(), width: w, height: h, converted: false });
+    }
+    if scale < 1.0 {
+        let nw = ((w as f64 * scale).round() as u32).max(1);
+        let nh = ((h as f64 * scale).round() as u32).max(1);
+        img = img.resize_exact(nw, nh, image::imageops::FilterType::CatmullRom);
+    }
+    match format {
+        ImageFormat::Jpeg => {
+            let file = std::fs::File::create(dst).map_err(|e| PoseError::io(dst, e))?;
+            let mut w = std::io::BufWriter::new(file);
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut w, 95)
+                .encode_image(&img.to_rgb8())
+                .map_err(write_err)?;
+        }
+        _ => img.save_with_format(dst, ImageFormat::Png).map_err(write_err)?,
+    }
+    Ok(Prepared { name: name.to_string(), width: img.width(), height: img.height(), converted: true })
+}
+
+/// All photos one size, or an error that counts each size and names a photo
+/// of each.
+fn check_one_size(prepared: &[Prepared]) -> Result<(), PoseError> {
+    let mut sizes: BTreeMap<(u32, u32), Vec<&str>> = BTreeMap::new();
+    for p in prepared {
+        sizes.entry((p.width, p.height)).or_default().push(&p.name);
+    }
+    if sizes.len() <= 1 {
+        return Ok(());
+    }
+    let mut groups: Vec<_> = sizes.into_iter().collect();
+    groups.sort_by_key(|(_, names)| std::cmp::Reverse(names.len()));
+    let list: Vec<String> =
+        groups.iter().map(|((w, h), names)| format!("{} at {w}x{h} (e.g. {})", names.len(), names[0])).collect();
+    Err(PoseError::Input(format!(
+        "the photos come in {} different sizes: {}; a scene needs photos from one camera at one orientation \
+         (same size after downscaling): leave the others out",
+        groups.len(),
+        list.join(", ")
+    )))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write_png(path: &Path, w: u32, h: u32) {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 7) as u8, (y * 5) as u8, 90]));
+        img.save(path).unwrap();
+    }
+
+    fn write_jpeg(path: &Path, w: u32, h: u32) {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 3) as u8, (y * 2) as u8, 40]));
+        img.save_with_format(path, ImageFormat::Jpeg).unwrap();
+    }
+
+    #[test]
+    fn scan_finds_photos_and_videos_below_and_lists_the_rest() {
+        let d = tempfile::tempdir().unwrap();
+        write_png(&d.path().join("b.png"), 4, 4);
+        write_jpeg(&d.path().join("sub/a.JPG"), 4, 4);
+        std::fs::write(d.path().join("clip.MOV"), b"x").unwrap();
+        std::fs::write(d.path().join("notes.txt"), b"x").unwrap();
+        std::fs::write(d.path().join(".DS_Store"), b"x").unwrap();
+        std::fs::create_dir_all(d.path().join("__MACOSX")).unwrap();
+        std::fs::write(d.path().join("__MACOSX/b.png"), b"x").unwrap();
+        let f = scan(d.path()).unwrap();
+        let rel: Vec<_> = f.photos.iter().map(|p| p.strip_prefix(d.path()).unwrap().display().to_string()).collect();
+        assert_eq!(rel, ["b.png", "sub/a.JPG"]);
+        assert_eq!(f.videos.len(), 1);
+        assert_eq!(f.ignored, ["notes.txt"]);
+    }
+
+    #[test]
+    fn prepare_downscales_keeps_small_photos_and_flattens_names() {
+        let d = tempfile::tempdir().unwrap();
+        let (src, out) = (d.path().join("in"), d.path().join("out"));
+        write_jpeg(&src.join("x/big.jpg"), 400, 300);
+        write_jpeg(&src.join("y/big.jpg"), 400, 300);
+        write_png(&src.join("small.png"), 400, 300);
+        let photos = scan(&src).unwrap().photos;
+        let p = prepare(&src, &photos, &out, 200).unwrap();
+        let names: Vec<_> = p.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(names, ["small.png", "x_big.jpg", "y_big.jpg"]);
+        for q in &p {
+            assert_eq!((q.width, q.height), (200, 150));
+            let img = image::open(out.join(&q.name)).unwrap();
+            assert_eq!((img.width(), img.height()), (200, 150), "{}", q.name);
+        }
+        // Without downscaling a photo is copied byte for byte.
+        let out2 = d.path().join("out2");
+        let p = prepare(&src, &photos, &out2, 800).unwrap();
+        assert!(p.iter().all(|q| !q.converted));
+        assert_eq!(std::fs::read(out2.join("small.png")).unwrap(), std::fs::read(src.join("small.png")).unwrap());
+    }
+
+    #[test]
+    fn bad_photo_sets_are_refused_by_name() {
+        let d = tempfile::tempdir().unwrap();
+        let src = d.path().join("in");
+        write_png(&src.join("only.png"), 8, 8);
+        let photos = scan(&src).unwrap().photos;
+        let e = prepare(&src, &photos, &d.path().join("o1"), 800).unwrap_err().to_string();
+        assert!(e.contains("1 photo found") && e.contains("at least 3"), "{e}");
+
+        write_png(&src.join("b.png"), 8, 8);
+        std::fs::write(src.join("c.jpg"), b"this is not a jpeg").unwrap();
+        let photos = scan(&src).unwrap().photos;
+        let e = prepare(&src, &photos, &d.path().join("o2"), 800).unwrap_err().to_string();
+        assert!(e.contains("c.jpg") && e.contains("not a JPEG or PNG"), "{e}");
+
+        std::fs::remove_file(src.join("c.jpg")).unwrap();
+        write_png(&src.join("tall.png"), 8, 12);
+        write_png(&src.join("tall2.png"), 8, 12);
+        write_png(&src.join("tall3.png"), 8, 12);
+        let photos = scan(&src).unwrap().photos;
+        let e = prepare(&src, &photos, &d.path().join("o3"), 800).unwrap_err().to_string();
+        assert!(e.contains("2 different sizes") && e.contains("3 at 8x12 (e.g. tall.png)"), "{e}");
+        assert!(e.contains("2 at 8x8 (e.g. b.png)"), "{e}");
+    }
+
+    #[test]
+    fn names_that_collide_are_refused() {
+        let d = tempfile::tempdir().unwrap();
+        let photos = vec![d.path().join("a_b.png"), d.path().join("a/b.png")];
+        let e = flat_names(d.path(), &photos).unwrap_err().to_string();
+        assert!(e.contains("same name 'a_b.png'"), "{e}");
+    }
+}

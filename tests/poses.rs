@@ -1,0 +1,321 @@
+//! Pose estimation with the real COLMAP (and ffmpeg for videos), run as
+//! subprocesses on photos this test renders: a textured procedural scene
+//! (SIFT needs texture), whose true cameras the estimated ones must match up
+//! to a similarity transform. CI installs both programs with apt; when they
+//! are missing these tests fail, they do not skip.
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
+
+use radiance::engine::dataset::textured::TexturedScene;
+use radiance::engine::dataset::{Dataset, DatasetFormat, LoadOptions};
+use radiance::engine::geometry::align::{angle_between_deg, mat_mul, similarity};
+use radiance::engine::geometry::camera::Camera;
+use radiance::poses::{self, Matcher, PoseError, PoseOptions, Progress, Stage, Tools, colmap, video};
+
+fn tools() -> Tools {
+    let colmap = colmap::find(None).unwrap_or_else(|e| panic!("these tests need COLMAP: {e}"));
+    let ffmpeg = video::find(None).unwrap_or_else(|e| panic!("these tests need ffmpeg: {e}"));
+    Tools { colmap, ffmpeg: Some(ffmpeg) }
+}
+
+fn opts() -> PoseOptions {
+    PoseOptions { threads: 2, time_limit: Duration::from_secs(300), ..Default::default() }
+}
+
+fn estimate(
+    input: &Path,
+    out: &Path,
+    tools: &Tools,
+    opts: &PoseOptions,
+) -> (Result<poses::PoseReport, PoseError>, Vec<Progress>) {
+    let mut seen = Vec::new();
+    let r = poses::estimate(input, out, tools, opts, &mut |p| seen.push(p), &AtomicBool::new(false));
+    (r, seen)
+}
+
+/// Nothing but `keep` is left in `dir` (no working folders).
+fn only(dir: &Path, keep: &[&str]) {
+    let mut names: Vec<String> =
+        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    assert_eq!(names, keep, "left in {}", dir.display());
+}
+
+fn rotation(c: &Camera) -> [[f64; 3]; 3] {
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| c.c2w[i][j] as f64))
+}
+
+fn centre(c: &Camera) -> [f64; 3] {
+    [0, 1, 2].map(|i| c.c2w[i][3] as f64)
+}
+
+/// The worst camera-centre error (in units of the ring's radius) and
+/// orientation error (degrees) of `estimated` against `truth` after the
+/// best similarity transform between their centres.
+fn pose_errors(truth: &[Camera], estimated: &[Camera]) -> (f64, f64) {
+    let (tc, ec): (Vec<_>, Vec<_>) = (truth.iter().map(centre).collect(), estimated.iter().map(centre).collect());
+    let s = similarity(&ec, &tc).expect("cameras not on a line");
+    let ring = 3.0;
+    let mut worst = (0.0f64, 0.0f64);
+    for (t, e) in truth.iter().zip(estimated) {
+        let p = s.apply(centre(e));
+        let d = (0..3).map(|k| (p[k] - centre(t)[k]).powi(2)).sum::<f64>().sqrt() / ring;
+        let angle = angle_between_deg(&mat_mul(&s.rotation, &rotation(e)), &rotation(t));
+        worst = (worst.0.max(d), worst.1.max(angle));
+    }
+    worst
+}
+
+#[test]
+fn colmap_poses_rendered_photos_as_they_were_rendered() {
+    let tools = tools();
+    let dir = tempfile::tempdir().unwrap();
+    let (photos, out) = (dir.path().join("photos"), dir.path().join("posed"));
+    let scene = TexturedScene::default();
+    let truth = scene.write_photos(&photos).unwrap();
+    let (report, progress) = estimate(&photos, &out, &tools, &opts());
+    let report = report.unwrap();
+    assert_eq!((report.images, report.registered, report.models), (16, 16, 1), "{report:?}");
+    assert!(report.unregistered.is_empty() && report.warnings.is_empty(), "{report:?}");
+    assert_eq!(report.matcher, Matcher::Exhaustive);
+    assert_eq!((report.width, report.height), (320, 240));
+    assert!(report.points > 500, "{} points", report.points);
+    let err = report.mean_reprojection_error_px.expect("model_analyzer reports an error");
+    assert!(err > 0.0 && err < 1.0, "mean reprojection error {err} px");
+    // Progress went through every stage in order and ended at 1.
+    let stages: Vec<Stage> = progress.iter().map(|p| p.stage).fold(Vec::new(), |mut v, s| {
+        if v.last() != Some(&s) {
+            v.push(s)
+        }
+        v
+    });
+    assert_eq!(stages, [Stage::Photos, Stage::Features, Stage::Matching, Stage::Mapping, Stage::Checking]);
+    assert!(progress.windows(2).all(|w| w[1].fraction >= w[0].fraction - 1e-6));
+    assert_eq!(progress.last().unwrap().fraction, 1.0);
+    // The dataset is COLMAP format, complete, and nothing else is left.
+    only(dir.path(), &["photos", "posed"]);
+    only(&out, &["images", "poses.json", "sparse"]);
+    let on_disk: poses::PoseReport = serde_json::from_slice(&std::fs::read(out.join("poses.json")).unwrap()).unwrap();
+    assert_eq!(on_disk, report);
+    let ds = Dataset::load(&out, &LoadOptions { splits: vec![], ..Default::default() }).unwrap();
+    assert_eq!(ds.format, DatasetFormat::Colmap);
+    let estimated: Vec<Camera> = ds.frames.iter().map(|f| f.camera.clone()).collect();
+    let names: Vec<&str> = ds.frames.iter().map(|f| f.name.as_str()).collect();
+    assert_eq!(names, (0..16).map(|k| format!("view_{k:03}")).collect::<Vec<_>>());
+    // Up to a similarity, every camera is where it was rendered from: within
+    // 1.5% of the ring's radius and 1 degree (measured 0.4-0.5% and 0.25-0.4 degrees
+    // in three runs on the 2-core VM).
+    let (d, angle) = pose_errors(&truth, &estimated);
+    eprintln!("worst camera error after alignment: {:.4} of the radius, {angle:.3} degrees", d);
+    assert!(d < 0.015 && angle < 1.0, "centre error {d} of the radius, orientation error {angle} degrees");
+    // And the focal length COLMAP found is the one rendered with (2%).
+    let f = estimated[0].fx / truth[0].fx;
+    assert!((f - 1.0).abs() < 0.02, "focal length ratio {f}");
+}
+
+#[test]
+fn a_video_gives_its_sharp_frames_and_they_pose() {
+    let tools = tools();
+    let dir = tempfile::tempdir().unwrap();
+    // 48 rendered frames around the ring; two of every three blurred, so
+    // the sharp ones are the frames 1, 4, 7, ...
+    let scene = TexturedScene { width: 240, height: 180, views: 48, fov: 0.9 };
+    let frames = dir.path().join("frames");
+    scene.write_photos(&frames).unwrap();
+    for k in 0..48 {
+        if k % 3 != 1 {
+            let p = frames.join(format!("view_{k:03}.png"));
+            image::open(&p).unwrap().blur(2.5).save(&p).unwrap();
+        }
+    }
+    let clip = dir.path().join("walk.mp4");
+    let status = std::process::Command::new(&tools.ffmpeg.as_ref().unwrap().ffmpeg)
+        .args(["-loglevel", "error", "-framerate", "12", "-i"])
+        .arg(frames.join("view_%03d.png"))
+        .args(["-c:v", "libx264", "-crf", "12", "-pix_fmt", "yuv420p"])
+        .arg(&clip)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    // Frame extraction alone: 16 frames from 48 candidates, each the sharp one of its three.
+    let (picked, scratch) = (dir.path().join("picked"), dir.path().join("scratch"));
+    let cancel = AtomicBool::new(false);
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    let names = video::extract(
+        tools.ffmpeg.as_ref().unwrap(),
+        &clip,
+        &picked,
+        &scratch,
+        16,
+        800,
+        deadline,
+        &cancel,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(names.len(), 16);
+    for (k, name) in names.iter().enumerate() {
+        let got = image::open(picked.join(name)).unwrap().to_rgb8();
+        let mse = |i: usize| {
+            let want = image::open(frames.join(format!("view_{i:03}.png"))).unwrap().to_rgb8();
+            got.as_raw().iter().zip(want.as_raw()).map(|(a, b)| (*a as f64 - *b as f64).powi(2)).sum::<f64>()
+                / got.as_raw().len() as f64
+        };
+        let errors: Vec<f64> = (3 * k..3 * k + 3).map(mse).collect();
+        // JPEG and H.264's colour subsampling leave some error even on the
+        // right frame; the blurred neighbours are far further off.
+        assert!(
+            errors[1] < 200.0 && errors[1] * 5.0 < errors[0].min(errors[2]),
+            "frame {name} is not the sharp frame {} (MSE against {}..={}: {errors:?})",
+            3 * k + 1,
+            3 * k,
+            3 * k + 2
+        );
+    }
+    // The whole way: the video in, 16 posed frames out, matched sequentially.
+    let out = dir.path().join("posed");
+    let (report, _) = estimate(&clip, &out, &tools, &PoseOptions { frames: 16, ..opts() });
+    let report = report.unwrap();
+    assert_eq!((report.source.as_str(), report.images, report.matcher), ("video", 16, Matcher::Sequential));
+    assert!(report.registered >= 15, "{report:?}");
+    only(dir.path(), &["frames", "picked", "posed", "scratch", "walk.mp4"]);
+}
+
+#[test]
+fn bad_photo_sets_fail_clearly_and_leave_nothing() {
+    let tools = tools();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let err = |input: &Path, opts: &PoseOptions| {
+        let (r, _) = estimate(input, &out, &tools, opts);
+        let e = r.expect_err("should fail");
+        assert!(!out.exists(), "{} was written after: {e}", out.display());
+        e
+    };
+
+    // Nothing usable in the folder.
+    let junk = dir.path().join("junk");
+    std::fs::create_dir_all(&junk).unwrap();
+    std::fs::write(junk.join("readme.txt"), "hello").unwrap();
+    let e = err(&junk, &opts());
+    assert!(matches!(e, PoseError::Input(_)) && e.to_string().contains("found only: readme.txt"), "{e}");
+
+    // One photo.
+    let one = dir.path().join("one");
+    TexturedScene { views: 1, ..Default::default() }.write_photos(&one).unwrap();
+    let e = err(&one, &opts());
+    assert!(e.to_string().contains("1 photo found"), "{e}");
+
+    // A photo that is not an image.
+    let corrupt = dir.path().join("corrupt");
+    TexturedScene { views: 4, ..Default::default() }.write_photos(&corrupt).unwrap();
+    std::fs::write(corrupt.join("view_002.png"), b"\x89PNG truncated").unwrap();
+    let e = err(&corrupt, &opts());
+    assert!(e.to_string().contains("view_002.png"), "{e}");
+
+    // Photos with nothing in common: noise, each its own.
+    let noise = dir.path().join("noise");
+    std::fs::create_dir_all(&noise).unwrap();
+    let mut state = 0x9e3779b97f4a7c15u64;
+    for k in 0..5 {
+        let img = image::RgbImage::from_fn(160, 120, |_, _| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let v = (state >> 40) as u8;
+            image::Rgb([v, v.wrapping_mul(3), v.wrapping_add(90)])
+        });
+        img.save(noise.join(format!("n{k}.png"))).unwrap();
+    }
+    let e = err(&noise, &opts());
+    assert!(matches!(e, PoseError::Reconstruction(_)), "{e}");
+    assert!(e.to_string().contains("overlap"), "{e}");
+
+    // A time limit too short for the run: COLMAP is stopped, nothing stays.
+    let photos = dir.path().join("photos");
+    TexturedScene::default().write_photos(&photos).unwrap();
+    let t = std::time::Instant::now();
+    let e = err(&photos, &PoseOptions { time_limit: Duration::from_millis(1500), ..opts() });
+    assert!(matches!(e, PoseError::TimedOut { .. }), "{e}");
+    assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
+    assert!(
+        std::process::Command::new("pgrep")
+            .args(["-f", &dir.path().display().to_string()])
+            .status()
+            .map_or(true, |s| !s.success()),
+        "a COLMAP process outlived the timeout"
+    );
+
+    // COLMAP crashing: the real binary, starved of memory, dies mid-run.
+    let starved = dir.path().join("starved-colmap");
+    std::fs::write(&starved, format!("#!/bin/sh\nulimit -v 150000\nexec {} \"$@\"\n", tools.colmap.path.display()))
+        .unwrap();
+    std::fs::set_permissions(&starved, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
+    let crashing =
+        Tools { colmap: radiance::poses::Colmap { path: starved, version: "COLMAP (starved)".into() }, ffmpeg: None };
+    let (r, _) = estimate(&photos, &out, &crashing, &opts());
+    let e = r.expect_err("COLMAP without memory cannot succeed");
+    assert!(matches!(e, PoseError::Tool(_)), "{e}");
+    // (Under this limit COLMAP 3.8 aborts as it starts its threads.)
+    assert!(e.to_string().contains("COLMAP's feature extraction failed: starved-colmap"), "{e}");
+    assert!(!out.exists());
+
+    // An output folder that holds something already is never touched.
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join("keep.txt"), "mine").unwrap();
+    let (r, _) = estimate(&photos, &out, &tools, &opts());
+    let e = r.unwrap_err().to_string();
+    assert!(e.contains("already exists and is not empty"), "{e}");
+    assert_eq!(std::fs::read_to_string(out.join("keep.txt")).unwrap(), "mine");
+
+    let mut names: Vec<String> =
+        std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["corrupt", "junk", "noise", "one", "out", "photos", "starved-colmap"],
+        "working folders left behind"
+    );
+}
+
+#[test]
+fn the_cli_writes_a_dataset_that_train_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let (photos, out) = (dir.path().join("photos"), dir.path().join("posed"));
+    TexturedScene::default().write_photos(&photos).unwrap();
+    let bin = env!("CARGO_BIN_EXE_radiance");
+    let run = std::process::Command::new(bin)
+        .args(["poses", "--threads", "2", "--max-size", "200", "--images"])
+        .arg(&photos)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(run.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&run.stderr));
+    assert!(stdout.contains("posed 16 of 16 photos (200x150)"), "{stdout}");
+    let ckpt = dir.path().join("m.ckpt");
+    let train = std::process::Command::new(bin)
+        .args(["train", "--threads", "2", "--steps", "20", "--data"])
+        .arg(&out)
+        .arg("--out")
+        .arg(&ckpt)
+        .output()
+        .unwrap();
+    assert!(train.status.success(), "{}", String::from_utf8_lossy(&train.stderr));
+    assert!(ckpt.is_file());
+    // A missing COLMAP is named, with how to get it.
+    let missing = std::process::Command::new(bin)
+        .args(["poses", "--colmap", "/nonexistent/colmap", "--images"])
+        .arg(&photos)
+        .arg("--out")
+        .arg(dir.path().join("never"))
+        .output()
+        .unwrap();
+    assert!(!missing.status.success());
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert!(stderr.contains("COLMAP not found") && stderr.contains("apt-get install colmap"), "{stderr}");
+    assert!(!dir.path().join("never").exists());
+}
