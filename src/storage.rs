@@ -25,6 +25,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use redb::{ReadableDatabase, ReadableTable};
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 
+use crate::engine::dataset::{Dataset, Split};
 use crate::engine::geometry::camera::Orbit;
 use crate::engine::geometry::math::Vec3;
 use crate::engine::io::fsio::write_atomic;
@@ -404,11 +405,55 @@ impl ViewDefaults {
     }
 }
 
+/// Whether a scene can be trained on.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SceneStatus {
+    /// Its dataset is stored and valid.
+    #[default]
+    Ready,
+    /// Photos without poses: a `poses` job is estimating them.
+    Posing,
+    /// Pose estimation failed (`error` says why); the scene cannot be trained on.
+    Failed,
+}
+
+impl SceneStatus {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Ready => "ready",
+            Self::Posing => "posing",
+            Self::Failed => "failed",
+        }
+    }
+}
+
+/// The pose estimation of a scene uploaded as photos (or a video) only.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ScenePoses {
+    /// The `poses` job.
+    pub job_id: String,
+    /// `photos` or `video`.
+    pub source: String,
+    /// Photos uploaded (0 for a video, whose frames are counted in `report`).
+    pub photos: usize,
+    /// What the estimation found, once it succeeded.
+    pub report: Option<crate::poses::PoseReport>,
+}
+
 /// A stored scene.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SceneInfo {
     pub id: String,
-    /// `blender`, `ngp` or `llff`.
+    #[serde(default)]
+    pub status: SceneStatus,
+    /// Why pose estimation failed (status `failed`).
+    #[serde(default)]
+    pub error: Option<String>,
+    /// For photo-only uploads: the pose estimation and its results.
+    #[serde(default)]
+    pub poses: Option<ScenePoses>,
+    /// `blender`, `ngp`, `llff` or `colmap` (photo-only uploads become `colmap`).
     pub format: crate::engine::dataset::DatasetFormat,
     pub images: SplitCounts,
     /// `[width, height]` of the first training image.
@@ -420,6 +465,47 @@ pub struct SceneInfo {
     /// The dataset folder relative to the scene folder.
     pub root: String,
     pub view: ViewDefaults,
+}
+
+impl SceneInfo {
+    /// The record of a ready scene whose dataset `ds` (of `size_bytes`) is
+    /// stored in the folder `root` of the scene's folder.
+    pub fn from_dataset(id: &str, ds: &Dataset, size_bytes: u64, root: String) -> SceneInfo {
+        let cam = &ds.frames[ds.train[0]].camera;
+        let centre = ds.centre();
+        let (mut up, mut dist) = (Vec3::splat(0.0), 0.0);
+        for f in ds.split_frames(Split::Train) {
+            up = up + f.camera.rotate(Vec3::new(0.0, 1.0, 0.0));
+            dist += (f.camera.origin() - centre).norm();
+        }
+        let up = up.normalized().unwrap_or(Vec3::new(0.0, 0.0, 1.0));
+        let mut warnings = ds.warnings.clone();
+        if ds.test.is_empty() && ds.val.is_empty() {
+            warnings.push("no held-out views: models of this scene cannot be measured".into());
+        }
+        SceneInfo {
+            id: id.to_string(),
+            status: SceneStatus::Ready,
+            error: None,
+            poses: None,
+            format: ds.format,
+            images: SplitCounts { train: ds.train.len(), val: ds.val.len(), test: ds.test.len() },
+            resolution: [cam.width, cam.height],
+            warnings,
+            created_at: now_ms(),
+            size_bytes,
+            root,
+            view: ViewDefaults {
+                width: cam.width,
+                height: cam.height,
+                fov: (2.0 * (0.5 * cam.width as f32 / cam.fx).atan()).to_degrees(),
+                centre: centre.to_array(),
+                up: up.to_array(),
+                radius: dist / ds.train.len() as f32,
+                far: ds.far,
+            },
+        }
+    }
 }
 
 /// A trained (or training) model.

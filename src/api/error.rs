@@ -130,6 +130,9 @@ impl From<SchedError> for ApiError {
         let message = e.to_string();
         match &e {
             SchedError::SceneNotFound(id) => Self::not_found("scene", id),
+            SchedError::SceneNotReady { scene, status, .. } => {
+                Self::conflict(message).with_details(json!({ "kind": "scene", "id": scene, "status": status }))
+            }
             SchedError::JobNotFound(id) => Self::not_found("job", id),
             SchedError::ModelNotFound(id) => Self::not_found("model", id),
             SchedError::VideoNotFound(id) => Self::not_found("video", id),

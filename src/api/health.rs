@@ -13,8 +13,18 @@ use super::{ApiResult, AppState};
 use crate::jobs::Status;
 use crate::storage::DiskUsage;
 
-pub async fn healthz() -> Json<Value> {
-    Json(json!({ "status": "ok", "version": env!("CARGO_PKG_VERSION") }))
+/// Liveness, the version, and which optional uploads this server takes
+/// (photo-only and video uploads need COLMAP, videos also ffmpeg).
+pub async fn healthz(State(s): State<AppState>) -> Json<Value> {
+    let poses = s.config.scheduler.poses.as_ref();
+    Json(json!({
+        "status": "ok",
+        "version": env!("CARGO_PKG_VERSION"),
+        "features": {
+            "photo_uploads": poses.is_some(),
+            "video_uploads": poses.is_some_and(|p| p.tools.ffmpeg.is_some()),
+        },
+    }))
 }
 
 pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> {

@@ -17,9 +17,13 @@ use axum::http::{StatusCode, header::CONTENT_TYPE};
 use super::archive::{self, ArchiveKind, Limit, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
 use crate::engine::dataset::{Dataset, LoadOptions};
-use crate::engine::geometry::math::Vec3;
+use crate::engine::dataset::{DatasetError, DatasetFormat, detect_format};
 use crate::jobs::SchedError;
-use crate::storage::{SceneInfo, SplitCounts, Storage, ViewDefaults, new_id, now_ms, write_json};
+use crate::jobs::{JobSpec, PosesSpec, poses as poses_job};
+use crate::poses::photos;
+use crate::storage::{
+    SceneInfo, ScenePoses, SceneStatus, SplitCounts, Storage, ViewDefaults, new_id, now_ms, write_json,
+};
 
 pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
     let ct = req.headers().get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
@@ -38,9 +42,9 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
                 ApiError::bad_request(format!("reading the multipart upload: {}", e.body_text()))
             }
         });
-        let storage = s.storage.clone();
+        let s2 = s.clone();
         tokio::task::spawn_blocking(move || match received {
-            Ok(size) => ingest(&storage, &id, &staging, |_| Ok(size)),
+            Ok(size) => ingest(&s2, &id, &staging, |_| Ok(size)),
             Err(e) => {
                 let _ = std::fs::remove_dir_all(&staging);
                 Err(e)
@@ -67,10 +71,10 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
         if body.is_empty() {
             return Err(ApiError::bad_request("empty upload: send the archive as the request body"));
         }
-        let storage = s.storage.clone();
+        let s2 = s.clone();
         tokio::task::spawn_blocking(move || {
-            let (id, staging) = staging(&storage);
-            ingest(&storage, &id, &staging, |data| Ok(archive::extract(kind, &body, data, limits)?))
+            let (id, staging) = staging(&s2.storage);
+            ingest(&s2, &id, &staging, |data| Ok(archive::extract(kind, &body, data, limits)?))
         })
         .await??
     };
@@ -161,17 +165,18 @@ async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) ->
 
 /// Fills `staging/data` with `fill` (returning the bytes written), then
 /// loads, validates and stores the dataset; removes everything on failure.
-fn ingest(
-    storage: &Storage,
-    id: &str,
-    staging: &Path,
-    fill: impl FnOnce(&Path) -> ApiResult<u64>,
-) -> ApiResult<SceneInfo> {
+fn ingest(s: &AppState, id: &str, staging: &Path, fill: impl FnOnce(&Path) -> ApiResult<u64>) -> ApiResult<SceneInfo> {
+    let storage = &s.storage;
     let result = (|| {
         let data = staging.join("data");
         std::fs::create_dir_all(&data)?;
         let size = fill(&data)?;
         let root = archive::dataset_root(&data);
+        if matches!(detect_format(&root), Err(DatasetError::UnknownFormat(_)))
+            && let Some(upload) = photo_upload(s, &data)?
+        {
+            return store_posing(s, id, staging, size, upload);
+        }
         let ds = Dataset::load(&root, &LoadOptions::default()).map_err(|e| {
             // Name files relative to the upload, not the server's folders.
             let mut e = ApiError::from(e);
@@ -183,7 +188,7 @@ fn ingest(
             return Err(ApiError::new(Code::InvalidDataset, "the dataset has no training views"));
         }
         let rel = root.strip_prefix(staging).unwrap_or(Path::new("data")).to_string_lossy().into_owned();
-        let info = scene_info(id, &ds, size, rel);
+        let info = SceneInfo::from_dataset(id, &ds, size, rel);
         write_json(&staging.join("scene.json"), &info)?;
         std::fs::rename(staging, storage.scene_dir(id))?;
         Ok(info)
@@ -194,38 +199,119 @@ fn ingest(
     result
 }
 
-fn scene_info(id: &str, ds: &Dataset, size_bytes: u64, root: String) -> SceneInfo {
-    let cam = &ds.frames[ds.train[0]].camera;
-    let centre = ds.centre();
-    let (mut up, mut dist) = (Vec3::splat(0.0), 0.0);
-    for f in ds.split_frames(crate::engine::dataset::Split::Train) {
-        up = up + f.camera.rotate(Vec3::new(0.0, 1.0, 0.0));
-        dist += (f.camera.origin() - centre).norm();
+/// What a photo-only upload holds.
+struct PhotoUpload {
+    /// `photos` or `video`.
+    source: &'static str,
+    photos: usize,
+    /// Of the first photo, as uploaded (0x0 for a video).
+    resolution: [u32; 2],
+}
+
+/// `Some` when `data` (an upload in no dataset format) holds photos or a
+/// video to estimate poses for; checks what can be checked at once (enough
+/// photos, each an image, pose estimation available), so a bad upload is
+/// refused now rather than failing in its job.
+fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
+    let found = photos::scan(data).map_err(|e| ApiError::new(Code::InvalidDataset, e.to_string()))?;
+    if found.photos.is_empty() && found.videos.is_empty() {
+        return Ok(None);
     }
-    let up = up.normalized().unwrap_or(Vec3::new(0.0, 0.0, 1.0));
-    let mut warnings = ds.warnings.clone();
-    if ds.test.is_empty() && ds.val.is_empty() {
-        warnings.push("no held-out views: models of this scene cannot be measured".into());
+    let rel = |p: &Path| p.strip_prefix(data).unwrap_or(p).display().to_string();
+    let invalid = |m: String| ApiError::new(Code::InvalidDataset, m);
+    let Some(setup) = &s.config.scheduler.poses else {
+        return Err(invalid(
+            "the upload holds photos without camera poses, and pose estimation is disabled on this server: COLMAP \
+             was not found when it started (install it, e.g. `apt-get install colmap`, or give `radiance serve \
+             --colmap PATH`). Upload a posed dataset instead (Blender, transforms.json, LLFF or COLMAP)"
+                .into(),
+        ));
+    };
+    match (found.photos.len(), found.videos.len()) {
+        (0, 1) if setup.tools.ffmpeg.is_none() => Err(invalid(
+            "the upload is a video, and this server cannot read videos: ffmpeg was not found when it started \
+             (apt-get install ffmpeg); upload photos instead"
+                .into(),
+        )),
+        (0, 1) => Ok(Some(PhotoUpload { source: "video", photos: 0, resolution: [0, 0] })),
+        (0, n) => Err(invalid(format!("the upload holds {n} videos; upload one video, or photos"))),
+        (_, 0) => {
+            let n = found.photos.len();
+            if n < photos::MIN_PHOTOS {
+                return Err(invalid(format!(
+                    "the upload holds {n} photo{} and no camera poses; pose estimation needs at least {} \
+                     overlapping photos",
+                    if n == 1 { "" } else { "s" },
+                    photos::MIN_PHOTOS
+                )));
+            }
+            let mut resolution = [0, 0];
+            for (k, p) in found.photos.iter().enumerate() {
+                let (w, h) = image::image_dimensions(p)
+                    .map_err(|e| invalid(format!("'{}' is not a readable JPEG or PNG image: {e}", rel(p))))?;
+                if k == 0 {
+                    resolution = [w, h];
+                }
+            }
+            Ok(Some(PhotoUpload { source: "photos", photos: n, resolution }))
+        }
+        _ => Err(invalid("the upload holds both photos and a video; upload one or the other".into())),
     }
-    SceneInfo {
+}
+
+/// Stores a photo-only upload as a `posing` scene (its files in `upload/`)
+/// and queues its `poses` job. If the job cannot be queued, the scene is
+/// removed again.
+fn store_posing(s: &AppState, id: &str, staging: &Path, size: u64, upload: PhotoUpload) -> ApiResult<SceneInfo> {
+    std::fs::rename(staging.join("data"), staging.join(poses_job::UPLOAD_DIR))?;
+    let [w, h] = upload.resolution;
+    let job_id = new_id("job");
+    let info = SceneInfo {
         id: id.to_string(),
-        format: ds.format,
-        images: SplitCounts { train: ds.train.len(), val: ds.val.len(), test: ds.test.len() },
-        resolution: [cam.width, cam.height],
-        warnings,
+        status: SceneStatus::Posing,
+        error: None,
+        poses: Some(ScenePoses {
+            job_id: job_id.clone(),
+            source: upload.source.into(),
+            photos: upload.photos,
+            report: None,
+        }),
+        format: DatasetFormat::Colmap,
+        images: SplitCounts::default(),
+        resolution: [w, h],
+        warnings: Vec::new(),
         created_at: now_ms(),
-        size_bytes,
-        root,
+        size_bytes: size,
+        root: poses_job::DATA_DIR.into(),
         view: ViewDefaults {
-            width: cam.width,
-            height: cam.height,
-            fov: (2.0 * (0.5 * cam.width as f32 / cam.fx).atan()).to_degrees(),
-            centre: centre.to_array(),
-            up: up.to_array(),
-            radius: dist / ds.train.len() as f32,
-            far: ds.far,
+            width: w,
+            height: h,
+            fov: 0.0,
+            centre: [0.0; 3],
+            up: [0.0, 0.0, 1.0],
+            radius: 0.0,
+            far: 0.0,
         },
-    }
+    };
+    write_json(&staging.join("scene.json"), &info)?;
+    let dir = s.storage.scene_dir(id);
+    std::fs::rename(staging, &dir)?;
+    let spec = JobSpec::Poses(PosesSpec { scene_id: id.to_string() });
+    // The record names the job before the job exists, so the job never
+    // meets a record without it; a crash in between leaves a posing scene
+    // whose job is missing, which the next start marks failed.
+    let job = match s.scheduler.enqueue_as(job_id, spec, None, poses_job::MEMORY_ESTIMATE_BYTES) {
+        Ok(job) => job,
+        Err(e) => {
+            let trash = s.storage.tmp_dir().join(format!("deleted_{id}"));
+            if std::fs::rename(&dir, &trash).is_ok() {
+                let _ = std::fs::remove_dir_all(trash);
+            }
+            return Err(e.into());
+        }
+    };
+    tracing::info!(scene = %id, job = %job.id, source = upload.source, photos = upload.photos, "photo-only scene queued for pose estimation");
+    Ok(info)
 }
 
 pub async fn list(State(s): State<AppState>) -> ApiResult<Json<Vec<SceneInfo>>> {

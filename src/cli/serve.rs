@@ -8,7 +8,9 @@ use clap::Args;
 
 use super::Common;
 use crate::api::{Server, ServiceConfig};
+use crate::jobs::poses::PosesSetup;
 use crate::jobs::{SchedulerConfig, default_memory_budget};
+use crate::poses::Tools;
 
 #[derive(Args, Debug)]
 pub struct ServeArgs {
@@ -57,6 +59,16 @@ pub struct ServeArgs {
     /// Require `Authorization: Bearer KEY` on every route but /healthz.
     #[arg(long, env = "RADIANCE_API_KEY", hide_env_values = true)]
     pub api_key: Option<String>,
+    /// The COLMAP binary for photo-only uploads (default: `colmap` on PATH);
+    /// without it such uploads are refused and everything else works.
+    #[arg(long, env = "RADIANCE_COLMAP")]
+    pub colmap: Option<PathBuf>,
+    /// Longest side of photos posed for photo-only uploads, in pixels.
+    #[arg(long, env = "RADIANCE_POSES_MAX_SIZE", default_value_t = crate::poses::DEFAULT_MAX_SIZE)]
+    pub poses_max_size: u32,
+    /// Time limit of one pose estimation, in minutes.
+    #[arg(long, env = "RADIANCE_POSES_TIME_LIMIT_MIN", default_value_t = 30.0)]
+    pub poses_time_limit_min: f64,
     #[command(flatten)]
     pub common: Common,
 }
@@ -89,6 +101,16 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         budget >> 20
     );
     config.min_free_disk_bytes = a.min_free_disk_mb << 20;
+    anyhow::ensure!(a.poses_max_size >= 64, "--poses-max-size must be at least 64 pixels");
+    let poses_time_limit = std::time::Duration::try_from_secs_f64(a.poses_time_limit_min * 60.0)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .ok_or_else(|| anyhow::anyhow!("--poses-time-limit-min must be a positive number of minutes"))?;
+    let poses = pose_tools(a.colmap.as_deref()).map(|tools| PosesSetup {
+        tools,
+        max_size: a.poses_max_size,
+        time_limit: poses_time_limit,
+    });
     config.scheduler = SchedulerConfig {
         max_concurrent: a.max_concurrent_jobs,
         max_queued: a.max_queued_jobs,
@@ -96,6 +118,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         keep_training_state,
         max_job_memory_bytes: per_job,
         memory_budget_bytes: budget,
+        poses,
         ..SchedulerConfig::default()
     };
     // The runtime only moves bytes: the work runs on the rayon pool.
@@ -117,6 +140,32 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         server.shutdown().await.context("shutting down")?;
         Ok(())
     })
+}
+
+/// COLMAP (and ffmpeg) for photo-only uploads, said plainly in the log
+/// either way: a missing COLMAP disables those uploads only.
+fn pose_tools(colmap: Option<&std::path::Path>) -> Option<Tools> {
+    let colmap = match crate::poses::colmap::find(colmap) {
+        Ok(c) => c,
+        Err(e) => {
+            tracing::warn!("photo-only uploads are disabled: {e}. Posed datasets upload and train as usual");
+            return None;
+        }
+    };
+    let ffmpeg = match crate::poses::video::find(None) {
+        Ok(f) => Some(f),
+        Err(e) => {
+            tracing::warn!("video uploads are disabled: {e}");
+            None
+        }
+    };
+    tracing::info!(
+        colmap = %colmap.path.display(),
+        version = %colmap.version,
+        videos = ffmpeg.is_some(),
+        "photo-only uploads are enabled: their camera poses are estimated with COLMAP"
+    );
+    Some(Tools { colmap, ffmpeg })
 }
 
 /// The API key to require, if any. A key that is set but empty (as

@@ -97,12 +97,20 @@ pub struct VideoSpec {
     pub format: VideoFormat,
 }
 
+/// What a pose-estimation job poses: the photos (or video) uploaded to a
+/// scene in its `upload/` folder, written as a COLMAP dataset to `data/`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PosesSpec {
+    pub scene_id: String,
+}
+
 /// A job's kind and what it does.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum JobSpec {
     Train(Box<TrainSpec>),
     Video(VideoSpec),
+    Poses(PosesSpec),
 }
 
 impl JobSpec {
@@ -110,12 +118,14 @@ impl JobSpec {
         match self {
             JobSpec::Train(_) => "train",
             JobSpec::Video(_) => "video",
+            JobSpec::Poses(_) => "poses",
         }
     }
-    /// The scene a training job reads.
+    /// The scene a training or pose-estimation job works on.
     pub fn scene_id(&self) -> Option<&str> {
         match self {
             JobSpec::Train(t) => Some(&t.scene_id),
+            JobSpec::Poses(p) => Some(&p.scene_id),
             JobSpec::Video(_) => None,
         }
     }
@@ -124,7 +134,8 @@ impl JobSpec {
 /// Where a job is, as clients see it.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct JobProgress {
-    /// Training steps done, or video frames rendered.
+    /// Training steps done, or video frames rendered (pose estimation:
+    /// thousandths of the whole).
     pub step: u64,
     /// Steps (or frames) in all, when known in advance.
     #[serde(default)]
@@ -147,6 +158,10 @@ pub struct JobProgress {
     /// Rollbacks to the last good parameters, each halving the learning rate.
     #[serde(default)]
     pub rollbacks: u32,
+    /// Pose estimation: the stage running (`preparing photos`, `feature
+    /// extraction`, `matching`, `mapping`, ...).
+    #[serde(default)]
+    pub stage: Option<String>,
 }
 
 /// A job record.

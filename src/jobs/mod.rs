@@ -16,12 +16,13 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::storage::{Storage, new_id, now_ms};
-pub use job::{Job, JobBudget, JobProgress, JobSpec, Status, TrainSpec, VideoSpec};
+use crate::storage::{SceneStatus, Storage, new_id, now_ms};
+pub use job::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec};
 use store::{JobStore, Record};
 
 mod job;
 mod lifecycle;
+pub mod poses;
 mod retention;
 mod store;
 pub mod train;
@@ -50,6 +51,9 @@ pub struct SchedulerConfig {
     /// Estimated peak memory of all running jobs together: a job waits
     /// while starting it would pass this.
     pub memory_budget_bytes: u64,
+    /// COLMAP (and ffmpeg) for photo-only uploads; `None` when missing, and
+    /// such uploads are refused.
+    pub poses: Option<poses::PosesSetup>,
 }
 
 impl Default for SchedulerConfig {
@@ -64,6 +68,7 @@ impl Default for SchedulerConfig {
             keep_training_state: Duration::from_secs(24 * 3600),
             max_job_memory_bytes: default_memory_budget(),
             memory_budget_bytes: default_memory_budget(),
+            poses: None,
         }
     }
 }
@@ -80,6 +85,8 @@ pub fn default_memory_budget() -> u64 {
 pub enum SchedError {
     #[error("scene '{0}' not found")]
     SceneNotFound(String),
+    #[error("scene '{scene}' is {status}{}: only a ready scene can be trained on", reason.as_deref().map(|r| format!(" ({r})")).unwrap_or_default())]
+    SceneNotReady { scene: String, status: &'static str, reason: Option<String> },
     #[error("the queue is full ({0} jobs waiting)")]
     QueueFull(usize),
     #[error("scene '{scene}' is used by job '{job}' ({status})")]
@@ -205,6 +212,13 @@ impl Scheduler {
         for path in retention::remove_orphans(&storage, &st.jobs)? {
             tracing::info!(path = %path, "removed a file without a record");
         }
+        // Scenes still posing whose job ended (or never was queued).
+        for scene in storage.list_scenes()?.into_iter().filter(|s| s.status == SceneStatus::Posing) {
+            let job = scene.poses.as_ref().and_then(|p| st.jobs.get(&p.job_id));
+            if job.is_none_or(|j| j.status.is_final()) {
+                poses::settle(&storage, &scene.id, job);
+            }
+        }
         let shared = Arc::new(Shared {
             state: Mutex::new(st),
             wake: Condvar::new(),
@@ -228,7 +242,20 @@ impl Scheduler {
     /// committed. A training job needs its scene; a video job needs a model
     /// (`model_id`).
     pub fn enqueue(&self, spec: JobSpec, model_id: Option<String>, memory_estimate: u64) -> Result<Job, SchedError> {
-        let record = self.reserve(spec, model_id, memory_estimate)?;
+        self.enqueue_as(new_id("job"), spec, model_id, memory_estimate)
+    }
+
+    /// [`Self::enqueue`] with the job's id chosen by the caller (from
+    /// `storage::new_id("job")`), for records that must name the job before
+    /// it can start.
+    pub fn enqueue_as(
+        &self,
+        id: String,
+        spec: JobSpec,
+        model_id: Option<String>,
+        memory_estimate: u64,
+    ) -> Result<Job, SchedError> {
+        let record = self.reserve(id, spec, model_id, memory_estimate)?;
         // Outside the lock; the job is `enqueuing` meanwhile, so deleting its
         // scene or model is refused as when it is queued.
         let written = self.shared.store.put(&record);
@@ -247,13 +274,30 @@ impl Scheduler {
 
     /// Checks an enqueue under the lock and holds the new job as
     /// `enqueuing`; its record is to be written.
-    fn reserve(&self, spec: JobSpec, model_id: Option<String>, memory_estimate: u64) -> Result<Record, SchedError> {
+    fn reserve(
+        &self,
+        id: String,
+        spec: JobSpec,
+        model_id: Option<String>,
+        memory_estimate: u64,
+    ) -> Result<Record, SchedError> {
         let mut st = self.shared.lock();
         let storage = &self.shared.storage;
         match &spec {
             JobSpec::Train(t) => {
-                if storage.load_scene(&t.scene_id)?.is_none() {
-                    return Err(SchedError::SceneNotFound(t.scene_id.clone()));
+                let scene =
+                    storage.load_scene(&t.scene_id)?.ok_or_else(|| SchedError::SceneNotFound(t.scene_id.clone()))?;
+                if scene.status != SceneStatus::Ready {
+                    let reason = match scene.status {
+                        SceneStatus::Posing => Some("its poses are being estimated".to_string()),
+                        _ => scene.error.clone(),
+                    };
+                    return Err(SchedError::SceneNotReady { scene: scene.id, status: scene.status.name(), reason });
+                }
+            }
+            JobSpec::Poses(p) => {
+                if storage.load_scene(&p.scene_id)?.is_none() {
+                    return Err(SchedError::SceneNotFound(p.scene_id.clone()));
                 }
             }
             JobSpec::Video(_) => {
@@ -267,8 +311,11 @@ impl Scheduler {
         if waiting >= self.shared.config.max_queued {
             return Err(SchedError::QueueFull(waiting));
         }
+        if st.jobs.contains_key(&id) || st.enqueuing.contains_key(&id) {
+            return Err(SchedError::Io(io::Error::other(format!("job id '{id}' is taken"))));
+        }
         let job = Job {
-            id: new_id("job"),
+            id,
             seq: st.next_seq,
             status: Status::Queued,
             spec,
@@ -338,6 +385,7 @@ impl Scheduler {
             }
         };
         self.shared.store.put(&record)?;
+        settle_scene(&self.shared, &record.job);
         Ok(record.job)
     }
 
@@ -393,7 +441,7 @@ fn count_crash(storage: &Storage, j: &mut Job) {
             .ok()
             .flatten()
             .is_some_and(|m| j.started_at.is_some_and(|s| m.updated_at > s)),
-        JobSpec::Video(_) => false,
+        JobSpec::Video(_) | JobSpec::Poses(_) => false,
     };
     j.crashes = if saved_since_start { 1 } else { j.crashes + 1 };
     if j.crashes >= MAX_CRASHES {
@@ -420,6 +468,7 @@ fn scheduler_loop(shared: &Arc<Shared>) {
             drop(st);
             for r in &records {
                 shared.persist_logged(r, "end");
+                settle_scene(shared, &r.job);
             }
             st = shared.lock();
         }
@@ -510,6 +559,7 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
     let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &job.spec {
         JobSpec::Train(spec) => train::run(shared, &job, spec, &cancel),
         JobSpec::Video(spec) => video::run(shared, &job, spec, &cancel),
+        JobSpec::Poses(spec) => poses::run(shared, &job, spec, &cancel),
     }))
     .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
     let record = finish(shared, &mut shared.lock(), &id, outcome);
@@ -517,6 +567,17 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
     // Before the thread ends: shutdown joins it, then closes the database.
     if let Some(r) = record {
         shared.persist_logged(&r, "end");
+        settle_scene(shared, &r.job);
+    }
+}
+
+/// After a pose-estimation job's final record: its scene, if the job did
+/// not succeed, becomes `failed` (see `poses::settle`).
+fn settle_scene(shared: &Shared, job: &Job) {
+    if let JobSpec::Poses(p) = &job.spec
+        && job.status.is_final()
+    {
+        poses::settle(&shared.storage, &p.scene_id, Some(job));
     }
 }
 

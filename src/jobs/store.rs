@@ -139,6 +139,9 @@ mod tests {
             far: 2.0,
         };
         let scene = SceneInfo {
+            status: Default::default(),
+            error: None,
+            poses: None,
             id: "scn_a".into(),
             format: DatasetFormat::Blender,
             images: SplitCounts { train: 1, val: 0, test: 0 },

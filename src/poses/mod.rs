@@ -226,7 +226,8 @@ pub fn estimate(
     };
 
     // 1. Photos, or a video's frames, into dataset/images.
-    let Gathered { source, names, size } = gather(input, &work.0, &images, tools, opts, deadline, cancel, &mut report_stage)?;
+    let Gathered { source, names, size } =
+        gather(input, &work.0, &images, tools, opts, deadline, cancel, &mut report_stage)?;
     let mut seconds = StageSeconds { prepare: started.elapsed().as_secs_f64(), ..Default::default() };
 
     // 2. COLMAP.

@@ -8,5 +8,6 @@ mod common;
 mod auth;
 mod jobs;
 mod openapi;
+mod poses;
 mod restart;
 mod uploads;

@@ -1,0 +1,139 @@
+//! A pose-estimation job: the photos (or video) of a scene uploaded without
+//! camera poses, in `scenes/ID/upload/`, become a COLMAP dataset in
+//! `scenes/ID/data/` (`crate::poses::estimate`, which writes it whole or
+//! not at all), and the scene record becomes `ready` with the estimation's
+//! report, or `failed` with the reason.
+//!
+//! Restart-safe like every job: an interrupted run leaves at most a working
+//! folder beside `data/`, removed when the job runs again; a run that
+//! finished the dataset but not the record finds `data/poses.json` and only
+//! writes the record. A job that ends without success (failed, canceled,
+//! or lost before it was queued) marks its scene `failed` ([`settle`]).
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::time::{Duration, Instant};
+
+use super::{Job, Outcome, PosesSpec, Shared, Status, set_progress};
+use crate::engine::dataset::{Dataset, LoadOptions};
+use crate::poses::{self, PoseError, PoseOptions, PoseReport, Tools};
+use crate::storage::{SceneInfo, SceneStatus, Storage, read_json_opt, tree_bytes, write_json};
+
+/// The folder of a posing scene holding the photos as uploaded.
+pub const UPLOAD_DIR: &str = "upload";
+
+/// The folder the posed dataset is written to.
+pub const DATA_DIR: &str = "data";
+
+/// The memory a pose estimation is counted for (COLMAP's CPU SIFT and
+/// mapper on photos of at most `max_size` pixels stay well below it).
+pub const MEMORY_ESTIMATE_BYTES: u64 = 1 << 30;
+
+/// What the service runs photo-only uploads with.
+#[derive(Clone, Debug)]
+pub struct PosesSetup {
+    pub tools: Tools,
+    pub max_size: u32,
+    pub time_limit: Duration,
+}
+
+pub(crate) fn run(shared: &Shared, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Outcome {
+    match pose(shared, job, spec, cancel) {
+        Ok(()) => Outcome::Succeeded,
+        Err(PoseError::Cancelled) => Outcome::Stopped,
+        Err(e) => Outcome::Failed(e.to_string()),
+    }
+}
+
+fn pose(shared: &Shared, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Result<(), PoseError> {
+    let storage = &shared.storage;
+    let dir = storage.scene_dir(&spec.scene_id);
+    let fail = |m: String| PoseError::Io { path: dir.clone(), message: m };
+    let scene = storage
+        .load_scene(&spec.scene_id)
+        .map_err(|e| fail(e.to_string()))?
+        .ok_or_else(|| PoseError::Input(format!("scene '{}' no longer exists", spec.scene_id)))?;
+    if scene.status == SceneStatus::Ready {
+        return Ok(()); // finished before a restart
+    }
+    let setup = shared.config.poses.as_ref().ok_or_else(|| {
+        PoseError::Tool("COLMAP is not available on this server (it was not found at start-up)".into())
+    })?;
+    remove_leftovers(&dir);
+    let data = dir.join(DATA_DIR);
+    let report_file = data.join(poses::REPORT_FILE);
+    let report: PoseReport = match read_json_opt(&report_file).map_err(|e| fail(e.to_string()))? {
+        Some(r) => r,
+        None => {
+            let opts = PoseOptions {
+                max_size: setup.max_size,
+                threads: rayon::current_num_threads(),
+                time_limit: setup.time_limit,
+                ..PoseOptions::default()
+            };
+            let started = Instant::now();
+            let mut on_progress = |p: poses::Progress| {
+                let elapsed = started.elapsed().as_secs_f64();
+                let f = p.fraction as f64;
+                set_progress(shared, &job.id, |j| {
+                    j.progress.step = (f * 1000.0).round() as u64;
+                    j.progress.total_steps = Some(1000);
+                    j.progress.elapsed = elapsed;
+                    j.progress.eta = (f > 0.05).then(|| elapsed * (1.0 - f) / f);
+                    j.progress.stage = Some(p.stage.name().to_string());
+                });
+            };
+            poses::estimate(&dir.join(UPLOAD_DIR), &data, &setup.tools, &opts, &mut on_progress, cancel)?
+        }
+    };
+    let ds = Dataset::load(&data, &LoadOptions::default())
+        .map_err(|e| PoseError::Reconstruction(format!("the posed dataset does not load: {e}")))?;
+    let size = tree_bytes(&data).map_err(|e| fail(e.to_string()))?;
+    let mut ready = SceneInfo::from_dataset(&scene.id, &ds, size, DATA_DIR.into());
+    ready.created_at = scene.created_at;
+    ready.warnings.extend(report.warnings.iter().cloned());
+    ready.poses = scene.poses.map(|p| crate::storage::ScenePoses { report: Some(report), ..p });
+    write_json(&storage.scene_record(&scene.id), &ready).map_err(|e| fail(e.to_string()))?;
+    // The photos are in `data/images` now, downscaled as trained on.
+    let _ = std::fs::remove_dir_all(dir.join(UPLOAD_DIR));
+    tracing::info!(scene = %scene.id, registered = ready.images.train + ready.images.test, "scene posed");
+    Ok(())
+}
+
+/// Working folders of an estimation cut short (`.data.posing-*`).
+fn remove_leftovers(dir: &Path) {
+    let prefix = format!(".{DATA_DIR}.posing-");
+    for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        if e.file_name().to_string_lossy().starts_with(&prefix) {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
+/// Marks the scene of a pose-estimation job `failed` when the job ended
+/// without success (`job` is `None` when the scene's job does not exist:
+/// the server stopped between storing the scene and queueing its job).
+/// Does nothing to scenes that are not posing by this job.
+pub(crate) fn settle(storage: &Storage, scene_id: &str, job: Option<&Job>) {
+    let reason = match job {
+        None => "the server stopped before the pose estimation was queued; upload the photos again".to_string(),
+        Some(j) if j.status == Status::Canceled => "pose estimation was canceled".to_string(),
+        Some(j) if j.status == Status::Failed => {
+            format!("pose estimation failed: {}", j.error.as_deref().unwrap_or("no reason recorded"))
+        }
+        Some(_) => return,
+    };
+    let Ok(Some(mut scene)) = storage.load_scene(scene_id) else { return };
+    let job_id = scene.poses.as_ref().map(|p| p.job_id.as_str());
+    if scene.status != SceneStatus::Posing || (job.is_some() && job_id != job.map(|j| j.id.as_str())) {
+        return;
+    }
+    scene.status = SceneStatus::Failed;
+    scene.error = Some(reason);
+    match write_json(&storage.scene_record(scene_id), &scene) {
+        Ok(()) => {
+            let _ = std::fs::remove_dir_all(storage.scene_dir(scene_id).join(UPLOAD_DIR));
+        }
+        Err(e) => tracing::error!(scene = %scene_id, error = %e, "cannot record the failed pose estimation"),
+    }
+}
