@@ -65,8 +65,11 @@ fn headless(cmd: &mut Command) {
 pub enum Matcher {
     /// Every pair: the most robust, quadratic in the number of photos.
     Exhaustive,
-    /// Each photo with the next ones in name order (and a few far ones):
-    /// linear, for frames of a video or photos taken in a sequence.
+    /// Each photo with the next [`SEQUENTIAL_OVERLAP`] in name order, and
+    /// every pair among [`KEYFRAMES`] evenly spaced photos so the end of a
+    /// walk-around meets its start (loop closure; COLMAP's own needs a
+    /// vocabulary tree file it would download): about linear, for frames of
+    /// a video or photos taken in a sequence.
     Sequential,
 }
 
@@ -77,6 +80,32 @@ impl Matcher {
             Self::Sequential => "sequential",
         }
     }
+}
+
+/// Neighbours in name order each photo is matched with (sequential).
+pub const SEQUENTIAL_OVERLAP: usize = 10;
+
+/// Evenly spaced photos matched with each other (sequential).
+pub const KEYFRAMES: usize = 40;
+
+/// The pairs (indices into the photos in name order, `i < j`) sequential
+/// matching matches: each photo with the next `overlap`, and every pair of
+/// `keyframes` evenly spaced ones.
+pub fn sequential_pairs(n: usize, overlap: usize, keyframes: usize) -> Vec<(usize, usize)> {
+    let mut pairs = std::collections::BTreeSet::new();
+    for i in 0..n {
+        for j in i + 1..(i + 1 + overlap).min(n) {
+            pairs.insert((i, j));
+        }
+    }
+    let k = keyframes.min(n);
+    let key: Vec<usize> = (0..k).map(|a| a * n / k).collect();
+    for (a, &i) in key.iter().enumerate() {
+        for &j in &key[a + 1..] {
+            pairs.insert((i, j));
+        }
+    }
+    pairs.into_iter().collect()
 }
 
 /// The three steps of a reconstruction.
@@ -103,7 +132,8 @@ pub struct Run<'a> {
     /// Holds `database.db` and the `sparse/` output.
     pub work: &'a Path,
     pub images: &'a Path,
-    pub image_count: usize,
+    /// The photos' file names in `images`, in name order.
+    pub names: &'a [String],
     pub threads: usize,
     pub matcher: Matcher,
     pub deadline: Instant,
@@ -122,7 +152,7 @@ impl Run<'_> {
     /// COLMAP's output tells it.
     pub fn step(&self, step: Step, progress: &mut dyn FnMut(f32)) -> Result<(), RunError> {
         let threads = self.threads.to_string();
-        let n = self.image_count;
+        let n = self.names.len();
         let cmd = match step {
             Step::Features => {
                 let mut c = self.command("feature_extractor");
@@ -131,21 +161,28 @@ impl Run<'_> {
                 c.args(["--SiftExtraction.use_gpu", "0", "--SiftExtraction.num_threads", &threads]);
                 c
             }
-            Step::Matching => {
-                let mut c = self.command(match self.matcher {
-                    Matcher::Exhaustive => "exhaustive_matcher",
-                    Matcher::Sequential => "sequential_matcher",
-                });
-                c.args(["--SiftMatching.use_gpu", "0", "--SiftMatching.num_threads", &threads]);
-                match self.matcher {
+            Step::Matching => match self.matcher {
+                Matcher::Exhaustive => {
+                    let mut c = self.command("exhaustive_matcher");
+                    c.args(["--SiftMatching.use_gpu", "0", "--SiftMatching.num_threads", &threads]);
                     // Blocks of 25 photos: progress in steps of 1/16 up to 100 photos.
-                    Matcher::Exhaustive => c.args(["--ExhaustiveMatching.block_size", "25"]),
-                    Matcher::Sequential => {
-                        c.args(["--SequentialMatching.overlap", "12", "--SequentialMatching.quadratic_overlap", "1"])
-                    }
-                };
-                c
-            }
+                    c.args(["--ExhaustiveMatching.block_size", "25"]);
+                    c
+                }
+                Matcher::Sequential => {
+                    let list = self.work.join("pairs.txt");
+                    let text: String = sequential_pairs(n, SEQUENTIAL_OVERLAP, KEYFRAMES)
+                        .into_iter()
+                        .map(|(i, j)| format!("{} {}\n", self.names[i], self.names[j]))
+                        .collect();
+                    std::fs::write(&list, text)
+                        .map_err(|source| RunError::Spawn { program: "colmap matches_importer".into(), source })?;
+                    let mut c = self.command("matches_importer");
+                    c.arg("--match_list_path").arg(list).args(["--match_type", "pairs"]);
+                    c.args(["--SiftMatching.use_gpu", "0", "--SiftMatching.num_threads", &threads]);
+                    c
+                }
+            },
             Step::Mapping => {
                 let sparse = self.work.join("sparse");
                 std::fs::create_dir_all(&sparse)
@@ -200,7 +237,8 @@ impl Run<'_> {
 
 /// The fraction of `step` done that a line of COLMAP 3.x's output tells:
 /// `Processed file [i/n]` (features), `Matching block [a/A, b/B]`
-/// (exhaustive), `Matching image [i/n]` (sequential), `Registering image #id
+/// (exhaustive), `Matching block [i/n]` (a list of pairs), `Matching image
+/// [i/n]` (COLMAP's sequential matcher), `Registering image #id
 /// (k)` with k images registered so far (mapping).
 pub fn parse_progress(step: Step, line: &str, images: usize) -> Option<f32> {
     let line = line.trim();
@@ -222,6 +260,8 @@ pub fn parse_progress(step: Step, line: &str, images: usize) -> Option<f32> {
                 // Blocks are visited row by row: [row/rows, col/cols].
                 match v[..] {
                     [(r, rs), (c, cs)] => Some(((r - 1.0) * cs + c) / (rs * cs)),
+                    // A list of pairs, in blocks.
+                    [(b, bs)] => Some(b / bs),
                     _ => None,
                 }
             } else {
@@ -252,12 +292,28 @@ mod tests {
         assert_eq!(parse_progress(Step::Mapping, "Registering image #16 (3)", 50), Some(0.06));
         assert_eq!(parse_progress(Step::Mapping, "Registering image #16 (50)", 50), Some(1.0));
         // Nonsense is ignored, not a panic or a fraction out of range.
-        for junk in ["Processed file [0/0]", "Processed file [9/3]", "Matching block [1/2]", "Registering image #", ""]
+        assert_eq!(parse_progress(Step::Matching, "Matching block [3/4] in 1.0s", 48), Some(0.75));
+        for junk in
+            ["Processed file [0/0]", "Processed file [9/3]", "Matching block [1/2, 3]", "Registering image #", ""]
         {
             for step in [Step::Features, Step::Matching, Step::Mapping] {
                 assert_eq!(parse_progress(step, junk, 0), None, "{junk:?}");
             }
         }
+    }
+
+    #[test]
+    fn sequential_pairs_join_neighbours_and_close_the_loop() {
+        let p = sequential_pairs(6, 2, 3);
+        // Neighbours (0,1) (0,2) (1,2) ... and keyframes 0, 2, 4 with each other.
+        assert_eq!(p, [(0, 1), (0, 2), (0, 4), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4), (3, 5), (4, 5)]);
+        // Few photos: every pair, once.
+        assert_eq!(sequential_pairs(4, 10, 40).len(), 6);
+        // Many: about n * overlap + keyframes^2 / 2, and the first meets the last keyframe.
+        let p = sequential_pairs(1000, 10, 40);
+        assert!(p.len() < 1000 * 10 + 40 * 39 / 2 && p.len() > 9000, "{}", p.len());
+        assert!(p.contains(&(0, 975)));
+        assert!(p.iter().all(|&(i, j)| i < j && j < 1000));
     }
 
     #[test]

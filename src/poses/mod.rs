@@ -236,11 +236,13 @@ pub fn estimate(
     } else {
         Matcher::Exhaustive
     });
+    let mut sorted_names = names.clone();
+    sorted_names.sort();
     let run = colmap::Run {
         colmap: &tools.colmap,
         work: &work.0.join("colmap"),
         images: &images,
-        image_count: names.len(),
+        names: &sorted_names,
         threads: opts.threads.max(1),
         matcher,
         deadline,
