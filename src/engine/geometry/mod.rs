@@ -3,4 +3,6 @@
 
 pub mod camera;
 pub mod math;
+pub mod path;
+pub mod quat;
 pub mod scene;
