@@ -71,9 +71,10 @@ pub fn around(router: Router, max_body_bytes: u64, cors_origins: &[String]) -> R
         })
         .on_failure(DefaultOnFailure::new().level(Level::WARN));
     let mut router = router
-        .layer(axum::middleware::from_fn(move |req: Request, next: Next| envelopes(req, next, max_body_bytes)))
         .layer(RequestBodyTimeoutLayer::new(BODY_IDLE_TIMEOUT))
         .layer(RequestBodyLimitLayer::new(limit))
+        // Outside the limit, whose 413 it wraps.
+        .layer(axum::middleware::from_fn(move |req: Request, next: Next| envelopes(req, next, max_body_bytes)))
         .layer(CompressionLayer::new().gzip(true).compress_when(compress))
         .layer(PropagateRequestIdLayer::new(x_request_id.clone()))
         .layer(trace)

@@ -1,16 +1,18 @@
-//! The command line: `radiance train | render | eval | bench | serve`.
+//! The command line: `radiance demo | train | render | eval | bench | serve`.
 
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
 mod bench;
+mod demo;
 mod eval;
 mod serve;
 mod setup;
 mod train;
 
 pub use bench::{BenchArgs, BenchReport, BenchRow};
+pub use demo::DemoArgs;
 pub use eval::{EvalArgs, RenderArgs};
 pub use serve::ServeArgs;
 pub use train::TrainArgs;
@@ -25,6 +27,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// No data needed: generate a demo scene, train it briefly, write an orbit video.
+    Demo(DemoArgs),
     /// Train a model on a dataset's training views.
     Train(TrainArgs),
     /// Render every view of a split to PNG files named by the frames' file stems.
@@ -75,6 +79,7 @@ pub struct DataArgs {
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Demo(a) => demo::run(a),
         Command::Train(a) => train::run(a),
         Command::Render(a) => eval::render(a),
         Command::Eval(a) => eval::eval(a),

@@ -10,3 +10,4 @@ mod jobs;
 mod openapi;
 mod restart;
 mod uploads;
+mod web;
