@@ -267,7 +267,7 @@ function setupScenes() {
 
 // ----------------------------------------------------------- training ----
 
-const training = { id: null, abort: null, points: [], lastPreview: 0, previewBusy: false, modelId: null, lastStep: null };
+const training = { id: null, abort: null, points: [], lastPreview: 0, previewBusy: false, modelId: null, lastStep: null, shown: null };
 
 async function refreshJobs() {
   await refreshScenes();
@@ -283,7 +283,7 @@ async function refreshJobs() {
 function watchJob(job) {
   if (training.abort) training.abort.abort();
   training.abort = new AbortController();
-  Object.assign(training, { id: job.id, points: [], lastPreview: 0, modelId: null, lastStep: null });
+  Object.assign(training, { id: job.id, points: [], lastPreview: 0, modelId: null, lastStep: null, shown: null });
   $('job-panel').hidden = false;
   $('job-id').textContent = job.id;
   $('preview').removeAttribute('src');
@@ -321,13 +321,21 @@ function showJob(job) {
   }
 }
 
-/** Renders the fixed preview view of the job's model (one request at a time). */
+/**
+ * Renders the fixed preview view of the job's model when its checkpoint
+ * has changed (one request at a time; the server saves a checkpoint every
+ * --checkpoint-every seconds of training).
+ */
 async function refreshPreview(force) {
   if (training.previewBusy && !force) return;
   training.previewBusy = true;
   training.lastPreview = performance.now();
   try {
     const id = training.modelId;
+    const model = await getJson(`/v1/models/${id}`);
+    const version = `${id}@${model.updated_at}`;
+    if (version === training.shown) return;
+    training.shown = version;
     const blob = await (await api(`/v1/models/${id}/render?azimuth=30&elevation=25&width=240&height=240`)).blob();
     const img = $('preview');
     const old = img.src;
@@ -466,11 +474,15 @@ function lookAt(from, at, up) {
 
 const c2w = () => lookAt(eye(), viewer.target, v3.unit(viewer.model.view.up));
 
-/** Full-resolution size: the size the image is shown at (512 pixels wide), with the training cameras' aspect. */
+/**
+ * Full-resolution size: the training cameras' (at least 256 pixels on the
+ * long side, so small scenes are not a blur), at most the size the image is
+ * shown at (512 pixels wide) and the server's cap.
+ */
 function fullSize() {
   const { width, height } = viewer.model.view;
   const shown = $('view-img').clientWidth || 512;
-  const s = Math.min(shown / width, Math.sqrt(1048576 / (width * height)));
+  const s = Math.min(Math.max(1, 256 / Math.max(width, height)), shown / width, Math.sqrt(1048576 / (width * height)));
   return [Math.max(1, Math.round(width * s)), Math.max(1, Math.round(height * s))];
 }
 

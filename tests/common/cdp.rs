@@ -138,7 +138,7 @@ impl Page {
         let addr = url.trim_start_matches("ws://").split('/').next().unwrap();
         let stream = TcpStream::connect(addr).unwrap();
         let (ws, _) = tungstenite::client(url, stream).unwrap();
-        ws.get_ref().set_read_timeout(Some(Duration::from_millis(200))).unwrap();
+        ws.get_ref().set_read_timeout(Some(Duration::from_millis(5))).unwrap();
         let mut page = Page { ws, next_id: 0, errors: Vec::new() };
         for domain in ["Page.enable", "Runtime.enable", "Log.enable", "DOM.enable"] {
             page.call(domain, json!({}));
