@@ -104,7 +104,7 @@ fn demo_needs_no_data() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("demo");
     let o = out.to_str().unwrap();
-    let printed = ok(&radiance(&["demo", "--out", o, "--seconds", "4", "--frames", "4"]));
+    let printed = ok(&radiance(&["demo", "--out", o, "--steps", "200", "--frames", "4"]));
     let video = out.join(if cfg!(feature = "mp4") { "orbit.mp4" } else { "orbit.gif" });
     assert_eq!(printed.trim(), video.to_str().unwrap());
     let bytes = std::fs::read(&video).unwrap();

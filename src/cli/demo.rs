@@ -32,6 +32,9 @@ pub struct DemoArgs {
     /// Seconds of training.
     #[arg(long, default_value_t = 15.0)]
     pub seconds: f64,
+    /// Train this many steps instead (the same model whatever the machine's load).
+    #[arg(long, conflicts_with = "seconds")]
+    pub steps: Option<u64>,
     /// Frames of the orbit video (30 per second).
     #[arg(long, default_value_t = 60)]
     pub frames: u32,
@@ -55,10 +58,19 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         demo.size,
         scene_dir.display()
     );
-    eprintln!("training the fast model for {} s on {threads} threads...", a.seconds);
+    let budget = match a.steps {
+        Some(n) => {
+            anyhow::ensure!(n > 0, "--steps must be at least 1");
+            eprintln!("training the fast model for {n} steps on {threads} threads...");
+            Budget { steps: Some(n), seconds: None }
+        }
+        None => {
+            eprintln!("training the fast model for {} s on {threads} threads...", a.seconds);
+            Budget { steps: None, seconds: Some(a.seconds) }
+        }
+    };
     let checkpoint = a.out.join("model.ckpt");
     let (config, model, adam) = new_model_and_adam("instant", Scene::from_dataset(&ds), 0, true, None, &[])?;
-    let budget = Budget { steps: None, seconds: Some(a.seconds) };
     let train = config.train_config(0, crate::engine::models::config::DEFAULT_BATCH_RAYS, budget);
     let session_config = SessionConfig { train, out: checkpoint.clone(), checkpoint_every: 1e9, held_out: None };
     let mut session = Session::new(Start::Fresh { model, adam }, session_config, &ds)?;

@@ -5,7 +5,7 @@
 //! `window.radianceStats`). Ignored: it needs a dataset folder and a
 //! built server binary, and takes two minutes.
 //!
-//!     RADIANCE_TRIAL_DATA=/path/to/nerf_synthetic/lego RADIANCE_BIN=target/release/radiance \
+//!     TRIAL_DATA=/path/to/nerf_synthetic/lego TRIAL_BIN=target/release/radiance \
 //!         cargo test --release --test browser trial -- --ignored --nocapture
 
 use std::time::{Duration, Instant};
@@ -23,11 +23,11 @@ fn percentile(v: &[f64], p: f64) -> f64 {
 }
 
 #[test]
-#[ignore = "needs RADIANCE_TRIAL_DATA and RADIANCE_BIN; run by hand"]
+#[ignore = "needs TRIAL_DATA and TRIAL_BIN; run by hand"]
 fn trial_on_a_real_dataset() {
-    let dataset = std::env::var("RADIANCE_TRIAL_DATA").expect("RADIANCE_TRIAL_DATA: a dataset folder");
-    let bin = std::env::var("RADIANCE_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_radiance").into());
-    let seconds: f64 = std::env::var("RADIANCE_TRIAL_SECONDS").map_or(60.0, |s| s.parse().unwrap());
+    let dataset = std::env::var("TRIAL_DATA").expect("TRIAL_DATA: a dataset folder");
+    let bin = std::env::var("TRIAL_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_radiance").into());
+    let seconds: f64 = std::env::var("TRIAL_SECONDS").map_or(60.0, |s| s.parse().unwrap());
     let work = tempfile::tempdir().unwrap();
     let zip_path = work.path().join("dataset.zip");
     std::fs::write(&zip_path, zip_of(&files(std::path::Path::new(&dataset)))).unwrap();

@@ -6,7 +6,7 @@
 //!
 //! Every wait is bounded. A missing browser is a failure, not a skip: the
 //! browser tests exist to run it (CI installs the Debian package
-//! `chromium`; `RADIANCE_CHROMIUM` names another binary).
+//! `chromium`; `CHROMIUM_BIN` names another binary).
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -27,7 +27,7 @@ impl Browser {
     /// Starts headless Chromium with a `width x height` window; panics,
     /// saying how to install it, when it cannot.
     pub fn launch(width: u32, height: u32) -> Browser {
-        let bin = std::env::var("RADIANCE_CHROMIUM").unwrap_or_else(|_| "chromium".into());
+        let bin = std::env::var("CHROMIUM_BIN").unwrap_or_else(|_| "chromium".into());
         let profile = tempfile::tempdir().unwrap();
         let mut child = Command::new(&bin)
             .args([
@@ -52,7 +52,7 @@ impl Browser {
             .unwrap_or_else(|e| {
                 panic!(
                     "cannot start '{bin}' ({e}): the browser tests need headless Chromium \
-                     (apt-get install chromium, as .ci/run does, or set RADIANCE_CHROMIUM)"
+                     (apt-get install chromium, as .ci/run does, or set CHROMIUM_BIN)"
                 )
             });
         // Chromium prints `DevTools listening on ws://127.0.0.1:PORT/...`.
