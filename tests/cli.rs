@@ -97,3 +97,28 @@ fn serve_refuses_a_bad_retention() {
         );
     }
 }
+
+/// `radiance demo`: a scene, a trained model and an orbit video from no data.
+#[test]
+fn demo_needs_no_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let o = out.to_str().unwrap();
+    let printed = ok(&radiance(&["demo", "--out", o, "--steps", "200", "--frames", "4"]));
+    let video = out.join(if cfg!(feature = "mp4") { "orbit.mp4" } else { "orbit.gif" });
+    assert_eq!(printed.trim(), video.to_str().unwrap());
+    let bytes = std::fs::read(&video).unwrap();
+    if cfg!(feature = "mp4") {
+        assert_eq!(&bytes[4..8], b"ftyp", "an MP4 starts with its ftyp box");
+    }
+    assert!(bytes.len() > 1000, "{} bytes", bytes.len());
+    assert!(out.join("scene/transforms_train.json").exists());
+    // The model learned the scene: eval on its held-out views.
+    let (m, d) = (out.join("model.ckpt"), out.join("scene"));
+    let e = ok(&radiance(&["eval", "--model", m.to_str().unwrap(), "--data", d.to_str().unwrap(), "--limit", "2"]));
+    let psnr: f64 = e.lines().last().unwrap().split_whitespace().nth(3).unwrap().parse().unwrap();
+    assert!(psnr > 25.0, "demo model PSNR {psnr} dB:\n{e}");
+    // Bad input is a clear error.
+    let bad = radiance(&["demo", "--out", o, "--seconds", "0"]);
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("--seconds"));
+}

@@ -45,6 +45,8 @@ pub enum Code {
     ResourceLimit,
     /// The job's output would leave less free disk than the reserve.
     InsufficientStorage,
+    /// A route that answers at once took too long (`layers::QUICK_TIMEOUT`).
+    Timeout,
     Internal,
 }
 
@@ -63,6 +65,7 @@ impl Code {
             Code::QueueFull => ("queue_full", StatusCode::SERVICE_UNAVAILABLE),
             Code::ResourceLimit => ("resource_limit", StatusCode::UNPROCESSABLE_ENTITY),
             Code::InsufficientStorage => ("insufficient_storage", StatusCode::INSUFFICIENT_STORAGE),
+            Code::Timeout => ("timeout", StatusCode::REQUEST_TIMEOUT),
             Code::Internal => ("internal", StatusCode::INTERNAL_SERVER_ERROR),
         }
     }

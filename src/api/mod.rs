@@ -1,9 +1,10 @@
 //! The REST service: `app(state)` builds every route; [`Server::start`]
 //! binds it and runs the job scheduler beside it.
 //!
-//! One file per resource (`scenes`, `jobs`, `models`, `videos`), one error type
-//! (`error`), archive extraction (`archive`), `/healthz` and `/metrics`
-//! (`health`). Handlers never block the runtime: extraction, dataset
+//! One file per resource (`scenes`, `jobs`, `models`, `videos`, `demo`), one
+//! error type (`error`), archive extraction (`archive`), `/healthz` and
+//! `/metrics` (`health`), the web app's embedded files (`web`) and the
+//! tower-http layers around it all (`layers`). Handlers never block the runtime: extraction, dataset
 //! validation and rendering run under `spawn_blocking`, training on the
 //! scheduler's threads; the numeric work of both on the global rayon pool.
 
@@ -13,24 +14,27 @@ use std::sync::{Arc, Mutex};
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request, State};
-use axum::http::StatusCode;
-use axum::http::header::{ALLOW, AUTHORIZATION};
+use axum::http::header::AUTHORIZATION;
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::{delete, get, post};
 
 use crate::engine::models::Model;
 use crate::jobs::{Scheduler, SchedulerConfig};
 use crate::storage::Storage;
 
 pub mod archive;
+pub mod camera_path;
+pub mod demo;
 pub mod error;
 pub mod health;
 pub mod jobs;
+pub mod layers;
 pub mod limits;
 pub mod models;
 pub mod scenes;
 pub mod videos;
+pub mod web;
 
 pub use error::{ApiError, ApiResult, Code};
 
@@ -51,6 +55,9 @@ pub struct ServiceConfig {
     pub api_key: Option<String>,
     /// Free disk space a new job must leave, beyond its own output.
     pub min_free_disk_bytes: u64,
+    /// Origins allowed to call the API from a browser page of their own
+    /// (CORS); empty: none but the service's own page.
+    pub cors_origins: Vec<String>,
     pub scheduler: SchedulerConfig,
 }
 
@@ -65,6 +72,7 @@ impl ServiceConfig {
             max_concurrent_renders: 2,
             api_key: None,
             min_free_disk_bytes: 1 << 30,
+            cors_origins: Vec::new(),
             scheduler: SchedulerConfig::default(),
         }
     }
@@ -99,51 +107,39 @@ pub type AppState = Arc<AppInner>;
 
 /// Builds the router over a state.
 pub fn app(state: AppState) -> Router {
-    let upload_limit = usize::try_from(state.config.max_upload_bytes).unwrap_or(usize::MAX);
+    use layers::quick;
     let v1 = Router::new()
-        .route("/v1/scenes", post(scenes::create).get(scenes::list).layer(DefaultBodyLimit::max(upload_limit)))
-        .route("/v1/scenes/{id}", get(scenes::get_one).delete(scenes::delete))
-        .route("/v1/jobs", post(jobs::create).get(jobs::list))
-        .route("/v1/jobs/{id}", get(jobs::get_one).delete(jobs::delete))
-        .route("/v1/jobs/{id}/cancel", post(jobs::cancel))
+        // The body limit of uploads is tower-http's (`layers`), on every route.
+        .route("/v1/scenes", post(scenes::create).layer(DefaultBodyLimit::disable()).merge(quick(get(scenes::list))))
+        .route("/v1/scenes/{id}", quick(get(scenes::get_one).delete(scenes::delete)))
+        .route("/v1/demo", quick(post(demo::create)))
+        .route("/v1/jobs", quick(post(jobs::create).get(jobs::list)))
+        .route("/v1/jobs/{id}", quick(get(jobs::get_one).delete(jobs::delete)))
+        .route("/v1/jobs/{id}/cancel", quick(post(jobs::cancel)))
         .route("/v1/jobs/{id}/events", get(jobs::events))
-        .route("/v1/models", get(models::list))
-        .route("/v1/models/{id}", get(models::get_one).delete(models::delete))
+        .route("/v1/models", quick(get(models::list)))
+        .route("/v1/models/{id}", quick(get(models::get_one).delete(models::delete)))
         .route("/v1/models/{id}/render", get(models::render))
-        .route("/v1/models/{id}/videos", post(videos::create))
-        .route("/v1/videos/{id}", get(videos::get_one).delete(videos::delete))
-        .route("/metrics", get(health::metrics))
+        .route("/v1/models/{id}/videos", quick(post(videos::create)))
+        .route("/v1/videos/{id}", get(videos::get_one).merge(quick(delete(videos::delete))))
+        .route("/metrics", quick(get(health::metrics)))
         .route_layer(middleware::from_fn_with_state(state.clone(), auth));
-    let routes = Router::new().route("/healthz", get(health::healthz)).merge(v1).fallback(not_found).with_state(state);
+    // The page and its files need no key: the page asks for it.
+    let web = Router::new().route("/", get(web::index)).route("/assets/{name}", get(web::asset));
+    let (max_body, cors) = (state.config.max_upload_bytes, state.config.cors_origins.clone());
+    let routes = Router::new()
+        .route("/healthz", get(health::healthz))
+        .merge(web)
+        .merge(v1)
+        .fallback(not_found)
+        .with_state(state);
     // Around the whole router rather than its routes: axum adds the `Allow`
     // header of a 405 as the answer leaves the route, after any route layer.
-    Router::new().fallback_service(routes).layer(middleware::from_fn(method_not_allowed))
+    layers::around(Router::new().fallback_service(routes), max_body, &cors)
 }
 
 async fn not_found(req: Request) -> ApiError {
     ApiError::new(Code::NotFound, format!("no route for {} {}", req.method(), req.uri().path()))
-}
-
-/// Gives axum's 405 answers (a known path, another method) the JSON error
-/// envelope every other error has. A middleware rather than
-/// `Router::method_not_allowed_fallback`, because only the finished answer
-/// carries the `Allow` header that axum computes, which the message quotes
-/// and the answer keeps. (axum still drops the body of an answer to HEAD.)
-async fn method_not_allowed(req: Request, next: Next) -> Response {
-    let (method, path) = (req.method().clone(), req.uri().path().to_string());
-    let response = next.run(req).await;
-    if response.status() != StatusCode::METHOD_NOT_ALLOWED {
-        return response;
-    }
-    let allow = response.headers().get(ALLOW).cloned();
-    let allowed = allow.as_ref().and_then(|a| a.to_str().ok()).unwrap_or("none").replace(',', ", ");
-    let mut envelope =
-        ApiError::new(Code::MethodNotAllowed, format!("{method} is not allowed on {path} (allowed: {allowed})"))
-            .into_response();
-    if let Some(a) = allow {
-        envelope.headers_mut().insert(ALLOW, a);
-    }
-    envelope
 }
 
 /// Bearer-token check, when an API key is configured. The 401 carries a

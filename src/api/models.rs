@@ -1,6 +1,7 @@
 //! `/v1/models`: list, get, delete, and render a novel view as PNG.
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use axum::Json;
@@ -16,7 +17,7 @@ use crate::engine::geometry::camera::Camera;
 use crate::engine::io::checkpoint::CheckpointError;
 use crate::engine::io::persist;
 use crate::engine::models::Model;
-use crate::engine::render::render_view;
+use crate::engine::render::render_view_until;
 use crate::media::png::{self, ViewImage};
 use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
 
@@ -207,20 +208,35 @@ pub async fn render(
     let _slot = s.render_slots.acquire().await.map_err(ApiError::internal)?;
     let t0 = Instant::now();
     let s2 = s.clone();
-    let png = tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
+    // Set when this handler is dropped: the client went away (a viewer that
+    // moved on), so the render stops instead of holding the workers.
+    let cancel = CancelOnDrop(Arc::new(AtomicBool::new(false)));
+    let flag = cancel.0.clone();
+    let png = tokio::task::spawn_blocking(move || -> ApiResult<Option<Vec<u8>>> {
         let model = cached_model(&s2, &info)?;
         let bg = match background {
             Background::Colour(c) => c,
             Background::Transparent => [0.0; 3],
         };
-        let v = render_view(&*model, &camera, bg);
-        png::encode_view(&v, image_of(output, background, info.view.far)).map_err(ApiError::internal)
+        let Some(v) = render_view_until(&*model, &camera, bg, &flag) else { return Ok(None) };
+        png::encode_view(&v, image_of(output, background, info.view.far)).map(Some).map_err(ApiError::internal)
     })
     .await??;
+    drop(cancel);
+    let png = png.ok_or_else(|| ApiError::internal("render cancelled"))?;
     let mut r = s.renders.lock().unwrap_or_else(|e| e.into_inner());
     r.count += 1;
     r.seconds += t0.elapsed().as_secs_f64();
     Ok(([(CONTENT_TYPE, "image/png")], png))
+}
+
+/// Sets its flag when dropped.
+struct CancelOnDrop(Arc<AtomicBool>);
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
 }
 
 /// Loads a model, or reuses it when its record has not changed.

@@ -83,7 +83,7 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
 }
 
 /// A new scene id and its staging folder (not yet created).
-fn staging(storage: &Storage) -> (String, PathBuf) {
+pub(super) fn staging(storage: &Storage) -> (String, PathBuf) {
     let id = new_id("scn");
     let dir = storage.tmp_dir().join(&id);
     (id, dir)
@@ -165,7 +165,12 @@ async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) ->
 
 /// Fills `staging/data` with `fill` (returning the bytes written), then
 /// loads, validates and stores the dataset; removes everything on failure.
-fn ingest(s: &AppState, id: &str, staging: &Path, fill: impl FnOnce(&Path) -> ApiResult<u64>) -> ApiResult<SceneInfo> {
+pub(super) fn ingest(
+    s: &AppState,
+    id: &str,
+    staging: &Path,
+    fill: impl FnOnce(&Path) -> ApiResult<u64>,
+) -> ApiResult<SceneInfo> {
     let storage = &s.storage;
     let result = (|| {
         let data = staging.join("data");

@@ -1,4 +1,5 @@
-//! Orbit videos: `POST /v1/models/{id}/videos` enqueues a video job (202,
+//! Videos: `POST /v1/models/{id}/videos` enqueues a video job (an orbit, or
+//! a camera `path`: see `camera_path`; 202,
 //! polled like a training job); `GET /v1/videos/{id}` serves the result,
 //! `DELETE /v1/videos/{id}` removes it.
 
@@ -10,7 +11,7 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use serde::Deserialize;
 
-use super::{ApiError, ApiResult, AppState, limits};
+use super::{ApiError, ApiResult, AppState, camera_path, limits};
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate;
 use crate::jobs::{Job, JobSpec, VideoSpec};
@@ -36,13 +37,26 @@ pub struct CreateVideo {
     pub fov: Option<f32>,
     /// `mp4` (default when built with the `mp4` feature) or `gif`.
     pub format: Option<String>,
+    /// Keyframes to fly through instead of an orbit (see `camera_path`).
+    pub path: Option<serde_json::Value>,
 }
 
 /// Most frames in one video.
 pub const MAX_FRAMES: u32 = 600;
 
 /// Checks a request against the model's view defaults and the render cap.
-pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> ApiResult<VideoSpec> {
+pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> ApiResult<VideoSpec> {
+    let path = r.path.as_ref().map(|p| camera_path::parse(p, view.fov)).transpose()?;
+    if let Some(p) = &path {
+        if let Some((field, value)) =
+            [("elevation", r.elevation), ("radius", r.radius)].into_iter().find_map(|(f, v)| v.map(|v| (f, v)))
+        {
+            let message = format!("{field} describes an orbit: leave it out of a video along a path");
+            return Err(ApiError::bad_field(message, field, value, "not with path"));
+        }
+        (r.frames, r.fps) = (r.frames.or(p.frames), r.fps.or(p.fps));
+        (r.width, r.height) = (r.width.or(p.width), r.height.or(p.height));
+    }
     let frames = r.frames.unwrap_or(60);
     if !(1..=MAX_FRAMES).contains(&frames) {
         let allowed = format!("1..={MAX_FRAMES}");
@@ -87,7 +101,7 @@ pub fn to_spec(r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> A
         return Err(ApiError::bad_field("fov must be between 1 and 179 degrees", "fov", fov, "(1, 179)"));
     }
     crate::media::video::validate(format, width, height, fps)?;
-    Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format })
+    Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format, path: path.map(|p| p.path) })
 }
 
 /// The frame size: the requested sides, the others from the training

@@ -1,10 +1,11 @@
-//! The command line: `radiance train | render | eval | bench | poses | serve`.
+//! The command line: `radiance demo | train | render | eval | bench | poses | serve`.
 
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
 mod bench;
+mod demo;
 mod eval;
 mod poses;
 mod serve;
@@ -12,6 +13,7 @@ mod setup;
 mod train;
 
 pub use bench::{BenchArgs, BenchReport, BenchRow};
+pub use demo::DemoArgs;
 pub use eval::{EvalArgs, RenderArgs};
 pub use poses::PosesArgs;
 pub use serve::ServeArgs;
@@ -27,6 +29,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// No data needed: generate a demo scene, train it briefly, write an orbit video.
+    Demo(DemoArgs),
     /// Train a model on a dataset's training views.
     Train(TrainArgs),
     /// Render every view of a split to PNG files named by the frames' file stems.
@@ -79,6 +83,7 @@ pub struct DataArgs {
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Demo(a) => demo::run(a),
         Command::Train(a) => train::run(a),
         Command::Render(a) => eval::render(a),
         Command::Eval(a) => eval::eval(a),

@@ -69,6 +69,11 @@ pub struct ServeArgs {
     /// Time limit of one pose estimation, in minutes.
     #[arg(long, env = "RADIANCE_POSES_TIME_LIMIT_MIN", default_value_t = 30.0)]
     pub poses_time_limit_min: f64,
+    /// Let pages from this origin (`https://example.com`) call the API from
+    /// a browser (CORS; repeatable, or comma-separated in the variable).
+    /// Off by default: only the service's own page at `/` can.
+    #[arg(long = "cors-origin", env = "RADIANCE_CORS_ORIGINS", value_delimiter = ',')]
+    pub cors_origins: Vec<String>,
     #[command(flatten)]
     pub common: Common,
 }
@@ -91,6 +96,14 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
     config.max_unpacked_bytes = a.max_unpacked_mb << 20;
     config.max_render_pixels = a.max_render_pixels;
     config.api_key = api_key;
+    for o in &a.cors_origins {
+        anyhow::ensure!(
+            o.starts_with("http://") || o.starts_with("https://"),
+            "--cors-origin {o}: expected an origin such as https://example.com"
+        );
+        anyhow::ensure!(axum::http::HeaderValue::from_str(o).is_ok(), "--cors-origin {o}: not a valid header value");
+    }
+    config.cors_origins = a.cors_origins;
     let budget = a.memory_budget_mb.map_or_else(default_memory_budget, |m| m << 20);
     let per_job = a.max_job_memory_mb.map_or(budget, |m| m << 20);
     anyhow::ensure!(budget > 0 && per_job > 0, "--memory-budget-mb and --max-job-memory-mb must be positive");
@@ -128,6 +141,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("starting the service on {} with data in {}", a.addr, a.data_dir.display()))?;
         println!("listening on http://{}", server.addr);
+        eprintln!("open http://{}/ in a browser for the web app", server.addr);
         tracing::info!(
             data_dir = %a.data_dir.display(),
             threads,

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::engine::geometry::path::CameraPath;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::trainer::Budget;
 use crate::media::video::VideoFormat;
@@ -81,7 +82,7 @@ impl JobBudget {
 }
 
 /// What a video job renders: an orbit around the scene centre of the job's
-/// model (`Job::model_id`).
+/// model (`Job::model_id`), or a camera path through keyframes.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct VideoSpec {
     pub frames: u32,
@@ -95,6 +96,10 @@ pub struct VideoSpec {
     /// Horizontal field of view, degrees.
     pub fov: f32,
     pub format: VideoFormat,
+    /// Keyframes to fly through instead of the orbit (frames spread evenly
+    /// over their times; each keyframe has its own field of view).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub path: Option<CameraPath>,
 }
 
 /// What a pose-estimation job poses: the photos (or video) uploaded to a

@@ -155,6 +155,7 @@ mod tests {
                 radius: 1.0,
                 fov: 40.0,
                 format,
+                path: None,
             })
         };
         Job {

@@ -1,5 +1,5 @@
-//! A video job: render an orbit around a trained model's scene, frame by
-//! frame on the worker pool, and encode it (GIF or MP4). The file and then
+//! A video job: render an orbit around a trained model's scene, or a camera
+//! path through keyframes, frame by frame on the worker pool, and encode it (GIF or MP4). The file and then
 //! its record are written atomically, so a video either exists whole or not
 //! at all; an interrupted job renders again from the start.
 
@@ -7,6 +7,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::{Job, Outcome, Shared, VideoSpec, set_progress};
+use crate::engine::geometry::camera::Camera;
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::io::persist;
 use crate::engine::render::render_view;
@@ -35,10 +36,15 @@ fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> 
         if cancel.load(Ordering::Relaxed) {
             return Ok(Outcome::Stopped);
         }
-        let azimuth = 360.0 * k as f32 / spec.frames as f32;
-        let camera = orbit
-            .camera(azimuth, spec.width, spec.height, spec.fov)
-            .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?;
+        let camera = match &spec.path {
+            Some(path) => {
+                let (c2w, fov) = path.at(path.frame_time(k, spec.frames));
+                Camera::from_fov(spec.width, spec.height, fov.to_radians(), c2w)
+            }
+            None => orbit
+                .camera(360.0 * k as f32 / spec.frames as f32, spec.width, spec.height, spec.fov)
+                .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?,
+        };
         let view = render_view(&*model, &camera, [1.0; 3]);
         frames.push(png::rgb_image(&view).map_err(|e| e.to_string())?);
         let done = k as u64 + 1;

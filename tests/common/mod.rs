@@ -4,6 +4,7 @@
 //! ([`psnr`]) and the MP4 reader ([`mp4`]) in their own modules.
 #![allow(dead_code)] // each test binary uses its own part of this module
 
+pub mod cdp;
 pub mod mp4;
 pub mod psnr;
 pub mod tiny;

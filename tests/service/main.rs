@@ -11,3 +11,4 @@ mod openapi;
 mod poses;
 mod restart;
 mod uploads;
+mod web;

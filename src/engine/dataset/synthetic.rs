@@ -23,6 +23,12 @@ impl Default for BallScene {
 }
 
 impl BallScene {
+    /// The demo scene (`radiance demo`, `POST /v1/demo`): large enough to
+    /// look at (64x64, 32 views), small enough to train in seconds.
+    pub fn demo() -> Self {
+        Self { size: 64, views: 32, ..Default::default() }
+    }
+
     /// Colour and coverage of the ray, in canonical units.
     fn shade(&self, ray: &Ray) -> Option<[f32; 3]> {
         let b = ray.origin.dot(ray.dir);

@@ -4,4 +4,6 @@
 pub mod align;
 pub mod camera;
 pub mod math;
+pub mod path;
+pub mod quat;
 pub mod scene;

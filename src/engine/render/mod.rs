@@ -4,6 +4,8 @@ pub mod composite;
 pub mod loss;
 pub mod rounds;
 
+use std::sync::atomic::{AtomicBool, Ordering};
+
 use rayon::prelude::*;
 
 use crate::engine::geometry::camera::Camera;
@@ -30,34 +32,58 @@ const TILE: usize = 256;
 
 /// Renders every pixel of `camera`.
 pub fn render_view(model: &dyn Model, camera: &Camera, background: [f32; 3]) -> View {
+    render_view_until(model, camera, background, &AtomicBool::new(false)).expect("never cancelled")
+}
+
+/// [`render_view`], stopping early (`None`) once `cancel` is set: tiles not
+/// yet started are skipped. A client that goes away mid-render (the web
+/// viewer, moving on to a newer view) frees the workers at once.
+pub fn render_view_until(
+    model: &dyn Model,
+    camera: &Camera,
+    background: [f32; 3],
+    cancel: &AtomicBool,
+) -> Option<View> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let scene = model.scene();
     let rays: Vec<Ray> =
         (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| camera.pixel_ray(i as u32, j as u32)).collect();
-    let (out, stats) = render_rays(model, &rays, background);
+    let (out, stats) = render_rays_until(model, &rays, background, cancel)?;
     let inv = 1.0 / scene.scale;
-    View {
+    Some(View {
         width: camera.width,
         height: camera.height,
         rgb: out.iter().flat_map(|o| o.rgb).collect(),
         depth: out.iter().map(|o| o.depth * inv).collect(),
         opacity: out.iter().map(|o| o.opacity).collect(),
         stats,
-    }
+    })
 }
 
 /// Renders world-space rays in parallel tiles; depths stay in model units.
 pub fn render_rays(model: &dyn Model, rays: &[Ray], background: [f32; 3]) -> (Vec<RayOutput>, BatchStats) {
+    render_rays_until(model, rays, background, &AtomicBool::new(false)).expect("never cancelled")
+}
+
+/// [`render_rays`], or `None` once `cancel` is set.
+fn render_rays_until(
+    model: &dyn Model,
+    rays: &[Ray],
+    background: [f32; 3],
+    cancel: &AtomicBool,
+) -> Option<(Vec<RayOutput>, BatchStats)> {
     let scene = model.scene();
     let rays: Vec<Ray> = rays.iter().map(|r| scene.to_model(r)).collect();
     let mut out = vec![RayOutput::default(); rays.len()];
-    let stats = rays
-        .par_chunks(TILE)
-        .zip(out.par_chunks_mut(TILE))
-        .map(|(r, o)| model.render_rays(r, background, o))
-        .reduce(BatchStats::default, |mut a, b| {
-            a.add(&b);
-            a
-        });
-    (out, stats)
+    let stats =
+        rays.par_chunks(TILE)
+            .zip(out.par_chunks_mut(TILE))
+            .map(|(r, o)| {
+                if cancel.load(Ordering::Relaxed) { BatchStats::default() } else { model.render_rays(r, background, o) }
+            })
+            .reduce(BatchStats::default, |mut a, b| {
+                a.add(&b);
+                a
+            });
+    (!cancel.load(Ordering::Relaxed)).then_some((out, stats))
 }
