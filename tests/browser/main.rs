@@ -11,6 +11,7 @@ mod common;
 
 mod flow;
 mod key;
+mod posing;
 mod trial;
 
 use std::path::PathBuf;

@@ -1,0 +1,53 @@
+//! A photo-only upload through the page: the scene card shows the pose
+//! estimation running (COLMAP, for real), then what it found, and the scene
+//! becomes trainable.
+
+use std::time::Duration;
+
+use radiance::engine::dataset::textured::TexturedScene;
+use radiance::jobs::poses::PosesSetup;
+use radiance::poses::{Tools, colmap, video};
+
+use crate::common::cdp::Browser;
+use crate::common::{Svc, config, files, zip_of};
+use crate::{runtime, screenshot};
+
+#[test]
+fn photos_without_poses_show_their_pose_estimation_in_the_page() {
+    let rt = runtime();
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    let colmap = colmap::find(None).unwrap_or_else(|e| panic!("this test needs COLMAP: {e}"));
+    let ffmpeg = video::find(None).ok();
+    cfg.scheduler.poses =
+        Some(PosesSetup { tools: Tools { colmap, ffmpeg }, max_size: 800, time_limit: Duration::from_secs(300) });
+    let svc = rt.block_on(Svc::start(cfg));
+    let browser = Browser::launch(1200, 900);
+    let mut page = browser.page();
+    page.goto(&svc.url("/"));
+    page.wait_for("!document.getElementById('demo-offer').hidden", 10.0);
+
+    let photos = tempfile::tempdir().unwrap();
+    TexturedScene::default().write_photos(photos.path()).unwrap();
+    let zip = tempfile::tempdir().unwrap();
+    let zip_path = zip.path().join("photos.zip");
+    std::fs::write(&zip_path, zip_of(&files(photos.path()))).unwrap();
+    page.set_files("#file-input", &[&zip_path]);
+
+    // While COLMAP runs: the card says so, and the scene cannot be trained yet.
+    page.wait_for("document.querySelector('#scene-list li[data-status=\"posing\"] [data-posing]') !== null", 30.0);
+    let line = page.eval("document.querySelector('[data-posing]').textContent");
+    assert!(line.as_str().unwrap().contains("estimating the camera poses of 16 photos with COLMAP"), "{line}");
+    assert_eq!(page.eval("document.querySelector('#scene-list li button').disabled"), true);
+    screenshot(&mut page, "posing", false);
+
+    // Then the card shows what COLMAP found, and Train is enabled.
+    page.wait_for("document.querySelector('#scene-list li[data-status=\"ready\"]') !== null", 120.0);
+    let card = page.eval("document.querySelector('#scene-list li').textContent");
+    let card = card.as_str().unwrap();
+    assert!(card.contains("poses estimated: 16 of 16 photos registered") && card.contains("format colmap"), "{card}");
+    assert_eq!(page.eval("document.querySelector('#scene-list li button').disabled"), false);
+    assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
+    drop(browser);
+    rt.block_on(svc.stop());
+}
