@@ -327,9 +327,13 @@ function showJob(job) {
   $('job-line').dataset.status = job.status;
   $('job-cancel').disabled = job.status !== 'queued' && job.status !== 'running';
   if ($('job-cancel').disabled) status(`job ${job.id} ${job.status}`, job.status === 'failed');
-  if (p.test_psnr != null && p.test_psnr_step !== training.lastStep) {
-    training.lastStep = p.test_psnr_step;
-    training.points.push([p.elapsed, p.test_psnr]);
+  // During training test_psnr is an estimate on a sample of held-out
+  // pixels; once the job succeeded it is the measurement on whole views,
+  // drawn apart so a lower final number does not read as a drop.
+  const key = `${p.test_psnr_step}:${p.test_psnr}:${job.status}`;
+  if (p.test_psnr != null && key !== training.lastStep) {
+    training.lastStep = key;
+    training.points.push([p.elapsed, p.test_psnr, job.status === 'succeeded']);
     drawChart();
   }
   if (job.model_id) {
@@ -393,15 +397,23 @@ function drawChart() {
     const t = (tMax * k) / 4;
     g.fillText(`${t.toFixed(0)} s`, x(t) - 8, h - 8);
   }
+  const estimates = pts.filter((p) => !p[2]);
+  const measured = pts.filter((p) => p[2]);
   g.strokeStyle = '#1f5fbf';
   g.lineWidth = 2;
   g.beginPath();
-  pts.forEach(([t, v], i) => (i ? g.lineTo(x(t), y(v)) : g.moveTo(x(t), y(v))));
+  estimates.forEach(([t, v], i) => (i ? g.lineTo(x(t), y(v)) : g.moveTo(x(t), y(v))));
   g.stroke();
   g.fillStyle = '#1f5fbf';
-  for (const [t, v] of pts) { g.beginPath(); g.arc(x(t), y(v), 3, 0, 7); g.fill(); }
-  const [t, v] = pts[pts.length - 1];
-  c.setAttribute('aria-label', `Held-out PSNR against training time: ${pts.length} measurements, latest ${v.toFixed(2)} dB after ${t.toFixed(0)} s`);
+  for (const [t, v] of estimates) { g.beginPath(); g.arc(x(t), y(v), 3, 0, 7); g.fill(); }
+  g.fillStyle = '#c25400';
+  for (const [t, v] of measured) g.fillRect(x(t) - 4, y(v) - 4, 8, 8);
+  g.fillStyle = '#5a6672';
+  g.fillText('● estimate (held-out pixels)', left + 6, 14);
+  if (measured.length) { g.fillStyle = '#c25400'; g.fillText('■ measured (whole views)', left + 170, 14); }
+  const [t, v, m] = pts[pts.length - 1];
+  c.setAttribute('aria-label', `Held-out PSNR against training time: ${estimates.length} estimates` +
+    `${m ? `, measured ${v.toFixed(2)} dB on whole views at the end` : `, latest ${v.toFixed(2)} dB`} after ${t.toFixed(0)} s`);
   c.dataset.points = String(pts.length);
 }
 
