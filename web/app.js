@@ -165,8 +165,10 @@ function sceneCard(s, jobs) {
   }
   return el('li', { 'data-scene': s.id, 'data-status': state },
     el('strong', {}, s.id),
-    el('div', { class: 'meta' }, `format ${s.format} · ${s.images.train} training, ${s.images.val} validation, ` +
-      `${s.images.test} test images · ${s.resolution[0]}x${s.resolution[1]} · ${fmtBytes(s.size_bytes || 0)}`),
+    el('div', { class: 'meta' }, state === 'ready'
+      ? `format ${s.format} · ${s.images.train} training, ${s.images.val} validation, ` +
+        `${s.images.test} test images · ${s.resolution[0]}x${s.resolution[1]} · ${fmtBytes(s.size_bytes || 0)}`
+      : `photos without poses · ${s.resolution[0]}x${s.resolution[1]} as uploaded · ${fmtBytes(s.size_bytes || 0)}`),
     warnings, ...posing,
     el('p', {},
       el('button', { type: 'button', disabled: state === 'ready' ? undefined : '', onclick: () => { showTab('training'); $('train-scene').value = s.id; $('train-budget').focus(); } }, 'Train a model'),
@@ -219,7 +221,9 @@ function upload(items) {
     while (xhr.status === 401) { await askKey(); xhr = await send(); }
     const answer = JSON.parse(xhr.responseText || 'null');
     if (xhr.status !== 201) throw new ApiError(xhr.status, answer && answer.error ? answer.error.message : `upload failed (${xhr.status})`);
-    $('upload-text').textContent = `stored as ${answer.id}: ${answer.format}, ${answer.images.train} training views`;
+    $('upload-text').textContent = answer.status === 'posing'
+      ? `stored as ${answer.id}: no camera poses, estimating them with COLMAP`
+      : `stored as ${answer.id}: ${answer.format}, ${answer.images.train} training views`;
     status(`scene ${answer.id} stored`);
     await refreshScenes();
   })().catch((e) => { $('upload-text').textContent = 'refused'; fail(e); });
