@@ -19,6 +19,7 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use crate::engine::dataset::{Dataset, LoadOptions, colmap_model};
+use crate::engine::io::fsio::write_atomic;
 
 pub mod colmap;
 pub mod outcome;
@@ -249,49 +250,11 @@ pub fn estimate(
         cancel,
     };
     std::fs::create_dir_all(run.work).map_err(|e| PoseError::io(run.work, e))?;
-    for (step, stage) in [
-        (colmap::Step::Features, Stage::Features),
-        (colmap::Step::Matching, Stage::Matching),
-        (colmap::Step::Mapping, Stage::Mapping),
-    ] {
-        let t = Instant::now();
-        report_stage(stage, 0.0);
-        let result = run.step(step, &mut |f| report_stage(stage, f));
-        if let Err(process::RunError::Failed { tail, .. }) = &result
-            && step == colmap::Step::Mapping
-            && tail.iter().any(|l| l.contains("failed to create sparse model"))
-        {
-            // The mapper found no pair of photos to start from: judged
-            // below as a reconstruction with no model.
-            break;
-        }
-        result.map_err(|e| match e {
-            process::RunError::Cancelled => PoseError::Cancelled,
-            process::RunError::TimedOut { .. } => {
-                PoseError::TimedOut { stage: step.name(), seconds: started.elapsed().as_secs_f64() }
-            }
-            e => PoseError::Tool(format!("COLMAP's {} failed: {e}", step.name())),
-        })?;
-        let s = t.elapsed().as_secs_f64();
-        match step {
-            colmap::Step::Features => seconds.features = s,
-            colmap::Step::Matching => seconds.matching = s,
-            colmap::Step::Mapping => seconds.mapping = s,
-        }
-    }
+    run_steps(&run, started, &mut seconds, &mut report_stage)?;
 
     // 3. The model to keep.
     report_stage(Stage::Checking, 0.0);
-    let candidates = run
-        .models()
-        .into_iter()
-        .map(|dir| {
-            let model = colmap_model::read(&dir)
-                .map_err(|e| PoseError::Tool(format!("COLMAP wrote a model that does not read back: {e}")))?;
-            let images = model.images.iter().map(|i| i.name.clone()).collect();
-            Ok(outcome::Candidate { dir, images, points: model.points.len() })
-        })
-        .collect::<Result<Vec<_>, PoseError>>()?;
+    let candidates = read_models(&run)?;
     let verdict = outcome::judge(&names, &candidates)?;
     let best = &candidates[verdict.chosen];
     let mean_error = run.mean_reprojection_error(&best.dir);
@@ -320,10 +283,64 @@ pub fn estimate(
         colmap_version: tools.colmap.version.clone(),
         warnings: verdict.warnings,
     };
-    crate::storage::write_json(&dataset.join(REPORT_FILE), &report).map_err(|e| PoseError::io(&dataset, e))?;
+    let json = serde_json::to_vec_pretty(&report).map_err(|e| PoseError::io(&dataset, e.into()))?;
+    write_atomic(&dataset.join(REPORT_FILE), &json).map_err(|e| PoseError::io(&dataset, e))?;
     report_stage(Stage::Checking, 1.0);
     work.finish(&dataset, out)?;
     Ok(report)
+}
+
+/// COLMAP's three steps, each timed into `seconds`. A mapper that found no
+/// pair of photos to start from is not an error here: it leaves no model,
+/// which [`outcome::judge`] explains.
+fn run_steps(
+    run: &colmap::Run<'_>,
+    started: Instant,
+    seconds: &mut StageSeconds,
+    report_stage: &mut dyn FnMut(Stage, f32),
+) -> Result<(), PoseError> {
+    for (step, stage) in [
+        (colmap::Step::Features, Stage::Features),
+        (colmap::Step::Matching, Stage::Matching),
+        (colmap::Step::Mapping, Stage::Mapping),
+    ] {
+        let t = Instant::now();
+        report_stage(stage, 0.0);
+        let result = run.step(step, &mut |f| report_stage(stage, f));
+        if let Err(process::RunError::Failed { tail, .. }) = &result
+            && step == colmap::Step::Mapping
+            && tail.iter().any(|l| l.contains("failed to create sparse model"))
+        {
+            return Ok(());
+        }
+        result.map_err(|e| match e {
+            process::RunError::Cancelled => PoseError::Cancelled,
+            process::RunError::TimedOut { .. } => {
+                PoseError::TimedOut { stage: step.name(), seconds: started.elapsed().as_secs_f64() }
+            }
+            e => PoseError::Tool(format!("COLMAP's {} failed: {e}", step.name())),
+        })?;
+        let s = t.elapsed().as_secs_f64();
+        match step {
+            colmap::Step::Features => seconds.features = s,
+            colmap::Step::Matching => seconds.matching = s,
+            colmap::Step::Mapping => seconds.mapping = s,
+        }
+    }
+    Ok(())
+}
+
+/// The models the mapper wrote, read back.
+fn read_models(run: &colmap::Run<'_>) -> Result<Vec<outcome::Candidate>, PoseError> {
+    run.models()
+        .into_iter()
+        .map(|dir| {
+            let model = colmap_model::read(&dir)
+                .map_err(|e| PoseError::Tool(format!("COLMAP wrote a model that does not read back: {e}")))?;
+            let images = model.images.iter().map(|i| i.name.clone()).collect();
+            Ok(outcome::Candidate { dir, images, points: model.points.len() })
+        })
+        .collect()
 }
 
 /// What [`gather`] put into the image folder.

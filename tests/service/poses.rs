@@ -215,3 +215,41 @@ async fn a_poses_job_survives_a_restart_and_can_be_canceled() {
 fn scene_on_disk(data: &std::path::Path, id: &str) -> Value {
     serde_json::from_slice(&std::fs::read(data.join("scenes").join(id).join("scene.json")).unwrap()).unwrap()
 }
+
+#[test]
+fn serve_says_at_start_up_whether_photo_uploads_work() {
+    use std::io::{BufRead, Read};
+    let data = tempfile::tempdir().unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_radiance"))
+        .args(["serve", "--addr", "127.0.0.1:0", "--threads", "1", "--colmap", "/nonexistent/colmap", "--data-dir"])
+        .arg(data.path())
+        .env_remove("RADIANCE_COLMAP")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.starts_with("listening on http://"), "{line}");
+    let base = line.trim().trim_start_matches("listening on ").to_string();
+    let health = {
+        use std::io::Write;
+        let mut conn = std::net::TcpStream::connect(base.trim_start_matches("http://")).unwrap();
+        conn.write_all(b"GET /healthz HTTP/1.0\r\nHost: localhost\r\n\r\n").unwrap();
+        let mut answer = String::new();
+        conn.read_to_string(&mut answer).unwrap();
+        let body = answer.split("\r\n\r\n").nth(1).unwrap_or("").to_string();
+        serde_json::from_str::<Value>(&body).unwrap_or_default()
+    };
+    let _ = child.kill();
+    let mut err = String::new();
+    child.stderr.take().unwrap().read_to_string(&mut err).unwrap();
+    let _ = child.wait();
+    assert_eq!(health["features"]["photo_uploads"], false, "{health}");
+    assert!(
+        err.contains("photo-only uploads are disabled")
+            && err.contains("/nonexistent/colmap")
+            && err.contains("apt-get"),
+        "{err}"
+    );
+}
