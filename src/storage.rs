@@ -19,7 +19,6 @@
 
 use std::io;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use redb::{ReadableDatabase, ReadableTable};
@@ -272,18 +271,12 @@ pub fn valid_id(id: &str) -> bool {
     !id.is_empty() && id.len() <= 64 && id.bytes().all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_')
 }
 
-/// A fresh id: `PREFIX` + milliseconds since the epoch + a mixed counter,
-/// so ids sort roughly by creation and never repeat within a process.
+/// A fresh id: `PREFIX_` and a UUID v7 in 32 lower-case hex digits (48
+/// bits of milliseconds, then 74 random bits, monotonic within a process):
+/// ids sort by creation, and two processes (two containers, both pid 1)
+/// making ids in the same millisecond do not collide.
 pub fn new_id(prefix: &str) -> String {
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let ms = now_ms();
-    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    // splitmix64 of (time, pid, counter): unique enough across restarts too
-    let mut z = ms ^ ((std::process::id() as u64) << 32) ^ n.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^= z >> 31;
-    format!("{prefix}_{ms:011x}{:06x}", z & 0xFF_FFFF)
+    format!("{prefix}_{}", uuid::Uuid::now_v7().simple())
 }
 
 /// Milliseconds since the Unix epoch.
@@ -611,11 +604,19 @@ mod tests {
     }
 
     #[test]
-    fn ids_are_valid_and_distinct() {
-        let a = new_id("job");
-        let b = new_id("job");
-        assert_ne!(a, b);
-        assert!(valid_id(&a) && valid_id(&b));
+    fn ids_are_valid_distinct_and_sorted_by_creation() {
+        let ids: Vec<String> = (0..20_000).map(|_| new_id("job")).collect();
+        assert!(ids.iter().all(|id| valid_id(id) && id.len() == 36 && id.starts_with("job_")), "{}", ids[0]);
+        assert!(ids.windows(2).all(|w| w[0] < w[1]), "not increasing");
+        // Four threads at once: no repeats.
+        let all: std::collections::HashSet<String> = std::thread::scope(|s| {
+            let hs: Vec<_> = (0..4).map(|_| s.spawn(|| (0..5000).map(|_| new_id("scn")).collect::<Vec<_>>())).collect();
+            hs.into_iter().flat_map(|h| h.join().unwrap()).collect()
+        });
+        assert_eq!(all.len(), 20_000);
+        // The first 12 hex digits are the creation time in milliseconds.
+        let ms = u64::from_str_radix(&ids[0][4..16], 16).unwrap();
+        assert!(ms.abs_diff(now_ms()) < 60_000, "{ms}");
         assert!(!valid_id("../x") && !valid_id("") && !valid_id("A"));
     }
 }
