@@ -218,12 +218,13 @@ struct PhotoUpload {
 /// photos, each an image, pose estimation available), so a bad upload is
 /// refused now rather than failing in its job.
 fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
-    let found = photos::scan(data).map_err(|e| ApiError::new(Code::InvalidDataset, e.to_string()))?;
-    if found.photos.is_empty() && found.videos.is_empty() {
-        return Ok(None);
-    }
-    let rel = |p: &Path| p.strip_prefix(data).unwrap_or(p).display().to_string();
     let invalid = |m: String| ApiError::new(Code::InvalidDataset, m);
+    let found = photos::scan(data).map_err(|e| invalid(e.to_string()))?;
+    let source = match found.source() {
+        Ok(None) => return Ok(None),
+        other => other,
+    };
+    let rel = |p: &Path| p.strip_prefix(data).unwrap_or(p).display().to_string();
     let Some(setup) = &s.config.scheduler.poses else {
         return Err(invalid(
             "the upload holds photos without camera poses, and pose estimation is disabled on this server: COLMAP \
@@ -232,16 +233,16 @@ fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
                 .into(),
         ));
     };
-    match (found.photos.len(), found.videos.len()) {
-        (0, 1) if setup.tools.ffmpeg.is_none() => Err(invalid(
+    match source.map_err(|e| invalid(e.to_string()))? {
+        None => Ok(None),
+        Some(photos::Source::Video(_)) if setup.tools.ffmpeg.is_none() => Err(invalid(
             "the upload is a video, and this server cannot read videos: ffmpeg was not found when it started \
              (apt-get install ffmpeg); upload photos instead"
                 .into(),
         )),
-        (0, 1) => Ok(Some(PhotoUpload { source: "video", photos: 0, resolution: [0, 0] })),
-        (0, n) => Err(invalid(format!("the upload holds {n} videos; upload one video, or photos"))),
-        (_, 0) => {
-            let n = found.photos.len();
+        Some(photos::Source::Video(_)) => Ok(Some(PhotoUpload { source: "video", photos: 0, resolution: [0, 0] })),
+        Some(photos::Source::Photos(list)) => {
+            let n = list.len();
             if n < photos::MIN_PHOTOS {
                 return Err(invalid(format!(
                     "the upload holds {n} photo{} and no camera poses; pose estimation needs at least {} \
@@ -251,7 +252,7 @@ fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
                 )));
             }
             let mut resolution = [0, 0];
-            for (k, p) in found.photos.iter().enumerate() {
+            for (k, p) in list.iter().enumerate() {
                 let (w, h) = image::image_dimensions(p)
                     .map_err(|e| invalid(format!("'{}' is not a readable JPEG or PNG image: {e}", rel(p))))?;
                 if k == 0 {
@@ -260,7 +261,6 @@ fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
             }
             Ok(Some(PhotoUpload { source: "photos", photos: n, resolution }))
         }
-        _ => Err(invalid("the upload holds both photos and a video; upload one or the other".into())),
     }
 }
 

@@ -31,14 +31,7 @@ pub fn find(explicit: Option<&Path>) -> Result<Colmap, String> {
     let mut cmd = Command::new(&path);
     cmd.arg("help");
     headless(&mut cmd);
-    let mut lines = Vec::new();
-    let cancel = AtomicBool::new(false);
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let result = process::run(cmd, deadline, &cancel, &mut |l| {
-        if lines.len() < 50 {
-            lines.push(l.to_string())
-        }
-    });
+    let result = process::first_lines(cmd, Duration::from_secs(20), 50);
     let hint = "install it (Debian/Ubuntu: `apt-get install colmap`) or name the binary with --colmap PATH or \
                 RADIANCE_COLMAP";
     match result {
@@ -46,7 +39,7 @@ pub fn find(explicit: Option<&Path>) -> Result<Colmap, String> {
             Err(format!("COLMAP not found (looked for '{}' from {from}: {source}); {hint}", path.display()))
         }
         Err(e) => Err(format!("COLMAP at '{}' (from {from}) does not run: {e}", path.display())),
-        Ok(()) => match lines.iter().find(|l| l.trim_start().starts_with("COLMAP ")) {
+        Ok(lines) => match lines.iter().find(|l| l.trim_start().starts_with("COLMAP ")) {
             // "COLMAP 3.8 -- Structure-from-Motion and Multi-View Stereo"
             Some(v) => Ok(Colmap { path, version: v.split(" -- ").next().unwrap_or(v).trim().to_string() }),
             None => Err(format!("'{}' (from {from}) ran but does not say it is COLMAP; {hint}", path.display())),

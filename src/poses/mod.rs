@@ -380,8 +380,8 @@ fn gather(
     } else {
         return Err(PoseError::Input(format!("'{}' does not exist", input.display())));
     };
-    match (found.photos.len(), found.videos.len()) {
-        (0, 0) => {
+    match found.source()? {
+        None => {
             let ignored = if found.ignored.is_empty() {
                 String::new()
             } else {
@@ -393,14 +393,14 @@ fn gather(
                 input.display()
             )))
         }
-        (0, 1) => {
+        Some(photos::Source::Video(clip)) => {
             let ffmpeg = tools.ffmpeg.as_ref().ok_or_else(|| {
                 PoseError::Tool("a video needs ffmpeg, which was not found (apt-get install ffmpeg)".into())
             })?;
             report(Stage::Frames, 0.0);
             let names = video::extract(
                 ffmpeg,
-                &found.videos[0],
+                clip,
                 images,
                 &work.join("candidates"),
                 opts.frames,
@@ -413,20 +413,13 @@ fn gather(
                 .map_err(|e| PoseError::Io { path: images.join(&names[0]), message: e.to_string() })?;
             Ok(Gathered { source: "video", names, size: first })
         }
-        (0, n) => Err(PoseError::Input(format!(
-            "{n} videos found ({}); send one video, or photos",
-            outcome::list(&found.videos.iter().map(|v| v.display().to_string()).collect::<Vec<_>>())
-        ))),
-        (_, 0) => {
+        Some(photos::Source::Photos(list)) => {
             report(Stage::Photos, 0.0);
-            let prepared = photos::prepare(&root, &found.photos, images, opts.max_size)?;
+            let prepared = photos::prepare(&root, list, images, opts.max_size)?;
             report(Stage::Photos, 1.0);
             let size = (prepared[0].width, prepared[0].height);
             Ok(Gathered { source: "photos", names: prepared.into_iter().map(|p| p.name).collect(), size })
         }
-        (_, _) => Err(PoseError::Input(
-            "found both photos and a video; send one or the other (a video's frames are taken from it)".into(),
-        )),
     }
 }
 

@@ -12,8 +12,8 @@ use rayon::prelude::*;
 
 use super::PoseError;
 
-/// Extensions (lower case) taken as photos.
-pub const PHOTO_EXTENSIONS: [&str; 3] = ["jpg", "jpeg", "png"];
+/// Extensions (lower case) taken as photos: the ones the dataset loaders read.
+pub const PHOTO_EXTENSIONS: [&str; 3] = crate::engine::dataset::IMAGE_EXTENSIONS;
 
 /// Extensions taken as a video.
 pub const VIDEO_EXTENSIONS: [&str; 4] = ["mp4", "mov", "m4v", "mkv"];
@@ -36,6 +36,32 @@ pub struct Found {
     pub videos: Vec<PathBuf>,
     /// Files that are neither (relative paths), reported as a warning.
     pub ignored: Vec<String>,
+}
+
+/// What a pose estimation starts from.
+#[derive(Debug, Clone, Copy)]
+pub enum Source<'a> {
+    Photos(&'a [PathBuf]),
+    Video(&'a Path),
+}
+
+impl Found {
+    /// Photos, or one video: `None` when there is neither, an error when
+    /// there are several videos or both photos and a video.
+    pub fn source(&self) -> Result<Option<Source<'_>>, PoseError> {
+        match (self.photos.len(), self.videos.len()) {
+            (0, 0) => Ok(None),
+            (0, 1) => Ok(Some(Source::Video(&self.videos[0]))),
+            (0, n) => Err(PoseError::Input(format!(
+                "{n} videos found ({}); send one video, or photos",
+                super::outcome::list(&self.videos.iter().map(|v| file_name(v)).collect::<Vec<_>>())
+            ))),
+            (_, 0) => Ok(Some(Source::Photos(&self.photos))),
+            (_, _) => Err(PoseError::Input(
+                "found both photos and a video; send one or the other (a video's frames are taken from it)".into(),
+            )),
+        }
+    }
 }
 
 /// Lists the photos and videos in `dir` and its subfolders (hidden files and
@@ -77,6 +103,10 @@ fn walk(root: &Path, dir: &Path, depth: usize, found: &mut Found) -> Result<(), 
         }
     }
     Ok(())
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name().map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into_owned())
 }
 
 pub fn has_extension(path: &Path, exts: &[&str]) -> bool {
@@ -284,6 +314,23 @@ mod tests {
         let e = prepare(&src, &photos, &d.path().join("o3"), 800).unwrap_err().to_string();
         assert!(e.contains("2 different sizes") && e.contains("3 at 8x12 (e.g. tall.png)"), "{e}");
         assert!(e.contains("2 at 8x8 (e.g. b.png)"), "{e}");
+    }
+
+    #[test]
+    fn a_source_is_photos_or_one_video() {
+        let p = |n: &str| PathBuf::from(format!("/up/{n}"));
+        let found = |photos: &[&str], videos: &[&str]| Found {
+            photos: photos.iter().map(|n| p(n)).collect(),
+            videos: videos.iter().map(|n| p(n)).collect(),
+            ignored: Vec::new(),
+        };
+        assert!(found(&[], &[]).source().unwrap().is_none());
+        assert!(matches!(found(&["a.jpg"], &[]).source().unwrap(), Some(Source::Photos([_]))));
+        assert!(matches!(found(&[], &["v.mp4"]).source().unwrap(), Some(Source::Video(v)) if v == p("v.mp4")));
+        let e = found(&[], &["a.mp4", "b.mov"]).source().unwrap_err().to_string();
+        assert_eq!(e, "2 videos found (a.mp4, b.mov); send one video, or photos");
+        let e = found(&["a.jpg"], &["v.mp4"]).source().unwrap_err().to_string();
+        assert!(e.starts_with("found both photos and a video"), "{e}");
     }
 
     #[test]

@@ -129,6 +129,18 @@ pub fn run(
     Err(RunError::Failed { program, failure, tail: tail.into() })
 }
 
+/// Runs `cmd` to the end within `timeout` and returns its first
+/// `max_lines` lines of output (asking a program for its version or help).
+pub fn first_lines(cmd: Command, timeout: Duration, max_lines: usize) -> Result<Vec<String>, RunError> {
+    let mut lines = Vec::new();
+    run(cmd, Instant::now() + timeout, &AtomicBool::new(false), &mut |l| {
+        if lines.len() < max_lines {
+            lines.push(l.to_string());
+        }
+    })?;
+    Ok(lines)
+}
+
 /// Waits for the child to exit, polling the deadline and the cancel flag;
 /// `None` when either ends the wait first (the caller kills the child).
 fn wait_until(child: &mut std::process::Child, deadline: Instant, cancel: &AtomicBool) -> Option<ExitStatus> {

@@ -51,14 +51,10 @@ pub fn find(explicit: Option<&Path>) -> Result<Ffmpeg, String> {
     for bin in [&ffmpeg, &ffprobe] {
         let mut cmd = Command::new(bin);
         cmd.arg("-version");
-        let mut first = None;
-        let cancel = AtomicBool::new(false);
-        process::run(cmd, Instant::now() + Duration::from_secs(20), &cancel, &mut |l| {
-            first.get_or_insert_with(|| l.to_string());
-        })
-        .map_err(|e| format!("{} does not run ({e}); {hint}", bin.display()))?;
+        let first = process::first_lines(cmd, Duration::from_secs(20), 1)
+            .map_err(|e| format!("{} does not run ({e}); {hint}", bin.display()))?;
         if version.is_empty() {
-            version = first.unwrap_or_default();
+            version = first.into_iter().next().unwrap_or_default();
         }
     }
     Ok(Ffmpeg { ffmpeg, ffprobe, version })

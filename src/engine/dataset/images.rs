@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::{DatasetError, Image};
 
 /// File extensions (lower case) treated as images.
-pub(super) const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
+pub const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
 
 /// Whether `path` has one of [`IMAGE_EXTENSIONS`] (case-insensitive).
 pub(super) fn has_image_extension(path: &Path) -> bool {

@@ -12,6 +12,7 @@ mod blender;
 mod colmap;
 pub mod colmap_model;
 mod images;
+pub use images::IMAGE_EXTENSIONS;
 mod json;
 mod llff;
 mod ngp;
