@@ -12,13 +12,10 @@ use radiance::engine::dataset::textured::TexturedScene;
 use radiance::engine::dataset::{Dataset, DatasetFormat, LoadOptions};
 use radiance::engine::geometry::align::{angle_between_deg, mat_mul, similarity};
 use radiance::engine::geometry::camera::Camera;
-use radiance::poses::{self, Matcher, PoseError, PoseOptions, Progress, Stage, Tools, colmap, video};
+use radiance::poses::{self, Matcher, PoseError, PoseOptions, Progress, Stage, Tools, video};
 
-fn tools() -> Tools {
-    let colmap = colmap::find(None).unwrap_or_else(|e| panic!("these tests need COLMAP: {e}"));
-    let ffmpeg = video::find(None).unwrap_or_else(|e| panic!("these tests need ffmpeg: {e}"));
-    Tools { colmap, ffmpeg: Some(ffmpeg) }
-}
+mod common;
+use common::poses::{noise_pngs, tools};
 
 fn opts() -> PoseOptions {
     PoseOptions { threads: 2, time_limit: Duration::from_secs(300), ..Default::default() }
@@ -223,16 +220,8 @@ fn bad_photo_sets_fail_clearly_and_leave_nothing() {
     // Photos with nothing in common: noise, each its own.
     let noise = dir.path().join("noise");
     std::fs::create_dir_all(&noise).unwrap();
-    let mut state = 0x9e3779b97f4a7c15u64;
-    for k in 0..5 {
-        let img = image::RgbImage::from_fn(160, 120, |_, _| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            let v = (state >> 40) as u8;
-            image::Rgb([v, v.wrapping_mul(3), v.wrapping_add(90)])
-        });
-        img.save(noise.join(format!("n{k}.png"))).unwrap();
+    for (name, png) in noise_pngs(5) {
+        std::fs::write(noise.join(name), png).unwrap();
     }
     let e = err(&noise, &opts());
     assert!(matches!(e, PoseError::Reconstruction(_)), "{e}");
@@ -275,14 +264,8 @@ fn bad_photo_sets_fail_clearly_and_leave_nothing() {
     assert!(e.contains("already exists and is not empty"), "{e}");
     assert_eq!(std::fs::read_to_string(out.join("keep.txt")).unwrap(), "mine");
 
-    let mut names: Vec<String> =
-        std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
-    names.sort();
-    assert_eq!(
-        names,
-        ["corrupt", "junk", "noise", "one", "out", "photos", "starved-colmap"],
-        "working folders left behind"
-    );
+    // No working folders left behind.
+    only(dir.path(), &["corrupt", "junk", "noise", "one", "out", "photos", "starved-colmap"]);
 }
 
 #[test]

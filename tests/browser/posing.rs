@@ -2,11 +2,7 @@
 //! estimation running (COLMAP, for real), then what it found, and the scene
 //! becomes trainable.
 
-use std::time::Duration;
-
 use radiance::engine::dataset::textured::TexturedScene;
-use radiance::jobs::poses::PosesSetup;
-use radiance::poses::{Tools, colmap, video};
 
 use crate::common::cdp::Browser;
 use crate::common::{Svc, config, files, zip_of};
@@ -17,10 +13,7 @@ fn photos_without_poses_show_their_pose_estimation_in_the_page() {
     let rt = runtime();
     let data = tempfile::tempdir().unwrap();
     let mut cfg = config(data.path());
-    let colmap = colmap::find(None).unwrap_or_else(|e| panic!("this test needs COLMAP: {e}"));
-    let ffmpeg = video::find(None).ok();
-    cfg.scheduler.poses =
-        Some(PosesSetup { tools: Tools { colmap, ffmpeg }, max_size: 800, time_limit: Duration::from_secs(300) });
+    cfg.scheduler.poses = Some(crate::common::poses::setup());
     let svc = rt.block_on(Svc::start(cfg));
     let browser = Browser::launch(1200, 900);
     let mut page = browser.page();

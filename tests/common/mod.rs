@@ -6,6 +6,7 @@
 
 pub mod cdp;
 pub mod mp4;
+pub mod poses;
 pub mod psnr;
 pub mod tiny;
 

@@ -7,8 +7,6 @@ use std::time::Duration;
 
 use radiance::api::ServiceConfig;
 use radiance::engine::dataset::textured::TexturedScene;
-use radiance::jobs::poses::PosesSetup;
-use radiance::poses::{Tools, colmap, video};
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 
@@ -16,10 +14,7 @@ use crate::common::*;
 
 fn with_colmap(dir: &std::path::Path) -> ServiceConfig {
     let mut c = config(dir);
-    let colmap = colmap::find(None).unwrap_or_else(|e| panic!("these tests need COLMAP: {e}"));
-    let ffmpeg = Some(video::find(None).unwrap_or_else(|e| panic!("these tests need ffmpeg: {e}")));
-    c.scheduler.poses =
-        Some(PosesSetup { tools: Tools { colmap, ffmpeg }, max_size: 800, time_limit: Duration::from_secs(300) });
+    c.scheduler.poses = Some(crate::common::poses::setup());
     c
 }
 
@@ -137,20 +132,7 @@ async fn photo_uploads_that_cannot_be_posed_fail_clearly() {
     assert_no_scene_files(data.path());
 
     // Photos of noise: accepted, then the job fails and the scene says why.
-    let mut state = 0x2545f4914f6cdd1du64;
-    let noise: Vec<(String, Vec<u8>)> = (0..5)
-        .map(|k| {
-            let img = image::RgbImage::from_fn(160, 120, |_, _| {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                image::Rgb([(state >> 24) as u8, (state >> 32) as u8, (state >> 40) as u8])
-            });
-            let mut png = Vec::new();
-            img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png).unwrap();
-            (format!("n{k}.png"), png)
-        })
-        .collect();
+    let noise = crate::common::poses::noise_pngs(5);
     let (s, v) = svc.upload("application/zip", zip_of(&noise)).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
     let id = v["id"].as_str().unwrap().to_string();
