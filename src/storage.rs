@@ -131,6 +131,11 @@ impl Storage {
     pub fn scene_dir(&self, id: &str) -> PathBuf {
         self.scenes_dir().join(id)
     }
+    /// Where a scene's folder is moved to disappear in one rename before its
+    /// files are removed (in `tmp/`, emptied at start-up should that stop).
+    pub fn scene_trash(&self, id: &str) -> PathBuf {
+        self.tmp_dir().join(format!("deleted_{id}"))
+    }
     pub fn scene_record(&self, id: &str) -> PathBuf {
         self.scene_dir(id).join("scene.json")
     }

@@ -308,7 +308,7 @@ fn store_posing(s: &AppState, id: &str, staging: &Path, size: u64, upload: Photo
     let job = match s.scheduler.enqueue_as(job_id, spec, None, poses_job::MEMORY_ESTIMATE_BYTES) {
         Ok(job) => job,
         Err(e) => {
-            let trash = s.storage.tmp_dir().join(format!("deleted_{id}"));
+            let trash = s.storage.scene_trash(id);
             if std::fs::rename(&dir, &trash).is_ok() {
                 let _ = std::fs::remove_dir_all(trash);
             }
@@ -338,7 +338,7 @@ pub async fn delete(State(s): State<AppState>, UrlPath(id): UrlPath<String>) -> 
         if storage.load_scene(&id)?.is_none() {
             return Err(ApiError::not_found("scene", &id));
         }
-        let trash = storage.tmp_dir().join(format!("deleted_{id}"));
+        let trash = storage.scene_trash(&id);
         sched
             .delete_scene(&id, || {
                 // One rename makes the scene disappear; the files go after.
