@@ -562,13 +562,16 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
         JobSpec::Poses(spec) => poses::run(shared, &job, spec, &cancel),
     }))
     .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
-    let record = finish(shared, &mut shared.lock(), &id, outcome);
-    shared.wake.notify_all();
-    // Before the thread ends: shutdown joins it, then closes the database.
-    if let Some(r) = record {
+    // Recorded and its scene settled before the lock is released: a client
+    // that sees the job's end also sees its scene's (and, before the thread
+    // ends, since shutdown joins it and then closes the database).
+    let mut st = shared.lock();
+    if let Some(r) = finish(shared, &mut st, &id, outcome) {
         shared.persist_logged(&r, "end");
         settle_scene(shared, &r.job);
     }
+    drop(st);
+    shared.wake.notify_all();
 }
 
 /// After a pose-estimation job's final record: its scene, if the job did
