@@ -24,9 +24,10 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use redb::{ReadableDatabase, ReadableTable};
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 
-use crate::engine::dataset::{Dataset, Split};
+use crate::engine::dataset::Dataset;
 use crate::engine::geometry::camera::Orbit;
 use crate::engine::geometry::math::Vec3;
+use crate::engine::geometry::rig::{CameraRig, Spiral};
 use crate::engine::io::fsio::write_atomic;
 
 /// Paths of the data directory.
@@ -368,20 +369,36 @@ pub struct SplitCounts {
     pub test: usize,
 }
 
-/// How to look at a scene by default: the training cameras' image size and
-/// field of view, the scene centre, the mean up vector and camera distance.
+/// How to look at a scene by default, from its training cameras (see
+/// `engine::geometry::rig`): their image size and field of view, the point
+/// they look at, their up vector, distance, elevation and mean direction.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ViewDefaults {
     pub width: u32,
     pub height: u32,
     /// Horizontal field of view in degrees.
     pub fov: f32,
+    /// The point the training cameras look at (orbits turn around it).
     pub centre: [f32; 3],
     pub up: [f32; 3],
-    /// Mean distance of the training cameras from the centre.
+    /// Median distance of the training cameras from the centre.
     pub radius: f32,
     /// Far plane in world units (depth images map it to white).
     pub far: f32,
+    /// Mean elevation of the training cameras above the centre, degrees:
+    /// the default of renders and orbit videos. (Records from before it
+    /// existed: 30, the default then.)
+    #[serde(default = "ViewDefaults::default_elevation")]
+    pub elevation: f32,
+    /// Unit direction from the centre towards the cameras, perpendicular to
+    /// `up`: azimuth 0. `None` in records from before it existed (azimuth 0
+    /// was then the direction of world x, projected).
+    #[serde(default)]
+    pub front: Option<[f32; 3]>,
+    /// For forward-facing captures (all cameras look the same way): the
+    /// spiral that default videos follow instead of a full orbit.
+    #[serde(default)]
+    pub spiral: Option<Spiral>,
 }
 
 impl ViewDefaults {
@@ -396,10 +413,39 @@ impl ViewDefaults {
         (w, h)
     }
 
+    fn default_elevation() -> f32 {
+        30.0
+    }
+
     /// The orbit around the scene centre, about its up axis, at
-    /// `elevation_deg` above the horizon and `radius` from the centre.
+    /// `elevation_deg` above the horizon and `radius` from the centre,
+    /// azimuth 0 towards `front`.
     pub fn orbit(&self, elevation_deg: f32, radius: f32) -> Orbit {
-        Orbit { centre: Vec3::from_array(self.centre), up: Vec3::from_array(self.up), elevation_deg, radius }
+        Orbit {
+            centre: Vec3::from_array(self.centre),
+            up: Vec3::from_array(self.up),
+            front: self.front.map(Vec3::from_array),
+            elevation_deg,
+            radius,
+        }
+    }
+
+    /// The defaults of a dataset's training cameras.
+    pub fn from_dataset(ds: &Dataset) -> ViewDefaults {
+        let cam = &ds.frames[ds.train[0]].camera;
+        let rig = CameraRig::from_dataset(ds);
+        ViewDefaults {
+            width: cam.width,
+            height: cam.height,
+            fov: (2.0 * (0.5 * cam.width as f32 / cam.fx).atan()).to_degrees(),
+            centre: rig.as_ref().map_or(ds.centre().to_array(), |r| r.focus),
+            up: rig.as_ref().map_or([0.0, 0.0, 1.0], |r| r.up),
+            radius: rig.as_ref().map_or(1.0, |r| r.radius),
+            far: ds.far,
+            elevation: rig.as_ref().map_or(Self::default_elevation(), |r| r.elevation_deg),
+            front: rig.as_ref().map(|r| r.front),
+            spiral: rig.filter(|r| r.forward_facing).map(|r| r.spiral),
+        }
     }
 }
 
@@ -470,13 +516,6 @@ impl SceneInfo {
     /// stored in the folder `root` of the scene's folder.
     pub fn from_dataset(id: &str, ds: &Dataset, size_bytes: u64, root: String) -> SceneInfo {
         let cam = &ds.frames[ds.train[0]].camera;
-        let centre = ds.centre();
-        let (mut up, mut dist) = (Vec3::splat(0.0), 0.0);
-        for f in ds.split_frames(Split::Train) {
-            up = up + f.camera.rotate(Vec3::new(0.0, 1.0, 0.0));
-            dist += (f.camera.origin() - centre).norm();
-        }
-        let up = up.normalized().unwrap_or(Vec3::new(0.0, 0.0, 1.0));
         let mut warnings = ds.warnings.clone();
         if ds.test.is_empty() && ds.val.is_empty() {
             warnings.push("no held-out views: models of this scene cannot be measured".into());
@@ -493,15 +532,7 @@ impl SceneInfo {
             created_at: now_ms(),
             size_bytes,
             root,
-            view: ViewDefaults {
-                width: cam.width,
-                height: cam.height,
-                fov: (2.0 * (0.5 * cam.width as f32 / cam.fx).atan()).to_degrees(),
-                centre: centre.to_array(),
-                up: up.to_array(),
-                radius: dist / ds.train.len() as f32,
-                far: ds.far,
-            },
+            view: ViewDefaults::from_dataset(ds),
         }
     }
 }
@@ -557,6 +588,17 @@ pub struct VideoInfo {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn view_defaults_from_before_the_camera_rig_still_load() {
+        let old =
+            r#"{"width":4,"height":3,"fov":40.0,"centre":[1.0,2.0,3.0],"up":[0.0,0.0,1.0],"radius":2.0,"far":9.0}"#;
+        let v: ViewDefaults = serde_json::from_str(old).unwrap();
+        assert_eq!((v.elevation, v.front, &v.spiral), (30.0, None, &None));
+        // Azimuth 0 then was world x, as before.
+        let eye = v.orbit(0.0, 2.0).pose(0.0).unwrap();
+        assert!((eye[0][3] - 3.0).abs() < 1e-6 && (eye[1][3] - 2.0).abs() < 1e-6, "{eye:?}");
+    }
 
     #[test]
     fn job_records_round_trip_through_the_database() {

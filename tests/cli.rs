@@ -118,6 +118,28 @@ fn demo_needs_no_data() {
     let e = ok(&radiance(&["eval", "--model", m.to_str().unwrap(), "--data", d.to_str().unwrap(), "--limit", "2"]));
     let psnr: f64 = e.lines().last().unwrap().split_whitespace().nth(3).unwrap().parse().unwrap();
     assert!(psnr > 25.0, "demo model PSNR {psnr} dB:\n{e}");
+    // An orbit video of it with no parameters: around the point the training
+    // cameras look at (the ball), from their distance.
+    let gif = dir.path().join("orbit.gif");
+    let g = gif.to_str().unwrap();
+    let printed =
+        ok(&radiance(&["video", "--model", m.to_str().unwrap(), "--out", g, "--frames", "4", "--width", "32"]));
+    assert_eq!(printed.trim(), g);
+    use image::AnimationDecoder;
+    let decoder =
+        image::codecs::gif::GifDecoder::new(std::io::BufReader::new(std::fs::File::open(&gif).unwrap())).unwrap();
+    let frames = decoder.into_frames().collect_frames().unwrap();
+    assert_eq!(frames.len(), 4);
+    for f in &frames {
+        let im = f.buffer();
+        assert_eq!(im.dimensions(), (32, 32));
+        let sum = |x, y| im.get_pixel(x, y).0[..3].iter().map(|&c| c as u32).sum::<u32>();
+        // The ball fills the middle; the corners are the white background.
+        assert!(sum(16, 16) < 600, "centre {:?}", im.get_pixel(16, 16));
+        assert!(sum(0, 0) > 700 && sum(31, 31) > 700, "corners {:?} {:?}", im.get_pixel(0, 0), im.get_pixel(31, 31));
+    }
+    let bad = radiance(&["video", "--model", m.to_str().unwrap(), "--out", dir.path().join("o.avi").to_str().unwrap()]);
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("write a .mp4 or a .gif"));
     // Bad input is a clear error.
     let bad = radiance(&["demo", "--out", o, "--seconds", "0"]);
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("--seconds"));

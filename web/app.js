@@ -363,7 +363,7 @@ async function refreshPreview(force) {
     const version = `${id}@${model.updated_at}`;
     if (version === training.shown) return;
     training.shown = version;
-    const blob = await (await api(`/v1/models/${id}/render?azimuth=30&elevation=25&width=240&height=240`)).blob();
+    const blob = await (await api(`/v1/models/${id}/render?width=240&height=240`)).blob();
     const img = $('preview');
     const old = img.src;
     img.src = URL.createObjectURL(blob);
@@ -484,16 +484,20 @@ const viewer = {
 // Measurements, for people and for the browser tests.
 window.radianceStats = { firstImageMs: [], fullImageMs: [], images: 0, renders: [] };
 
-/** The orbit's basis around the scene's up axis, as the engine's camera::Orbit. */
-function orbitBasis(up) {
-  const u = v3.unit(up);
-  const ref = Math.abs(u[0]) > 0.9 ? [0, 1, 0] : [1, 0, 0];
+/**
+ * The orbit's basis around the scene's up axis, as the engine's camera::Orbit:
+ * azimuth 0 towards the side the training cameras saw (`view.front`; scenes
+ * stored before it existed: world x).
+ */
+function orbitBasis(view) {
+  const u = v3.unit(view.up);
+  const ref = view.front || (Math.abs(u[0]) > 0.9 ? [0, 1, 0] : [1, 0, 0]);
   const a = v3.unit(v3.sub(ref, v3.scale(u, v3.dot(u, ref))));
   return [u, a, v3.cross(u, a)];
 }
 
 function eye() {
-  const [u, a, b] = orbitBasis(viewer.model.view.up);
+  const [u, a, b] = orbitBasis(viewer.model.view);
   const [az, elv] = [(viewer.azimuth * Math.PI) / 180, (viewer.elevation * Math.PI) / 180];
   const dir = v3.add(v3.scale(v3.add(v3.scale(a, Math.cos(az)), v3.scale(b, Math.sin(az))), Math.cos(elv)), v3.scale(u, Math.sin(elv)));
   return v3.add(viewer.target, v3.scale(dir, viewer.radius));
@@ -543,7 +547,7 @@ function selectModel(id) {
 
 function resetView() {
   const v = viewer.model.view;
-  Object.assign(viewer, { target: v.centre.slice(), azimuth: 30, elevation: 25, radius: v.radius, fov: v.fov });
+  Object.assign(viewer, { target: v.centre.slice(), azimuth: 0, elevation: v.elevation ?? 25, radius: v.radius, fov: v.fov });
   changed(false);
 }
 
@@ -644,7 +648,7 @@ async function recentre(px, py) {
   const local = [px - w / 2, -(py - h / 2), -f];
   const dir = v3.unit([0, 1, 2].map((i) => m[i][0] * local[0] + m[i][1] * local[1] + m[i][2] * local[2]));
   const from = eye();
-  const up = Math.abs(v3.dot(dir, v3.unit(viewer.model.view.up))) > 0.99 ? orbitBasis(viewer.model.view.up)[1] : viewer.model.view.up;
+  const up = Math.abs(v3.dot(dir, v3.unit(viewer.model.view.up))) > 0.99 ? orbitBasis(viewer.model.view)[1] : viewer.model.view.up;
   const probe = lookAt(from, v3.add(from, dir), v3.unit(up));
   const blob = await (await api(renderUrl(probe, [1, 1], 'depth', 2))).blob();
   const bitmap = await createImageBitmap(blob);
@@ -658,7 +662,7 @@ async function recentre(px, py) {
   const target = v3.add(from, v3.scale(dir, depth));
   // Keep the camera where it is; turn it to the new centre.
   const back = v3.sub(from, target);
-  const [u, a, b] = orbitBasis(viewer.model.view.up);
+  const [u, a, b] = orbitBasis(viewer.model.view);
   const r = v3.norm(back);
   Object.assign(viewer, {
     target, radius: r,

@@ -75,9 +75,10 @@ pub struct RenderQuery {
     /// Camera-to-world matrix, 12 or 16 comma-separated numbers, row-major
     /// (OpenGL convention: the camera looks down its -z).
     pub c2w: Option<String>,
-    /// Orbit position in degrees around the scene's up axis...
+    /// Orbit position in degrees around the scene's up axis (0: the side the
+    /// training cameras saw it from) ...
     pub azimuth: Option<f32>,
-    /// ... degrees above the horizon ...
+    /// ... degrees above the horizon (default: the training cameras' mean) ...
     pub elevation: Option<f32>,
     /// ... and distance from the scene centre (default: the training cameras').
     pub radius: Option<f32>,
@@ -144,7 +145,8 @@ fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResu
         Some(_) if orbit => return Err(ApiError::bad_request("give either c2w or azimuth/elevation/radius, not both")),
         Some(m) => parse_c2w(m).map_err(|e| ApiError::bad_field(e, "c2w", m, C2W))?,
         None => {
-            let (az, el, r) = (q.azimuth.unwrap_or(0.0), q.elevation.unwrap_or(30.0), q.radius.unwrap_or(view.radius));
+            let (az, el, r) =
+                (q.azimuth.unwrap_or(0.0), q.elevation.unwrap_or(view.elevation), q.radius.unwrap_or(view.radius));
             let orbit_error = |field: &str, value: f32, allowed: &str| {
                 let message = "orbit needs finite azimuth, elevation in [-90, 90], radius > 0";
                 ApiError::bad_field(message, field, value, allowed)
@@ -278,7 +280,18 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults { width: 8, height: 8, fov: 50.0, centre: [0.0; 3], up: [0.0, 0.0, 1.0], radius: 4.0, far: 6.0 }
+        ViewDefaults {
+            width: 8,
+            height: 8,
+            fov: 50.0,
+            centre: [0.0; 3],
+            up: [0.0, 0.0, 1.0],
+            radius: 4.0,
+            far: 6.0,
+            elevation: 30.0,
+            front: None,
+            spiral: None,
+        }
     }
 
     /// The `details` of the error a render query gets.

@@ -296,6 +296,9 @@ fn store_posing(s: &AppState, id: &str, staging: &Path, size: u64, upload: Photo
             up: [0.0, 0.0, 1.0],
             radius: 0.0,
             far: 0.0,
+            elevation: 0.0,
+            front: None,
+            spiral: None,
         },
     };
     write_json(&staging.join("scene.json"), &info)?;

@@ -12,6 +12,7 @@ use axum::response::IntoResponse;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, camera_path, limits};
+use crate::engine::geometry::path::CameraPath;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate;
 use crate::jobs::{Job, JobSpec, VideoSpec};
@@ -29,9 +30,9 @@ pub struct CreateVideo {
     /// Frame size (the training cameras').
     pub width: Option<u32>,
     pub height: Option<u32>,
-    /// Degrees above the horizon (30).
+    /// Degrees above the horizon (the training cameras' mean elevation).
     pub elevation: Option<f32>,
-    /// Distance from the scene centre (the training cameras' mean).
+    /// Distance from the scene centre (the training cameras' median).
     pub radius: Option<f32>,
     /// Horizontal field of view in degrees (the training cameras').
     pub fov: Option<f32>,
@@ -87,7 +88,7 @@ pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) 
         let message = format!("video frame size {width}x{height} is out of range ({allowed})");
         return Err(ApiError::bad_field(message, "width,height", [width, height], &allowed));
     }
-    let elevation = r.elevation.unwrap_or(30.0);
+    let elevation = r.elevation.unwrap_or(view.elevation.clamp(-89.0, 89.0));
     if !(elevation.is_finite() && (-89.0..=89.0).contains(&elevation)) {
         let message = "elevation must be in [-89, 89] degrees";
         return Err(ApiError::bad_field(message, "elevation", elevation, "[-89, 89]"));
@@ -101,7 +102,22 @@ pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) 
         return Err(ApiError::bad_field("fov must be between 1 and 179 degrees", "fov", fov, "(1, 179)"));
     }
     crate::media::video::validate(format, width, height, fps)?;
-    Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format, path: path.map(|p| p.path) })
+    // A forward-facing capture seen from behind is no view: with no orbit
+    // asked for, its video follows a spiral through the cameras' spread.
+    let path = match (path, &view.spiral) {
+        (Some(p), _) => Some(p.path),
+        (None, Some(spiral)) if r.elevation.is_none() && r.radius.is_none() => {
+            let mut poses = spiral.poses(view.centre, frames as usize);
+            poses.truncate(frames as usize);
+            let keys = poses.into_iter().map(|c2w| (c2w, fov)).collect();
+            Some(
+                CameraPath::evenly_timed(keys)
+                    .map_err(|e| ApiError::bad_request(format!("the default spiral: {e}")))?,
+            )
+        }
+        (None, _) => None,
+    };
+    Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format, path })
 }
 
 /// The frame size: the requested sides, the others from the training
@@ -181,6 +197,9 @@ mod tests {
             up: [0.0, 0.0, 1.0],
             radius: 4.0,
             far: 6.0,
+            elevation: 30.0,
+            front: None,
+            spiral: None,
         }
     }
 
@@ -192,6 +211,36 @@ mod tests {
         assert_eq!((s.width, s.height), (100, 50));
         let s = to_spec(CreateVideo { format: Some("gif".into()), ..Default::default() }, &view(), 1 << 20).unwrap();
         assert_eq!(s.format, VideoFormat::Gif);
+        // The elevation is the training cameras'.
+        let s = to_spec(CreateVideo::default(), &ViewDefaults { elevation: 12.5, ..view() }, 1 << 20).unwrap();
+        assert_eq!((s.elevation, s.path.is_none()), (12.5, true));
+    }
+
+    #[test]
+    fn forward_facing_scenes_get_a_spiral_unless_an_orbit_is_asked_for() {
+        use crate::engine::geometry::rig::Spiral;
+        let spiral = Spiral { centre: [0.0; 3], right: [1.0, 0.0, 0.0], up: [0.0, 1.0, 0.0], half_widths: [0.3, 0.2] };
+        let ff = ViewDefaults { centre: [0.0, 0.0, -5.0], spiral: Some(spiral), ..view() };
+        let s = to_spec(CreateVideo { frames: Some(24), ..Default::default() }, &ff, 1 << 20).unwrap();
+        let path = s.path.expect("a spiral");
+        // One keyframe per frame, one turn without repeating the first.
+        assert_eq!(path.keyframes().len(), 24);
+        for k in 0..24 {
+            let (c2w, fov) = path.at(path.frame_time(k, 24));
+            let eye = [c2w[0][3], c2w[1][3], c2w[2][3]];
+            let th = std::f32::consts::TAU * k as f32 / 24.0;
+            let want = [0.3 * th.cos(), 0.2 * th.sin(), 0.0];
+            assert!(eye.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "frame {k}: {eye:?} vs {want:?}");
+            assert_eq!(fov, 40.0);
+            // Each looks at the centre, straight ahead down -z.
+            assert!(c2w[2][2] > 0.99, "{c2w:?}");
+        }
+        for asked in [
+            CreateVideo { elevation: Some(10.0), ..Default::default() },
+            CreateVideo { radius: Some(2.0), ..Default::default() },
+        ] {
+            assert!(to_spec(asked, &ff, 1 << 20).unwrap().path.is_none());
+        }
     }
 
     #[test]

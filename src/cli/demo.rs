@@ -81,7 +81,8 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     let format = if VideoFormat::Mp4.is_available() { VideoFormat::Mp4 } else { VideoFormat::Gif };
     let size = 256;
     let fov = 2.0 * (0.5 * ds.frames[0].camera.width as f32 / ds.frames[0].camera.fx).atan().to_degrees();
-    let orbit = Orbit { centre: Vec3::splat(0.0), up: Vec3::new(0.0, 0.0, 1.0), elevation_deg: 25.0, radius: 3.0 };
+    let orbit =
+        Orbit { centre: Vec3::splat(0.0), up: Vec3::new(0.0, 0.0, 1.0), front: None, elevation_deg: 25.0, radius: 3.0 };
     let started = Instant::now();
     let model = &*session.trainer().model;
     let mut frames = Vec::with_capacity(a.frames as usize);

@@ -11,6 +11,7 @@ mod poses;
 mod serve;
 mod setup;
 mod train;
+mod video;
 
 pub use bench::{BenchArgs, BenchReport, BenchRow};
 pub use demo::DemoArgs;
@@ -18,6 +19,7 @@ pub use eval::{EvalArgs, RenderArgs};
 pub use poses::PosesArgs;
 pub use serve::ServeArgs;
 pub use train::TrainArgs;
+pub use video::VideoArgs;
 
 /// Train Neural Radiance Fields on CPUs and render novel views.
 #[derive(Parser, Debug)]
@@ -41,6 +43,8 @@ pub enum Command {
     Bench(BenchArgs),
     /// Estimate camera poses for plain photos (or a video) with COLMAP; writes a dataset `train` reads.
     Poses(PosesArgs),
+    /// Write an orbit video of a trained model (a spiral for forward-facing captures); no other parameters needed.
+    Video(VideoArgs),
     /// Run the REST service: upload scenes, train as jobs, render views.
     Serve(ServeArgs),
 }
@@ -89,6 +93,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval::eval(a),
         Command::Bench(a) => bench::run(a),
         Command::Poses(a) => poses::run(a),
+        Command::Video(a) => video::run(a),
         Command::Serve(a) => serve::run(a),
     }
 }

@@ -189,6 +189,9 @@ mod tests {
             up: [0.0, 0.0, 1.0],
             radius: 1.0,
             far: 2.0,
+            elevation: 30.0,
+            front: None,
+            spiral: None,
         };
         ModelInfo {
             id: id.into(),

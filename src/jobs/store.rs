@@ -137,6 +137,9 @@ mod tests {
             up: [0.0, 0.0, 1.0],
             radius: 1.0,
             far: 2.0,
+            elevation: 30.0,
+            front: None,
+            spiral: None,
         };
         let scene = SceneInfo {
             status: Default::default(),

@@ -151,6 +151,9 @@ pub struct Orbit {
     pub centre: Vec3,
     /// The scene's up axis (need not be unit length).
     pub up: Vec3,
+    /// The direction of azimuth 0 (projected perpendicular to `up`); `None`:
+    /// world x (world y when `up` is near x).
+    pub front: Option<Vec3>,
     /// Degrees above the horizon.
     pub elevation_deg: f32,
     /// Distance from the centre, world units.
@@ -163,8 +166,9 @@ impl Orbit {
     pub fn pose(&self, azimuth_deg: f32) -> Option<[[f32; 4]; 3]> {
         let up = self.up.normalized()?;
         let x = Vec3::new(1.0, 0.0, 0.0);
-        let reference = if up.dot(x).abs() > 0.9 { Vec3::new(0.0, 1.0, 0.0) } else { x };
-        let a = (reference - up * up.dot(reference)).normalized()?;
+        let fallback = if up.dot(x).abs() > 0.9 { Vec3::new(0.0, 1.0, 0.0) } else { x };
+        let horizontal = |r: Vec3| (r - up * up.dot(r)).normalized();
+        let a = self.front.and_then(horizontal).or_else(|| horizontal(fallback))?;
         let b = up.cross(a);
         let (az, el) = (azimuth_deg.to_radians(), self.elevation_deg.to_radians());
         let dir = (a * az.cos() + b * az.sin()) * el.cos() + up * el.sin();
@@ -222,7 +226,7 @@ mod tests {
     #[test]
     fn orbit_looks_at_its_centre_from_its_radius() {
         let centre = Vec3::new(1.0, 2.0, 3.0);
-        let orbit = Orbit { centre, up: Vec3::new(0.0, 0.0, 2.0), elevation_deg: 30.0, radius: 4.0 };
+        let orbit = Orbit { centre, up: Vec3::new(0.0, 0.0, 2.0), front: None, elevation_deg: 30.0, radius: 4.0 };
         let cam = orbit.camera(90.0, 8, 8, 50.0).unwrap();
         assert_eq!((cam.width, cam.height), (8, 8));
         // 50 degrees across 8 pixels: fx = 4 / tan(25 degrees).

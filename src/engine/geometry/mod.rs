@@ -6,4 +6,5 @@ pub mod camera;
 pub mod math;
 pub mod path;
 pub mod quat;
+pub mod rig;
 pub mod scene;

@@ -4,6 +4,7 @@
 
 use crate::engine::dataset::Dataset;
 use crate::engine::geometry::math::{Aabb, Ray, Vec3};
+use crate::engine::geometry::rig::CameraRig;
 
 /// `v / |v|` computed in f64, so that tiny (subnormal) and huge components
 /// normalise exactly; `None` for zero or non-finite vectors.
@@ -30,6 +31,12 @@ pub struct Scene {
     /// an empty background, as in the NeRF synthetic scenes).
     #[serde(default)]
     pub transparent: bool,
+    /// The training cameras' rig (world units): where they look, from how
+    /// far, which way is up. Orbits and default views come from it.
+    /// `None` for scenes made from bounds alone, and in checkpoints from
+    /// before it existed.
+    #[serde(default)]
+    pub rig: Option<CameraRig>,
 }
 
 impl Scene {
@@ -38,7 +45,7 @@ impl Scene {
             let im = &ds.frames[i].image;
             im.has_alpha && im.rgba.chunks_exact(4).any(|p| p[3] < 255)
         });
-        Self { transparent, ..Self::from_bounds(ds.aabb, ds.near, ds.far) }
+        Self { transparent, rig: CameraRig::from_dataset(ds), ..Self::from_bounds(ds.aabb, ds.near, ds.far) }
     }
 
     pub fn from_bounds(aabb: Aabb, near: f32, far: f32) -> Self {
@@ -56,6 +63,7 @@ impl Scene {
             near: near * scale,
             far: far * scale,
             transparent: false,
+            rig: None,
         }
     }
 
