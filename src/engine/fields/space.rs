@@ -259,7 +259,7 @@ impl Norm {
     /// coordinates stay NaN.
     pub fn contract(self, x: [f32; 3]) -> [f32; 3] {
         let m = max_abs(x);
-        if !(m > 0.0) {
+        if m == 0.0 || m.is_nan() {
             return x;
         }
         let s = scaled(x, m);
@@ -335,7 +335,8 @@ impl Norm {
             Norm::L2 if m > 0.0 => {
                 let q = norm2(s);
                 let r = m * q;
-                if !(r > 1.0) {
+                // x is finite and not 0 here, so r is a number.
+                if r <= 1.0 {
                     return dy;
                 }
                 let inv = 1.0 / r;
