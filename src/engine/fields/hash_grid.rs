@@ -46,6 +46,10 @@ pub struct Ctx {
     d_b: Vec<f32>,
     d_geo: Vec<f32>,
     d_enc: Vec<f32>,
+    // input gradients (`HashGridField::backward_with_input_grads` only)
+    d_shd: Vec<f32>,
+    d_pos: Vec<f32>,
+    d_dirs: Vec<f32>,
 }
 
 /// Makes `v` hold at least `n` values. Buffers never shrink, so reusing
@@ -117,8 +121,20 @@ impl Nets {
         }
     }
 
-    /// Backward of both passes given dL/dsigma and dL/drgb.
-    fn backward(&self, p: &[f32], ctx: &mut Ctx, dsigma: &[f32], drgb: &[f32], grads: &mut [f32]) {
+    /// Backward of both passes given dL/dsigma and dL/drgb. Given `dirs`
+    /// (`[n x 3]`, the directions of the colour pass), also the input
+    /// gradients: dL/du of the unit-cube points into `ctx.d_pos` and
+    /// dL/d(direction) into `ctx.d_dirs`. Without, it makes exactly the calls
+    /// it always made; with, the parameter gradients are the same.
+    fn backward(
+        &self,
+        p: &[f32],
+        ctx: &mut Ctx,
+        dsigma: &[f32],
+        drgb: &[f32],
+        grads: &mut [f32],
+        dirs: Option<&[f32]>,
+    ) {
         let n = ctx.n;
         let (h, g, gw) = (self.c1.outputs, self.d2.outputs, self.grid.width());
         let draw: Vec<f32> = drgb[..n * 3].iter().zip(&ctx.rgb).map(|(&d, &s)| d * s * (1.0 - s)).collect();
@@ -129,13 +145,20 @@ impl Nets {
         self.c2.backward(p, &[(&ctx.a1, h)], &ctx.d_a, n, grads, &mut [Some(&mut ctx.d_b)]);
         relu_backward(&ctx.a1[..n * h], &mut ctx.d_b[..n * h]);
         size(&mut ctx.d_geo, n * g);
+        let d_shd = match dirs {
+            Some(_) => {
+                size(&mut ctx.d_shd, n * sh::WIDTH);
+                Some(&mut ctx.d_shd[..])
+            }
+            None => None,
+        };
         self.c1.backward(
             p,
             &[(&ctx.geo, g), (&ctx.shd, sh::WIDTH)],
             &ctx.d_b,
             n,
             grads,
-            &mut [Some(&mut ctx.d_geo), None],
+            &mut [Some(&mut ctx.d_geo), d_shd],
         );
         for ((row, &ds), &s) in ctx.d_geo.chunks_exact_mut(g).zip(dsigma).zip(&ctx.sigma) {
             row[0] += ds * s;
@@ -145,7 +168,15 @@ impl Nets {
         relu_backward(&ctx.h1[..n * h], &mut ctx.d_a[..n * h]);
         size(&mut ctx.d_enc, n * gw);
         self.d1.backward(p, &[(&ctx.enc, gw)], &ctx.d_a, n, grads, &mut [Some(&mut ctx.d_enc)]);
-        self.grid.backward(&ctx.unit[..n * 3], &ctx.d_enc, grads);
+        let Some(dirs) = dirs else {
+            self.grid.backward(&ctx.unit[..n * 3], &ctx.d_enc, grads);
+            return;
+        };
+        size(&mut ctx.d_pos, n * 3);
+        self.grid.backward_with_input_grad(p, &ctx.unit[..n * 3], &ctx.d_enc, grads, &mut ctx.d_pos);
+        ctx.d_dirs.clear();
+        ctx.d_dirs.resize(n * 3, 0.0);
+        sh::encode_backward(&dirs[..n * 3], &ctx.d_shd[..n * sh::WIDTH], &mut ctx.d_dirs);
     }
 }
 
@@ -180,6 +211,42 @@ impl HashGridField {
         for l in [&n.d1, &n.d2, &n.c1, &n.c2, &n.c3] {
             l.init(params, rng);
         }
+    }
+
+    /// [`Field::backward`] (the same parameter gradients), and also the
+    /// gradients with respect to the inputs of the last density pass (after
+    /// any [`Field::compact`]) and colour pass: read them with
+    /// [`HashGridField::input_grads`]. `dirs` are the directions the colour
+    /// pass was given (`[n x 3]`). Not for colours from
+    /// [`Field::color_rows`], which keep no positions.
+    ///
+    /// The positions' gradient flows through both outputs: the density and
+    /// the colour's geometry features both come from the hash grid
+    /// ([`HashGrid::backward_with_input_grad`]), then through the box map
+    /// `u = (x - lo) / (hi - lo)`. The directions' gradient comes from the
+    /// colour network's spherical-harmonics input ([`sh::encode_backward`]).
+    pub fn backward_with_input_grads(
+        &self,
+        params: &[f32],
+        ctx: &mut Ctx,
+        dirs: &[f32],
+        dsigma: &[f32],
+        drgb: &[f32],
+        grads: &mut [f32],
+    ) {
+        self.nets.backward(params, ctx, dsigma, drgb, grads, Some(dirs));
+        let inv = self.inv;
+        for d in ctx.d_pos[..3 * ctx.n].chunks_exact_mut(3) {
+            d[0] *= inv.x;
+            d[1] *= inv.y;
+            d[2] *= inv.z;
+        }
+    }
+
+    /// dL/d(position) (model space) and dL/d(direction), `[n x 3]` each, of
+    /// the last [`HashGridField::backward_with_input_grads`].
+    pub fn input_grads<'c>(&self, ctx: &'c Ctx) -> (&'c [f32], &'c [f32]) {
+        (&ctx.d_pos[..3 * ctx.n], &ctx.d_dirs[..3 * ctx.n])
     }
 }
 
@@ -226,7 +293,7 @@ impl Field for HashGridField {
     }
 
     fn backward(&self, params: &[f32], ctx: &mut Ctx, dsigma: &[f32], drgb: &[f32], grads: &mut [f32]) {
-        self.nets.backward(params, ctx, dsigma, drgb, grads);
+        self.nets.backward(params, ctx, dsigma, drgb, grads, None);
     }
 }
 
@@ -266,7 +333,7 @@ mod tests {
         };
         let (_, mut c) = run(&params);
         let mut grads = vec![0.0f32; layout.len];
-        nets.backward(&params, &mut c, &gs, &gc, &mut grads);
+        nets.backward(&params, &mut c, &gs, &gc, &mut grads, None);
         let mut checked = 0;
         for (name, range) in &layout.names {
             for i in range.clone() {
@@ -283,5 +350,94 @@ mod tests {
             }
         }
         assert!(checked > 200);
+    }
+
+    /// Random points of the box `lo..hi` whose unit-cube coordinates keep
+    /// `margin` cells clear of the cell faces of every resolution up to
+    /// `max_res` (the hash grid's derivative jumps on faces).
+    fn points_off_faces(rng: &mut Rng, count: usize, lo: Vec3, hi: Vec3, max_res: u32, margin: f32) -> Vec<f32> {
+        let mut pts = Vec::with_capacity(3 * count);
+        while pts.len() < 3 * count {
+            let u = [rng.f32(), rng.f32(), rng.f32()];
+            let clear = (1..=max_res).all(|r| {
+                u.iter().all(|&v| {
+                    let x = v * r as f32;
+                    (x - x.round()).abs() > margin
+                })
+            });
+            if clear {
+                let (lo, ext) = (lo.to_array(), (hi - lo).to_array());
+                pts.extend((0..3).map(|a| lo[a] + u[a] * ext[a]));
+            }
+        }
+        pts
+    }
+
+    /// dL/dx and dL/d(direction) of `L = Σ gs σ + Σ gc rgb` through the whole
+    /// field (density, compaction, colour) against central differences of
+    /// its f32 forward passes; the parameter gradients stay `backward`'s.
+    #[test]
+    fn input_gradients_through_the_field_match_finite_differences() {
+        let grid = HashGridConfig { levels: 3, log2_table: 6, base_resolution: 2, finest_resolution: 8 };
+        // A box that is not a cube, so the box map's scales matter.
+        let (lo, hi) = (Vec3::new(-1.0, -2.0, -0.5), Vec3::new(1.0, 2.0, 1.5));
+        let mut layout = ParamLayout::default();
+        let field = HashGridField::new(&mut layout, grid, 8, 4, (lo, hi));
+        let mut rng = Rng::new(7);
+        let mut params = vec![0.0f32; layout.len];
+        field.init(&mut params, &mut rng);
+        for p in params.iter_mut() {
+            *p += 0.3 * rng.normal();
+        }
+        let n = 7;
+        let pos = points_off_faces(&mut rng, n, lo, hi, 8, 0.05);
+        let dirs: Vec<f32> = (0..3 * n).map(|_| rng.normal()).collect();
+        let keep = [0usize, 2, 3, 5, 6];
+        let kept_dirs: Vec<f32> = keep.iter().flat_map(|&i| dirs[3 * i..3 * i + 3].to_vec()).collect();
+        let gs: Vec<f32> = keep.iter().map(|_| rng.normal() * 0.1).collect();
+        let gc: Vec<f32> = (0..3 * keep.len()).map(|_| rng.normal()).collect();
+        let run = |pos: &[f32], kd: &[f32]| -> (f64, Ctx) {
+            let mut ctx = Ctx::default();
+            field.density(&params, Points { pos, dirs: &dirs, image: &[] }, &mut ctx);
+            field.compact(&mut ctx, &keep);
+            field.color(&params, kd, &mut ctx);
+            let v = field.sigma(&ctx).iter().zip(&gs).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>()
+                + field.rgb(&ctx).iter().zip(&gc).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>();
+            (v, ctx)
+        };
+        let (_, mut ctx) = run(&pos, &kept_dirs);
+        let mut grads = vec![0.0f32; layout.len];
+        field.backward_with_input_grads(&params, &mut ctx, &kept_dirs, &gs, &gc, &mut grads);
+        let (dpos, ddirs) = field.input_grads(&ctx);
+        assert_eq!((dpos.len(), ddirs.len()), (3 * keep.len(), 3 * keep.len()));
+
+        let (_, mut plain) = run(&pos, &kept_dirs);
+        let mut want = vec![0.0f32; layout.len];
+        field.backward(&params, &mut plain, &gs, &gc, &mut want);
+        assert!(grads.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "parameter gradients differ");
+
+        let h = 1e-3f32;
+        let check = |what: &str, got: &[f32], input: &[f32], rows: &[usize], eval: &dyn Fn(&[f32]) -> f64| {
+            let mut largest = 0.0f64;
+            for (j, &i) in rows.iter().enumerate() {
+                for a in 0..3 {
+                    let (mut up, mut down) = (input.to_vec(), input.to_vec());
+                    up[3 * i + a] += h;
+                    down[3 * i + a] -= h;
+                    let step = (up[3 * i + a] - down[3 * i + a]) as f64;
+                    let num = (eval(&up) - eval(&down)) / step;
+                    let ana = got[3 * j + a] as f64;
+                    largest = largest.max(num.abs());
+                    assert!(
+                        (num - ana).abs() < 2e-3 + 2e-2 * num.abs(),
+                        "{what} of sample {i}, axis {a}: numeric {num}, analytic {ana}"
+                    );
+                }
+            }
+            assert!(largest > 0.05, "{what}: every gradient is tiny ({largest})");
+        };
+        check("dL/dx", dpos, &pos, &keep, &|p| run(p, &kept_dirs).0);
+        let all: Vec<usize> = (0..keep.len()).collect();
+        check("dL/d(direction)", ddirs, &kept_dirs, &all, &|d| run(&pos, d).0);
     }
 }

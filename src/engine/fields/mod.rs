@@ -11,9 +11,14 @@
 //!
 //! Shapes: `n` samples per pass; positions and directions `[n x 3]`,
 //! densities `[n]`, colours `[n x 3]` in [0, 1].
+//!
+//! `space` holds the maps from model space into a grid's unit cube for
+//! scenes that do not fit a box (contraction, NDC), with their gradients;
+//! no field uses them yet.
 
 pub mod hash_grid;
 pub mod mlp;
+pub mod space;
 
 /// The samples a field is asked about: `n = pos.len() / 3` rows.
 #[derive(Clone, Copy, Debug)]

@@ -2,7 +2,9 @@
 //! `F = 2` features, level `l` a grid of resolution `N_l = floor(N_min b^l)`,
 //! stored densely when `(N_l + 1)^3` fits the table and hashed otherwise;
 //! trilinear interpolation of the 8 corners. The backward pass scatters
-//! gradients into a (per-thread) gradient buffer.
+//! gradients into a (per-thread) gradient buffer; `input_grad` gives the
+//! gradient with respect to the points, for position gradients (camera
+//! pose refinement) through the encoding.
 //!
 //! Inputs are points in the unit cube `[0, 1]^3`; points outside are clamped
 //! to it (the caller only samples inside the scene box).
@@ -303,6 +305,95 @@ impl HashGrid {
                         *grads.get_unchecked_mut(i[c]) += w[c] * g0;
                         *grads.get_unchecked_mut(i[c] + 1) += w[c] * g1;
                     }
+                }
+            }
+        }
+    }
+
+    /// [`Self::backward`] (the same table gradients, bit for bit: it is
+    /// that call), and also the gradient with respect to the input points:
+    /// `dpts` (`[>= n x 3]`; its first `n` rows are overwritten) gets dL/du
+    /// of each point, as [`Self::input_grad`] computes it.
+    pub fn backward_with_input_grad(
+        &self,
+        params: &[f32],
+        pts: &[f32],
+        dout: &[f32],
+        grads: &mut [f32],
+        dpts: &mut [f32],
+    ) {
+        self.backward(pts, dout, grads);
+        self.input_grad(params, pts, dout, dpts);
+    }
+
+    /// Writes into the first `n` rows of `dpts` (`[>= n x 3]`) the gradient
+    /// dL/du of each of the `n` points `pts` (`[n x 3]`), given dL/d(encoding)
+    /// `dout` (`[>= n x width]`).
+    ///
+    /// At level `l` of resolution `N_l` a point sits in its cell at
+    /// fractions `φ_a = N_l u_a - floor(N_l u_a)`; the corner weights are
+    /// `w_c = Π_a ω_a(c_a)` with `ω(0) = 1 - φ`, `ω(1) = φ`, so
+    /// `dL/du_a = Σ_l N_l Σ_c (2 c_a - 1) Π_{b≠a} ω_b(c_b) (g_l · θ_c)`,
+    /// with `g_l` the level's two output gradients and `θ_c` the corner's
+    /// features (read again from `params`). The encoding is continuous but
+    /// only piecewise smooth: on a cell face this is the derivative inside
+    /// the cell the forward pass reads (the one above, except at `u = 1`).
+    /// A coordinate the forward pass clamps (below 0, above 1, NaN) gets 0.
+    ///
+    /// Scalar code on every CPU (the forward pass has an AVX2 path; the
+    /// values agree to rounding, as the two forward paths do).
+    pub fn input_grad(&self, params: &[f32], pts: &[f32], dout: &[f32], dpts: &mut [f32]) {
+        let n = pts.len() / 3;
+        assert!(params.len() >= self.params.end, "hash grid: parameter buffer too short");
+        assert!(dout.len() >= n * self.width() && dpts.len() >= 3 * n, "hash grid: gradient rows too short");
+        let (pts, dout, dpts) = (&pts[..3 * n], &dout[..n * self.width()], &mut dpts[..3 * n]);
+        dpts.fill(0.0);
+        for (l, level) in self.levels.iter().enumerate() {
+            if level.dense {
+                self.input_grad_level::<true>(l, level, params, pts, dout, dpts);
+            } else {
+                self.input_grad_level::<false>(l, level, params, pts, dout, dpts);
+            }
+        }
+    }
+
+    /// Level `l`'s term of [`Self::input_grad`], added to `dpts`.
+    fn input_grad_level<const DENSE: bool>(
+        &self,
+        l: usize,
+        level: &Level,
+        params: &[f32],
+        pts: &[f32],
+        dout: &[f32],
+        dpts: &mut [f32],
+    ) {
+        let r = level.res as f32;
+        for ((raw, g), d) in pts.chunks_exact(3).zip(dout.chunks_exact(self.width())).zip(dpts.chunks_exact_mut(3)) {
+            let (g0, g1) = (g[FEATURES * l], g[FEATURES * l + 1]);
+            if g0 == 0.0 && g1 == 0.0 {
+                continue;
+            }
+            let p = [sanitize(raw[0]), sanitize(raw[1]), sanitize(raw[2])];
+            let (idx, _) = self.corners_of::<DENSE>(level, p);
+            // The fractions as `corners_of` computes them.
+            let w: [[f32; 2]; 3] = std::array::from_fn(|a| {
+                let v = p[a] * r;
+                let f = v - (v as u32).min(level.res - 1) as f32;
+                [1.0 - f, f]
+            });
+            let mut dphi = [0.0f32; 3];
+            for (c, &i) in idx.iter().enumerate() {
+                let (cx, cy, cz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
+                let gt = g0 * params[i] + g1 * params[i + 1];
+                let sign = |bit: usize| if bit == 1 { gt } else { -gt };
+                dphi[0] += sign(cx) * w[1][cy] * w[2][cz];
+                dphi[1] += sign(cy) * w[0][cx] * w[2][cz];
+                dphi[2] += sign(cz) * w[0][cx] * w[1][cy];
+            }
+            for a in 0..3 {
+                // The clamp's derivative: 0 outside [0, 1] and for NaN.
+                if (0.0..=1.0).contains(&raw[a]) {
+                    d[a] += r * dphi[a];
                 }
             }
         }

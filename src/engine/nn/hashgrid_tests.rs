@@ -152,3 +152,163 @@ fn out_of_range_points_are_clamped_not_nan() {
     g.forward(&params, &pts, &mut out);
     assert!(out.iter().all(|v| (v - 1.0).abs() < 1e-5), "{out:?}");
 }
+
+/// The encoding of one point in f64, from the vertex formula
+/// ([`HashGrid::index`]), for finite differences.
+fn forward64(g: &HashGrid, params: &[f32], u: [f64; 3]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(g.width());
+    for level in &g.levels {
+        let res = level.res as f64;
+        let cell: [(u32, f64); 3] = std::array::from_fn(|a| {
+            let v = u[a].clamp(0.0, 1.0) * res;
+            let f = v.floor().min(res - 1.0);
+            (f as u32, v - f)
+        });
+        let mut f = [0.0f64; 2];
+        for c in 0..8u32 {
+            let bits = [(c >> 2) & 1, (c >> 1) & 1, c & 1];
+            let w: f64 = (0..3).map(|a| if bits[a] == 1 { cell[a].1 } else { 1.0 - cell[a].1 }).product();
+            let i = HashGrid::index(level, cell[0].0 + bits[0], cell[1].0 + bits[1], cell[2].0 + bits[2]);
+            let k = g.params.start + level.offset + FEATURES * i;
+            f[0] += w * params[k] as f64;
+            f[1] += w * params[k + 1] as f64;
+        }
+        out.extend_from_slice(&f);
+    }
+    out
+}
+
+/// Random points in the unit cube at least `margin` cells away from every
+/// cell face of every level (the encoding's derivative jumps on faces).
+fn points_off_faces(g: &HashGrid, rng: &mut Rng, count: usize, margin: f32) -> Vec<f32> {
+    let mut pts = Vec::with_capacity(3 * count);
+    while pts.len() < 3 * count {
+        let p = [rng.f32(), rng.f32(), rng.f32()];
+        let clear = g.levels.iter().all(|l| {
+            p.iter().all(|&v| {
+                let x = v * l.res as f32;
+                (x - x.round()).abs() > margin
+            })
+        });
+        if clear {
+            pts.extend_from_slice(&p);
+        }
+    }
+    pts
+}
+
+/// dL/du of a random linear functional `L = Σ r · encoding` against central
+/// differences: of the f64 encoding (tight; it is first checked against
+/// `forward`), and of `forward` itself in f32 (loose, rounding-limited).
+#[test]
+fn input_grad_matches_finite_differences() {
+    let (g, n) = small();
+    assert!(g.levels.iter().any(|l| l.dense) && g.levels.iter().any(|l| !l.dense));
+    let mut rng = Rng::new(21);
+    let params: Vec<f32> = (0..n).map(|_| rng.normal()).collect();
+    let count = 37;
+    let pts = points_off_faces(&g, &mut rng, count, 0.02);
+    let r: Vec<f32> = (0..count * g.width()).map(|_| rng.normal()).collect();
+    let mut dpts = vec![f32::NAN; 3 * count];
+    g.input_grad(&params, &pts, &r, &mut dpts);
+
+    let mut out = vec![0.0f32; count * g.width()];
+    g.forward(&params, &pts, &mut out);
+    let functional = |u: [f64; 3], i: usize| -> f64 {
+        forward64(&g, &params, u).iter().zip(&r[i * g.width()..]).map(|(f, r)| f * *r as f64).sum()
+    };
+    for (i, q) in pts.chunks(3).enumerate() {
+        let u = [q[0] as f64, q[1] as f64, q[2] as f64];
+        let f64_out = forward64(&g, &params, u);
+        for (k, want) in f64_out.iter().enumerate() {
+            let got = out[i * g.width() + k] as f64;
+            assert!((got - want).abs() < 1e-5 * (1.0 + want.abs()), "point {i} output {k}: {got} vs {want}");
+        }
+        for a in 0..3 {
+            let h = 1e-7;
+            let (mut up, mut down) = (u, u);
+            up[a] += h;
+            down[a] -= h;
+            let num = (functional(up, i) - functional(down, i)) / (2.0 * h);
+            let got = dpts[3 * i + a] as f64;
+            assert!((got - num).abs() < 1e-4 * (1.0 + num.abs()), "point {i} axis {a}: {got} vs {num}");
+        }
+    }
+    // The real forward pass (AVX2 groups and scalar tail alike), perturbing
+    // one axis of every point at once: each point's outputs depend on that
+    // point only.
+    let h = 2e-4f32;
+    let objective = |p: &[f32]| -> Vec<f64> {
+        let mut o = vec![0.0f32; count * g.width()];
+        g.forward(&params, p, &mut o);
+        o.chunks(g.width())
+            .zip(r.chunks(g.width()))
+            .map(|(o, r)| o.iter().zip(r).map(|(a, b)| (a * b) as f64).sum())
+            .collect()
+    };
+    for a in 0..3 {
+        let (mut up, mut down) = (pts.clone(), pts.clone());
+        for i in 0..count {
+            up[3 * i + a] += h;
+            down[3 * i + a] -= h;
+        }
+        let (fu, fd) = (objective(&up), objective(&down));
+        for i in 0..count {
+            // The step actually taken, after f32 rounding of the coordinates.
+            let step = (up[3 * i + a] - down[3 * i + a]) as f64;
+            let num = (fu[i] - fd[i]) / step;
+            let got = dpts[3 * i + a] as f64;
+            assert!((got - num).abs() < 2e-2 * (1.0 + num.abs()), "f32 forward, point {i} axis {a}: {got} vs {num}");
+        }
+    }
+    assert!(dpts.iter().all(|v| v.abs() > 1e-3), "every point has a gradient: {dpts:?}");
+}
+
+/// The table gradients of `backward_with_input_grad` are `backward`'s, bit
+/// for bit (accumulated onto the same non-zero buffer), and `dpts` is
+/// overwritten, whatever it held.
+#[test]
+fn backward_with_input_grad_keeps_the_table_gradients_bit_equal() {
+    let (g, n) = small();
+    let mut rng = Rng::new(22);
+    let params: Vec<f32> = (0..n).map(|_| rng.normal()).collect();
+    let count = 37;
+    let mut pts: Vec<f32> = (0..count * 3).map(|_| rng.f32() * 1.2 - 0.1).collect();
+    pts[4] = f32::NAN;
+    pts[9] = 1.0;
+    pts[10] = 0.0;
+    let mut dout: Vec<f32> = (0..count * g.width()).map(|_| rng.normal()).collect();
+    dout[g.width()..2 * g.width()].fill(0.0);
+    let start: Vec<f32> = (0..n).map(|_| rng.normal()).collect();
+    let mut want = start.clone();
+    g.backward(&pts, &dout, &mut want);
+    let mut got = start.clone();
+    let mut dpts = vec![f32::NAN; 3 * count];
+    g.backward_with_input_grad(&params, &pts, &dout, &mut got, &mut dpts);
+    assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "table gradients differ");
+    assert_ne!(got, start);
+    let mut alone = vec![0.0f32; 3 * count];
+    g.input_grad(&params, &pts, &dout, &mut alone);
+    assert_eq!(dpts, alone);
+    assert!(dpts.iter().all(|v| v.is_finite()));
+    assert_eq!(&dpts[3..6], &[0.0; 3], "a point with no output gradient has none");
+}
+
+/// A coordinate the forward pass clamps has no gradient; the others have
+/// the gradient of the clamped point.
+#[test]
+fn clamped_coordinates_get_no_gradient() {
+    let (g, n) = small();
+    let mut rng = Rng::new(23);
+    let params: Vec<f32> = (0..n).map(|_| rng.normal()).collect();
+    let pts = [-0.5f32, 0.31, 0.62, 0.0, 0.31, 0.62, 0.47, 1.5, f32::NAN, 0.47, 1.0, 0.0];
+    let dout: Vec<f32> = (0..4).flat_map(|_| (0..g.width()).map(|k| 1.0 + k as f32 * 0.1)).collect();
+    let mut d = vec![0.0f32; 12];
+    g.input_grad(&params, &pts, &dout, &mut d);
+    assert_eq!(d[0], 0.0, "below 0");
+    assert_eq!((d[1], d[2]), (d[4], d[5]), "the other axes as at the clamped point");
+    assert!(d[1] != 0.0 && d[2] != 0.0);
+    assert_eq!((d[7], d[8]), (0.0, 0.0), "above 1 and NaN");
+    assert_eq!(d[6], d[9], "as at the clamped point (1, 0)");
+    assert!(d[6] != 0.0);
+}
