@@ -1,10 +1,12 @@
 //! Rendering whole views: one ray per pixel centre, in parallel over tiles.
 //!
 //! The parts: `composite` (volume rendering of one ray, forward and
-//! backward), `loss` (the photometric loss), `rounds` (the one render loop).
+//! backward), `loss` (the photometric loss), `regularize` (losses on a ray's
+//! weights: distortion and interlevel), `rounds` (the one render loop).
 
 pub mod composite;
 pub mod loss;
+pub mod regularize;
 pub mod rounds;
 
 use std::sync::atomic::{AtomicBool, Ordering};
