@@ -111,14 +111,21 @@ impl Warp {
         }
     }
 
-    /// `s(t)`; `t` is clamped into `[near, far]` first.
+    /// `s(t)`; `t` is clamped into `[near, far]` first (NaN stays NaN).
     pub fn to_s(&self, t: f32) -> f32 {
+        if t.is_nan() {
+            return f32::NAN;
+        }
         let t = (t as f64).clamp(self.near, self.far);
         ((self.g(t) - self.g_near) / (self.g_far - self.g_near)).clamp(0.0, 1.0) as f32
     }
 
-    /// The inverse, `t(s)`; `s` is clamped into `[0, 1]` first.
+    /// The inverse, `t(s)`; `s` is clamped into `[0, 1]` first (NaN stays
+    /// NaN).
     pub fn to_t(&self, s: f32) -> f32 {
+        if s.is_nan() {
+            return f32::NAN;
+        }
         if s <= 0.0 {
             return self.near as f32;
         }

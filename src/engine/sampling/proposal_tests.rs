@@ -66,6 +66,9 @@ fn warp_by_hand() {
     // Knee beyond far: linear in distance throughout.
     let w = Warp::new(1.0, 10.0, 4.0).unwrap();
     assert!((w.to_s(2.5) - 0.5).abs() < 1e-6 && (w.to_t(0.25) - 1.75).abs() < 1e-6);
+    // Outside the domain: clamped; NaN is not turned into a number.
+    assert_eq!((w.to_s(0.5), w.to_s(9.0), w.to_t(-1.0), w.to_t(2.0)), (0.0, 1.0, 1.0, 4.0));
+    assert!(w.to_s(f32::NAN).is_nan() && w.to_t(f32::NAN).is_nan());
 }
 
 #[test]
