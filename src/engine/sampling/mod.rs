@@ -7,11 +7,14 @@
 //! - [`hierarchical`]: those placed along the occupied part of each ray and
 //!   handed out in rounds,
 //! - [`occupancy`]: the grid of cells that may hold density,
-//! - [`marcher`]: constant steps through the occupied cells (the fast model).
+//! - [`marcher`]: constant steps through the occupied cells (the fast model),
+//! - [`proposal`]: the ray-distance warp, stratified and inverse-CDF interval
+//!   edges and the final samples of proposal sampling (unbounded scenes).
 
 pub mod hierarchical;
 pub mod marcher;
 pub mod occupancy;
+pub mod proposal;
 pub mod stratified;
 
 use crate::engine::geometry::math::Ray;

@@ -45,24 +45,58 @@ pub fn sample_pdf(edges: &[f32], weights: &[f32], n: usize, rng: Option<&mut Rng
     }
     // Padding as in the reference code keeps every bin reachable.
     const EPS: f32 = 1e-5;
-    // Summed in f64: f32 weights near f32::MAX cannot overflow the total.
-    let mut total = 0.0f64;
-    let mut sums = Vec::with_capacity(bins + 1);
-    sums.push(0.0f64);
-    for &w in weights {
-        let w = if w.is_finite() && w > 0.0 { w as f64 } else { 0.0 };
-        total += w + EPS as f64;
-        sums.push(total);
-    }
-    let mut cdf: Vec<f32> = sums.iter().map(|&c| (c / total) as f32).collect();
-    cdf[bins] = 1.0;
+    let mut cdf = Vec::with_capacity(bins + 1);
+    pdf_cdf(weights, 1.0, EPS, &mut cdf);
     let mut rng = rng;
+    let u = (0..n).map(|i| {
+        let jitter = rng.as_deref_mut().map_or(0.5, |r| r.f32());
+        (i as f32 + jitter) / n as f32
+    });
+    invert_cdf(edges, &cdf, u, out);
+}
+
+/// Writes into `cdf` the CDF (`[bins + 1]`, from 0 to exactly 1) of the
+/// piecewise-constant density whose bin `j` has mass
+/// `max(w_j, 0)^exponent + padding` (non-finite weights count as 0, and
+/// `0^0 = 1`), summed in f64 so weights near `f32::MAX` cannot overflow.
+/// When every mass is 0 (zero weights and no padding) the bins get equal
+/// masses. `padding` must be finite and non-negative.
+pub(super) fn pdf_cdf(weights: &[f32], exponent: f32, padding: f32, cdf: &mut Vec<f32>) {
+    let bins = weights.len();
+    cdf.clear();
+    cdf.push(0.0);
+    // First the masses and their total, then the running sums divided by it.
+    let mut total = 0.0f64;
+    for &w in weights {
+        let w = if w.is_finite() && w > 0.0 { w } else { 0.0 };
+        let mass = if exponent == 1.0 { w } else { w.powf(exponent) };
+        total += mass as f64 + padding as f64;
+        cdf.push(mass);
+    }
+    if total > 0.0 {
+        let mut sum = 0.0f64;
+        for c in &mut cdf[1..] {
+            sum += *c as f64 + padding as f64;
+            *c = (sum / total) as f32;
+        }
+    } else {
+        for (k, c) in cdf.iter_mut().enumerate() {
+            *c = k as f32 / bins as f32;
+        }
+    }
+    cdf[bins] = 1.0;
+}
+
+/// Appends, for each of the non-decreasing `u` in `[0, 1]`, the point where
+/// the CDF `cdf` of the bins `edges` (both `[bins + 1]`, sorted, `bins >= 1`)
+/// reaches it, linear inside a bin. The points are clamped to be
+/// non-decreasing and inside `[edges[0], edges[bins]]`.
+pub(super) fn invert_cdf(edges: &[f32], cdf: &[f32], u: impl Iterator<Item = f32>, out: &mut Vec<f32>) {
+    let bins = cdf.len() - 1;
     let mut j = 0usize;
     let lo = edges[0];
     let hi = edges[bins];
-    for i in 0..n {
-        let jitter = rng.as_deref_mut().map_or(0.5, |r| r.f32());
-        let u = (i as f32 + jitter) / n as f32;
+    for (i, u) in u.enumerate() {
         while j + 1 < bins && cdf[j + 1] <= u {
             j += 1;
         }
@@ -160,5 +194,72 @@ mod tests {
         let mut out = Vec::new();
         merge_sorted(&[1.0, 3.0, 5.0], &[2.0, 2.5, 6.0], &mut out);
         assert_eq!(out, vec![1.0, 2.0, 2.5, 3.0, 5.0, 6.0]);
+    }
+
+    /// `sample_pdf` as it was before its CDF and inversion became
+    /// `pdf_cdf` and `invert_cdf` (commit d1bff93), kept to show the nerf
+    /// model's samples did not move.
+    fn sample_pdf_before(edges: &[f32], weights: &[f32], n: usize, rng: Option<&mut Rng>, out: &mut Vec<f32>) {
+        let bins = weights.len();
+        if bins == 0 || n == 0 {
+            return;
+        }
+        const EPS: f32 = 1e-5;
+        let mut total = 0.0f64;
+        let mut sums = Vec::with_capacity(bins + 1);
+        sums.push(0.0f64);
+        for &w in weights {
+            let w = if w.is_finite() && w > 0.0 { w as f64 } else { 0.0 };
+            total += w + EPS as f64;
+            sums.push(total);
+        }
+        let mut cdf: Vec<f32> = sums.iter().map(|&c| (c / total) as f32).collect();
+        cdf[bins] = 1.0;
+        let mut rng = rng;
+        let mut j = 0usize;
+        let lo = edges[0];
+        let hi = edges[bins];
+        for i in 0..n {
+            let jitter = rng.as_deref_mut().map_or(0.5, |r| r.f32());
+            let u = (i as f32 + jitter) / n as f32;
+            while j + 1 < bins && cdf[j + 1] <= u {
+                j += 1;
+            }
+            let span = cdf[j + 1] - cdf[j];
+            let frac = if span > 0.0 { ((u - cdf[j]) / span).clamp(0.0, 1.0) } else { 0.5 };
+            let s = edges[j] + frac * (edges[j + 1] - edges[j]);
+            let prev = out.last().copied().filter(|_| i > 0).unwrap_or(lo);
+            out.push(s.clamp(prev, hi));
+        }
+    }
+
+    #[test]
+    fn sample_pdf_draws_the_same_bits_as_before_it_was_split() {
+        let mut draw = Rng::new(99);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for case in 0..400 {
+            let bins = 1 + draw.below(64) as usize;
+            let mut edges: Vec<f32> = (0..=bins).map(|_| 6.0 * draw.f32()).collect();
+            edges.sort_by(f32::total_cmp);
+            let weights: Vec<f32> = (0..bins)
+                .map(|_| match draw.below(8) {
+                    0 => 0.0,
+                    1 => f32::NAN,
+                    2 => 1e30,
+                    _ => draw.f32() * draw.f32(),
+                })
+                .collect();
+            let n = draw.below(200) as usize;
+            // Both append after what `out` already holds.
+            let (mut a, mut b) = (vec![0.5f32], vec![0.5f32]);
+            if case % 2 == 0 {
+                sample_pdf(&edges, &weights, n, Some(&mut Rng::stream(3, case as u64, 1)), &mut a);
+                sample_pdf_before(&edges, &weights, n, Some(&mut Rng::stream(3, case as u64, 1)), &mut b);
+            } else {
+                sample_pdf(&edges, &weights, n, None, &mut a);
+                sample_pdf_before(&edges, &weights, n, None, &mut b);
+            }
+            assert_eq!(bits(&a), bits(&b), "case {case}");
+        }
     }
 }
