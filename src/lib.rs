@@ -2,7 +2,9 @@
 //!
 //! `engine` knows nothing of HTTP or async; `media` encodes what the engine
 //! renders; `cli` drives both from the command line; `api` serves them over
-//! HTTP, with `jobs` (the training queue) and `storage` (the data directory).
+//! HTTP, with `jobs` (the training queue) and `storage` (the data directory);
+//! `store::pg` is the PostgreSQL queue for running beyond one machine (not
+//! used by the service yet).
 
 // Index loops over small fixed-size arrays read more clearly in numeric code.
 #![allow(clippy::needless_range_loop)]
@@ -14,4 +16,5 @@ pub mod jobs;
 pub mod media;
 pub mod poses;
 pub mod storage;
+pub mod store;
 pub mod system;

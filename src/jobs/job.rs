@@ -205,10 +205,16 @@ pub struct Job {
 impl Job {
     /// The id its model gets: the job id with the `mdl` prefix.
     pub fn reserved_model_id(&self) -> String {
-        format!("mdl{}", self.id.trim_start_matches("job"))
+        reserved_model_id(&self.id)
     }
     /// The id its video gets: the job id with the `vid` prefix.
     pub fn reserved_video_id(&self) -> String {
         format!("vid{}", self.id.trim_start_matches("job"))
     }
+}
+
+/// The id the model of job `job_id` gets: the job id with the `mdl` prefix
+/// (for stores that know the job's id before they hold its record).
+pub fn reserved_model_id(job_id: &str) -> String {
+    format!("mdl{}", job_id.trim_start_matches("job"))
 }

@@ -16,8 +16,8 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::storage::{SceneStatus, Storage, new_id, now_ms};
-pub use job::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec};
+use crate::storage::{SceneInfo, SceneStatus, Storage, new_id, now_ms};
+pub use job::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec, reserved_model_id};
 use store::{JobStore, Record};
 
 mod job;
@@ -107,6 +107,19 @@ pub enum SchedError {
     VideoInUse { video: String, job: String, status: &'static str },
     #[error("{0}")]
     Io(#[from] io::Error),
+}
+
+/// A training job needs a ready scene: a posing or failed one is refused,
+/// saying why (the same answer whichever store holds the queue).
+pub(crate) fn check_trainable(scene: &SceneInfo) -> Result<(), SchedError> {
+    if scene.status == SceneStatus::Ready {
+        return Ok(());
+    }
+    let reason = match scene.status {
+        SceneStatus::Posing => Some("its poses are being estimated".to_string()),
+        _ => scene.error.clone(),
+    };
+    Err(SchedError::SceneNotReady { scene: scene.id.clone(), status: scene.status.name(), reason })
 }
 
 /// Counters for /metrics.
@@ -287,13 +300,7 @@ impl Scheduler {
             JobSpec::Train(t) => {
                 let scene =
                     storage.load_scene(&t.scene_id)?.ok_or_else(|| SchedError::SceneNotFound(t.scene_id.clone()))?;
-                if scene.status != SceneStatus::Ready {
-                    let reason = match scene.status {
-                        SceneStatus::Posing => Some("its poses are being estimated".to_string()),
-                        _ => scene.error.clone(),
-                    };
-                    return Err(SchedError::SceneNotReady { scene: scene.id, status: scene.status.name(), reason });
-                }
+                check_trainable(&scene)?;
             }
             JobSpec::Poses(p) => {
                 if storage.load_scene(&p.scene_id)?.is_none() {
@@ -443,7 +450,7 @@ fn count_crash(storage: &Storage, j: &mut Job) {
             .is_some_and(|m| j.started_at.is_some_and(|s| m.updated_at > s)),
         JobSpec::Video(_) | JobSpec::Poses(_) => false,
     };
-    j.crashes = if saved_since_start { 1 } else { j.crashes + 1 };
+    j.crashes = crashes_after(j.crashes, saved_since_start);
     if j.crashes >= MAX_CRASHES {
         j.status = Status::Failed;
         j.finished_at = Some(now_ms());
@@ -454,6 +461,13 @@ fn count_crash(storage: &Storage, j: &mut Job) {
         ));
         tracing::error!(job = %j.id, crashes = j.crashes, "job failed: it crashed the server repeatedly");
     }
+}
+
+/// The crash count after a run cut short by its process dying: back to one
+/// if the run saved progress (a checkpoint), else one more. The rule of
+/// every store of the queue.
+pub(crate) fn crashes_after(crashes: u32, saved_during_run: bool) -> u32 {
+    if saved_during_run { 1 } else { crashes.saturating_add(1) }
 }
 
 /// The scheduler thread: `tick` until shutdown, writing the records it

@@ -110,19 +110,27 @@ fn remove_leftovers(dir: &Path) {
     }
 }
 
+/// Why the scene of a pose-estimation job that ended without success
+/// failed (`job` is `None` when the scene's job does not exist); `None`
+/// while the job is active or when it succeeded. Shared by every store of
+/// the queue, so a client reads the same reason from each.
+pub(crate) fn settle_reason(job: Option<&Job>) -> Option<String> {
+    match job {
+        None => Some("the server stopped before the pose estimation was queued; upload the photos again".to_string()),
+        Some(j) if j.status == Status::Canceled => Some("pose estimation was canceled".to_string()),
+        Some(j) if j.status == Status::Failed => {
+            Some(format!("pose estimation failed: {}", j.error.as_deref().unwrap_or("no reason recorded")))
+        }
+        Some(_) => None,
+    }
+}
+
 /// Marks the scene of a pose-estimation job `failed` when the job ended
 /// without success (`job` is `None` when the scene's job does not exist:
 /// the server stopped between storing the scene and queueing its job).
 /// Does nothing to scenes that are not posing by this job.
 pub(crate) fn settle(storage: &Storage, scene_id: &str, job: Option<&Job>) {
-    let reason = match job {
-        None => "the server stopped before the pose estimation was queued; upload the photos again".to_string(),
-        Some(j) if j.status == Status::Canceled => "pose estimation was canceled".to_string(),
-        Some(j) if j.status == Status::Failed => {
-            format!("pose estimation failed: {}", j.error.as_deref().unwrap_or("no reason recorded"))
-        }
-        Some(_) => return,
-    };
+    let Some(reason) = settle_reason(job) else { return };
     let Ok(Some(mut scene)) = storage.load_scene(scene_id) else { return };
     let job_id = scene.poses.as_ref().map(|p| p.job_id.as_str());
     if scene.status != SceneStatus::Posing || (job.is_some() && job_id != job.map(|j| j.id.as_str())) {

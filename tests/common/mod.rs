@@ -1,11 +1,13 @@
 //! Support shared by the tests: a real server on 127.0.0.1:0 (in process or
 //! as the binary), tiny generated scenes and their archives, and readers for
 //! what the service answers; the tiny model configs ([`tiny`]), PSNR
-//! ([`psnr`]) and the MP4 reader ([`mp4`]) in their own modules.
+//! ([`psnr`]) and the MP4 reader ([`mp4`]) in their own modules; a real
+//! PostgreSQL per test in [`pg`].
 #![allow(dead_code)] // each test binary uses its own part of this module
 
 pub mod cdp;
 pub mod mp4;
+pub mod pg;
 pub mod poses;
 pub mod psnr;
 pub mod tiny;
