@@ -187,7 +187,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
     anyhow::ensure!(a.test_views > 0, "--test-views must be at least 1");
 
-    let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3] };
+    let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3], ..Default::default() };
     let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
     anyhow::ensure!(!ds.train.is_empty(), "{}: the dataset has no training views", a.data.display());
     anyhow::ensure!(!ds.test.is_empty(), "{}: the dataset has no test views", a.data.display());

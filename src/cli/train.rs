@@ -139,9 +139,7 @@ fn describe(a: &TrainArgs, session: &Session<'_>, ds: &Dataset, threads: usize) 
         threads
     );
     if let Some(c) = ModelConfig::of_model(model) {
-        let data =
-            DataSize { frames: ds.frames.len(), pixels: ds.frames.iter().map(|f| f.image.rgba.len() as u64 / 4).sum() };
-        let e = estimate::training(&c, data, threads);
+        let e = estimate::training(&c, DataSize::of(ds), threads);
         eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
     }
 }
