@@ -509,6 +509,11 @@ pub struct SceneInfo {
     /// The dataset folder relative to the scene folder.
     pub root: String,
     pub view: ViewDefaults,
+    /// The mask folder found beside the images (`masks_8/`), relative to
+    /// the dataset folder; `None` without one (and in records from before
+    /// masks existed).
+    #[serde(default)]
+    pub mask_folder: Option<String>,
 }
 
 impl SceneInfo {
@@ -533,6 +538,7 @@ impl SceneInfo {
             size_bytes,
             root,
             view: ViewDefaults::from_dataset(ds),
+            mask_folder: ds.mask_folder_name(),
         }
     }
 }

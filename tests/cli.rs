@@ -144,3 +144,58 @@ fn demo_needs_no_data() {
     let bad = radiance(&["demo", "--out", o, "--seconds", "0"]);
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("--seconds"));
 }
+
+/// `--masks` on train, eval, render and bench, on the ball as an LLFF scene
+/// with its silhouettes in `masks_8/`.
+#[test]
+fn masks_on_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    let ball = BallScene { size: 16, views: 8, ..Default::default() };
+    ball.write_llff(&data).unwrap();
+    std::fs::rename(data.join("images"), data.join("images_8")).unwrap();
+    std::fs::create_dir_all(data.join("masks_8")).unwrap();
+    for (k, f) in ball.dataset().frames.iter().enumerate() {
+        let alpha: Vec<u8> = f.image.rgba.chunks(4).map(|p| p[3]).collect();
+        let mask = image::GrayImage::from_raw(f.image.width, f.image.height, alpha).unwrap();
+        mask.save(data.join(format!("masks_8/img{k:03}.png"))).unwrap();
+    }
+    let model = dir.path().join("m.ckpt");
+    let (d, m) = (data.to_str().unwrap(), model.to_str().unwrap());
+
+    let out = radiance(&["train", "--data", d, "--steps", "2", "--masks", "ignore", "--out", m]);
+    ok(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("masks from masks_8/") && err.contains("ignore: training draws only"), "{err}");
+    assert!(err.contains("training pixels inside the masks"), "the estimate counts the lists: {err}");
+
+    // eval: `auto` scores inside the masks too, `off` does not.
+    let out = ok(&radiance(&["eval", "--model", m, "--data", d]));
+    assert!(out.lines().all(|l| l.contains(" | inside mask PSNR ")), "{out}");
+    assert!(out.lines().last().unwrap().starts_with("2 views"), "{out}");
+    let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--masks", "off"]));
+    assert!(!out.contains("inside mask"), "{out}");
+
+    // bench: two more columns and the JSON fields.
+    let json = dir.path().join("bench.json");
+    let args =
+        ["bench", "--data", d, "--model", "instant", "--budgets", "0.25", "--test-views", "1", "--masks", "score"];
+    let out = ok(&radiance(&[&args[..], &["--json", json.to_str().unwrap()]].concat()));
+    assert!(out.lines().next().unwrap().contains("PSNR dB    SSIM  mask dB  mask SSIM  ms/view"), "{out}");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(report["masks"], "score");
+    let row = &report["rows"][0];
+    assert!(row["psnr_mask"].as_f64().is_some() && row["ssim_mask"].as_f64().is_some(), "{row}");
+
+    // A missing mask fails loading, naming it, unless the masks are off.
+    std::fs::remove_file(data.join("masks_8/img009.png")).unwrap();
+    let out = radiance(&["eval", "--model", m, "--data", d]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("img009.png") && err.contains("--masks off"), "{err}");
+    let renders = dir.path().join("renders");
+    ok(&radiance(&["render", "--model", m, "--data", d, "--masks", "off", "--out", renders.to_str().unwrap()]));
+
+    let out = radiance(&["train", "--data", d, "--masks", "sometimes", "--out", m]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("auto, score, ignore, composite or off"), "{err}");
+}

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use radiance::api::limits::scene_data;
+use radiance::engine::dataset::MaskUse;
 use radiance::engine::models::config::ModelConfig;
 use radiance::engine::train::estimate;
 use radiance::storage::SceneInfo;
@@ -74,7 +75,7 @@ async fn a_job_waits_while_running_jobs_hold_the_memory_budget() {
     svc.stop().await;
     let info: SceneInfo = serde_json::from_value(info).unwrap();
     let model = ModelConfig::preset("nerf-tiny").unwrap();
-    let one = estimate::training(&model, scene_data(&info), rayon::current_num_threads()).memory_bytes;
+    let one = estimate::training(&model, scene_data(&info, MaskUse::Auto), rayon::current_num_threads()).memory_bytes;
     let mut c = config(data.path());
     c.scheduler.max_concurrent = 2;
     c.scheduler.memory_budget_bytes = one * 3 / 2;

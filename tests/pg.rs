@@ -113,6 +113,7 @@ fn train(scene: &str) -> JobSpec {
         budget: JobBudget { steps: Some(10), ..JobBudget::default() },
         seed: 7,
         batch_rays: 64,
+        masks: Default::default(),
     }))
 }
 

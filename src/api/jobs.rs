@@ -12,6 +12,7 @@ use futures_util::Stream;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, limits};
+use crate::engine::dataset::MaskUse;
 use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
 use crate::engine::train::estimate;
 use crate::jobs::{Job, JobBudget, JobSpec, Status, TrainSpec};
@@ -32,6 +33,10 @@ pub struct CreateJob {
     pub batch_rays: Option<usize>,
     /// A full model configuration replacing the preset's (same kind).
     pub config: Option<ModelConfig>,
+    /// What the scene's per-image masks do: `auto` (default), `score`,
+    /// `ignore`, `composite` or `off`. Read as any JSON value, so that a
+    /// wrong one is refused naming the field.
+    pub masks: Option<serde_json::Value>,
 }
 
 fn default_model() -> String {
@@ -81,7 +86,20 @@ fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
     if !(1..=65536).contains(&batch_rays) {
         return Err(ApiError::bad_field("batch_rays must be in 1..=65536", "batch_rays", batch_rays, "1..=65536"));
     }
-    Ok(TrainSpec { scene_id: r.scene_id, model: r.model, config, budget: b, seed: r.seed, batch_rays })
+    let masks = mask_use(r.masks)?;
+    Ok(TrainSpec { scene_id: r.scene_id, model: r.model, config, budget: b, seed: r.seed, batch_rays, masks })
+}
+
+/// The job's `masks`: one of the names of [`MaskUse`], `auto` when absent.
+fn mask_use(v: Option<serde_json::Value>) -> ApiResult<MaskUse> {
+    const ALLOWED: &str = "auto, score, ignore, composite or off";
+    match v {
+        None => Ok(MaskUse::Auto),
+        Some(serde_json::Value::String(s)) => {
+            s.parse().map_err(|m: String| ApiError::bad_field(format!("masks: {m}"), "masks", &s, ALLOWED))
+        }
+        Some(other) => Err(ApiError::bad_field(format!("masks must be one of {ALLOWED}"), "masks", &other, ALLOWED)),
+    }
 }
 
 /// A refused model configuration: the message names every failing field;
@@ -102,7 +120,7 @@ pub async fn create(
         let memory = match s.storage.load_scene(&spec.scene_id)? {
             Some(scene) => {
                 let threads = rayon::current_num_threads();
-                let e = estimate::training(&spec.config, limits::scene_data(&scene), threads);
+                let e = estimate::training(&spec.config, limits::scene_data(&scene, spec.masks), threads);
                 limits::check(&e, &s.config)?;
                 e.memory_bytes
             }
@@ -221,6 +239,11 @@ mod tests {
         assert_eq!(d["field"], "budget");
         let d = details(json!({ "batch_rays": 0 }));
         assert_eq!(d, json!({ "field": "batch_rays", "value": 0, "allowed": "1..=65536" }));
+        let allowed = "auto, score, ignore, composite or off";
+        let d = details(json!({ "masks": "sometimes" }));
+        assert_eq!(d, json!({ "field": "masks", "value": "sometimes", "allowed": allowed }));
+        let d = details(json!({ "masks": 3 }));
+        assert_eq!(d, json!({ "field": "masks", "value": 3, "allowed": allowed }));
         let d = details(json!({ "model": "nerf", "config": ModelConfig::preset("instant").unwrap() }));
         assert_eq!(d, json!({ "field": "config.kind", "value": "instant", "allowed": "nerf" }));
         // Out-of-range model settings list every field.

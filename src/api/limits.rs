@@ -6,20 +6,35 @@
 use serde_json::json;
 
 use super::{ApiError, Code, ServiceConfig};
-use crate::engine::dataset::DatasetFormat;
+use crate::engine::dataset::{DatasetFormat, MaskUse};
 use crate::engine::train::estimate::{DataSize, Estimate, mib};
 use crate::storage::SceneInfo;
 
-/// The dataset a training job will load: every frame of every split at the
-/// scene's resolution (formats without a split hold their held-out frames
-/// once, as both `val` and `test`).
-pub fn scene_data(scene: &SceneInfo) -> DataSize {
+/// The dataset a training job will load with `masks`: every frame of every
+/// split at the scene's resolution (formats without a split hold their
+/// held-out frames once, as both `val` and `test`), and at most what masks
+/// add: a byte per pixel when they may be in effect (asked for, or `auto`
+/// on a scene with a mask folder), and with `ignore` every training pixel
+/// counted as inside.
+pub fn scene_data(scene: &SceneInfo, masks: MaskUse) -> DataSize {
     let i = &scene.images;
     let frames = match scene.format {
         DatasetFormat::Blender => i.train + i.val + i.test,
         DatasetFormat::Ngp | DatasetFormat::Llff | DatasetFormat::Colmap => i.train + i.test.max(i.val),
     };
-    DataSize::uniform(frames, scene.resolution[0], scene.resolution[1])
+    let mut data = DataSize::uniform(frames, scene.resolution[0], scene.resolution[1]);
+    let masked = match masks {
+        MaskUse::Off => false,
+        MaskUse::Auto => scene.mask_folder.is_some(),
+        MaskUse::Score | MaskUse::Ignore | MaskUse::Composite => true,
+    };
+    if masked {
+        data.mask_pixels = data.pixels;
+    }
+    if masks == MaskUse::Ignore {
+        data.inside_pixels = DataSize::uniform(i.train, scene.resolution[0], scene.resolution[1]).pixels;
+    }
+    data
 }
 
 /// Refuses a job whose estimate passes the per-job memory limit (422

@@ -300,6 +300,7 @@ fn store_posing(s: &AppState, id: &str, staging: &Path, size: u64, upload: Photo
             front: None,
             spiral: None,
         },
+        mask_folder: None,
     };
     write_json(&staging.join("scene.json"), &info)?;
     let dir = s.storage.scene_dir(id);

@@ -12,10 +12,10 @@ use anyhow::Context;
 use clap::Args;
 use serde::{Deserialize, Serialize};
 
-use super::Common;
 use super::eval::score;
 use super::setup::{DEFAULT_BATCH_RAYS, MODEL_KINDS, new_model_and_adam};
-use crate::engine::dataset::{Dataset, LoadOptions, Split};
+use super::{Common, MaskArgs};
+use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::io::fsio;
 use crate::engine::render::render_view;
@@ -53,6 +53,8 @@ pub struct BenchArgs {
     #[arg(long)]
     pub plot: Option<PathBuf>,
     #[command(flatten)]
+    pub masks: MaskArgs,
+    #[command(flatten)]
     pub common: Common,
 }
 
@@ -76,6 +78,12 @@ pub struct BenchRow {
     /// Mean over the scored test views, on the 8-bit renders.
     pub psnr: f64,
     pub ssim: f64,
+    /// The same inside the views' masks, when masks are in effect (means
+    /// over the views with pixels inside).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_mask: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ssim_mask: Option<f64>,
     /// Mean milliseconds to render one test view.
     pub render_ms: f64,
     /// Network samples per ray when rendering the test views.
@@ -98,16 +106,35 @@ pub struct BenchReport {
     /// `--set` overrides, as given.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub set: Vec<String>,
+    /// What the masks did, when masks were in effect.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub masks: Option<MaskUse>,
     pub rows: Vec<BenchRow>,
 }
 
 const HEADER: &str = "model    budget s  train s    steps          rays        samples  smp/ray  skip/ray  PSNR dB    \
                       SSIM  ms/view  peak MiB";
 
-fn format_row(r: &BenchRow) -> String {
+/// The header's columns from PSNR on, with the scores inside the masks.
+const MASKED_TAIL: (&str, &str) =
+    ("PSNR dB    SSIM  ms/view  peak MiB", "PSNR dB    SSIM  mask dB  mask SSIM  ms/view  peak MiB");
+
+/// The table's header, with the columns inside the masks when `masked`.
+fn header(masked: bool) -> String {
+    if masked { HEADER.replace(MASKED_TAIL.0, MASKED_TAIL.1) } else { HEADER.to_string() }
+}
+
+fn format_row(r: &BenchRow, masked: bool) -> String {
     let mem = r.peak_memory_mib.map_or("n/a".to_string(), |m| format!("{m:.0}"));
+    let mask = if masked {
+        let p = r.psnr_mask.map_or("-".into(), |p| format!("{p:.2}"));
+        let s = r.ssim_mask.map_or("-".into(), |s| format!("{s:.4}"));
+        format!(" {p:>8} {s:>10}")
+    } else {
+        String::new()
+    };
     format!(
-        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>9.1} {:>7.2} {:>7.4} {:>8.0} {:>9}",
+        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>9.1} {:>7.2} {:>7.4}{mask} {:>8.0} {:>9}",
         r.model,
         format!("{}", r.budget_seconds),
         r.train_seconds,
@@ -133,6 +160,7 @@ fn measure(
     budget: f64,
 ) -> anyhow::Result<BenchRow> {
     let (mut sum_p, mut sum_s, mut secs) = (0.0, 0.0, 0.0);
+    let (mut mask_p, mut mask_s) = (Vec::new(), Vec::new());
     let (mut rays, mut samples) = (0u64, 0u64);
     for &i in views {
         let f = &ds.frames[i];
@@ -141,10 +169,13 @@ fn measure(
         secs += t0.elapsed().as_secs_f64();
         rays += v.stats.rays;
         samples += v.stats.samples;
-        let (ps, ss) = score(&v, f, ds.background)?;
-        sum_p += ps;
-        sum_s += ss;
+        let sc = score(&v, f, ds.background)?;
+        sum_p += sc.psnr;
+        sum_s += sc.ssim;
+        mask_p.extend(sc.psnr_mask);
+        mask_s.extend(sc.ssim_mask);
     }
+    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
     let n = views.len() as f64;
     let per_ray = |x: u64| x as f64 / p.rays.max(1) as f64;
     Ok(BenchRow {
@@ -158,6 +189,8 @@ fn measure(
         skipped_per_ray: per_ray(p.skipped),
         psnr: sum_p / n,
         ssim: sum_s / n,
+        psnr_mask: mean(&mask_p),
+        ssim_mask: mean(&mask_s),
         render_ms: secs / n * 1000.0,
         render_samples_per_ray: samples as f64 / rays.max(1) as f64,
         peak_memory_mib: peak_memory().map(|b| b as f64 / (1024.0 * 1024.0)),
@@ -187,7 +220,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
     anyhow::ensure!(a.test_views > 0, "--test-views must be at least 1");
 
-    let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3] };
+    let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3], masks: a.masks.masks };
     let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
     anyhow::ensure!(!ds.train.is_empty(), "{}: the dataset has no training views", a.data.display());
     anyhow::ensure!(!ds.test.is_empty(), "{}: the dataset has no test views", a.data.display());
@@ -207,11 +240,12 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         seed: a.seed,
         lr: a.lr,
         set: a.set.clone(),
+        masks: (ds.masks != MaskUse::Off).then_some(ds.masks),
         test_views: views.len(),
         rows: Vec::new(),
     };
     let mut failure: Option<anyhow::Error> = None;
-    println!("{HEADER}");
+    println!("{}", header(ds.masks != MaskUse::Off));
     for kind in &a.model {
         let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel };
         if let Err(e) = run.model(kind, &mut report) {
@@ -277,7 +311,7 @@ impl Run<'_> {
             // A step that crosses several budgets scores once for all of them.
             while next < budgets.len() && p.elapsed >= budgets[next] {
                 let r = BenchRow { budget_seconds: budgets[next], ..row.clone() };
-                println!("{}", format_row(&r));
+                println!("{}", format_row(&r, ds.masks != MaskUse::Off));
                 report.rows.push(r);
                 next += 1;
             }

@@ -7,9 +7,9 @@ use anyhow::Context;
 use clap::Args;
 
 use super::{Common, DataArgs};
-use crate::engine::dataset::{Dataset, Frame, LoadOptions};
+use crate::engine::dataset::{Dataset, Frame, LoadOptions, masks};
 use crate::engine::io::persist;
-use crate::engine::metrics::{psnr, ssim};
+use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
 use crate::engine::render::{View, render_view};
 use crate::media::png;
 
@@ -48,7 +48,7 @@ pub struct EvalArgs {
 /// Loads the model and the split's frames.
 fn setup(model: &std::path::Path, data: &DataArgs) -> anyhow::Result<(persist::Restored, Dataset, Vec<usize>)> {
     let restored = persist::load(model)?;
-    let opts = LoadOptions { splits: vec![data.split], ..Default::default() };
+    let opts = LoadOptions { splits: vec![data.split], masks: data.masks.masks, ..Default::default() };
     let ds = Dataset::load(&data.data, &opts).with_context(|| format!("loading {}", data.data.display()))?;
     let mut idx = ds.split(data.split).to_vec();
     anyhow::ensure!(!idx.is_empty(), "{}: the {} split is empty", data.data.display(), data.split.name());
@@ -64,18 +64,52 @@ fn render_one(r: &persist::Restored, f: &Frame, bg: [f32; 3]) -> (View, f64) {
     (v, t.elapsed().as_secs_f64())
 }
 
+/// A rendered view's scores against its ground truth.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Scores {
+    pub psnr: f64,
+    pub ssim: f64,
+    /// Inside the frame's mask (`metrics::psnr_inside`,
+    /// `SsimMap::mean_inside`): `None` without a mask, or where the mask
+    /// has no pixel (no SSIM window centre) inside.
+    pub psnr_mask: Option<f64>,
+    pub ssim_mask: Option<f64>,
+}
+
 /// PSNR and SSIM of a rendered view against the frame's ground truth
-/// composited on `background`. Scores the 8-bit image that `render` writes,
-/// so the numbers match an independent check of the PNG files.
-pub(super) fn score(v: &View, f: &Frame, background: [f32; 3]) -> anyhow::Result<(f64, f64)> {
+/// composited on `background`, over the whole view and inside the frame's
+/// mask when it has one. Scores the 8-bit image that `render` writes, so
+/// the numbers match an independent check of the PNG files.
+pub(super) fn score(v: &View, f: &Frame, background: [f32; 3]) -> anyhow::Result<Scores> {
     let ours: Vec<f32> = png::quantise_rgb(&v.rgb).iter().map(|&b| b as f32 / 255.0).collect();
     let gt: Vec<f32> = (0..f.camera.height)
         .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
         .flat_map(|(i, j)| f.image.rgb_on(i, j, background))
         .collect();
-    let p = psnr(&ours, &gt);
-    let s = ssim(&ours, &gt, v.width as usize, v.height as usize, 3).with_context(|| format!("SSIM of {}", f.name))?;
-    Ok((p, s))
+    let context = || format!("SSIM of {}", f.name);
+    let map = ssim_map(&ours, &gt, v.width as usize, v.height as usize, 3).with_context(context)?;
+    let (psnr_mask, ssim_mask) = match &f.mask {
+        Some(m) => {
+            let inside = masks::inside(m);
+            let p = psnr_inside(&ours, &gt, 3, &inside).with_context(|| format!("PSNR of {}", f.name))?;
+            (p, map.mean_inside(&inside).with_context(context)?)
+        }
+        None => (None, None),
+    };
+    Ok(Scores { psnr: psnr(&ours, &gt), ssim: map.mean(), psnr_mask, ssim_mask })
+}
+
+/// ` | inside mask PSNR 27.10 dB  SSIM 0.9012` for a view with a mask.
+fn mask_text(psnr: Option<f64>, ssim: Option<f64>) -> String {
+    let p = psnr.map_or("    -".into(), |p| format!("{p:6.2}"));
+    let s = ssim.map_or("     -".into(), |s| format!("{s:.4}"));
+    format!(" | inside mask PSNR {p} dB  SSIM {s}")
+}
+
+/// The mean of the values that exist, and how many there were.
+fn mean_of(values: &[Option<f64>]) -> Option<(f64, usize)> {
+    let v: Vec<f64> = values.iter().flatten().copied().collect();
+    (!v.is_empty()).then(|| (v.iter().sum::<f64>() / v.len() as f64, v.len()))
 }
 
 pub fn render(a: RenderArgs) -> anyhow::Result<()> {
@@ -103,20 +137,109 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
         std::fs::create_dir_all(o).with_context(|| format!("creating {}", o.display()))?;
     }
     let (mut sum_p, mut sum_s, mut sum_t) = (0.0, 0.0, 0.0);
+    let (mut mask_p, mut mask_s) = (Vec::new(), Vec::new());
     for &i in &idx {
         let f = &ds.frames[i];
         let (v, secs) = render_one(&r, f, ds.background);
-        let (p, s) = score(&v, f, ds.background)?;
+        let sc = score(&v, f, ds.background)?;
         if let Some(o) = &a.out {
             let path = o.join(format!("{}.png", f.name));
             png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
         }
-        println!("{:<12} PSNR {:6.2} dB  SSIM {:.4}  {:.0} ms", f.name, p, s, secs * 1000.0);
-        sum_p += p;
-        sum_s += s;
+        let mask = if f.mask.is_some() { mask_text(sc.psnr_mask, sc.ssim_mask) } else { String::new() };
+        println!("{:<12} PSNR {:6.2} dB  SSIM {:.4}  {:.0} ms{mask}", f.name, sc.psnr, sc.ssim, secs * 1000.0);
+        sum_p += sc.psnr;
+        sum_s += sc.ssim;
         sum_t += secs;
+        mask_p.push(sc.psnr_mask);
+        mask_s.push(sc.ssim_mask);
     }
     let n = idx.len() as f64;
-    println!("{} views  PSNR {:.2} dB  SSIM {:.4}  {:.0} ms/view", idx.len(), sum_p / n, sum_s / n, sum_t / n * 1000.0);
+    let mut mask = String::new();
+    if ds.frames[idx[0]].mask.is_some() {
+        let (p, s) = (mean_of(&mask_p), mean_of(&mask_s));
+        mask = mask_text(p.map(|p| p.0), s.map(|s| s.0));
+        let counted = p.map_or(0, |p| p.1);
+        if counted < idx.len() {
+            mask += &format!(" ({counted} views with pixels inside)");
+        }
+    }
+    println!(
+        "{} views  PSNR {:.2} dB  SSIM {:.4}  {:.0} ms/view{mask}",
+        idx.len(),
+        sum_p / n,
+        sum_s / n,
+        sum_t / n * 1000.0
+    );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::dataset::synthetic::BallScene;
+    use crate::engine::metrics::ssim;
+
+    /// A frame of the ball with a mask, and a "render" that is its ground
+    /// truth with the right half changed.
+    fn frame_and_view() -> (Frame, View) {
+        let mut f = BallScene { size: 24, views: 1, ..Default::default() }.dataset().frames.remove(0);
+        f.mask = Some((0..24 * 24).map(|p| if p % 24 < 14 { 255 } else { 0 }).collect());
+        let mut rgb: Vec<f32> = (0..24)
+            .flat_map(|j| (0..24).map(move |i| (i, j)))
+            .flat_map(|(i, j)| f.image.rgb_on(i, j, [1.0; 3]))
+            .collect();
+        for (p, v) in rgb.iter_mut().enumerate() {
+            if (p / 3) % 24 >= 14 {
+                *v *= 0.5;
+            } else if (p / 3) % 24 == 13 {
+                *v = (*v - 0.1).max(0.0);
+            }
+        }
+        let n = rgb.len() / 3;
+        let view =
+            View { width: 24, height: 24, rgb, depth: vec![0.0; n], opacity: vec![0.0; n], stats: Default::default() };
+        (f, view)
+    }
+
+    #[test]
+    fn masked_scores_are_those_of_the_pixels_inside() {
+        let (f, v) = frame_and_view();
+        let s = score(&v, &f, [1.0; 3]).unwrap();
+        // By hand: the 8-bit render and the ground truth, inside pixels only.
+        let ours: Vec<f32> = png::quantise_rgb(&v.rgb).iter().map(|&b| b as f32 / 255.0).collect();
+        let gt: Vec<f32> = (0..24)
+            .flat_map(|j| (0..24).map(move |i| (i, j)))
+            .flat_map(|(i, j)| f.image.rgb_on(i, j, [1.0; 3]))
+            .collect();
+        let (mut sum, mut n) = (0.0f64, 0);
+        for p in 0..24 * 24 {
+            if p % 24 < 14 {
+                for c in 0..3 {
+                    let d = ours[3 * p + c] as f64 - gt[3 * p + c] as f64;
+                    sum += d * d;
+                }
+                n += 3;
+            }
+        }
+        let want = -10.0 * (sum / n as f64).log10();
+        assert!((s.psnr_mask.unwrap() - want).abs() < 1e-9, "{:?} {want}", s.psnr_mask);
+        assert!(s.psnr_mask.unwrap() > s.psnr + 3.0, "{s:?}");
+        // Whole-view scores are unchanged by the mask.
+        assert_eq!((s.psnr, s.ssim), (psnr(&ours, &gt), ssim(&ours, &gt, 24, 24, 3).unwrap()));
+        // SSIM inside: windows centred on columns 5..=13 (rows 5..=18).
+        assert!(s.ssim_mask.unwrap() > s.ssim && s.ssim_mask.unwrap() < 1.0, "{s:?}");
+        let mut plain = f.clone();
+        plain.mask = None;
+        let p = score(&v, &plain, [1.0; 3]).unwrap();
+        assert_eq!((p.psnr, p.ssim, p.psnr_mask, p.ssim_mask), (s.psnr, s.ssim, None, None));
+    }
+
+    #[test]
+    fn mask_text_and_means() {
+        assert_eq!(mask_text(Some(27.104), Some(0.90123)), " | inside mask PSNR  27.10 dB  SSIM 0.9012");
+        assert_eq!(mask_text(None, None), " | inside mask PSNR     - dB  SSIM      -");
+        assert_eq!(mean_of(&[Some(1.0), None, Some(3.0)]), Some((2.0, 2)));
+        assert_eq!(mean_of(&[None]), None);
+    }
 }

@@ -83,6 +83,20 @@ pub struct DataArgs {
     /// Use only the first N frames of the split.
     #[arg(long)]
     pub limit: Option<usize>,
+    #[command(flatten)]
+    pub masks: MaskArgs,
+}
+
+/// What per-image masks do (`train`, `eval`, `bench`, `render`).
+#[derive(Args, Debug, Clone)]
+pub struct MaskArgs {
+    /// Per-image masks (a masks/ or masks_N/ folder beside images/ or
+    /// images_N/, same stems; or the alpha channel): `auto` (a mask folder
+    /// scores, else off), `score` (eval and bench also score inside the
+    /// masks), `ignore` (train only inside them), `composite` (the mask
+    /// becomes alpha: trained on random backgrounds, scored on white), `off`.
+    #[arg(long, default_value = "auto", value_name = "auto|score|ignore|composite|off")]
+    pub masks: crate::engine::dataset::MaskUse,
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {

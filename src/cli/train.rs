@@ -9,9 +9,9 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::Common;
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam};
-use crate::engine::dataset::{Dataset, LoadOptions, Split};
+use super::{Common, MaskArgs};
+use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split, masks};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate::{self, DataSize, mib};
@@ -63,6 +63,8 @@ pub struct TrainArgs {
     #[arg(long)]
     pub out: PathBuf,
     #[command(flatten)]
+    pub masks: MaskArgs,
+    #[command(flatten)]
     pub common: Common,
 }
 
@@ -81,7 +83,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
         (None, None) => Budget { steps: Some(1000), seconds: None },
         (s, n) => Budget { steps: n, seconds: s },
     };
-    let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
+    let opts = LoadOptions { splits: vec![Split::Train], masks: a.masks.masks, ..Default::default() };
     let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
     anyhow::ensure!(!ds.train.is_empty(), "{}: the dataset has no training views", a.data.display());
     for w in &ds.warnings {
@@ -138,12 +140,29 @@ fn describe(a: &TrainArgs, session: &Session<'_>, ds: &Dataset, threads: usize) 
         model.params().len(),
         threads
     );
+    if let Some(m) = describe_masks(ds) {
+        eprintln!("{m}");
+    }
     if let Some(c) = ModelConfig::of_model(model) {
-        let data =
-            DataSize { frames: ds.frames.len(), pixels: ds.frames.iter().map(|f| f.image.rgba.len() as u64 / 4).sum() };
-        let e = estimate::training(&c, data, threads);
+        let e = estimate::training(&c, DataSize::of(ds), threads);
         eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
     }
+}
+
+/// What the masks do in this run, when masks are in effect.
+fn describe_masks(ds: &Dataset) -> Option<String> {
+    let from = ds.mask_folder_name().unwrap_or_else(|| "the alpha channel".into());
+    let train = || ds.train.iter().filter_map(|&i| ds.frames[i].mask.as_ref());
+    let (inside, all) = train()
+        .fold((0usize, 0usize), |(a, b), m| (a + m.iter().filter(|&&v| v >= masks::INSIDE).count(), b + m.len()));
+    let share = 100.0 * inside as f64 / all.max(1) as f64;
+    let what = match ds.masks {
+        MaskUse::Off | MaskUse::Auto => return None,
+        MaskUse::Score => "every pixel is trained on; eval and bench also score inside the masks".to_string(),
+        MaskUse::Ignore => "training draws only from the pixels inside the masks".to_string(),
+        MaskUse::Composite => "the outside is transparent (the mask is the images' alpha)".to_string(),
+    };
+    Some(format!("masks from {from} ({share:.1}% of the training pixels inside): {}: {what}", ds.masks))
 }
 
 /// Runs the session under a progress bar: by steps, or by tenths of a

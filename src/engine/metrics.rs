@@ -13,6 +13,17 @@
 //!
 //! Images are interleaved row-major slices of shape `(height, width,
 //! channels)`. Non-finite inputs propagate into a NaN result.
+//!
+//! Both can also be taken inside a mask (`inside`: one flag per pixel),
+//! for captures whose masks single out the object:
+//!
+//! * [`psnr_inside`]: `-10 log10(sum over inside pixels and channels of
+//!   (a - b)^2 / (channels * count))`;
+//! * [`SsimMap::mean_inside`]: the mean of the SSIM map over the map pixels
+//!   whose window is centred on an inside pixel (the map's pixel `(x, y)` is
+//!   the window centred on image pixel `(x + 5, y + 5)`, so a mask pixel
+//!   within 5 pixels of the border has no SSIM value), per channel, then the
+//!   mean over channels.
 
 /// SSIM window size and Gaussian sigma.
 pub const SSIM_WINDOW: usize = 11;
@@ -29,6 +40,10 @@ pub enum MetricsError {
     TooSmall { width: usize, height: usize },
     #[error("image has no channels")]
     NoChannels,
+    #[error("image buffers have {a} and {b} values, expected {channels} per mask flag ({flags} flags)")]
+    MaskValues { a: usize, b: usize, flags: usize, channels: usize },
+    #[error("the mask has {flags} flags, expected one per pixel ({pixels})")]
+    MaskFlags { flags: usize, pixels: usize },
 }
 
 /// Converts a mean squared error (of values in `[0, 1]`) to PSNR in dB;
@@ -64,6 +79,31 @@ pub fn psnr(a: &[f32], b: &[f32]) -> f64 {
     mse_to_psnr(mse(a, b))
 }
 
+/// PSNR in dB over the pixels flagged in `inside` (one flag per pixel of
+/// two interleaved images of `channels` channels): the mean squared error
+/// over those pixels' channels. `None` when no pixel is inside; identical
+/// pixels give `+inf`.
+///
+/// Errors if `channels` is 0 or the buffers do not hold `channels` values
+/// per flag.
+pub fn psnr_inside(a: &[f32], b: &[f32], channels: usize, inside: &[bool]) -> Result<Option<f64>, MetricsError> {
+    if channels == 0 {
+        return Err(MetricsError::NoChannels);
+    }
+    if a.len() != inside.len() * channels || b.len() != a.len() {
+        return Err(MetricsError::MaskValues { a: a.len(), b: b.len(), flags: inside.len(), channels });
+    }
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for ((pa, pb), _) in a.chunks_exact(channels).zip(b.chunks_exact(channels)).zip(inside).filter(|(_, m)| **m) {
+        for (&x, &y) in pa.iter().zip(pb) {
+            let d = x as f64 - y as f64;
+            sum += d * d;
+        }
+        count += 1;
+    }
+    Ok((count > 0).then(|| mse_to_psnr(sum / (count * channels) as f64)))
+}
+
 /// The normalised 1-D Gaussian of the SSIM window, computed exactly as the
 /// reference does.
 fn gaussian_kernel() -> [f64; SSIM_WINDOW] {
@@ -79,12 +119,83 @@ fn gaussian_kernel() -> [f64; SSIM_WINDOW] {
 }
 
 /// Mean SSIM of two `width x height x channels` interleaved images with
-/// values in `[0, 1]`.
+/// values in `[0, 1]`: the mean of each channel's SSIM map, then the mean
+/// over channels ([`SsimMap::mean`]).
 ///
 /// Errors if the buffers do not match the given shape, if `channels` is 0,
 /// or if either dimension is smaller than the 11-pixel window (the reference
 /// uses 'valid' filtering, which has no output for such images).
 pub fn ssim(a: &[f32], b: &[f32], width: usize, height: usize, channels: usize) -> Result<f64, MetricsError> {
+    Ok(ssim_map(a, b, width, height, channels)?.mean())
+}
+
+/// The SSIM maps of two images, one per channel: `(width - 10) x (height -
+/// 10)` values each ('valid' filtering), the value at `(x, y)` that of the
+/// window centred on image pixel `(x + 5, y + 5)`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SsimMap {
+    pub width: usize,
+    pub height: usize,
+    pub channels: usize,
+    /// Channel-major: channel `c`'s map is `values[c * width * height..]`,
+    /// row-major.
+    pub values: Vec<f64>,
+}
+
+/// How far the map's pixels are from the image's: half the window.
+const SSIM_HALF: usize = (SSIM_WINDOW - 1) / 2;
+
+impl SsimMap {
+    /// The mean SSIM: each channel's map averaged, then the channels.
+    pub fn mean(&self) -> f64 {
+        let n = self.width * self.height;
+        let total: f64 = self
+            .values
+            .chunks_exact(n)
+            .map(|map| {
+                let mut sum = 0.0;
+                for v in map {
+                    sum += v;
+                }
+                sum / n as f64
+            })
+            .sum();
+        total / self.channels as f64
+    }
+
+    /// The mean SSIM over the map pixels whose window is centred on a pixel
+    /// flagged in `inside` (one flag per pixel of the `(width + 10) x
+    /// (height + 10)` image), per channel, then over the channels. `None`
+    /// when no such map pixel exists.
+    ///
+    /// Errors if `inside` does not have one flag per image pixel.
+    pub fn mean_inside(&self, inside: &[bool]) -> Result<Option<f64>, MetricsError> {
+        let (iw, ih) = (self.width + 2 * SSIM_HALF, self.height + 2 * SSIM_HALF);
+        if inside.len() != iw * ih {
+            return Err(MetricsError::MaskFlags { flags: inside.len(), pixels: iw * ih });
+        }
+        let at = |x: usize, y: usize| inside[(y + SSIM_HALF) * iw + x + SSIM_HALF];
+        let cells: Vec<usize> = (0..self.height)
+            .flat_map(|y| (0..self.width).map(move |x| (x, y)))
+            .filter(|&(x, y)| at(x, y))
+            .map(|(x, y)| y * self.width + x)
+            .collect();
+        if cells.is_empty() {
+            return Ok(None);
+        }
+        let n = self.width * self.height;
+        let total: f64 = self
+            .values
+            .chunks_exact(n)
+            .map(|map| cells.iter().map(|&k| map[k]).sum::<f64>() / cells.len() as f64)
+            .sum();
+        Ok(Some(total / self.channels as f64))
+    }
+}
+
+/// The SSIM maps of two `width x height x channels` interleaved images with
+/// values in `[0, 1]` (see [`SsimMap`]); errors as [`ssim`].
+pub fn ssim_map(a: &[f32], b: &[f32], width: usize, height: usize, channels: usize) -> Result<SsimMap, MetricsError> {
     if channels == 0 {
         return Err(MetricsError::NoChannels);
     }
@@ -103,11 +214,15 @@ pub fn ssim(a: &[f32], b: &[f32], width: usize, height: usize, channels: usize) 
         return Err(MetricsError::TooSmall { width, height });
     }
     let k = gaussian_kernel();
-    let total: f64 = (0..channels).map(|c| ssim_channel(a, b, width, height, channels, c, &k)).sum();
-    Ok(total / channels as f64)
+    let (wo, ho) = (width - (SSIM_WINDOW - 1), height - (SSIM_WINDOW - 1));
+    let mut values = Vec::with_capacity(channels * wo * ho);
+    for c in 0..channels {
+        values.extend(ssim_channel(a, b, width, height, channels, c, &k));
+    }
+    Ok(SsimMap { width: wo, height: ho, channels, values })
 }
 
-/// Mean of the SSIM map of one channel.
+/// The SSIM map of one channel, row-major.
 fn ssim_channel(
     a: &[f32],
     b: &[f32],
@@ -116,7 +231,7 @@ fn ssim_channel(
     channels: usize,
     c: usize,
     k: &[f64; SSIM_WINDOW],
-) -> f64 {
+) -> Vec<f64> {
     let wo = width - (SSIM_WINDOW - 1);
     let ho = height - (SSIM_WINDOW - 1);
 
@@ -155,9 +270,9 @@ fn ssim_channel(
         }
     }
 
-    // Vertical pass, one output row at a time, folding straight into the mean.
+    // Vertical pass, one output row at a time.
     let mut acc = vec![[0.0f64; 5]; wo];
-    let mut total = 0.0;
+    let mut out = Vec::with_capacity(wo * ho);
     for i in 0..ho {
         acc.iter_mut().for_each(|v| *v = [0.0; 5]);
         for (t, &kt) in k.iter().enumerate() {
@@ -176,10 +291,10 @@ fn ssim_channel(
             let sxy = fxy - mx * my;
             let num = (2.0 * mx * my + C1) * (2.0 * sxy + C2);
             let den = (mx * mx + my * my + C1) * (sxx + syy + C2);
-            total += num / den;
+            out.push(num / den);
         }
     }
-    total / (wo * ho) as f64
+    out
 }
 
 #[cfg(test)]
@@ -313,6 +428,85 @@ mod tests {
         assert_eq!(ssim(&[], &[], 11, 11, 0), Err(MetricsError::NoChannels));
         let msg = MetricsError::TooSmall { width: 8, height: 8 }.to_string();
         assert!(msg.contains("8x8") && msg.contains("11x11"), "{msg}");
+    }
+
+    /// `ssim` after it became the mean of `ssim_map`: bit for bit the
+    /// values the single-pass implementation before the refactor (commit
+    /// 25e7248) gave on the same inputs, printed with `to_bits()`.
+    #[test]
+    fn ssim_is_unchanged_by_the_map_refactor() {
+        let (w, h, ch) = (16usize, 16usize, 3usize);
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        for y in 0..h {
+            for x in 0..w {
+                for c in 0..ch {
+                    let av = ((x * 7 + y * 13 + c * 5) % 65) as i64;
+                    let bv = (av + ((x * 3 + y * 5 + c) % 9) as i64 - 4).clamp(0, 64);
+                    a.push(av as f32 / 64.0);
+                    b.push(bv as f32 / 64.0);
+                }
+            }
+        }
+        assert_eq!(ssim(&a, &b, w, h, ch).unwrap().to_bits(), 0x3fefb28800706705);
+        let (w, h, ch) = (29usize, 19usize, 3usize);
+        let mut seed = 5u64;
+        let a: Vec<f32> = (0..w * h * ch).map(|_| lcg(&mut seed)).collect();
+        let b: Vec<f32> = a.iter().map(|&v| (0.8 * v + 0.2 * lcg(&mut seed)).min(1.0)).collect();
+        assert_eq!(ssim(&a, &b, w, h, ch).unwrap().to_bits(), 0x3fee647cff543e59);
+        // The map has the 'valid' size, one map per channel.
+        let m = ssim_map(&a, &b, w, h, ch).unwrap();
+        assert_eq!((m.width, m.height, m.channels, m.values.len()), (19, 9, 3, 19 * 9 * 3));
+    }
+
+    #[test]
+    fn psnr_inside_is_the_psnr_of_the_inside_pixels() {
+        // Three RGB pixels, the first two inside: squared errors 3 * 0.01
+        // and 0.09, so mse = 0.12 / (3 * 2) = 0.02; the third (off by 1.0
+        // everywhere) does not count.
+        let a = [0.0f32; 9];
+        let b = [0.1f32, 0.1, 0.1, 0.3, 0.0, 0.0, 1.0, 1.0, 1.0];
+        let p = psnr_inside(&a, &b, 3, &[true, true, false]).unwrap().unwrap();
+        assert!((p - (-10.0 * 0.02f64.log10())).abs() < 1e-6, "{p}");
+        // Against `psnr` of the inside pixels gathered by hand.
+        let mut seed = 11u64;
+        let (a, b): (Vec<f32>, Vec<f32>) = (0..7 * 5 * 3).map(|_| (lcg(&mut seed), lcg(&mut seed))).unzip();
+        let inside: Vec<bool> = (0..35).map(|k| k % 3 != 1).collect();
+        let pick = |v: &[f32]| -> Vec<f32> {
+            v.chunks(3).zip(&inside).filter(|(_, m)| **m).flat_map(|(p, _)| p.to_vec()).collect()
+        };
+        let want = psnr(&pick(&a), &pick(&b));
+        assert!((psnr_inside(&a, &b, 3, &inside).unwrap().unwrap() - want).abs() < 1e-12);
+        assert!((psnr_inside(&a, &b, 3, &[true; 35]).unwrap().unwrap() - psnr(&a, &b)).abs() < 1e-12);
+        assert_eq!(psnr_inside(&a, &b, 3, &[false; 35]).unwrap(), None);
+        assert_eq!(psnr_inside(&a, &a, 3, &inside).unwrap(), Some(f64::INFINITY));
+        assert!(matches!(psnr_inside(&a, &b, 3, &[true; 34]), Err(MetricsError::MaskValues { flags: 34, .. })));
+        assert!(matches!(psnr_inside(&a, &b[1..], 3, &[true; 35]), Err(MetricsError::MaskValues { .. })));
+        assert_eq!(psnr_inside(&a, &b, 0, &[true; 35]), Err(MetricsError::NoChannels));
+    }
+
+    #[test]
+    fn ssim_inside_the_mask_averages_the_map_there() {
+        // Identical on the left 14 columns, noisy on the right 16: windows
+        // centred on columns 5..=8 see only the identical part.
+        let (w, h) = (30usize, 16usize);
+        let a = smooth_image(w, h, 3);
+        let noisy = add_noise(&a, 0.5, 4);
+        let b: Vec<f32> = (0..w * h * 3).map(|k| if (k / 3) % w < 14 { a[k] } else { noisy[k] }).collect();
+        let map = ssim_map(&a, &b, w, h, 3).unwrap();
+        assert!(map.mean() < 0.9, "{}", map.mean());
+        let left: Vec<bool> = (0..w * h).map(|k| (5..=8).contains(&(k % w))).collect();
+        let s = map.mean_inside(&left).unwrap().unwrap();
+        assert!((s - 1.0).abs() < 1e-12, "{s}");
+        // Everything inside is the plain mean; one pixel inside, its value.
+        assert!((map.mean_inside(&vec![true; w * h]).unwrap().unwrap() - map.mean()).abs() < 1e-15);
+        let mut one = vec![false; w * h];
+        one[(5 + 3) * w + 5 + 7] = true;
+        let want = (0..3).map(|c| map.values[c * map.width * map.height + 3 * map.width + 7]).sum::<f64>() / 3.0;
+        assert!((map.mean_inside(&one).unwrap().unwrap() - want).abs() < 1e-15);
+        // A mask only along the border has no window centred in it.
+        let border: Vec<bool> = (0..w * h).map(|k| k % w < 5 || k / w >= h - 5).collect();
+        assert_eq!(map.mean_inside(&border).unwrap(), None);
+        assert_eq!(map.mean_inside(&[true; 3]), Err(MetricsError::MaskFlags { flags: 3, pixels: w * h }));
     }
 
     /// The 16x16x3 pattern and the expected values come from running the

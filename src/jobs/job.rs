@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::engine::dataset::MaskUse;
 use crate::engine::geometry::path::CameraPath;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::trainer::Budget;
@@ -55,6 +56,10 @@ pub struct TrainSpec {
     pub budget: JobBudget,
     pub seed: u64,
     pub batch_rays: usize,
+    /// What the scene's per-image masks do (`auto` in records from before
+    /// masks existed).
+    #[serde(default)]
+    pub masks: MaskUse,
 }
 
 /// When a training job stops: at the first limit reached.

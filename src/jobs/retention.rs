@@ -143,6 +143,7 @@ mod tests {
                 budget: JobBudget { steps: Some(1), ..Default::default() },
                 seed: 0,
                 batch_rays: 64,
+                masks: Default::default(),
             }))
         } else {
             let format = VideoFormat::Gif;

@@ -154,6 +154,7 @@ mod tests {
             size_bytes: 0,
             root: "data".into(),
             view,
+            mask_folder: None,
         };
         std::fs::create_dir_all(storage.scene_dir("scn_a")).unwrap();
         write_json(&storage.scene_record("scn_a"), &scene).unwrap();
@@ -168,6 +169,7 @@ mod tests {
             budget: JobBudget { steps: Some(1), ..Default::default() },
             seed: 0,
             batch_rays: 64,
+            masks: Default::default(),
         }))
     }
 

@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::{Job, Outcome, Shared, TrainSpec, set_progress};
-use crate::engine::dataset::{Dataset, LoadOptions, Split};
+use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::metrics::psnr;
 use crate::engine::models::Model;
@@ -20,10 +20,11 @@ use crate::storage::{ModelInfo, SceneInfo, Storage, now_ms, write_json};
 /// Held-out pixels rendered for each estimate of the test PSNR during training.
 const HELD_OUT_PIXELS: usize = 1024;
 
-/// Loads a stored scene's dataset (all splits).
-pub fn load_dataset(storage: &Storage, scene: &SceneInfo) -> Result<Dataset, String> {
+/// Loads a stored scene's dataset (all splits), its masks read as `masks`
+/// asks.
+pub fn load_dataset(storage: &Storage, scene: &SceneInfo, masks: MaskUse) -> Result<Dataset, String> {
     let root = storage.scene_dir(&scene.id).join(&scene.root);
-    Dataset::load(&root, &LoadOptions::default()).map_err(|e| e.to_string())
+    Dataset::load(&root, &LoadOptions { masks, ..Default::default() }).map_err(|e| e.to_string())
 }
 
 pub(crate) fn run(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Outcome {
@@ -39,7 +40,7 @@ fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> R
         .load_scene(&spec.scene_id)
         .map_err(|e| e.to_string())?
         .ok_or_else(|| format!("scene '{}' no longer exists", spec.scene_id))?;
-    let ds = load_dataset(storage, &scene)?;
+    let ds = load_dataset(storage, &scene, spec.masks)?;
     if ds.train.is_empty() {
         return Err("the scene has no training views".into());
     }

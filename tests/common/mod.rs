@@ -92,6 +92,22 @@ pub fn llff_files() -> Vec<(String, Vec<u8>)> {
     files(d.path())
 }
 
+/// The ball scene as an LLFF dataset with its photos in `images_8/` and
+/// the ball's silhouettes (its alpha, 0 or 255) as masks in `masks_8/`,
+/// PNGs with the photos' stems.
+pub fn llff_masked_files() -> Vec<(String, Vec<u8>)> {
+    let d = tempfile::tempdir().unwrap();
+    ball().write_llff(d.path()).unwrap();
+    std::fs::rename(d.path().join("images"), d.path().join("images_8")).unwrap();
+    std::fs::create_dir_all(d.path().join("masks_8")).unwrap();
+    for (k, f) in ball().dataset().frames.iter().enumerate() {
+        let alpha: Vec<u8> = f.image.rgba.chunks(4).map(|p| p[3]).collect();
+        let mask = image::GrayImage::from_raw(f.image.width, f.image.height, alpha).unwrap();
+        mask.save(d.path().join(format!("masks_8/img{k:03}.png"))).unwrap();
+    }
+    files(d.path())
+}
+
 /// The ball scene as a COLMAP dataset, its model binary or text.
 pub fn colmap_files(binary: bool) -> Vec<(String, Vec<u8>)> {
     let d = tempfile::tempdir().unwrap();

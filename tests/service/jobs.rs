@@ -139,6 +139,55 @@ async fn job_requests_are_checked() {
     svc.stop().await;
 }
 
+/// A job's `masks`: accepted, kept in the job and used by its training;
+/// a bad value is a 400 naming the field; masks asked of a scene without
+/// any fail the job, saying so.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_take_masks_and_bad_values_are_named() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let (s, v) = svc.upload("application/zip", zip_of(&llff_masked_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let masked = v["id"].as_str().unwrap().to_string();
+    let (s, v) = svc.upload("application/zip", zip_of(&llff_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let plain = v["id"].as_str().unwrap().to_string();
+    let body = |scene: &str, masks: Value| json!({ "scene_id": scene, "model": "nerf-tiny", "budget": { "steps": 3 }, "batch_rays": 64, "masks": masks });
+
+    for masks in ["ignore", "composite", "score", "off", "auto"] {
+        let (s, job) = svc.post_json("/v1/jobs", body(&masked, json!(masks))).await;
+        assert_eq!(s, StatusCode::ACCEPTED, "{job}");
+        assert_eq!(job["masks"], masks, "{job}");
+        let id = job["id"].as_str().unwrap().to_string();
+        let job = svc.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+        assert_eq!(job["status"], "succeeded", "{masks}: {job}");
+    }
+    // Absent means auto.
+    let mut b = body(&masked, json!(null));
+    b.as_object_mut().unwrap().remove("masks");
+    let (s, job) = svc.post_json("/v1/jobs", b).await;
+    assert_eq!((s, job["masks"].as_str()), (StatusCode::ACCEPTED, Some("auto")), "{job}");
+
+    for bad in [json!("sometimes"), json!("IGNORE"), json!(3), json!(["ignore"])] {
+        let (s, v) = svc.post_json("/v1/jobs", body(&masked, bad.clone())).await;
+        assert_eq!(s, StatusCode::BAD_REQUEST, "{bad}: {v}");
+        assert_error(&v, "bad_request");
+        assert!(v["error"]["message"].as_str().unwrap().contains("masks"), "{v}");
+        assert_eq!(v["error"]["details"]["field"], "masks", "{v}");
+        assert_eq!(v["error"]["details"]["value"], bad, "{v}");
+    }
+
+    // Masks asked of opaque photos without a mask folder: the job fails
+    // with the loader's reason.
+    let (s, job) = svc.post_json("/v1/jobs", body(&plain, json!("ignore"))).await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    let job = svc.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    assert_eq!(job["status"], "failed", "{job}");
+    assert!(job["error"].as_str().unwrap().contains("masks 'ignore' needs masks"), "{job}");
+    svc.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancel_stops_a_running_job_and_keeps_its_model() {
     let data = tempfile::tempdir().unwrap();

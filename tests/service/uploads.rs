@@ -218,3 +218,53 @@ async fn upload_each_format_as_archive_and_as_multipart() {
     assert_eq!(list.as_array().unwrap().len(), 6);
     svc.stop().await;
 }
+
+/// An LLFF scene with a `masks_8/` folder keeps it, as an archive and as
+/// multipart files, and the loader finds the masks in the stored scene.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_keep_mask_folders_and_the_loader_finds_them() {
+    use radiance::engine::dataset::{Dataset, LoadOptions, MaskUse};
+
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let files = llff_masked_files();
+    let masks: Vec<&(String, Vec<u8>)> = files.iter().filter(|(n, _)| n.starts_with("masks_8/")).collect();
+    assert_eq!(masks.len(), 12);
+    let wrapped: Vec<_> = files.iter().map(|(n, d)| (format!("head/{n}"), d.clone())).collect();
+    let uploads = [
+        svc.upload("application/zip", zip_of(&files)).await,
+        svc.upload("application/gzip", tar_gz_of(&wrapped)).await,
+        svc.upload_form(form_of(&files, true)).await,
+        svc.upload_form(form_of(&files, false)).await,
+    ];
+    for (s, v) in uploads {
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        assert_eq!((v["format"].as_str(), v["mask_folder"].as_str()), (Some("llff"), Some("masks_8/")), "{v}");
+        let warnings = v["warnings"].as_array().unwrap();
+        assert!(warnings.iter().any(|w| w.as_str().unwrap().starts_with("masks_8/: per-image masks")), "{v}");
+        // Every mask is stored as uploaded, and loads as the frames' masks.
+        let root = data.path().join("scenes").join(v["id"].as_str().unwrap()).join(v["root"].as_str().unwrap());
+        for (name, bytes) in &masks {
+            assert_eq!(&std::fs::read(root.join(name)).unwrap(), bytes, "{name}");
+        }
+        let ds = Dataset::load(&root, &LoadOptions { masks: MaskUse::Ignore, ..Default::default() }).unwrap();
+        assert_eq!((ds.masks, ds.mask_folder.clone()), (MaskUse::Ignore, Some(root.join("masks_8"))));
+        let want = ball().dataset();
+        for (f, w) in ds.frames.iter().zip(&want.frames) {
+            let alpha: Vec<u8> = w.image.rgba.chunks(4).map(|p| p[3]).collect();
+            assert_eq!(f.mask.as_ref(), Some(&alpha), "{}", f.name);
+        }
+    }
+    // Without its masks the same scene has no mask folder and no warning.
+    let plain: Vec<_> = files.iter().filter(|(n, _)| !n.starts_with("masks_8/")).cloned().collect();
+    let (s, v) = svc.upload("application/zip", zip_of(&plain)).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    assert!(v["mask_folder"].is_null(), "{v}");
+    // With one mask missing the upload is refused, naming its image.
+    let short: Vec<_> = files.iter().filter(|(n, _)| n != "masks_8/img005.png").cloned().collect();
+    let (s, v) = svc.upload("application/zip", zip_of(&short)).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    let msg = v["error"]["message"].as_str().unwrap();
+    assert!(msg.contains("img005.png") && msg.contains("no mask"), "{msg}");
+    svc.stop().await;
+}

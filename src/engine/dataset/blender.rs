@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use super::images::decode_all;
 use super::json::{self, Obj};
 use super::validate::{check_shared_size, warnings};
-use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions, Split};
+use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::math::{Aabb, Vec3};
 
 pub const DEFAULT_NEAR: f32 = 2.0;
@@ -90,6 +90,8 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         aabb: Aabb { min: Vec3::splat(-HALF_EXTENT), max: Vec3::splat(HALF_EXTENT) },
         background: opts.background,
         warnings: Vec::new(),
+        masks: MaskUse::Off,
+        mask_folder: None,
     };
     for ((e, image), (path, _)) in entries.iter().zip(images).zip(paths) {
         let camera = json::camera(e.top, e.frame, e.index, &image, &path, e.json, e.c2w, false)?;
@@ -99,7 +101,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             Split::Val => ds.val.push(k),
             Split::Test => ds.test.push(k),
         }
-        ds.frames.push(Frame { name: json::frame_name(&path), path, camera, image });
+        ds.frames.push(Frame { name: json::frame_name(&path), path, camera, image, mask: None });
     }
     check_shared_size(
         ds.frames
@@ -172,7 +174,7 @@ mod tests {
 
         // Only the requested splits; a missing split file is skipped.
         std::fs::remove_file(split_file(root, Split::Val)).unwrap();
-        let opts = LoadOptions { background: [0.0; 3], splits: vec![Split::Test, Split::Val] };
+        let opts = LoadOptions { background: [0.0; 3], splits: vec![Split::Test, Split::Val], ..Default::default() };
         let ds = Dataset::load(root, &opts).unwrap();
         assert_eq!((ds.frames.len(), ds.train.len(), ds.test.clone()), (2, 0, vec![0, 1]));
         assert_eq!(ds.background, [0.0; 3]);

@@ -66,7 +66,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         let camera =
             intrinsics(cam, image.width, image.height, c2w).map_err(|m| invalid(format!("camera {}: {m}", cam.id)))?;
         let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        frames.push(Frame { name, path, camera, image });
+        frames.push(Frame { name, path, camera, image, mask: None });
     }
     check_shared_size(frames.iter().map(|f| (f.path.as_path(), f.image.width, f.image.height, false)))?;
     let aabb = scene_box(&frames, &model.points);

@@ -149,7 +149,7 @@ fn frames(
             c2w,
         };
         let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        frames.push(Frame { name, path, camera, image });
+        frames.push(Frame { name, path, camera, image, mask: None });
     }
     Ok((frames, warnings))
 }

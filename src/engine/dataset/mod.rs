@@ -15,6 +15,7 @@ mod images;
 pub use images::IMAGE_EXTENSIONS;
 mod json;
 mod llff;
+pub mod masks;
 mod ngp;
 pub mod npy;
 pub mod synthetic;
@@ -23,6 +24,7 @@ mod testutil;
 pub mod textured;
 mod validate;
 
+pub use masks::MaskUse;
 pub use npy::{NpyArray, parse_npy};
 
 /// Which on-disk format a dataset came from.
@@ -113,6 +115,10 @@ pub struct Frame {
     pub path: PathBuf,
     pub camera: Camera,
     pub image: Image,
+    /// The image's mask, one byte per pixel (row-major, 255 inside; see
+    /// [`masks`]): every frame has one when masks are in effect
+    /// ([`Dataset::masks`] is not `Off`), none has otherwise.
+    pub mask: Option<Vec<u8>>,
 }
 
 /// Options for loading.
@@ -123,11 +129,13 @@ pub struct LoadOptions {
     /// For Blender datasets: which split files to read (all that exist by
     /// default). Other formats always load every frame.
     pub splits: Vec<Split>,
+    /// What per-image masks do ([`MaskUse::Auto`] by default).
+    pub masks: MaskUse,
 }
 
 impl Default for LoadOptions {
     fn default() -> Self {
-        Self { background: [1.0; 3], splits: Split::ALL.to_vec() }
+        Self { background: [1.0; 3], splits: Split::ALL.to_vec(), masks: MaskUse::Auto }
     }
 }
 
@@ -151,17 +159,26 @@ pub struct Dataset {
     pub background: [f32; 3],
     /// Non-fatal observations (few views, ...).
     pub warnings: Vec<String>,
+    /// What the frames' masks do: `Score`, `Ignore` or `Composite` when
+    /// masks are in effect (every frame has one), `Off` otherwise.
+    pub masks: MaskUse,
+    /// The mask folder the masks came from (the first, should the images
+    /// lie in several folders); `None` for masks from the alpha channel.
+    pub mask_folder: Option<PathBuf>,
 }
 
 impl Dataset {
     /// Detects the format of the dataset at `root` and loads it.
+    /// Per-image masks are read as `opts.masks` asks ([`masks`]).
     pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
-        match detect_format(root)? {
+        let mut ds = match detect_format(root)? {
             DatasetFormat::Blender => blender::load(root, opts),
             DatasetFormat::Ngp => ngp::load(root, opts),
             DatasetFormat::Llff => llff::load(root, opts),
             DatasetFormat::Colmap => colmap::load(root, opts),
-        }
+        }?;
+        masks::attach(&mut ds, opts.masks)?;
+        Ok(ds)
     }
 
     pub fn split(&self, s: Split) -> &[usize] {
@@ -180,6 +197,12 @@ impl Dataset {
     /// Centre of the scene box.
     pub fn centre(&self) -> Vec3 {
         self.aabb.centre()
+    }
+
+    /// The mask folder relative to the dataset, as users name it
+    /// (`masks_8/`); `None` without one.
+    pub fn mask_folder_name(&self) -> Option<String> {
+        self.mask_folder.as_deref().map(|d| masks::folder_name(d, &self.root))
     }
 }
 
@@ -218,6 +241,11 @@ pub enum DatasetError {
     Invalid { path: PathBuf, message: String },
     #[error("{path}: image is missing (referenced by {referenced_by})")]
     MissingImage { path: PathBuf, referenced_by: PathBuf },
+    #[error(
+        "{image}: no mask for this image in {looked_in} (a PNG or JPEG file with its stem); {missing} of {total} \
+         images have none: add them, or load with masks off (`--masks off`) to leave the masks unused"
+    )]
+    MissingMask { image: PathBuf, looked_in: String, missing: usize, total: usize },
     #[error("{path}: image does not decode: {message}")]
     BadImage { path: PathBuf, message: String },
     #[error("{path}: image is {got_w}x{got_h}, expected {want_w}x{want_h}")]

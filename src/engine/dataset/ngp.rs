@@ -70,7 +70,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let mut out = Vec::with_capacity(frames.len());
     for (i, ((frame, image), (image_path, _))) in frames.iter().zip(images).zip(paths).enumerate() {
         let camera = json::camera(&top, frame, i, &image, &image_path, &path, poses[i], true)?;
-        out.push(Frame { name: json::frame_name(&image_path), path: image_path, camera, image });
+        out.push(Frame { name: json::frame_name(&image_path), path: image_path, camera, image, mask: None });
     }
     check_shared_size(
         out.iter()

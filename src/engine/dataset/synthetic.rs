@@ -1,7 +1,7 @@
 //! Tiny procedurally generated scenes for tests and examples: an analytic
 //! radiance field rendered exactly into posed images around the origin.
 
-use crate::engine::dataset::{Dataset, DatasetFormat, Frame, Image};
+use crate::engine::dataset::{Dataset, DatasetFormat, Frame, Image, MaskUse};
 use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::{Aabb, Ray, Vec3};
 
@@ -80,6 +80,7 @@ impl BallScene {
                 path: format!("r_{k}.png").into(),
                 camera: cam,
                 image: Image { width: self.size, height: self.size, rgba, has_alpha: true },
+                mask: None,
             });
         }
         let s = self.scale;
@@ -95,6 +96,8 @@ impl BallScene {
             aabb: Aabb { min: Vec3::splat(-s), max: Vec3::splat(s) },
             background: [1.0; 3],
             warnings: Vec::new(),
+            masks: MaskUse::Off,
+            mask_folder: None,
         }
     }
 }

@@ -47,3 +47,12 @@ pub fn orbit_pose(angle: f64, radius: f64) -> [[f64; 4]; 3] {
 pub fn mat4(m: &[[f64; 4]; 3]) -> serde_json::Value {
     serde_json::json!([m[0], m[1], m[2], [0.0, 0.0, 0.0, 1.0]])
 }
+
+/// Writes a `w` x `h` greyscale mask with values `f(x, y)`, as PNG or JPEG
+/// by the extension of `path`, creating parent folders.
+pub fn write_mask(path: &Path, w: u32, h: u32, f: impl Fn(u32, u32) -> u8) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    let img = image::GrayImage::from_fn(w, h, |x, y| image::Luma([f(x, y)]));
+    let fmt = image::ImageFormat::from_path(path).unwrap();
+    img.save_with_format(path, fmt).unwrap();
+}

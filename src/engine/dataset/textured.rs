@@ -5,7 +5,7 @@
 //! lacks. Rendered exactly (ray casting through the engine's cameras) from a
 //! ring of cameras above the ground.
 
-use crate::engine::dataset::{Dataset, DatasetFormat, Frame, Image};
+use crate::engine::dataset::{Dataset, DatasetFormat, Frame, Image, MaskUse};
 use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::{Aabb, Ray, Vec3};
 
@@ -91,7 +91,13 @@ impl TexturedScene {
                     }
                 }
                 let image = Image { width: self.width, height: self.height, rgba, has_alpha: false };
-                Frame { name: format!("view_{k:03}"), path: format!("view_{k:03}.png").into(), camera, image }
+                Frame {
+                    name: format!("view_{k:03}"),
+                    path: format!("view_{k:03}.png").into(),
+                    camera,
+                    image,
+                    mask: None,
+                }
             })
             .collect();
         let n = frames.len();
@@ -107,6 +113,8 @@ impl TexturedScene {
             aabb: Aabb { min: Vec3::new(-GROUND_HALF, -GROUND_HALF, GROUND - 0.1), max: Vec3::splat(GROUND_HALF) },
             background: [1.0; 3],
             warnings: Vec::new(),
+            masks: MaskUse::Off,
+            mask_folder: None,
         }
     }
 

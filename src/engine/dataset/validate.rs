@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use super::{Dataset, DatasetError, DatasetFormat, Frame, Split};
+use super::{Dataset, DatasetError, DatasetFormat, Frame, MaskUse, Split};
 use crate::engine::geometry::math::{Aabb, Vec3};
 
 /// Largest allowed deviation of any entry of `R^T R` from the identity.
@@ -101,6 +101,8 @@ pub(super) fn unsplit(
         aabb,
         background,
         warnings: Vec::new(),
+        masks: MaskUse::Off,
+        mask_folder: None,
     };
     ds.warnings = warnings(&ds);
     ds.warnings.extend(extra_warnings);

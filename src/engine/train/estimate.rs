@@ -10,12 +10,15 @@
 //! - the occupancy grid (a density and a few bits per cell);
 //! - each worker thread's activation buffers, sized for the largest chunk
 //!   of samples it processes (they never shrink);
-//! - the dataset, every frame held as 8-bit RGBA;
+//! - the dataset, every frame held as 8-bit RGBA, with a byte per pixel
+//!   for frames with a mask and 4 bytes per training pixel inside the
+//!   masks when training ignores the outside (`train::pixels`);
 //! - a fixed allowance for the process itself (code, allocator, stacks).
 //!
 //! `tests/estimate.rs` trains small and large configurations and checks
 //! the measured peak (`VmHWM`) against this estimate.
 
+use crate::engine::dataset::{Dataset, MaskUse, masks};
 use crate::engine::models::config::ModelConfig;
 
 /// The size of a dataset in memory: every frame of every split.
@@ -24,12 +27,34 @@ pub struct DataSize {
     pub frames: usize,
     /// Pixels summed over all frames.
     pub pixels: u64,
+    /// Pixels of the frames that hold a mask (a byte each).
+    pub mask_pixels: u64,
+    /// Training pixels inside the masks, when training ignores the outside
+    /// (the trainer lists them, 4 bytes each).
+    pub inside_pixels: u64,
 }
 
 impl DataSize {
-    /// `frames` frames of `width` x `height`.
+    /// `frames` frames of `width` x `height`, without masks.
     pub fn uniform(frames: usize, width: u32, height: u32) -> Self {
-        Self { frames, pixels: frames as u64 * width as u64 * height as u64 }
+        Self { frames, pixels: frames as u64 * width as u64 * height as u64, mask_pixels: 0, inside_pixels: 0 }
+    }
+
+    /// The size of a loaded dataset, masks included.
+    pub fn of(ds: &Dataset) -> Self {
+        let size = |f: &crate::engine::dataset::Frame| f.camera.width as u64 * f.camera.height as u64;
+        let inside_pixels = if ds.masks == MaskUse::Ignore {
+            let inside = |m: &Vec<u8>| m.iter().filter(|&&v| v >= masks::INSIDE).count() as u64;
+            ds.train.iter().filter_map(|&i| ds.frames[i].mask.as_ref()).map(inside).sum()
+        } else {
+            0
+        };
+        Self {
+            frames: ds.frames.len(),
+            pixels: ds.frames.iter().map(size).sum(),
+            mask_pixels: ds.frames.iter().filter(|f| f.mask.is_some()).map(size).sum(),
+            inside_pixels,
+        }
     }
 }
 
@@ -53,6 +78,11 @@ pub const BASE_BYTES: u64 = 24 << 20;
 
 /// Bytes per pixel of a loaded frame (8-bit RGBA).
 const PIXEL_BYTES: u64 = 4;
+
+/// Bytes per pixel of a mask, and per entry of the trainer's lists of
+/// pixels inside the masks.
+const MASK_BYTES: u64 = 1;
+const INSIDE_BYTES: u64 = 4;
 
 const F32: u64 = 4;
 
@@ -93,6 +123,8 @@ pub fn training(config: &ModelConfig, data: DataSize, threads: usize) -> Estimat
         ("occupancy grid", f.occupancy_cells * (F32 + 2)),
         ("per-thread activations", threads * f.activations * F32),
         ("dataset", data.pixels * PIXEL_BYTES),
+        ("masks", data.mask_pixels * MASK_BYTES),
+        ("training pixels inside the masks", data.inside_pixels * INSIDE_BYTES),
     ];
     Estimate::new(f.params, f.occupancy_cells, parts)
 }
@@ -149,6 +181,30 @@ mod tests {
         assert!(more_threads.memory_bytes >= small.memory_bytes + small.params * 4);
         // The checkpoint holds parameters and both moments.
         assert!(small.disk_bytes >= 3 * small.params * 4);
+    }
+
+    #[test]
+    fn masks_count_a_byte_per_pixel_and_the_inside_lists_four() {
+        let mut ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
+        let plain = DataSize::of(&ds);
+        assert_eq!(plain, DataSize::uniform(8, 8, 8));
+        // Masks on every frame, 10 pixels inside each.
+        for f in &mut ds.frames {
+            f.mask = Some((0..64).map(|p| if p < 10 { 255 } else { 0 }).collect());
+        }
+        ds.masks = MaskUse::Score;
+        let scored = DataSize::of(&ds);
+        assert_eq!((scored.mask_pixels, scored.inside_pixels), (8 * 64, 0));
+        ds.masks = MaskUse::Ignore;
+        let ignored = DataSize::of(&ds);
+        assert_eq!((ignored.mask_pixels, ignored.inside_pixels), (8 * 64, 4 * 10));
+        // The trainer's lists are exactly what the estimate counts.
+        let pool = crate::engine::train::pixels::PixelPool::new(&ds);
+        assert_eq!(pool.bytes(), ignored.inside_pixels * INSIDE_BYTES);
+        let c = ModelConfig::preset("instant").unwrap();
+        let (a, b) = (training(&c, plain, 2), training(&c, ignored, 2));
+        assert_eq!(b.memory_bytes - a.memory_bytes, 8 * 64 + 4 * 10 * 4);
+        assert!(b.parts.iter().any(|(k, v)| k == "masks" && *v == 8 * 64), "{:?}", b.parts);
     }
 
     #[test]

@@ -6,5 +6,6 @@
 pub mod estimate;
 pub mod heldout;
 pub mod pass;
+pub mod pixels;
 pub mod session;
 pub mod trainer;

@@ -1,5 +1,6 @@
-//! The training loop: random rays from all training images, the model's
-//! loss and gradients computed in parallel parts, Adam with an exponential
+//! The training loop: random rays from all training images (inside their
+//! masks when the dataset says to ignore the outside, see `pixels`), the
+//! model's loss and gradients computed in parallel parts, Adam with an exponential
 //! learning-rate schedule, progress through a callback and a cancel flag.
 //!
 //! Deterministic for a given seed and thread count: the rays of step `s`
@@ -25,6 +26,7 @@ use crate::engine::dataset::Dataset;
 use crate::engine::models::{BatchStats, Model, StepCtx, TrainRay};
 use crate::engine::nn::adam::Adam;
 use crate::engine::rng::Rng;
+use crate::engine::train::pixels::PixelPool;
 
 /// When to stop.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -196,8 +198,8 @@ pub struct Trainer<'a> {
     pub config: TrainConfig,
     pub state: TrainState,
     dataset: &'a Dataset,
-    /// Cumulative pixel counts of the training frames.
-    cumulative: Vec<u64>,
+    /// The training pixels rays are drawn from.
+    pixels: PixelPool,
     part_grads: Vec<Vec<f32>>,
     pub guard: DivergenceGuard,
     snapshot: Option<Snapshot>,
@@ -216,23 +218,13 @@ impl<'a> Trainer<'a> {
         state: TrainState,
         dataset: &'a Dataset,
     ) -> Self {
-        let mut total = 0u64;
-        let cumulative = dataset
-            .train
-            .iter()
-            .map(|&i| {
-                let c = &dataset.frames[i].camera;
-                total += c.width as u64 * c.height as u64;
-                total
-            })
-            .collect();
         Self {
             model,
             adam,
             config,
             state,
             dataset,
-            cumulative,
+            pixels: PixelPool::new(dataset),
             part_grads: Vec::new(),
             guard: DivergenceGuard::default(),
             snapshot: None,
@@ -294,9 +286,10 @@ impl<'a> Trainer<'a> {
         }
     }
 
-    /// The training rays of a step: uniform over all training pixels.
+    /// The training rays of a step: uniform over the training pixels (all
+    /// of them, or those inside the masks).
     pub fn batch(&self, step: u64) -> Vec<TrainRay> {
-        let total = *self.cumulative.last().unwrap_or(&0);
+        let total = self.pixels.total();
         if total == 0 {
             return Vec::new();
         }
@@ -307,11 +300,9 @@ impl<'a> Trainer<'a> {
         let batch = self.model.batch_rays().unwrap_or(self.config.batch_rays);
         (0..batch as u64)
             .map(|index| {
-                let p = rng.below(total);
-                let k = self.cumulative.partition_point(|&c| c <= p);
+                let (k, local) = self.pixels.pixel(rng.below(total));
                 let image = self.dataset.train[k];
                 let frame = &self.dataset.frames[image];
-                let local = p - if k == 0 { 0 } else { self.cumulative[k - 1] };
                 let w = frame.camera.width as u64;
                 let (i, j) = ((local % w) as u32, (local / w) as u32);
                 let background =
