@@ -352,6 +352,53 @@ pub fn tree_bytes(dir: &Path) -> io::Result<u64> {
     Ok(total)
 }
 
+/// The two folders a scene's files can be in: its posed dataset (`data/`,
+/// which the record's `root` points into) or the photos of a photo-only
+/// upload waiting for pose estimation (`upload/`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ScenePart {
+    Data,
+    Upload,
+}
+
+impl ScenePart {
+    /// The part's folder in the scene's folder.
+    pub const fn dir_name(self) -> &'static str {
+        match self {
+            ScenePart::Data => "data",
+            ScenePart::Upload => "upload",
+        }
+    }
+}
+
+/// A file or folder on this machine, valid while this value is held: the
+/// data directory's own file for the embedded store (which holds nothing
+/// more), or a copy in a local cache that a remote store keeps from being
+/// evicted until the value is dropped.
+pub struct Local {
+    pub path: PathBuf,
+    /// What keeps `path` in place (a cache pin); `None` for files that stay.
+    _hold: Option<Box<dyn Send + Sync>>,
+}
+
+impl Local {
+    /// A path that stays valid without being held.
+    pub fn at(path: PathBuf) -> Self {
+        Self { path, _hold: None }
+    }
+
+    /// A path that stays valid while `hold` lives.
+    pub fn held(path: PathBuf, hold: Box<dyn Send + Sync>) -> Self {
+        Self { path, _hold: Some(hold) }
+    }
+}
+
+impl std::fmt::Debug for Local {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Local").field("path", &self.path).field("held", &self._hold.is_some()).finish()
+    }
+}
+
 /// Disk use of the data directory's folders, in bytes.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct DiskUsage {
@@ -585,9 +632,50 @@ pub struct VideoInfo {
     pub created_at: u64,
 }
 
+/// A ready scene's record with small made-up values (what tests that
+/// only need a record to enqueue on use).
+#[cfg(test)]
+pub(crate) fn sample_scene(id: &str) -> SceneInfo {
+    let view = ViewDefaults {
+        width: 4,
+        height: 4,
+        fov: 40.0,
+        centre: [0.0; 3],
+        up: [0.0, 0.0, 1.0],
+        radius: 1.0,
+        far: 2.0,
+        elevation: 30.0,
+        front: None,
+        spiral: None,
+    };
+    SceneInfo {
+        status: SceneStatus::Ready,
+        error: None,
+        poses: None,
+        id: id.into(),
+        format: crate::engine::dataset::DatasetFormat::Blender,
+        images: SplitCounts { train: 1, val: 0, test: 0 },
+        resolution: [4, 4],
+        warnings: Vec::new(),
+        created_at: 0,
+        size_bytes: 0,
+        root: "data".into(),
+        view,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_held_path_keeps_its_hold_until_dropped() {
+        let hold = std::sync::Arc::new(());
+        let local = Local::held(PathBuf::from("/x"), Box::new(hold.clone()));
+        assert_eq!(std::sync::Arc::strong_count(&hold), 2);
+        drop(local);
+        assert_eq!(std::sync::Arc::strong_count(&hold), 1);
+    }
 
     #[test]
     fn view_defaults_from_before_the_camera_rig_still_load() {
