@@ -91,6 +91,15 @@ impl JobDb {
         }
     }
 
+    /// Whether the database answers a read (readiness checks).
+    pub fn check(&self) -> io::Result<()> {
+        let tx = self.0.begin_read().map_err(db_error)?;
+        match tx.open_table(JOBS) {
+            Ok(_) | Err(redb::TableError::TableDoesNotExist(_)) => Ok(()),
+            Err(e) => Err(db_error(e)),
+        }
+    }
+
     /// Removes a job record; `false` if there was none.
     pub fn remove(&self, id: &str) -> io::Result<bool> {
         let tx = self.0.begin_write().map_err(db_error)?;
@@ -131,6 +140,11 @@ impl Storage {
     }
     pub fn scene_dir(&self, id: &str) -> PathBuf {
         self.scenes_dir().join(id)
+    }
+    /// Where an upload of scene `id` is written and checked before it
+    /// appears as `scenes/ID` in one rename.
+    pub fn staging_dir(&self, id: &str) -> PathBuf {
+        self.tmp_dir().join(id)
     }
     /// Where a scene's folder is moved to disappear in one rename before its
     /// files are removed (in `tmp/`, emptied at start-up should that stop).

@@ -10,7 +10,7 @@ use axum::response::IntoResponse;
 use serde_json::{Value, json};
 
 use super::{ApiResult, AppState};
-use crate::jobs::Status;
+use crate::jobs::{Counters, Status};
 use crate::storage::DiskUsage;
 
 /// Liveness, the version, and which optional uploads this server takes
@@ -28,11 +28,9 @@ pub async fn healthz(State(s): State<AppState>) -> Json<Value> {
 }
 
 pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> {
-    // Walking the data directory is file work: off the async threads.
-    let storage = s.storage.clone();
-    let disk = tokio::task::spawn_blocking(move || storage.disk_usage()).await??;
-    let (by_status, queue) = s.scheduler.stats();
-    let c = s.scheduler.counters();
+    let disk = s.artifacts.usage().await?;
+    let stats = s.jobs.stats().await?;
+    let (by_status, queue) = (stats.by_status, stats.queued);
     let (renders, render_secs) = {
         let r = s.renders.lock().unwrap_or_else(|e| e.into_inner());
         (r.count, r.seconds)
@@ -44,6 +42,17 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> 
     }
     let _ = writeln!(out, "# HELP radiance_queue_depth Jobs waiting to run.\n# TYPE radiance_queue_depth gauge");
     let _ = writeln!(out, "radiance_queue_depth {queue}");
+    if let Some(c) = s.jobs.counters() {
+        write_counters(&mut out, c);
+    }
+    let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
+    let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");
+    write_disk(&mut out, &disk);
+    Ok(([(CONTENT_TYPE, "text/plain; version=0.0.4")], out))
+}
+
+/// The training counters of the jobs this process runs.
+fn write_counters(out: &mut String, c: &Counters) {
     let counters = [
         ("radiance_train_steps_total", "Training steps done.", c.train_steps.load(Ordering::Relaxed) as f64),
         ("radiance_train_rays_total", "Training rays processed.", c.train_rays.load(Ordering::Relaxed) as f64),
@@ -56,10 +65,6 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> 
     for (name, help, v) in counters {
         let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
     }
-    let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
-    let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");
-    write_disk(&mut out, &disk);
-    Ok(([(CONTENT_TYPE, "text/plain; version=0.0.4")], out))
 }
 
 /// `radiance_disk_bytes{kind}`: bytes under each folder of the data directory.

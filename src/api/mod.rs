@@ -1,12 +1,15 @@
 //! The REST service: `app(state)` builds every route; [`Server::start`]
-//! binds it and runs the job scheduler beside it.
+//! opens the stores, binds the router and serves it.
 //!
 //! One file per resource (`scenes`, `jobs`, `models`, `videos`, `demo`), one
 //! error type (`error`), archive extraction (`archive`), `/healthz` and
 //! `/metrics` (`health`), the web app's embedded files (`web`) and the
-//! tower-http layers around it all (`layers`). Handlers never block the runtime: extraction, dataset
-//! validation and rendering run under `spawn_blocking`, training on the
-//! scheduler's threads; the numeric work of both on the global rayon pool.
+//! tower-http layers around it all (`layers`). Handlers reach jobs, records and stored files only through
+//! the stores (`crate::store`: the job store and the artifact store; the
+//! embedded pair runs the job scheduler beside the router). Handlers never
+//! block the runtime: extraction, dataset validation and rendering run under
+//! `spawn_blocking`, training on the scheduler's threads; the numeric work of
+//! both on the global rayon pool.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -20,8 +23,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
 
 use crate::engine::models::Model;
-use crate::jobs::{Scheduler, SchedulerConfig};
-use crate::storage::Storage;
+use crate::jobs::SchedulerConfig;
+use crate::store::{ArtifactStore, JobStore, embedded};
 
 pub mod archive;
 pub mod camera_path;
@@ -88,8 +91,10 @@ pub struct RenderStats {
 /// Everything a handler needs.
 pub struct AppInner {
     pub config: ServiceConfig,
-    pub storage: Storage,
-    pub scheduler: Scheduler,
+    /// Jobs, and the records of scenes, models and videos.
+    pub jobs: Arc<dyn JobStore>,
+    /// Their bytes: datasets, checkpoints, videos.
+    pub artifacts: Arc<dyn ArtifactStore>,
     pub renders: Mutex<RenderStats>,
     pub render_slots: tokio::sync::Semaphore,
     /// Recently used models, most recent first.
@@ -175,16 +180,15 @@ pub struct Server {
 }
 
 impl Server {
-    /// Opens the data directory, resumes the job queue, binds `addr` and
-    /// serves in a background task.
+    /// Opens the stores (the embedded pair: the data directory, and the job
+    /// queue resumed), binds `addr` and serves in a background task.
     pub async fn start(config: ServiceConfig, addr: SocketAddr) -> std::io::Result<Server> {
-        let storage = Storage::open(&config.data_dir)?;
-        let scheduler = Scheduler::open(storage.clone(), config.scheduler.clone())?;
+        let (jobs, artifacts) = embedded::open(&config.data_dir, config.scheduler.clone())?;
         let state = Arc::new(AppInner {
             render_slots: tokio::sync::Semaphore::new(config.max_concurrent_renders.max(1)),
             config,
-            storage,
-            scheduler,
+            jobs: Arc::new(jobs),
+            artifacts: Arc::new(artifacts),
             renders: Mutex::new(RenderStats::default()),
             model_cache: Mutex::new(Vec::new()),
         });
@@ -204,12 +208,11 @@ impl Server {
     }
 
     /// Stops accepting requests, lets running ones finish, then stops the
-    /// scheduler (running jobs checkpoint and resume at the next start).
+    /// job store (running jobs checkpoint and resume at the next start).
     pub async fn shutdown(self) -> std::io::Result<()> {
         let _ = self.stop.send(());
         let served = self.task.await.map_err(std::io::Error::other)?;
-        let scheduler = self.state.scheduler.clone();
-        tokio::task::spawn_blocking(move || scheduler.shutdown()).await.map_err(std::io::Error::other)?;
+        self.state.jobs.shutdown().await;
         served
     }
 }

@@ -411,6 +411,13 @@ impl Scheduler {
         Ok(())
     }
 
+    /// Whether the job database is open and answers a read (for readiness
+    /// probes): an error once it is closed at shutdown, or when redb cannot
+    /// start a read.
+    pub fn check_database(&self) -> io::Result<()> {
+        self.shared.store.check()
+    }
+
     /// Stops the scheduler: running jobs checkpoint and stay `running` on
     /// disk (they resume at the next start). Blocks until they have.
     pub fn shutdown(&self) {
