@@ -1,4 +1,5 @@
-//! `GET /healthz` and `GET /metrics` (Prometheus text format).
+//! `GET /healthz` (alive), `GET /readyz` (the stores can serve) and
+//! `GET /metrics` (Prometheus text format).
 
 use std::fmt::Write;
 use std::sync::atomic::Ordering;
@@ -9,7 +10,7 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use serde_json::{Value, json};
 
-use super::{ApiResult, AppState};
+use super::{ApiError, ApiResult, AppState, Code};
 use crate::jobs::{Counters, Status};
 use crate::storage::DiskUsage;
 
@@ -27,6 +28,26 @@ pub async fn healthz(State(s): State<AppState>) -> Json<Value> {
     }))
 }
 
+/// Readiness: 200 while the job store and the artifact store can serve
+/// (embedded: the job database answers a read, the data directory's folders
+/// are there and a file can be made in `tmp/`); else 503 `unavailable`,
+/// naming the store (the details go to the log, not to unauthenticated
+/// callers).
+pub async fn readyz(State(s): State<AppState>) -> ApiResult<Json<Value>> {
+    if let Err(e) = s.jobs.ready().await {
+        tracing::warn!(error = %e, "not ready: the job store");
+        return Err(ApiError::new(Code::Unavailable, "not ready: the job store cannot serve (see the server log)"));
+    }
+    if let Err(e) = s.artifacts.ready().await {
+        tracing::warn!(error = %e, "not ready: the artifact store");
+        return Err(ApiError::new(
+            Code::Unavailable,
+            "not ready: the artifact store cannot serve (see the server log)",
+        ));
+    }
+    Ok(Json(json!({ "status": "ready", "role": s.config.role.name() })))
+}
+
 pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> {
     let disk = s.artifacts.usage().await?;
     let stats = s.jobs.stats().await?;
@@ -36,6 +57,10 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> 
         (r.count, r.seconds)
     };
     let mut out = String::new();
+    let _ =
+        writeln!(out, "# HELP radiance_node_info This node: its role and version.\n# TYPE radiance_node_info gauge");
+    let (role, version) = (s.config.role.name(), env!("CARGO_PKG_VERSION"));
+    let _ = writeln!(out, "radiance_node_info{{role=\"{role}\",version=\"{version}\"}} 1");
     let _ = writeln!(out, "# HELP radiance_jobs Jobs by status.\n# TYPE radiance_jobs gauge");
     for st in Status::ALL {
         let _ = writeln!(out, "radiance_jobs{{status=\"{}\"}} {}", st.name(), by_status.get(&st).copied().unwrap_or(0));
