@@ -2,7 +2,8 @@
 //!
 //! `engine` knows nothing of HTTP or async; `media` encodes what the engine
 //! renders; `cli` drives both from the command line; `api` serves them over
-//! HTTP, with `jobs` (the training queue) and `storage` (the data directory);
+//! HTTP through `store`'s job and artifact stores, whose embedded pair runs
+//! `jobs` (the training queue) over `storage` (the data directory);
 //! `store::pg` is the PostgreSQL queue for running beyond one machine (not
 //! used by the service yet).
 

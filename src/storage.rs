@@ -91,6 +91,15 @@ impl JobDb {
         }
     }
 
+    /// Whether the database answers a read (readiness checks).
+    pub fn check(&self) -> io::Result<()> {
+        let tx = self.0.begin_read().map_err(db_error)?;
+        match tx.open_table(JOBS) {
+            Ok(_) | Err(redb::TableError::TableDoesNotExist(_)) => Ok(()),
+            Err(e) => Err(db_error(e)),
+        }
+    }
+
     /// Removes a job record; `false` if there was none.
     pub fn remove(&self, id: &str) -> io::Result<bool> {
         let tx = self.0.begin_write().map_err(db_error)?;
@@ -131,6 +140,11 @@ impl Storage {
     }
     pub fn scene_dir(&self, id: &str) -> PathBuf {
         self.scenes_dir().join(id)
+    }
+    /// Where an upload of scene `id` is written and checked before it
+    /// appears as `scenes/ID` in one rename.
+    pub fn staging_dir(&self, id: &str) -> PathBuf {
+        self.tmp_dir().join(id)
     }
     /// Where a scene's folder is moved to disappear in one rename before its
     /// files are removed (in `tmp/`, emptied at start-up should that stop).
@@ -350,6 +364,53 @@ pub fn tree_bytes(dir: &Path) -> io::Result<u64> {
         total += if meta.is_dir() { tree_bytes(&e.path())? } else { meta.len() };
     }
     Ok(total)
+}
+
+/// The two folders a scene's files can be in: its posed dataset (`data/`,
+/// which the record's `root` points into) or the photos of a photo-only
+/// upload waiting for pose estimation (`upload/`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ScenePart {
+    Data,
+    Upload,
+}
+
+impl ScenePart {
+    /// The part's folder in the scene's folder.
+    pub const fn dir_name(self) -> &'static str {
+        match self {
+            ScenePart::Data => "data",
+            ScenePart::Upload => "upload",
+        }
+    }
+}
+
+/// A file or folder on this machine, valid while this value is held: the
+/// data directory's own file for the embedded store (which holds nothing
+/// more), or a copy in a local cache that a remote store keeps from being
+/// evicted until the value is dropped.
+pub struct Local {
+    pub path: PathBuf,
+    /// What keeps `path` in place (a cache pin); `None` for files that stay.
+    _hold: Option<Box<dyn Send + Sync>>,
+}
+
+impl Local {
+    /// A path that stays valid without being held.
+    pub fn at(path: PathBuf) -> Self {
+        Self { path, _hold: None }
+    }
+
+    /// A path that stays valid while `hold` lives.
+    pub fn held(path: PathBuf, hold: Box<dyn Send + Sync>) -> Self {
+        Self { path, _hold: Some(hold) }
+    }
+}
+
+impl std::fmt::Debug for Local {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Local").field("path", &self.path).field("held", &self._hold.is_some()).finish()
+    }
 }
 
 /// Disk use of the data directory's folders, in bytes.
@@ -591,9 +652,51 @@ pub struct VideoInfo {
     pub created_at: u64,
 }
 
+/// A ready scene's record with small made-up values (what tests that
+/// only need a record to enqueue on use).
+#[cfg(test)]
+pub(crate) fn sample_scene(id: &str) -> SceneInfo {
+    let view = ViewDefaults {
+        width: 4,
+        height: 4,
+        fov: 40.0,
+        centre: [0.0; 3],
+        up: [0.0, 0.0, 1.0],
+        radius: 1.0,
+        far: 2.0,
+        elevation: 30.0,
+        front: None,
+        spiral: None,
+    };
+    SceneInfo {
+        status: SceneStatus::Ready,
+        error: None,
+        poses: None,
+        id: id.into(),
+        format: crate::engine::dataset::DatasetFormat::Blender,
+        images: SplitCounts { train: 1, val: 0, test: 0 },
+        resolution: [4, 4],
+        warnings: Vec::new(),
+        created_at: 0,
+        size_bytes: 0,
+        root: "data".into(),
+        mask_folder: None,
+        view,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_held_path_keeps_its_hold_until_dropped() {
+        let hold = std::sync::Arc::new(());
+        let local = Local::held(PathBuf::from("/x"), Box::new(hold.clone()));
+        assert_eq!(std::sync::Arc::strong_count(&hold), 2);
+        drop(local);
+        assert_eq!(std::sync::Arc::strong_count(&hold), 1);
+    }
 
     #[test]
     fn view_defaults_from_before_the_camera_rig_still_load() {

@@ -98,6 +98,60 @@ fn serve_refuses_a_bad_retention() {
     }
 }
 
+/// Runs `radiance serve` with `args` and `env`, which must refuse to start
+/// (it is killed, and the test fails, if it is still running after 20 s);
+/// returns what it printed on stderr.
+fn serve_refusal(args: &[&str], env: &[(&str, &str)]) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_radiance"));
+    cmd.args(["serve", "--addr", "127.0.0.1:0", "--data-dir", dir.path().to_str().unwrap()]).args(args);
+    for (k, _) in std::env::vars_os() {
+        if k.to_string_lossy().starts_with("RADIANCE_") {
+            cmd.env_remove(&k);
+        }
+    }
+    cmd.envs(env.iter().copied()).stdout(std::process::Stdio::null()).stderr(std::process::Stdio::piped());
+    let mut child = cmd.spawn().unwrap();
+    let t0 = std::time::Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t0.elapsed().as_secs() > 20 {
+            child.kill().unwrap();
+            child.wait().unwrap();
+            panic!("serve started with {args:?} {env:?}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+    assert!(!status.success(), "{args:?} {env:?}: {err}");
+    assert!(std::fs::read_dir(dir.path()).unwrap().next().is_none(), "a refused node touched its data directory");
+    err
+}
+
+#[test]
+fn serve_refuses_the_distributed_roles_it_does_not_have_yet() {
+    // An API node without a database: refused, saying what it needs and
+    // that distributed mode is not built; by flag or by variable.
+    for (args, env) in [(&["--role", "api"][..], &[][..]), (&[][..], &[("RADIANCE_ROLE", "worker")][..])] {
+        let err = serve_refusal(args, env);
+        assert!(err.contains("needs the shared stores (--database-url and --object-store)"), "{err}");
+        assert!(err.contains("is not built yet") && err.contains("--role all"), "{err}");
+    }
+    // Both stores given: still not built, and the password is not echoed.
+    let err = serve_refusal(
+        &["--role", "api", "--object-store", "s3://bucket/radiance"],
+        &[("RADIANCE_DATABASE_URL", "postgres://radiance:s3cret@db.example/radiance")],
+    );
+    assert!(err.contains("distributed mode") && err.contains("is not built yet"), "{err}");
+    assert!(!err.contains("s3cret"), "{err}");
+    // A role that does not exist is clap's error, listing the roles.
+    let err = serve_refusal(&["--role", "leader"], &[]);
+    assert!(err.contains("leader") && err.contains("all, api, worker"), "{err}");
+}
+
 /// `radiance demo`: a scene, a trained model and an orbit video from no data.
 #[test]
 fn demo_needs_no_data() {

@@ -12,14 +12,12 @@ use crate::engine::dataset::synthetic::BallScene;
 use crate::storage::{SceneInfo, tree_bytes};
 
 pub async fn create(State(s): State<AppState>) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
-    let info = tokio::task::spawn_blocking(move || {
-        let (id, dir) = staging(&s.storage);
-        ingest(&s, &id, &dir, |data| {
-            BallScene::demo().write_blender(data)?;
-            Ok(tree_bytes(data)?)
-        })
+    let (id, dir) = staging(&*s.artifacts);
+    let info = ingest(&s, id, dir, |data| {
+        BallScene::demo().write_blender(data)?;
+        Ok(tree_bytes(data)?)
     })
-    .await??;
+    .await?;
     tracing::info!(scene = %info.id, "demo scene generated");
     Ok((StatusCode::CREATED, Json(info)))
 }

@@ -48,6 +48,8 @@ pub enum Code {
     /// A route that answers at once took too long (`layers::QUICK_TIMEOUT`).
     Timeout,
     Internal,
+    /// A store the node needs cannot serve now (/readyz).
+    Unavailable,
 }
 
 impl Code {
@@ -67,6 +69,7 @@ impl Code {
             Code::InsufficientStorage => ("insufficient_storage", StatusCode::INSUFFICIENT_STORAGE),
             Code::Timeout => ("timeout", StatusCode::REQUEST_TIMEOUT),
             Code::Internal => ("internal", StatusCode::INTERNAL_SERVER_ERROR),
+            Code::Unavailable => ("unavailable", StatusCode::SERVICE_UNAVAILABLE),
         }
     }
 }

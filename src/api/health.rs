@@ -1,4 +1,5 @@
-//! `GET /healthz` and `GET /metrics` (Prometheus text format).
+//! `GET /healthz` (alive), `GET /readyz` (the stores can serve) and
+//! `GET /metrics` (Prometheus text format).
 
 use std::fmt::Write;
 use std::sync::atomic::Ordering;
@@ -9,8 +10,8 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use serde_json::{Value, json};
 
-use super::{ApiResult, AppState};
-use crate::jobs::Status;
+use super::{ApiError, ApiResult, AppState, Code};
+use crate::jobs::{Counters, Status};
 use crate::storage::DiskUsage;
 
 /// Liveness, the version, and which optional uploads this server takes
@@ -27,23 +28,56 @@ pub async fn healthz(State(s): State<AppState>) -> Json<Value> {
     }))
 }
 
+/// Readiness: 200 while the job store and the artifact store can serve
+/// (embedded: the job database answers a read, the data directory's folders
+/// are there and a file can be made in `tmp/`); else 503 `unavailable`,
+/// naming the store (the details go to the log, not to unauthenticated
+/// callers).
+pub async fn readyz(State(s): State<AppState>) -> ApiResult<Json<Value>> {
+    if let Err(e) = s.jobs.ready().await {
+        tracing::warn!(error = %e, "not ready: the job store");
+        return Err(ApiError::new(Code::Unavailable, "not ready: the job store cannot serve (see the server log)"));
+    }
+    if let Err(e) = s.artifacts.ready().await {
+        tracing::warn!(error = %e, "not ready: the artifact store");
+        return Err(ApiError::new(
+            Code::Unavailable,
+            "not ready: the artifact store cannot serve (see the server log)",
+        ));
+    }
+    Ok(Json(json!({ "status": "ready", "role": s.config.role.name() })))
+}
+
 pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> {
-    // Walking the data directory is file work: off the async threads.
-    let storage = s.storage.clone();
-    let disk = tokio::task::spawn_blocking(move || storage.disk_usage()).await??;
-    let (by_status, queue) = s.scheduler.stats();
-    let c = s.scheduler.counters();
+    let disk = s.artifacts.usage().await?;
+    let stats = s.jobs.stats().await?;
+    let (by_status, queue) = (stats.by_status, stats.queued);
     let (renders, render_secs) = {
         let r = s.renders.lock().unwrap_or_else(|e| e.into_inner());
         (r.count, r.seconds)
     };
     let mut out = String::new();
+    let _ =
+        writeln!(out, "# HELP radiance_node_info This node: its role and version.\n# TYPE radiance_node_info gauge");
+    let (role, version) = (s.config.role.name(), env!("CARGO_PKG_VERSION"));
+    let _ = writeln!(out, "radiance_node_info{{role=\"{role}\",version=\"{version}\"}} 1");
     let _ = writeln!(out, "# HELP radiance_jobs Jobs by status.\n# TYPE radiance_jobs gauge");
     for st in Status::ALL {
         let _ = writeln!(out, "radiance_jobs{{status=\"{}\"}} {}", st.name(), by_status.get(&st).copied().unwrap_or(0));
     }
     let _ = writeln!(out, "# HELP radiance_queue_depth Jobs waiting to run.\n# TYPE radiance_queue_depth gauge");
     let _ = writeln!(out, "radiance_queue_depth {queue}");
+    if let Some(c) = s.jobs.counters() {
+        write_counters(&mut out, c);
+    }
+    let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
+    let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");
+    write_disk(&mut out, &disk);
+    Ok(([(CONTENT_TYPE, "text/plain; version=0.0.4")], out))
+}
+
+/// The training counters of the jobs this process runs.
+fn write_counters(out: &mut String, c: &Counters) {
     let counters = [
         ("radiance_train_steps_total", "Training steps done.", c.train_steps.load(Ordering::Relaxed) as f64),
         ("radiance_train_rays_total", "Training rays processed.", c.train_rays.load(Ordering::Relaxed) as f64),
@@ -56,10 +90,6 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> 
     for (name, help, v) in counters {
         let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
     }
-    let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
-    let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");
-    write_disk(&mut out, &disk);
-    Ok(([(CONTENT_TYPE, "text/plain; version=0.0.4")], out))
 }
 
 /// `radiance_disk_bytes{kind}`: bytes under each folder of the data directory.

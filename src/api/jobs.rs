@@ -16,6 +16,7 @@ use crate::engine::dataset::MaskUse;
 use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
 use crate::engine::train::estimate;
 use crate::jobs::{Job, JobBudget, JobSpec, Status, TrainSpec};
+use crate::store::NewJob;
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize)]
@@ -115,20 +116,18 @@ pub async fn create(
 ) -> ApiResult<(StatusCode, Json<Job>)> {
     let Json(req) = body?;
     let spec = to_spec(req)?;
-    let job = tokio::task::spawn_blocking(move || -> ApiResult<Job> {
-        // An unknown scene has no estimate: enqueue answers 404 for it.
-        let memory = match s.storage.load_scene(&spec.scene_id)? {
-            Some(scene) => {
-                let threads = rayon::current_num_threads();
-                let e = estimate::training(&spec.config, limits::scene_data(&scene, spec.masks), threads);
-                limits::check(&e, &s.config)?;
-                e.memory_bytes
-            }
-            None => 0,
-        };
-        Ok(s.scheduler.enqueue(JobSpec::Train(Box::new(spec)), None, memory)?)
-    })
-    .await??;
+    // An unknown scene has no estimate: enqueue answers 404 for it.
+    let memory = match s.jobs.get_scene(&spec.scene_id).await? {
+        Some(scene) => {
+            let threads = rayon::current_num_threads();
+            let e = estimate::training(&spec.config, limits::scene_data(&scene, spec.masks), threads);
+            limits::check(&e, &s.config, s.artifacts.free_space().await?)?;
+            e.memory_bytes
+        }
+        None => 0,
+    };
+    let new = NewJob { id: None, spec: JobSpec::Train(Box::new(spec)), model_id: None, memory_estimate: memory };
+    let job = s.jobs.enqueue(new).await?;
     tracing::info!(job = %job.id, kind = "train", "job queued");
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
@@ -144,67 +143,64 @@ pub async fn list(State(s): State<AppState>, q: Result<Query<ListQuery>, QueryRe
         Some(v) => Some(v.parse::<Status>().map_err(|m| ApiError::bad_field(m, "status", &v, STATUSES))?),
         None => None,
     };
-    Ok(Json(s.scheduler.list(status)))
+    Ok(Json(s.jobs.list_jobs(status).await?))
 }
 
 /// What `?status=` takes.
 const STATUSES: &str = "queued, running, succeeded, failed or canceled";
 
 pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<Json<Job>> {
-    s.scheduler.get(&id).map(Json).ok_or_else(|| ApiError::not_found("job", &id))
+    s.jobs.get_job(&id).await?.map(Json).ok_or_else(|| ApiError::not_found("job", &id))
 }
 
 /// Cancels a job: a queued one at once; a running one stops within about a
 /// training step, keeping its last state as a usable model.
 pub async fn cancel(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<(StatusCode, Json<Job>)> {
-    let sched = s.scheduler.clone();
-    let job = tokio::task::spawn_blocking(move || sched.cancel(&id)).await??;
+    let job = s.jobs.cancel(&id).await?;
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
 
 /// Deletes a finished job's record (204); what it made stays. A queued or
 /// running job is a conflict (409): cancel it first.
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
-    let sched = s.scheduler.clone();
-    tokio::task::spawn_blocking(move || sched.delete_job(&id)).await??;
+    s.jobs.delete_job(&id).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
 /// `GET /v1/jobs/{id}/events`: Server-Sent Events. A `progress` event with
-/// the job record whenever it changes (checked twenty times a second), then an
-/// `end` event with the final record, and the stream closes. Comment lines
-/// keep idle connections alive.
+/// the job record whenever it changes (looked at again whenever the job
+/// store says it may have: twenty times a second for the embedded store),
+/// then an `end` event with the final record, and the stream closes.
+/// Comment lines keep idle connections alive.
 pub async fn events(
     State(s): State<AppState>,
     Path(id): Path<String>,
 ) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
-    if s.scheduler.get(&id).is_none() {
+    if s.jobs.get_job(&id).await?.is_none() {
         return Err(ApiError::not_found("job", &id));
     }
-    let sched = s.scheduler.clone();
+    let jobs = s.jobs.clone();
     let stream = futures_util::stream::unfold((None::<String>, false), move |(last, ended)| {
-        let sched = sched.clone();
+        let jobs = jobs.clone();
         let id = id.clone();
         async move {
             if ended {
                 return None;
             }
             loop {
-                let job = sched.get(&id)?;
+                let job = jobs.get_job(&id).await.ok()??;
                 let json = serde_json::to_string(&job).ok()?;
                 if last.as_deref() != Some(json.as_str()) {
                     let end = job.status.is_final();
                     let event = Event::default().event(if end { "end" } else { "progress" }).data(json.clone());
                     return Some((Ok(event), (Some(json), end)));
                 }
-                tokio::time::sleep(EVENT_POLL).await;
+                jobs.job_changed(&id).await;
             }
         }
     });
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
-
-const EVENT_POLL: std::time::Duration = std::time::Duration::from_millis(50);
 
 #[cfg(test)]
 mod tests {

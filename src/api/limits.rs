@@ -39,8 +39,9 @@ pub fn scene_data(scene: &SceneInfo, masks: MaskUse) -> DataSize {
 
 /// Refuses a job whose estimate passes the per-job memory limit (422
 /// `resource_limit`) or whose checkpoint would leave less free disk than
-/// the reserve (507 `insufficient_storage`).
-pub fn check(e: &Estimate, config: &ServiceConfig) -> Result<(), ApiError> {
+/// the reserve (507 `insufficient_storage`); `free_disk` is the artifact
+/// store's free space (`None`: not known, not checked).
+pub fn check(e: &Estimate, config: &ServiceConfig, free_disk: Option<u64>) -> Result<(), ApiError> {
     let parts: serde_json::Map<String, serde_json::Value> =
         e.parts.iter().map(|(k, v)| (k.clone(), json!(v))).collect();
     if e.memory_bytes > config.scheduler.max_job_memory_bytes {
@@ -60,7 +61,7 @@ pub fn check(e: &Estimate, config: &ServiceConfig) -> Result<(), ApiError> {
             "parts": parts,
         })));
     }
-    if let Some(free) = crate::system::free_disk(&config.data_dir) {
+    if let Some(free) = free_disk {
         let need = e.disk_bytes.saturating_add(config.min_free_disk_bytes);
         if free < need {
             return Err(ApiError::new(

@@ -1,12 +1,16 @@
 //! The REST service: `app(state)` builds every route; [`Server::start`]
-//! binds it and runs the job scheduler beside it.
+//! opens the stores, binds the router and serves it.
 //!
 //! One file per resource (`scenes`, `jobs`, `models`, `videos`, `demo`), one
-//! error type (`error`), archive extraction (`archive`), `/healthz` and
-//! `/metrics` (`health`), the web app's embedded files (`web`) and the
-//! tower-http layers around it all (`layers`). Handlers never block the runtime: extraction, dataset
-//! validation and rendering run under `spawn_blocking`, training on the
-//! scheduler's threads; the numeric work of both on the global rayon pool.
+//! error type (`error`), archive extraction (`archive`), `/healthz`,
+//! `/readyz` and `/metrics` (`health`), the web app's embedded files
+//! (`web`), the node's role (`role`) and the tower-http layers around it all
+//! (`layers`). Handlers reach jobs, records and stored files only through
+//! the stores (`crate::store`: the job store and the artifact store; the
+//! embedded pair runs the job scheduler beside the router). Handlers never
+//! block the runtime: extraction, dataset validation and rendering run under
+//! `spawn_blocking`, training on the scheduler's threads; the numeric work of
+//! both on the global rayon pool.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -20,8 +24,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
 
 use crate::engine::models::Model;
-use crate::jobs::{Scheduler, SchedulerConfig};
-use crate::storage::Storage;
+use crate::jobs::SchedulerConfig;
+use crate::store::{ArtifactStore, JobStore, embedded};
 
 pub mod archive;
 pub mod camera_path;
@@ -32,11 +36,13 @@ pub mod jobs;
 pub mod layers;
 pub mod limits;
 pub mod models;
+pub mod role;
 pub mod scenes;
 pub mod videos;
 pub mod web;
 
 pub use error::{ApiError, ApiResult, Code};
+pub use role::Role;
 
 /// Service settings.
 #[derive(Clone, Debug)]
@@ -51,13 +57,16 @@ pub struct ServiceConfig {
     pub max_render_pixels: u64,
     /// Renders running at once (others wait).
     pub max_concurrent_renders: usize,
-    /// When set, every route but `/healthz` needs `Authorization: Bearer KEY`.
+    /// When set, every route but `/healthz` and `/readyz` needs `Authorization: Bearer KEY`.
     pub api_key: Option<String>,
     /// Free disk space a new job must leave, beyond its own output.
     pub min_free_disk_bytes: u64,
     /// Origins allowed to call the API from a browser page of their own
     /// (CORS); empty: none but the service's own page.
     pub cors_origins: Vec<String>,
+    /// What this node does: only `all` (the API and the jobs over the
+    /// embedded stores) is built; [`Server::start`] refuses the others.
+    pub role: Role,
     pub scheduler: SchedulerConfig,
 }
 
@@ -73,6 +82,7 @@ impl ServiceConfig {
             api_key: None,
             min_free_disk_bytes: 1 << 30,
             cors_origins: Vec::new(),
+            role: Role::All,
             scheduler: SchedulerConfig::default(),
         }
     }
@@ -88,8 +98,10 @@ pub struct RenderStats {
 /// Everything a handler needs.
 pub struct AppInner {
     pub config: ServiceConfig,
-    pub storage: Storage,
-    pub scheduler: Scheduler,
+    /// Jobs, and the records of scenes, models and videos.
+    pub jobs: Arc<dyn JobStore>,
+    /// Their bytes: datasets, checkpoints, videos.
+    pub artifacts: Arc<dyn ArtifactStore>,
     pub renders: Mutex<RenderStats>,
     pub render_slots: tokio::sync::Semaphore,
     /// Recently used models, most recent first.
@@ -129,6 +141,7 @@ pub fn app(state: AppState) -> Router {
     let (max_body, cors) = (state.config.max_upload_bytes, state.config.cors_origins.clone());
     let routes = Router::new()
         .route("/healthz", get(health::healthz))
+        .route("/readyz", get(health::readyz))
         .merge(web)
         .merge(v1)
         .fallback(not_found)
@@ -175,16 +188,19 @@ pub struct Server {
 }
 
 impl Server {
-    /// Opens the data directory, resumes the job queue, binds `addr` and
-    /// serves in a background task.
+    /// Opens the stores (the embedded pair: the data directory, and the job
+    /// queue resumed), binds `addr` and serves in a background task. A role
+    /// other than `all` is refused: the shared stores it needs are not built.
     pub async fn start(config: ServiceConfig, addr: SocketAddr) -> std::io::Result<Server> {
-        let storage = Storage::open(&config.data_dir)?;
-        let scheduler = Scheduler::open(storage.clone(), config.scheduler.clone())?;
+        if config.role != Role::All {
+            return Err(std::io::Error::new(std::io::ErrorKind::Unsupported, role::not_built(config.role)));
+        }
+        let (jobs, artifacts) = embedded::open(&config.data_dir, config.scheduler.clone())?;
         let state = Arc::new(AppInner {
             render_slots: tokio::sync::Semaphore::new(config.max_concurrent_renders.max(1)),
             config,
-            storage,
-            scheduler,
+            jobs: Arc::new(jobs),
+            artifacts: Arc::new(artifacts),
             renders: Mutex::new(RenderStats::default()),
             model_cache: Mutex::new(Vec::new()),
         });
@@ -204,12 +220,11 @@ impl Server {
     }
 
     /// Stops accepting requests, lets running ones finish, then stops the
-    /// scheduler (running jobs checkpoint and resume at the next start).
+    /// job store (running jobs checkpoint and resume at the next start).
     pub async fn shutdown(self) -> std::io::Result<()> {
         let _ = self.stop.send(());
         let served = self.task.await.map_err(std::io::Error::other)?;
-        let scheduler = self.state.scheduler.clone();
-        tokio::task::spawn_blocking(move || scheduler.shutdown()).await.map_err(std::io::Error::other)?;
+        self.state.jobs.shutdown().await;
         served
     }
 }

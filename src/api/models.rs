@@ -37,33 +37,20 @@ fn view_of(info: ModelInfo, videos: &[VideoInfo]) -> ModelView {
 }
 
 pub async fn list(State(s): State<AppState>) -> ApiResult<Json<Vec<ModelView>>> {
-    let storage = s.storage.clone();
-    let views = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<ModelView>> {
-        let videos = storage.list_videos()?;
-        Ok(storage.list_models()?.into_iter().map(|m| view_of(m, &videos)).collect())
-    })
-    .await??;
-    Ok(Json(views))
+    let videos = s.jobs.list_videos().await?;
+    Ok(Json(s.jobs.list_models().await?.into_iter().map(|m| view_of(m, &videos)).collect()))
 }
 
 pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<Json<ModelView>> {
-    let storage = s.storage.clone();
-    let id2 = id.clone();
-    let view = tokio::task::spawn_blocking(move || -> std::io::Result<Option<ModelView>> {
-        let Some(info) = storage.load_model(&id2)? else { return Ok(None) };
-        Ok(Some(view_of(info, &storage.list_videos()?)))
-    })
-    .await??;
-    view.map(Json).ok_or_else(|| ApiError::not_found("model", &id))
+    let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
+    Ok(Json(view_of(info, &s.jobs.list_videos().await?)))
 }
 
 /// Deletes a model (record, then checkpoint) and forgets its loaded copy:
 /// 204, 404, or 409 while a queued or running job writes or renders it.
 /// Videos made from it stay.
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
-    let sched = s.scheduler.clone();
-    let id2 = id.clone();
-    tokio::task::spawn_blocking(move || sched.delete_model(&id2)).await??;
+    s.jobs.delete_model(&id).await?;
     s.model_cache.lock().unwrap_or_else(|e| e.into_inner()).retain(|c| c.id != id);
     Ok(StatusCode::NO_CONTENT)
 }
@@ -202,20 +189,16 @@ pub async fn render(
     q: Result<Query<RenderQuery>, QueryRejection>,
 ) -> ApiResult<impl IntoResponse> {
     let Query(q) = q?;
-    let storage = s.storage.clone();
-    let info =
-        tokio::task::spawn_blocking(move || storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id)))
-            .await??;
+    let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
     let (camera, output, background) = parse_query(&q, &info.view, s.config.max_render_pixels)?;
     let _slot = s.render_slots.acquire().await.map_err(ApiError::internal)?;
     let t0 = Instant::now();
-    let s2 = s.clone();
+    let model = model_of(&s, &info).await?;
     // Set when this handler is dropped: the client went away (a viewer that
     // moved on), so the render stops instead of holding the workers.
     let cancel = CancelOnDrop(Arc::new(AtomicBool::new(false)));
     let flag = cancel.0.clone();
     let png = tokio::task::spawn_blocking(move || -> ApiResult<Option<Vec<u8>>> {
-        let model = cached_model(&s2, &info)?;
         let bg = match background {
             Background::Colour(c) => c,
             Background::Transparent => [0.0; 3],
@@ -241,22 +224,25 @@ impl Drop for CancelOnDrop {
     }
 }
 
-/// Loads a model, or reuses it when its record has not changed.
-fn cached_model(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
+/// Loads a model from its checkpoint (on the blocking threads), or reuses
+/// it when its record has not changed.
+async fn model_of(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
     {
         let cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(c) = cache.iter().find(|c| c.id == info.id && c.updated_at == info.updated_at) {
             return Ok(c.model.clone());
         }
     }
-    let restored = persist::load(&s.storage.checkpoint(&info.id)).map_err(|e| match e {
+    let ckpt = s.artifacts.checkpoint(info).await?;
+    let restored = tokio::task::spawn_blocking(move || persist::load(&ckpt.path).map(|r| r.model)).await?;
+    let model = restored.map_err(|e| match e {
         // Deleted since its record was read.
         CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
             ApiError::not_found("model", &info.id)
         }
         e => e.into(),
     })?;
-    let model: Arc<dyn Model> = Arc::from(restored.model);
+    let model: Arc<dyn Model> = Arc::from(model);
     let mut cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
     cache.retain(|c| c.id != info.id);
     cache.insert(0, CachedModel { id: info.id.clone(), updated_at: info.updated_at, model: model.clone() });

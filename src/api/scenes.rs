@@ -1,9 +1,11 @@
 //! `/v1/scenes`: upload a dataset (an archive, or multipart files with their
 //! relative paths), list, get, delete.
 //!
-//! An upload is extracted (or its parts written) into `tmp/ID/data`, loaded and validated by the
-//! engine's loader, its record written to `tmp/ID/scene.json`, and only then
-//! renamed into `scenes/ID`: a scene either exists whole or not at all, and a
+//! An upload is extracted (or its parts written) into its staging folder
+//! (the artifact store's `staging_dir`: `tmp/ID/data` for the embedded
+//! store), loaded and validated by the engine's loader, its files put in the
+//! artifact store, and only then is its record inserted in the job store,
+//! which makes it visible: a scene either exists whole or not at all, and a
 //! failed upload leaves nothing behind.
 
 use std::path::{Path, PathBuf};
@@ -18,12 +20,10 @@ use super::archive::{self, ArchiveKind, Limit, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
 use crate::engine::dataset::{Dataset, LoadOptions};
 use crate::engine::dataset::{DatasetError, DatasetFormat, detect_format};
-use crate::jobs::SchedError;
 use crate::jobs::{JobSpec, PosesSpec, poses as poses_job};
 use crate::poses::photos;
-use crate::storage::{
-    SceneInfo, ScenePoses, SceneStatus, SplitCounts, Storage, ViewDefaults, new_id, now_ms, write_json,
-};
+use crate::storage::{SceneInfo, ScenePart, ScenePoses, SceneStatus, SplitCounts, ViewDefaults, new_id, now_ms};
+use crate::store::{ArtifactStore, NewJob};
 
 pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
     let ct = req.headers().get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
@@ -34,23 +34,22 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
     };
     let info = if ct.to_ascii_lowercase().starts_with("multipart/form-data") {
         let multipart = Multipart::from_request(req, &()).await.map_err(|e| ApiError::bad_request(e.body_text()))?;
-        let (id, staging) = staging(&s.storage);
-        let received = receive_parts(multipart, &staging.join("data"), limits).await.map_err(|e| match e {
+        let (id, staging) = staging(&*s.artifacts);
+        let data = staging.join(ScenePart::Data.dir_name());
+        let received = receive_parts(multipart, &data, limits).await.map_err(|e| match e {
             PartError::Api(e) => e,
             PartError::Multipart(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => too_large(&s),
             PartError::Multipart(e) => {
                 ApiError::bad_request(format!("reading the multipart upload: {}", e.body_text()))
             }
         });
-        let s2 = s.clone();
-        tokio::task::spawn_blocking(move || match received {
-            Ok(size) => ingest(&s2, &id, &staging, |_| Ok(size)),
+        match received {
+            Ok(size) => ingest(&s, id, staging, move |_| Ok(size)).await?,
             Err(e) => {
-                let _ = std::fs::remove_dir_all(&staging);
-                Err(e)
+                remove_staging(staging).await;
+                return Err(e);
             }
-        })
-        .await??
+        }
     } else {
         let kind = ArchiveKind::from_content_type(&ct).ok_or_else(|| {
             ApiError::new(
@@ -71,22 +70,23 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
         if body.is_empty() {
             return Err(ApiError::bad_request("empty upload: send the archive as the request body"));
         }
-        let s2 = s.clone();
-        tokio::task::spawn_blocking(move || {
-            let (id, staging) = staging(&s2.storage);
-            ingest(&s2, &id, &staging, |data| Ok(archive::extract(kind, &body, data, limits)?))
-        })
-        .await??
+        let (id, staging) = staging(&*s.artifacts);
+        ingest(&s, id, staging, move |data| Ok(archive::extract(kind, &body, data, limits)?)).await?
     };
     tracing::info!(scene = %info.id, format = %info.format, train = info.images.train, "scene stored");
     Ok((StatusCode::CREATED, Json(info)))
 }
 
 /// A new scene id and its staging folder (not yet created).
-pub(super) fn staging(storage: &Storage) -> (String, PathBuf) {
+pub(super) fn staging(artifacts: &dyn ArtifactStore) -> (String, PathBuf) {
     let id = new_id("scn");
-    let dir = storage.tmp_dir().join(&id);
+    let dir = artifacts.staging_dir(&id);
     (id, dir)
+}
+
+/// Removes what a failed upload staged.
+async fn remove_staging(staging: PathBuf) {
+    let _ = tokio::task::spawn_blocking(move || std::fs::remove_dir_all(staging)).await;
 }
 
 enum PartError {
@@ -164,44 +164,81 @@ async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) ->
 }
 
 /// Fills `staging/data` with `fill` (returning the bytes written), then
-/// loads, validates and stores the dataset; removes everything on failure.
-pub(super) fn ingest(
+/// loads, validates and stores the dataset: its files in the artifact
+/// store, then its record (and a photo-only upload's pose estimation job)
+/// in the job store, which makes it visible. Removes everything staged on
+/// failure.
+pub(super) async fn ingest(
+    s: &AppState,
+    id: String,
+    staging: PathBuf,
+    fill: impl FnOnce(&Path) -> ApiResult<u64> + Send + 'static,
+) -> ApiResult<SceneInfo> {
+    let (s2, staging2) = (s.clone(), staging.clone());
+    let checked = tokio::task::spawn_blocking(move || check_upload(&s2, &id, &staging2, fill)).await;
+    let stored = match checked {
+        Ok(Ok(upload)) => store(s, &staging, upload).await,
+        Ok(Err(e)) => Err(e),
+        Err(e) => Err(e.into()),
+    };
+    if stored.is_err() {
+        remove_staging(staging).await;
+    }
+    stored
+}
+
+/// An upload, checked and ready to store.
+struct Checked {
+    info: SceneInfo,
+    /// For photos without poses: what was uploaded, and the job that
+    /// estimates the poses (the record names it).
+    posing: Option<(PhotoUpload, NewJob)>,
+}
+
+/// Fills `staging/data` with `fill` and checks it: a dataset that loads
+/// with training views, or photos (or a video) to estimate poses for.
+fn check_upload(
     s: &AppState,
     id: &str,
     staging: &Path,
     fill: impl FnOnce(&Path) -> ApiResult<u64>,
-) -> ApiResult<SceneInfo> {
-    let storage = &s.storage;
-    let result = (|| {
-        let data = staging.join("data");
-        std::fs::create_dir_all(&data)?;
-        let size = fill(&data)?;
-        let root = archive::dataset_root(&data);
-        if matches!(detect_format(&root), Err(DatasetError::UnknownFormat(_)))
-            && let Some(upload) = photo_upload(s, &data)?
-        {
-            return store_posing(s, id, staging, size, upload);
-        }
-        let ds = Dataset::load(&root, &LoadOptions::default()).map_err(|e| {
-            // Name files relative to the upload, not the server's folders.
-            let mut e = ApiError::from(e);
-            let prefix = format!("{}/", data.display());
-            e.message = e.message.replace(&prefix, "").replace(&*data.to_string_lossy(), ".");
-            e
-        })?;
-        if ds.train.is_empty() {
-            return Err(ApiError::new(Code::InvalidDataset, "the dataset has no training views"));
-        }
-        let rel = root.strip_prefix(staging).unwrap_or(Path::new("data")).to_string_lossy().into_owned();
-        let info = SceneInfo::from_dataset(id, &ds, size, rel);
-        write_json(&staging.join("scene.json"), &info)?;
-        std::fs::rename(staging, storage.scene_dir(id))?;
-        Ok(info)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_dir_all(staging);
+) -> ApiResult<Checked> {
+    let data = staging.join(ScenePart::Data.dir_name());
+    std::fs::create_dir_all(&data)?;
+    let size = fill(&data)?;
+    let root = archive::dataset_root(&data);
+    if matches!(detect_format(&root), Err(DatasetError::UnknownFormat(_)))
+        && let Some(upload) = photo_upload(s, &data)?
+    {
+        return Ok(posing(id, size, upload));
     }
-    result
+    let ds = Dataset::load(&root, &LoadOptions::default()).map_err(|e| {
+        // Name files relative to the upload, not the server's folders.
+        let mut e = ApiError::from(e);
+        let prefix = format!("{}/", data.display());
+        e.message = e.message.replace(&prefix, "").replace(&*data.to_string_lossy(), ".");
+        e
+    })?;
+    if ds.train.is_empty() {
+        return Err(ApiError::new(Code::InvalidDataset, "the dataset has no training views"));
+    }
+    let rel = root.strip_prefix(staging).unwrap_or(Path::new("data")).to_string_lossy().into_owned();
+    Ok(Checked { info: SceneInfo::from_dataset(id, &ds, size, rel), posing: None })
+}
+
+/// Stores a checked upload: its files (a photo-only upload's as `upload/`,
+/// waiting for pose estimation), then its record, with the photo-only
+/// upload's `poses` job (both or neither).
+async fn store(s: &AppState, staging: &Path, checked: Checked) -> ApiResult<SceneInfo> {
+    let Checked { info, posing } = checked;
+    let part = if posing.is_some() { ScenePart::Upload } else { ScenePart::Data };
+    s.artifacts.put_scene_files(&info.id, part, &staging.join(ScenePart::Data.dir_name())).await?;
+    let (upload, job) = posing.unzip();
+    let job = s.jobs.insert_scene(info.clone(), job).await?;
+    if let (Some(upload), Some(job)) = (upload, job) {
+        tracing::info!(scene = %info.id, job = %job.id, source = upload.source, photos = upload.photos, "photo-only scene queued for pose estimation");
+    }
+    Ok(info)
 }
 
 /// What a photo-only upload holds.
@@ -264,11 +301,9 @@ fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
     }
 }
 
-/// Stores a photo-only upload as a `posing` scene (its files in `upload/`)
-/// and queues its `poses` job. If the job cannot be queued, the scene is
-/// removed again.
-fn store_posing(s: &AppState, id: &str, staging: &Path, size: u64, upload: PhotoUpload) -> ApiResult<SceneInfo> {
-    std::fs::rename(staging.join("data"), staging.join(poses_job::UPLOAD_DIR))?;
+/// A photo-only upload as a `posing` scene (its files go to `upload/`)
+/// and the `poses` job its record names.
+fn posing(id: &str, size: u64, upload: PhotoUpload) -> Checked {
     let [w, h] = upload.resolution;
     let job_id = new_id("job");
     let info = SceneInfo {
@@ -302,59 +337,26 @@ fn store_posing(s: &AppState, id: &str, staging: &Path, size: u64, upload: Photo
         },
         mask_folder: None,
     };
-    write_json(&staging.join("scene.json"), &info)?;
-    let dir = s.storage.scene_dir(id);
-    std::fs::rename(staging, &dir)?;
-    let spec = JobSpec::Poses(PosesSpec { scene_id: id.to_string() });
-    // The record names the job before the job exists, so the job never
-    // meets a record without it; a crash in between leaves a posing scene
-    // whose job is missing, which the next start marks failed.
-    let job = match s.scheduler.enqueue_as(job_id, spec, None, poses_job::MEMORY_ESTIMATE_BYTES) {
-        Ok(job) => job,
-        Err(e) => {
-            let trash = s.storage.scene_trash(id);
-            if std::fs::rename(&dir, &trash).is_ok() {
-                let _ = std::fs::remove_dir_all(trash);
-            }
-            return Err(e.into());
-        }
+    let job = NewJob {
+        id: Some(job_id),
+        spec: JobSpec::Poses(PosesSpec { scene_id: id.to_string() }),
+        model_id: None,
+        memory_estimate: poses_job::MEMORY_ESTIMATE_BYTES,
     };
-    tracing::info!(scene = %id, job = %job.id, source = upload.source, photos = upload.photos, "photo-only scene queued for pose estimation");
-    Ok(info)
+    Checked { info, posing: Some((upload, job)) }
 }
 
 pub async fn list(State(s): State<AppState>) -> ApiResult<Json<Vec<SceneInfo>>> {
-    let storage = s.storage.clone();
-    Ok(Json(tokio::task::spawn_blocking(move || storage.list_scenes()).await??))
+    Ok(Json(s.jobs.list_scenes().await?))
 }
 
 pub async fn get_one(State(s): State<AppState>, UrlPath(id): UrlPath<String>) -> ApiResult<Json<SceneInfo>> {
-    let (storage, id2) = (s.storage.clone(), id.clone());
-    let scene = tokio::task::spawn_blocking(move || storage.load_scene(&id2)).await??;
-    scene.map(Json).ok_or_else(|| ApiError::not_found("scene", &id))
+    s.jobs.get_scene(&id).await?.map(Json).ok_or_else(|| ApiError::not_found("scene", &id))
 }
 
 /// Deletes a scene unless a queued or running job uses it (409). Models
 /// trained on it stay usable.
 pub async fn delete(State(s): State<AppState>, UrlPath(id): UrlPath<String>) -> ApiResult<StatusCode> {
-    let (storage, sched) = (s.storage.clone(), s.scheduler.clone());
-    tokio::task::spawn_blocking(move || -> ApiResult<()> {
-        if storage.load_scene(&id)?.is_none() {
-            return Err(ApiError::not_found("scene", &id));
-        }
-        let trash = storage.scene_trash(&id);
-        sched
-            .delete_scene(&id, || {
-                // One rename makes the scene disappear; the files go after.
-                std::fs::rename(storage.scene_dir(&id), &trash)
-            })
-            .map_err(|e| match e {
-                // Deleted meanwhile.
-                SchedError::Io(io) if io.kind() == std::io::ErrorKind::NotFound => SchedError::SceneNotFound(id),
-                e => e,
-            })?;
-        Ok(std::fs::remove_dir_all(trash)?)
-    })
-    .await??;
+    s.jobs.delete_scene(&id).await?;
     Ok(StatusCode::NO_CONTENT)
 }

@@ -18,6 +18,7 @@ use crate::engine::train::estimate;
 use crate::jobs::{Job, JobSpec, VideoSpec};
 use crate::media::video::VideoFormat;
 use crate::storage::ViewDefaults;
+use crate::store::NewJob;
 
 /// `POST /v1/models/{id}/videos` body; every field is optional.
 #[derive(Debug, Default, Deserialize)]
@@ -151,36 +152,35 @@ pub async fn create(
     body: Result<Json<CreateVideo>, JsonRejection>,
 ) -> ApiResult<(StatusCode, Json<Job>)> {
     let Json(req) = body?;
-    let job = tokio::task::spawn_blocking(move || -> ApiResult<Job> {
-        let info = s.storage.load_model(&id)?.ok_or_else(|| ApiError::not_found("model", &id))?;
-        let spec = to_spec(req, &info.view, s.config.max_render_pixels)?;
+    let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
+    let free_disk = s.artifacts.free_space().await?;
+    let s2 = s.clone();
+    let (spec, memory) = tokio::task::spawn_blocking(move || -> ApiResult<(VideoSpec, u64)> {
+        let spec = to_spec(req, &info.view, s2.config.max_render_pixels)?;
         let config = ModelConfig::preset(&info.model)
             .and_then(|preset| ModelConfig::from_kind_json(preset.kind(), info.config.clone()))
-            .ok_or_else(|| ApiError::internal(format!("model '{id}' has an unreadable configuration")))?;
+            .ok_or_else(|| ApiError::internal(format!("model '{}' has an unreadable configuration", info.id)))?;
         let e = estimate::video(&config, spec.frames, spec.width, spec.height, rayon::current_num_threads());
-        limits::check(&e, &s.config)?;
-        Ok(s.scheduler.enqueue(JobSpec::Video(spec), Some(id), e.memory_bytes)?)
+        limits::check(&e, &s2.config, free_disk)?;
+        Ok((spec, e.memory_bytes))
     })
     .await??;
+    let new = NewJob { id: None, spec: JobSpec::Video(spec), model_id: Some(id), memory_estimate: memory };
+    let job = s.jobs.enqueue(new).await?;
     tracing::info!(job = %job.id, kind = "video", "job queued");
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
 
 pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
-    let storage = s.storage.clone();
-    let video = tokio::task::spawn_blocking(move || -> ApiResult<_> {
-        let info = storage.load_video(&id)?.ok_or_else(|| ApiError::not_found("video", &id))?;
-        Ok((info.format, std::fs::read(storage.video_file(&id))?))
-    })
-    .await??;
-    Ok(([(CONTENT_TYPE, video.0.content_type())], video.1))
+    let info = s.jobs.get_video(&id).await?.ok_or_else(|| ApiError::not_found("video", &id))?;
+    let bytes = s.artifacts.video(&info).await?;
+    Ok(([(CONTENT_TYPE, info.format.content_type())], bytes))
 }
 
 /// Deletes a video (record, then file): 204, 404, or 409 while its job
 /// has not ended.
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
-    let sched = s.scheduler.clone();
-    tokio::task::spawn_blocking(move || sched.delete_video(&id)).await??;
+    s.jobs.delete_video(&id).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 

@@ -7,7 +7,7 @@ use anyhow::Context;
 use clap::Args;
 
 use super::Common;
-use crate::api::{Server, ServiceConfig};
+use crate::api::{Role, Server, ServiceConfig};
 use crate::jobs::poses::PosesSetup;
 use crate::jobs::{SchedulerConfig, default_memory_budget};
 use crate::poses::Tools;
@@ -56,7 +56,7 @@ pub struct ServeArgs {
     /// data directory's file system; jobs that would not are refused with 507.
     #[arg(long, env = "RADIANCE_MIN_FREE_DISK_MB", default_value_t = 1024)]
     pub min_free_disk_mb: u64,
-    /// Require `Authorization: Bearer KEY` on every route but /healthz.
+    /// Require `Authorization: Bearer KEY` on every route but /healthz and /readyz.
     #[arg(long, env = "RADIANCE_API_KEY", hide_env_values = true)]
     pub api_key: Option<String>,
     /// The COLMAP binary for photo-only uploads (default: `colmap` on PATH);
@@ -74,6 +74,19 @@ pub struct ServeArgs {
     /// Off by default: only the service's own page at `/` can.
     #[arg(long = "cors-origin", env = "RADIANCE_CORS_ORIGINS", value_delimiter = ',')]
     pub cors_origins: Vec<String>,
+    /// What this node does: `all` serves the API and runs the jobs over the
+    /// data directory. `api` (the API alone) and `worker` (the jobs alone),
+    /// over shared stores, are not built yet and are refused.
+    #[arg(long, env = "RADIANCE_ROLE", default_value = "all", value_parser = role_parser())]
+    pub role: Role,
+    /// The PostgreSQL database (`postgres://USER:PASSWORD@HOST/DB`) shared
+    /// by `api` and `worker` nodes: not built yet, refused.
+    #[arg(long, env = "RADIANCE_DATABASE_URL", hide_env_values = true)]
+    pub database_url: Option<String>,
+    /// The object store (`s3://BUCKET/PREFIX` or `file:///PATH`) shared by
+    /// `api` and `worker` nodes: not built yet, refused.
+    #[arg(long, env = "RADIANCE_OBJECT_STORE")]
+    pub object_store: Option<String>,
     #[command(flatten)]
     pub common: Common,
 }
@@ -85,6 +98,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .try_init();
+    deployment(a.role, a.database_url.as_deref(), a.object_store.as_deref())?;
     let api_key = api_key(a.api_key)?;
     let threads = a.common.init_threads()?;
     anyhow::ensure!(a.checkpoint_every.is_finite() && a.checkpoint_every > 0.0, "--checkpoint-every must be positive");
@@ -104,6 +118,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         anyhow::ensure!(axum::http::HeaderValue::from_str(o).is_ok(), "--cors-origin {o}: not a valid header value");
     }
     config.cors_origins = a.cors_origins;
+    config.role = a.role;
     let budget = a.memory_budget_mb.map_or_else(default_memory_budget, |m| m << 20);
     let per_job = a.max_job_memory_mb.map_or(budget, |m| m << 20);
     anyhow::ensure!(budget > 0 && per_job > 0, "--memory-budget-mb and --max-job-memory-mb must be positive");
@@ -143,6 +158,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         println!("listening on http://{}", server.addr);
         eprintln!("open http://{}/ in a browser for the web app", server.addr);
         tracing::info!(
+            role = %a.role,
             data_dir = %a.data_dir.display(),
             threads,
             memory_budget_mib = budget >> 20,
@@ -154,6 +170,44 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         server.shutdown().await.context("shutting down")?;
         Ok(())
     })
+}
+
+/// `--role` takes the names of [`Role`] (listed in `--help`).
+fn role_parser() -> impl clap::builder::TypedValueParser<Value = Role> {
+    use clap::builder::TypedValueParser;
+    clap::builder::PossibleValuesParser::new(Role::NAMES).try_map(|name| name.parse::<Role>())
+}
+
+/// Checks what the role and store flags ask for. One embedded node (`--role
+/// all` and neither store) is what is built; the distributed mode of issue
+/// 16 (`--role api|worker` over a shared database and object store) is
+/// refused with what it would need and why it cannot run. A database URL is
+/// never quoted back: it may hold a password.
+fn deployment(role: Role, database_url: Option<&str>, object_store: Option<&str>) -> anyhow::Result<()> {
+    if let Some(url) = database_url
+        && !(url.starts_with("postgres://") || url.starts_with("postgresql://"))
+    {
+        anyhow::bail!("--database-url / RADIANCE_DATABASE_URL: expected a postgres:// or postgresql:// URL");
+    }
+    if let Some(store) = object_store
+        && !(store.starts_with("s3://") || store.starts_with("file://"))
+    {
+        anyhow::bail!("--object-store {store}: expected s3://BUCKET/PREFIX or file:///PATH");
+    }
+    let not_built = "distributed mode (issue 16, docs/design/scale-out.md) is not built yet: for now, run one node \
+                     with --role all (the default) and neither --database-url nor --object-store";
+    match (role, database_url.is_some(), object_store.is_some()) {
+        (Role::All, false, false) => Ok(()),
+        (_, true, false) | (_, false, true) => anyhow::bail!(
+            "--database-url and --object-store go together (the shared job store and artifact store of \
+             distributed mode); and {not_built}"
+        ),
+        (role, false, false) => anyhow::bail!(
+            "--role {role} needs the shared stores (--database-url and --object-store) of distributed mode; \
+             and {not_built}"
+        ),
+        (_, true, true) => anyhow::bail!("{not_built}"),
+    }
 }
 
 /// COLMAP (and ffmpeg) for photo-only uploads, said plainly in the log
@@ -214,5 +268,45 @@ async fn shutdown_signal() {
     tokio::select! {
         _ = ctrl_c => {},
         _ = term => {},
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The refusal of a flag combination.
+    fn refusal(role: Role, db: Option<&str>, store: Option<&str>) -> String {
+        deployment(role, db, store).expect_err("refused").to_string()
+    }
+
+    #[test]
+    fn only_one_embedded_node_is_accepted_and_the_rest_says_why() {
+        deployment(Role::All, None, None).unwrap();
+        for role in [Role::Api, Role::Worker] {
+            let e = refusal(role, None, None);
+            assert!(
+                e.starts_with(&format!("--role {role} needs the shared stores")) && e.contains("not built yet"),
+                "{e}"
+            );
+        }
+        let db = "postgres://radiance:s3cret@db.example/radiance";
+        for role in [Role::All, Role::Api, Role::Worker] {
+            let e = refusal(role, Some(db), None);
+            assert!(e.starts_with("--database-url and --object-store go together"), "{e}");
+            let e = refusal(role, None, Some("s3://bucket/prefix"));
+            assert!(e.starts_with("--database-url and --object-store go together"), "{e}");
+            let e = refusal(role, Some(db), Some("file:///srv/radiance"));
+            assert!(e.starts_with("distributed mode") && e.contains("not built yet"), "{e}");
+            assert!(!e.contains("s3cret"), "{e}");
+        }
+    }
+
+    #[test]
+    fn store_urls_are_checked_and_a_password_is_never_quoted() {
+        let e = refusal(Role::Api, Some("mysql://u:s3cret@h/db"), Some("s3://b"));
+        assert!(e.contains("expected a postgres:// or postgresql:// URL") && !e.contains("s3cret"), "{e}");
+        let e = refusal(Role::Api, Some("postgresql://h/db"), Some("ftp://b"));
+        assert!(e.contains("--object-store ftp://b: expected s3://"), "{e}");
     }
 }

@@ -1,5 +1,7 @@
 //! Jobs: their records and states (`job`), the persisted store (`store`),
 //! and the scheduler that runs at most `max_concurrent` of them at once.
+//! The job bodies (`train`, `video`, `poses`) reach the service only
+//! through [`host::JobHost`], which the scheduler's shared state implements.
 //!
 //! Only the enqueued, started, interrupted (written back as queued by a
 //! clean shutdown) and final states are written to disk (the job database,
@@ -20,6 +22,7 @@ use crate::storage::{SceneInfo, SceneStatus, Storage, new_id, now_ms};
 pub use job::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec, reserved_model_id};
 use store::{JobStore, Record};
 
+mod host;
 mod job;
 mod lifecycle;
 pub mod poses;
@@ -408,6 +411,13 @@ impl Scheduler {
         Ok(())
     }
 
+    /// Whether the job database is open and answers a read (for readiness
+    /// probes): an error once it is closed at shutdown, or when redb cannot
+    /// start a read.
+    pub fn check_database(&self) -> io::Result<()> {
+        self.shared.store.check()
+    }
+
     /// Stops the scheduler: running jobs checkpoint and stay `running` on
     /// disk (they resume at the next start). Blocks until they have.
     pub fn shutdown(&self) {
@@ -570,10 +580,11 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
     let job = started.job;
     let id = job.id.clone();
     tracing::info!(job = %id, kind = job.spec.name(), "job started");
+    let host: &dyn host::JobHost = &**shared;
     let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &job.spec {
-        JobSpec::Train(spec) => train::run(shared, &job, spec, &cancel),
-        JobSpec::Video(spec) => video::run(shared, &job, spec, &cancel),
-        JobSpec::Poses(spec) => poses::run(shared, &job, spec, &cancel),
+        JobSpec::Train(spec) => train::run(host, &job, spec, &cancel),
+        JobSpec::Video(spec) => video::run(host, &job, spec, &cancel),
+        JobSpec::Poses(spec) => poses::run(host, &job, spec, &cancel),
     }))
     .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
     // Recorded and its scene settled before the lock is released: a client
@@ -625,11 +636,4 @@ fn finish(shared: &Shared, st: &mut State, id: &str, outcome: Outcome) -> Option
     tracing::info!(job = %id, status = status.name(), error = job.error.as_deref().unwrap_or(""), "job finished");
     let job = job.clone();
     Some(st.record(job))
-}
-
-/// Updates a job's in-memory progress.
-pub(crate) fn set_progress(shared: &Shared, id: &str, f: impl FnOnce(&mut Job)) {
-    if let Some(j) = shared.lock().jobs.get_mut(id) {
-        f(j);
-    }
 }

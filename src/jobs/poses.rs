@@ -14,16 +14,17 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
-use super::{Job, Outcome, PosesSpec, Shared, Status, set_progress};
+use super::host::JobHost;
+use super::{Job, Outcome, PosesSpec, Status};
 use crate::engine::dataset::{Dataset, LoadOptions};
 use crate::poses::{self, PoseError, PoseOptions, PoseReport, Tools};
-use crate::storage::{SceneInfo, SceneStatus, Storage, read_json_opt, tree_bytes, write_json};
+use crate::storage::{SceneInfo, ScenePart, SceneStatus, Storage, read_json_opt, tree_bytes, write_json};
 
 /// The folder of a posing scene holding the photos as uploaded.
-pub const UPLOAD_DIR: &str = "upload";
+pub const UPLOAD_DIR: &str = ScenePart::Upload.dir_name();
 
 /// The folder the posed dataset is written to.
-pub const DATA_DIR: &str = "data";
+pub const DATA_DIR: &str = ScenePart::Data.dir_name();
 
 /// The memory a pose estimation is counted for (COLMAP's CPU SIFT and
 /// mapper on photos of at most `max_size` pixels stay well below it).
@@ -37,28 +38,29 @@ pub struct PosesSetup {
     pub time_limit: Duration,
 }
 
-pub(crate) fn run(shared: &Shared, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Outcome {
-    match pose(shared, job, spec, cancel) {
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Outcome {
+    match pose(host, job, spec, cancel) {
         Ok(()) => Outcome::Succeeded,
         Err(PoseError::Cancelled) => Outcome::Stopped,
         Err(e) => Outcome::Failed(e.to_string()),
     }
 }
 
-fn pose(shared: &Shared, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Result<(), PoseError> {
-    let storage = &shared.storage;
-    let dir = storage.scene_dir(&spec.scene_id);
-    let fail = |m: String| PoseError::Io { path: dir.clone(), message: m };
-    let scene = storage
-        .load_scene(&spec.scene_id)
-        .map_err(|e| fail(e.to_string()))?
+fn pose(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Result<(), PoseError> {
+    let scene = host
+        .scene(&spec.scene_id)
+        .map_err(|e| PoseError::Io { path: format!("scene '{}'", spec.scene_id).into(), message: e.to_string() })?
         .ok_or_else(|| PoseError::Input(format!("scene '{}' no longer exists", spec.scene_id)))?;
     if scene.status == SceneStatus::Ready {
         return Ok(()); // finished before a restart
     }
-    let setup = shared.config.poses.as_ref().ok_or_else(|| {
+    let setup = host.config().poses.as_ref().ok_or_else(|| {
         PoseError::Tool("COLMAP is not available on this server (it was not found at start-up)".into())
     })?;
+    let dir = host
+        .posing_workdir(job, &scene)
+        .map_err(|e| PoseError::Io { path: format!("scene '{}'", scene.id).into(), message: e.to_string() })?;
+    let fail = |m: String| PoseError::Io { path: dir.clone(), message: m };
     remove_leftovers(&dir);
     let data = dir.join(DATA_DIR);
     let report_file = data.join(poses::REPORT_FILE);
@@ -75,7 +77,7 @@ fn pose(shared: &Shared, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Re
             let mut on_progress = |p: poses::Progress| {
                 let elapsed = started.elapsed().as_secs_f64();
                 let f = p.fraction as f64;
-                set_progress(shared, &job.id, |j| {
+                host.set_progress(&job.id, &mut |j| {
                     j.progress.step = (f * 1000.0).round() as u64;
                     j.progress.total_steps = Some(1000);
                     j.progress.elapsed = elapsed;
@@ -93,9 +95,7 @@ fn pose(shared: &Shared, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Re
     ready.created_at = scene.created_at;
     ready.warnings.extend(report.warnings.iter().cloned());
     ready.poses = scene.poses.map(|p| crate::storage::ScenePoses { report: Some(report), ..p });
-    write_json(&storage.scene_record(&scene.id), &ready).map_err(|e| fail(e.to_string()))?;
-    // The photos are in `data/images` now, downscaled as trained on.
-    let _ = std::fs::remove_dir_all(dir.join(UPLOAD_DIR));
+    host.publish_posed_scene(job, &ready, &dir).map_err(|e| fail(e.to_string()))?;
     tracing::info!(scene = %scene.id, registered = ready.images.train + ready.images.test, "scene posed");
     Ok(())
 }

@@ -84,6 +84,11 @@ impl JobStore {
         Ok(removed)
     }
 
+    /// Whether the database is open and answers a read.
+    pub fn check(&self) -> io::Result<()> {
+        self.lock().db()?.check()
+    }
+
     /// Closes the database (at shutdown, after every job thread has ended),
     /// so the next start, or a tool, can open it.
     pub fn close(&self) {

@@ -3,11 +3,12 @@
 //! and keep the model record beside the checkpoint, then measure the result
 //! on held-out views.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use super::{Job, Outcome, Shared, TrainSpec, set_progress};
+use super::host::JobHost;
+use super::{Job, Outcome, TrainSpec};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::metrics::psnr;
@@ -15,39 +16,41 @@ use crate::engine::models::Model;
 use crate::engine::render::render_view;
 use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
 use crate::engine::train::trainer::{Progress, TrainState};
-use crate::storage::{ModelInfo, SceneInfo, Storage, now_ms, write_json};
+use crate::storage::{ModelInfo, SceneInfo, ScenePart, now_ms};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.
 const HELD_OUT_PIXELS: usize = 1024;
 
-/// Loads a stored scene's dataset (all splits), its masks read as `masks`
-/// asks.
-pub fn load_dataset(storage: &Storage, scene: &SceneInfo, masks: MaskUse) -> Result<Dataset, String> {
-    let root = storage.scene_dir(&scene.id).join(&scene.root);
+/// Loads a stored scene's dataset (all splits) from the scene's folder, its
+/// masks read as `masks` asks.
+pub fn load_dataset(scene_dir: &Path, scene: &SceneInfo, masks: MaskUse) -> Result<Dataset, String> {
+    let root = scene_dir.join(&scene.root);
     Dataset::load(&root, &LoadOptions { masks, ..Default::default() }).map_err(|e| e.to_string())
 }
 
-pub(crate) fn run(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Outcome {
-    match train(shared, job, spec, cancel) {
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Outcome {
+    match train(host, job, spec, cancel) {
         Ok(o) => o,
         Err(e) => Outcome::Failed(e),
     }
 }
 
-fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
-    let storage = &shared.storage;
-    let scene = storage
-        .load_scene(&spec.scene_id)
+fn train(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
+    let scene = host
+        .scene(&spec.scene_id)
         .map_err(|e| e.to_string())?
         .ok_or_else(|| format!("scene '{}' no longer exists", spec.scene_id))?;
-    let ds = load_dataset(storage, &scene, spec.masks)?;
+    let dir = host.scene_dir(&scene, ScenePart::Data).map_err(|e| e.to_string())?;
+    let ds = load_dataset(&dir.path, &scene, spec.masks)?;
     if ds.train.is_empty() {
         return Err("the scene has no training views".into());
     }
     let model_id = job.reserved_model_id();
-    let mut session = open_session(shared, job, spec, &ds, storage.checkpoint(&model_id))?;
+    let ckpt = host.job_checkpoint(job, &model_id).map_err(|e| e.to_string())?;
+    let mut session = open_session(host, job, spec, &ds, ckpt.clone())?;
     let record = ModelRecord {
-        shared,
+        host,
+        ckpt,
         job,
         spec,
         model_id: &model_id,
@@ -55,7 +58,7 @@ fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> R
         config: session.trainer().model.config_json(),
         created_at: now_ms(),
     };
-    let mut report = Report::new(shared, job, spec, &session.trainer().state);
+    let mut report = Report::new(host, job, spec, &session.trainer().state);
     let mut record_error = None;
     let stop = session.run(cancel, |event| match event {
         Event::Step { progress, held_out_psnr } => {
@@ -68,13 +71,13 @@ fn train(shared: &Shared, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> R
     if let Some(e) = record_error {
         return Err(e);
     }
-    finish(shared, &session, &record, &ds, stop, cancel)
+    finish(host, &session, &record, &ds, stop, cancel)
 }
 
 /// A session on the job's checkpoint: resumed from it when it exists (a job
 /// that was interrupted), else on a fresh model.
 fn open_session<'a>(
-    shared: &Shared,
+    host: &dyn JobHost,
     job: &Job,
     spec: &TrainSpec,
     ds: &'a Dataset,
@@ -91,10 +94,10 @@ fn open_session<'a>(
     let config = SessionConfig {
         train: spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine()),
         out: ckpt,
-        checkpoint_every: shared.config.checkpoint_every,
+        checkpoint_every: host.config().checkpoint_every,
         held_out: Some(HeldOut {
             pixels: HELD_OUT_PIXELS,
-            every: shared.config.heldout_every,
+            every: host.config().heldout_every,
             target_psnr: spec.budget.target_psnr,
         }),
     };
@@ -108,7 +111,7 @@ fn open_session<'a>(
 /// After the session: fails a diverged job, keeps a cancelled one's model,
 /// and measures a finished one on held-out views.
 fn finish(
-    shared: &Shared,
+    host: &dyn JobHost,
     session: &Session<'_>,
     record: &ModelRecord<'_>,
     ds: &Dataset,
@@ -127,7 +130,7 @@ fn finish(
         Stop::Budget | Stop::Cancelled | Stop::Aborted => {}
     }
     let p = session.trainer().progress(f64::NAN);
-    set_progress(shared, &job.id, |j| {
+    host.set_progress(&job.id, &mut |j| {
         j.progress.step = p.step;
         j.progress.elapsed = p.elapsed;
         j.progress.eta = p.eta;
@@ -140,12 +143,12 @@ fn finish(
         return Ok(Outcome::Stopped);
     }
     record.write(&p, false, None)?;
-    let metric = evaluate(&*session.trainer().model, ds, shared.config.eval_views, cancel);
+    let metric = evaluate(&*session.trainer().model, ds, host.config().eval_views, cancel);
     if cancel.load(Ordering::SeqCst) {
         record.write(&p, true, None)?;
         return Ok(Outcome::Stopped);
     }
-    set_progress(shared, &job.id, |j| {
+    host.set_progress(&job.id, &mut |j| {
         if let Some(m) = metric {
             (j.progress.test_psnr, j.progress.test_psnr_step) = (Some(m.0), Some(p.step));
         }
@@ -158,7 +161,7 @@ fn finish(
 /// every step, and the job's progress at most every 0.1 s (and with every
 /// held-out estimate).
 struct Report<'a> {
-    shared: &'a Shared,
+    host: &'a dyn JobHost,
     job: &'a Job,
     total_steps: Option<u64>,
     last: Instant,
@@ -168,13 +171,13 @@ struct Report<'a> {
 }
 
 impl<'a> Report<'a> {
-    fn new(shared: &'a Shared, job: &'a Job, spec: &TrainSpec, state: &TrainState) -> Self {
+    fn new(host: &'a dyn JobHost, job: &'a Job, spec: &TrainSpec, state: &TrainState) -> Self {
         let total_steps = spec.budget.steps;
-        Self { shared, job, total_steps, last: Instant::now(), rays0: state.rays, t0: state.elapsed }
+        Self { host, job, total_steps, last: Instant::now(), rays0: state.rays, t0: state.elapsed }
     }
 
     fn step(&mut self, p: &Progress, estimate: Option<f64>) {
-        let c = &self.shared.counters;
+        let c = self.host.counters();
         c.train_steps.fetch_add(1, Ordering::Relaxed);
         if estimate.is_none() && self.last.elapsed().as_secs_f64() < 0.1 {
             return;
@@ -185,7 +188,7 @@ impl<'a> Report<'a> {
         c.train_rays.fetch_add(p.rays - self.rays0, Ordering::Relaxed);
         c.train_micros.fetch_add((dt * 1e6) as u64, Ordering::Relaxed);
         (self.rays0, self.t0) = (p.rays, p.elapsed);
-        set_progress(self.shared, &self.job.id, |j| {
+        self.host.set_progress(&self.job.id, &mut |j| {
             let g = &mut j.progress;
             g.step = p.step;
             g.total_steps = self.total_steps;
@@ -225,7 +228,9 @@ fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBo
 
 /// The model record beside the job's checkpoint (which the session saves).
 struct ModelRecord<'a> {
-    shared: &'a Shared,
+    host: &'a dyn JobHost,
+    /// The job's checkpoint (see [`JobHost::job_checkpoint`]).
+    ckpt: PathBuf,
     job: &'a Job,
     spec: &'a TrainSpec,
     model_id: &'a str,
@@ -238,9 +243,7 @@ struct ModelRecord<'a> {
 impl ModelRecord<'_> {
     /// Writes the record of the checkpoint saved at `p.step`.
     fn write(&self, p: &Progress, complete: bool, metric: Option<(f64, usize)>) -> Result<(), String> {
-        let storage = &self.shared.storage;
-        let path = storage.checkpoint(self.model_id);
-        let previous = storage.load_model(self.model_id).ok().flatten();
+        let previous = self.host.model(self.model_id).ok().flatten();
         let info = ModelInfo {
             id: self.model_id.to_string(),
             scene_id: self.scene.id.clone(),
@@ -251,16 +254,15 @@ impl ModelRecord<'_> {
             training_seconds: p.elapsed,
             test_psnr: metric.map(|m| m.0),
             test_views: metric.map_or(0, |m| m.1),
-            size_bytes: std::fs::metadata(&path).map_or(0, |m| m.len()),
+            size_bytes: std::fs::metadata(&self.ckpt).map_or(0, |m| m.len()),
             created_at: previous.as_ref().map_or(self.created_at, |p| p.created_at),
             updated_at: now_ms(),
             complete,
             training_state: true,
             view: self.scene.view.clone(),
         };
-        write_json(&storage.model_record(self.model_id), &info).map_err(|e| format!("saving the model record: {e}"))?;
-        let id = self.model_id.to_string();
-        set_progress(self.shared, &self.job.id, |j| j.model_id = Some(id));
+        self.host.publish_model(self.job, &info, &self.ckpt).map_err(|e| e.to_string())?;
+        self.host.set_progress(&self.job.id, &mut |j| j.model_id = Some(info.id.clone()));
         Ok(())
     }
 }

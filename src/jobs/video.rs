@@ -6,29 +6,29 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use super::{Job, Outcome, Shared, VideoSpec, set_progress};
+use super::host::JobHost;
+use super::{Job, Outcome, VideoSpec};
 use crate::engine::geometry::camera::Camera;
-use crate::engine::io::fsio::write_atomic;
 use crate::engine::io::persist;
 use crate::engine::render::render_view;
 use crate::media::{png, video};
-use crate::storage::{VideoInfo, now_ms, write_json};
+use crate::storage::{VideoInfo, now_ms};
 
-pub(crate) fn run(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Outcome {
-    match render(shared, job, spec, cancel) {
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Outcome {
+    match render(host, job, spec, cancel) {
         Ok(o) => o,
         Err(e) => Outcome::Failed(e),
     }
 }
 
-fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
-    let storage = &shared.storage;
+fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
     let model_id = job.model_id.clone().unwrap_or_default();
-    let info = storage
-        .load_model(&model_id)
+    let info = host
+        .model(&model_id)
         .map_err(|e| e.to_string())?
         .ok_or_else(|| format!("model '{model_id}' no longer exists"))?;
-    let model = persist::load(&storage.checkpoint(&model_id)).map_err(|e| format!("loading the model: {e}"))?.model;
+    let ckpt = host.model_checkpoint(&info).map_err(|e| format!("loading the model: {e}"))?;
+    let model = persist::load(&ckpt.path).map_err(|e| format!("loading the model: {e}"))?.model;
     let orbit = info.view.orbit(spec.elevation, spec.radius);
     let started = Instant::now();
     let mut frames = Vec::with_capacity(spec.frames as usize);
@@ -49,7 +49,7 @@ fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> 
         frames.push(png::rgb_image(&view).map_err(|e| e.to_string())?);
         let done = k as u64 + 1;
         let elapsed = started.elapsed().as_secs_f64();
-        set_progress(shared, &job.id, |j| {
+        host.set_progress(&job.id, &mut |j| {
             j.progress.step = done;
             j.progress.total_steps = Some(spec.frames as u64);
             j.progress.elapsed = elapsed;
@@ -58,7 +58,6 @@ fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> 
     }
     let bytes = video::encode(spec.format, &frames, spec.fps).map_err(|e| format!("encoding the video: {e}"))?;
     let id = job.reserved_video_id();
-    write_atomic(&storage.video_file(&id), &bytes).map_err(|e| format!("saving the video: {e}"))?;
     let record = VideoInfo {
         id: id.clone(),
         model_id,
@@ -71,10 +70,10 @@ fn render(shared: &Shared, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> 
         size_bytes: bytes.len() as u64,
         created_at: now_ms(),
     };
-    write_json(&storage.video_record(&id), &record).map_err(|e| format!("saving the video record: {e}"))?;
+    host.publish_video(job, &record, &bytes).map_err(|e| e.to_string())?;
     let elapsed = started.elapsed().as_secs_f64();
-    set_progress(shared, &job.id, |j| {
-        j.video_id = Some(id);
+    host.set_progress(&job.id, &mut |j| {
+        j.video_id = Some(id.clone());
         j.progress.elapsed = elapsed;
         j.progress.eta = Some(0.0);
     });

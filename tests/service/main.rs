@@ -9,6 +9,7 @@ mod auth;
 mod jobs;
 mod openapi;
 mod poses;
+mod ready;
 mod restart;
 mod uploads;
 mod web;
