@@ -210,7 +210,8 @@ impl CaptureField {
         relu(&mut ctx.a1[..n * h]);
         self.c2.forward(p, &[(&ctx.a1, h)], n, &mut ctx.a2);
         relu(&mut ctx.a2[..n * h]);
-        self.c3.forward(p, &[(&ctx.a2, h)], n, &mut ctx.rgb);
+        // Three outputs: dot products (see `Linear::forward_dots`).
+        self.c3.forward_dots(p, &ctx.a2, n, &mut ctx.rgb);
         for v in &mut ctx.rgb[..n * 3] {
             *v = sigmoid(*v);
         }
@@ -287,7 +288,8 @@ impl Field for CaptureField {
             *d = dc * s * (1.0 - s);
         }
         size(&mut ctx.d_a, n * h);
-        self.c3.backward(p, &[(&ctx.a2, h)], &ctx.draw, n, grads, &mut [Some(&mut ctx.d_a)]);
+        self.c3.backward_dots(&ctx.a2, &ctx.draw, n, grads);
+        self.c3.input_grad(p, &ctx.draw, n, &mut ctx.d_a);
         relu_backward(&ctx.a2[..n * h], &mut ctx.d_a[..n * h]);
         size(&mut ctx.d_b, n * h);
         self.c2.backward(p, &[(&ctx.a1, h)], &ctx.d_a, n, grads, &mut [Some(&mut ctx.d_b)]);

@@ -91,7 +91,7 @@ impl ProposalField {
         self.grid.forward(params, &ctx.unit[..3 * n], &mut ctx.enc);
         self.l1.forward(params, &[(&ctx.enc, gw)], n, &mut ctx.h);
         relu(&mut ctx.h[..n * h]);
-        self.l2.forward(params, &[(&ctx.h, h)], n, &mut ctx.raw);
+        self.l2.forward_dots(params, &ctx.h, n, &mut ctx.raw);
         for (i, (s, &r)) in ctx.sigma[..n].iter_mut().zip(&ctx.raw).enumerate() {
             *s = density_activation(self.init_density, r) * ctx.mask.get(i).copied().unwrap_or(1.0);
         }
@@ -116,10 +116,15 @@ impl ProposalField {
             *d = ds * s;
         }
         size(&mut ctx.d_h, n * h);
-        self.l2.backward(params, &[(&ctx.h, h)], &ctx.d_raw, n, grads, &mut [Some(&mut ctx.d_h)]);
+        // The 1-wide output's parameter gradients and the gradient of the
+        // grid's 10-odd-wide encoding are dot products (see
+        // `Linear::forward_dots`); the rest are GEMMs.
+        self.l2.backward_dots(&ctx.h, &ctx.d_raw, n, grads);
+        self.l2.input_grad(params, &ctx.d_raw, n, &mut ctx.d_h);
         relu_backward(&ctx.h[..n * h], &mut ctx.d_h[..n * h]);
         size(&mut ctx.d_enc, n * gw);
-        self.l1.backward(params, &[(&ctx.enc, gw)], &ctx.d_h, n, grads, &mut [Some(&mut ctx.d_enc)]);
+        self.l1.backward(params, &[(&ctx.enc, gw)], &ctx.d_h, n, grads, &mut [None]);
+        self.l1.input_grad_dots(params, &ctx.d_h, n, &mut ctx.d_enc);
         self.grid.backward(&ctx.unit[..3 * n], &ctx.d_enc, grads);
     }
 }
