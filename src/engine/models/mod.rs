@@ -7,6 +7,7 @@
 //! [`config::ModelConfig`] and its presets.
 
 pub mod capture;
+pub mod capture_config;
 pub mod config;
 pub mod instant;
 pub mod nerf;
