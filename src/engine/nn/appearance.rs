@@ -397,6 +397,20 @@ mod tests {
         assert_eq!(s.app.mean_embedding(&s.params, [99]), vec![0.0; DIM]);
     }
 
+    /// A batch that served a larger table gives a smaller one's images
+    /// beyond its table no slot (and reads nothing outside it).
+    #[test]
+    fn a_batch_reused_by_a_smaller_table_keeps_to_its_rows() {
+        let s = setup();
+        let mut batch = AppearanceBatch::default();
+        let mut layout = ParamLayout::default();
+        let big = Appearance::new(&mut layout, "big", 50, DIM, OUT, IN);
+        big.gather(&vec![0.0; layout.len], &[40, 3], &mut batch);
+        assert_eq!(batch.images(), &[40, 3]);
+        s.app.gather(&s.params, &[40, 3, 5, 40], &mut batch);
+        assert_eq!((batch.images(), batch.slots.as_slice()), (&[3u32, 5][..], &[NO_SLOT, 0, 1, NO_SLOT][..]));
+    }
+
     #[test]
     fn zero_dimensions_lay_out_nothing_and_add_nothing() {
         let mut layout = ParamLayout::default();

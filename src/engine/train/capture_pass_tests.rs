@@ -320,3 +320,27 @@ fn stats_add_up_and_weights_sum_to_one() {
         assert!((total - 1.0).abs() < 1e-5, "{total}");
     }
 }
+
+/// One thread's buffers serve passes of any shape in turn (a service
+/// trains models of different configurations on the same threads): a pass
+/// after a larger one gives what it gives with fresh buffers.
+#[test]
+fn buffers_serve_passes_of_any_shape() {
+    let n = nets(12, 0.5, 0.5);
+    let cn = CaptureNets { proposals: &n.proposals, field: &n.field, params: &n.params };
+    let how = Resampling::new(1.0, 0.01).unwrap();
+    let pass = |intervals: &[usize], count: usize, buf: &mut CaptureBuffers| {
+        let mut g = vec![0.0f32; n.params.len()];
+        let s = capture_pass(cn, &settings(intervals, Some(1e-4)), &rays(count), &mut Drawn::centred(how), buf, &mut g);
+        (s, g)
+    };
+    let mut shared = CaptureBuffers::default();
+    pass(&[24, 16, 12], 7, &mut shared);
+    for (intervals, count) in [(&[8usize, 6, 4][..], 3usize), (&[5, 3, 2], 9)] {
+        let (a, ga) = pass(intervals, count, &mut shared);
+        let (b, gb) = pass(intervals, count, &mut CaptureBuffers::default());
+        assert!(a.loss().is_finite(), "{a:?}");
+        assert_eq!(a, b, "{intervals:?}");
+        assert!(ga == gb, "{intervals:?}");
+    }
+}
