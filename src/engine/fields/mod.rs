@@ -13,11 +13,15 @@
 //! densities `[n]`, colours `[n x 3]` in [0, 1].
 //!
 //! `space` holds the maps from model space into a grid's unit cube for
-//! scenes that do not fit a box (contraction, NDC), with their gradients;
-//! no field uses them yet.
+//! scenes that do not fit a box (contraction, NDC), with their gradients.
+//! The real-capture model's fields work in that mapped space: `capture`
+//! (the hash-grid field with a per-image appearance) and `proposal` (the
+//! small density-only networks that place its samples).
 
+pub mod capture;
 pub mod hash_grid;
 pub mod mlp;
+pub mod proposal;
 pub mod space;
 
 /// The samples a field is asked about: `n = pos.len() / 3` rows.

@@ -7,6 +7,7 @@
 use std::ops::RangeInclusive;
 
 use crate::engine::geometry::scene::Scene;
+use crate::engine::models::capture::CaptureConfig;
 use crate::engine::models::instant::InstantConfig;
 use crate::engine::models::nerf::NerfConfig;
 use crate::engine::models::{Model, ModelError};
@@ -56,13 +57,16 @@ pub enum ModelConfig {
     Instant(InstantConfig),
     /// The classic NeRF of the paper.
     Nerf(NerfConfig),
+    /// Real captures: contracted unbounded space, proposal sampling,
+    /// per-image appearance.
+    Capture(CaptureConfig),
 }
 
 /// The kinds, as [`ModelConfig`] tags them.
-pub const KINDS: [&str; 2] = [super::instant::KIND, super::nerf::KIND];
+pub const KINDS: [&str; 3] = [super::instant::KIND, super::nerf::KIND, super::capture::KIND];
 
 /// The names [`ModelConfig::preset`] knows, the default first.
-pub const PRESETS: [&str; 4] = ["instant", "instant-tiny", "nerf", "nerf-tiny"];
+pub const PRESETS: [&str; 6] = ["instant", "instant-tiny", "nerf", "nerf-tiny", "capture", "capture-tiny"];
 
 /// Rays per optimisation step for `nerf` (the fast model adapts its number of
 /// rays to a constant sample budget and ignores this).
@@ -74,6 +78,7 @@ impl ModelConfig {
         match self {
             ModelConfig::Instant(c) => c,
             ModelConfig::Nerf(c) => c,
+            ModelConfig::Capture(c) => c,
         }
     }
 
@@ -81,7 +86,9 @@ impl ModelConfig {
     /// - `instant`: the fast model (the default);
     /// - `instant-tiny`: a small hash grid and narrow MLPs, for previews and tests;
     /// - `nerf`: the paper's model, with occupancy-grid skipping;
-    /// - `nerf-tiny`: a small network and few samples, for previews and tests.
+    /// - `nerf-tiny`: a small network and few samples, for previews and tests;
+    /// - `capture`: the real-capture model (photographs of unbounded scenes);
+    /// - `capture-tiny`: a small one, for previews and tests.
     pub fn preset(name: &str) -> Option<Self> {
         Some(match name {
             "instant" => ModelConfig::Instant(InstantConfig::default()),
@@ -104,6 +111,8 @@ impl ModelConfig {
                 fine_samples: 16,
                 ..NerfConfig::default()
             }),
+            "capture" => ModelConfig::Capture(CaptureConfig::default()),
+            "capture-tiny" => ModelConfig::Capture(CaptureConfig::tiny()),
             _ => return None,
         })
     }
@@ -131,7 +140,7 @@ impl ModelConfig {
         serde_json::from_value(json).map_err(|e| ModelError::Config { kind, message: e.to_string() })
     }
 
-    /// `instant` or `nerf`.
+    /// `instant`, `nerf` or `capture`.
     pub fn kind(&self) -> &'static str {
         self.spec().kind()
     }
@@ -200,7 +209,7 @@ pub fn check_occupancy(o: &OccupancyConfig, c: &mut Checks) {
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 #[error("{kind} config: {}", .fields.iter().map(|f| f.to_string()).collect::<Vec<_>>().join("; "))]
 pub struct ConfigError {
-    /// `instant` or `nerf`.
+    /// `instant`, `nerf` or `capture`.
     pub kind: &'static str,
     pub fields: Vec<FieldError>,
 }
@@ -296,6 +305,19 @@ mod tests {
         assert_eq!(v["kind"], "instant");
         assert_eq!(v["hidden"], 32);
         assert_eq!(serde_json::from_value::<ModelConfig>(v).unwrap(), c);
+        for name in ["capture", "capture-tiny"] {
+            let c = ModelConfig::preset(name).unwrap();
+            let v = serde_json::to_value(&c).unwrap();
+            assert_eq!((v["kind"].as_str(), v["contraction"].as_str()), (Some("capture"), Some("linf")));
+            assert_eq!(v["proposal"]["coarse_samples"], if name == "capture" { 64 } else { 16 });
+            assert_eq!(serde_json::from_value::<ModelConfig>(v.clone()).unwrap(), c);
+            // The untagged form a checkpoint stores parses back too.
+            let mut untagged = v;
+            untagged.as_object_mut().unwrap().remove("kind");
+            assert_eq!(ModelConfig::parse("capture", untagged).unwrap(), c);
+        }
+        let bad = ModelConfig::parse("capture", serde_json::json!({ "contraction": "l3" })).unwrap_err();
+        assert!(bad.to_string().starts_with("the capture model's configuration:"), "{bad}");
     }
 
     #[test]
@@ -323,6 +345,7 @@ mod tests {
 
     type Instant = fn(&mut InstantConfig);
     type Nerf = fn(&mut NerfConfig);
+    type Capture = fn(&mut CaptureConfig);
 
     /// One bad value per checked field of the fast model.
     const INSTANT_CASES: [(&str, Instant); 16] = [
@@ -363,6 +386,46 @@ mod tests {
         ("occupancy.dilate", |c| c.occupancy.as_mut().unwrap().dilate = Some(false)),
     ];
 
+    /// One bad value per checked field of the real-capture model.
+    const CAPTURE_CASES: [(&str, Capture); 34] = [
+        ("camera_radius", |c| c.camera_radius = 0.0),
+        ("near", |c| c.near = -1.0),
+        ("far", |c| c.far = 0.01),
+        ("grid.levels", |c| c.grid.levels = 0),
+        ("grid.log2_table", |c| c.grid.log2_table = 30),
+        ("grid.base_resolution", |c| c.grid.base_resolution = 1),
+        ("grid.finest_resolution", |c| c.grid.finest_resolution = 10_000),
+        ("hidden", |c| c.hidden = 300),
+        ("geo_features", |c| c.geo_features = 0),
+        ("init_density", |c| c.init_density = f32::NAN),
+        ("appearance_dim", |c| c.appearance_dim = 65),
+        ("max_images", |c| c.max_images = 0),
+        ("proposal.coarse_samples", |c| c.proposal.coarse_samples = 0),
+        ("proposal.fine_samples", |c| c.proposal.fine_samples = 2000),
+        ("proposal.coarse_grid.levels", |c| c.proposal.coarse_grid.levels = 40),
+        ("proposal.coarse_grid.log2_table", |c| c.proposal.coarse_grid.log2_table = 4),
+        ("proposal.coarse_grid.base_resolution", |c| c.proposal.coarse_grid.base_resolution = 0),
+        ("proposal.coarse_grid.finest_resolution", |c| c.proposal.coarse_grid.finest_resolution = 8),
+        ("proposal.fine_grid.levels", |c| c.proposal.fine_grid.levels = 0),
+        ("proposal.fine_grid.log2_table", |c| c.proposal.fine_grid.log2_table = 25),
+        ("proposal.fine_grid.base_resolution", |c| c.proposal.fine_grid.base_resolution = 1),
+        ("proposal.fine_grid.finest_resolution", |c| c.proposal.fine_grid.finest_resolution = 9000),
+        ("proposal.hidden", |c| c.proposal.hidden = 0),
+        ("proposal.padding", |c| c.proposal.padding = -0.1),
+        ("proposal.anneal_slope", |c| c.proposal.anneal_slope = 0.0),
+        ("samples", |c| c.samples = 0),
+        ("rays_per_step", |c| c.rays_per_step = 1 << 17),
+        ("chunk_rays", |c| c.chunk_rays = 0),
+        ("interlevel", |c| c.interlevel = f32::INFINITY),
+        ("distortion", |c| c.distortion = -1.0),
+        ("min_transmittance", |c| c.min_transmittance = 1.0),
+        ("max_dropped_weight", |c| c.max_dropped_weight = -0.5),
+        // Both bounds of the ray interval: a far bound below the near one
+        // names the far bound.
+        ("far", |c| c.far = f32::INFINITY),
+        ("near", |c| c.near = f32::NAN),
+    ];
+
     /// Checks that `bad` fails on `field` alone and that its message names
     /// that field, with its value, and no other field of `all`.
     fn assert_names_only(bad: ModelConfig, field: &str, all: &[&str]) {
@@ -375,8 +438,19 @@ mod tests {
             "{msg}"
         );
         for other in all.iter().filter(|&&o| o != field) {
-            assert!(!msg.contains(other), "{field}: the message also names {other}: {msg}");
+            assert!(!names_field(&msg, other), "{field}: the message also names {other}: {msg}");
         }
+    }
+
+    /// Whether `msg` holds `name` as a whole field name (not as the end of
+    /// a longer one: `samples` in `proposal.coarse_samples`).
+    fn names_field(msg: &str, name: &str) -> bool {
+        let part = |c: char| c.is_ascii_alphanumeric() || c == '_' || c == '.';
+        msg.match_indices(name).any(|(i, _)| {
+            let before = msg[..i].chars().next_back().is_none_or(|c| !part(c));
+            let after = msg[i + name.len()..].chars().next().is_none_or(|c| !part(c));
+            before && after
+        })
     }
 
     #[test]
@@ -392,6 +466,12 @@ mod tests {
             let ModelConfig::Nerf(mut c) = ModelConfig::preset("nerf").unwrap() else { unreachable!() };
             spoil(&mut c);
             assert_names_only(ModelConfig::Nerf(c), field, &names);
+        }
+        let names: Vec<&str> = CAPTURE_CASES.iter().map(|(n, _)| *n).collect();
+        for (field, spoil) in CAPTURE_CASES {
+            let ModelConfig::Capture(mut c) = ModelConfig::preset("capture").unwrap() else { unreachable!() };
+            spoil(&mut c);
+            assert_names_only(ModelConfig::Capture(c), field, &names);
         }
     }
 

@@ -6,6 +6,8 @@
 //! the parts in `fields`, `sampling`, `render` and `train::pass`), one arm of
 //! [`config::ModelConfig`] and its presets.
 
+pub mod capture;
+pub mod capture_config;
 pub mod config;
 pub mod instant;
 pub mod nerf;
@@ -125,7 +127,7 @@ pub struct RayOutput {
 
 /// A trainable radiance field.
 pub trait Model: Send + Sync {
-    /// "nerf" or "instant".
+    /// "instant", "nerf" or "capture".
     fn kind(&self) -> &'static str;
     fn scene(&self) -> &Scene;
     fn params(&self) -> &[f32];

@@ -50,6 +50,12 @@ pub struct HashGrid {
 
 impl HashGrid {
     pub fn new(layout: &mut crate::engine::nn::linear::ParamLayout, config: HashGridConfig) -> Self {
+        Self::with_name(layout, "hashgrid", config)
+    }
+
+    /// [`Self::new`] with its parameter range named `name` in `layout`
+    /// (a model with several grids names each).
+    pub fn with_name(layout: &mut crate::engine::nn::linear::ParamLayout, name: &str, config: HashGridConfig) -> Self {
         let t = 1usize << config.log2_table;
         let l = config.levels.max(1);
         let b = if l > 1 {
@@ -67,7 +73,7 @@ impl HashGrid {
             levels.push(Level { res, offset, size, dense });
             offset += size * FEATURES;
         }
-        let params = layout.add("hashgrid", offset);
+        let params = layout.add(name, offset);
         Self { config, levels, params }
     }
 

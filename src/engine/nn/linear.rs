@@ -107,6 +107,94 @@ impl Linear {
     }
 }
 
+/// Products of layers with few outputs or few inputs (width not a
+/// multiple of 8, which the AVX2 kernel of `gemm` leaves to the general
+/// GEMM, whose packing of the whole `[n x inputs]` activation matrix then
+/// costs more than the product): written as dot products over contiguous
+/// rows, for single-block layers. The real-capture model's proposal
+/// networks (`16 -> 1`, and a 10-wide grid encoding) and colour head
+/// (`64 -> 3`) use them; the other models keep `forward`/`backward`.
+impl Linear {
+    /// [`Linear::forward`] of one input block `x` (`[n x inputs]`), one
+    /// dot product per output (for few outputs).
+    pub fn forward_dots(&self, params: &[f32], x: &[f32], n: usize, y: &mut [f32]) {
+        let (k, out) = (self.inputs, self.outputs);
+        let (w, b) = (&params[self.w.clone()], &params[self.b.clone()]);
+        // The columns of W as contiguous rows.
+        let wt: Vec<f32> = (0..out).flat_map(|o| (0..k).map(move |i| w[i * out + o])).collect();
+        for (row, yr) in x[..n * k].chunks_exact(k).zip(y[..n * out].chunks_exact_mut(out)) {
+            for ((yo, col), &bo) in yr.iter_mut().zip(wt.chunks_exact(k)).zip(b) {
+                *yo = bo + dot(row, col);
+            }
+        }
+    }
+
+    /// The parameter gradients of [`Linear::forward_dots`] (`dW += x^T dy`,
+    /// `db += sum(dy)`), accumulated into `grads` (for few outputs).
+    pub fn backward_dots(&self, x: &[f32], dy: &[f32], n: usize, grads: &mut [f32]) {
+        let (k, out) = (self.inputs, self.outputs);
+        // dW^T, row o = sum_i dy[i][o] x_i: axpys over contiguous rows.
+        let mut dwt = vec![0.0f32; out * k];
+        let mut db = vec![0.0f32; out];
+        for (row, dr) in x[..n * k].chunks_exact(k).zip(dy[..n * out].chunks_exact(out)) {
+            for ((acc, &d), g) in dwt.chunks_exact_mut(k).zip(dr).zip(db.iter_mut()) {
+                *g += d;
+                for (a, &v) in acc.iter_mut().zip(row) {
+                    *a += d * v;
+                }
+            }
+        }
+        let gw = &mut grads[self.w.clone()];
+        for o in 0..out {
+            for i in 0..k {
+                gw[i * out + o] += dwt[o * k + i];
+            }
+        }
+        for (g, d) in grads[self.b.clone()].iter_mut().zip(&db) {
+            *g += d;
+        }
+    }
+
+    /// `dx = dy W^T` (`[n x inputs]`, overwritten) of a single-block
+    /// layer: the GEMM [`Linear::backward`] makes for it, without the
+    /// parameter gradients (for a layer whose own are [`Linear::backward_dots`]).
+    pub fn input_grad(&self, params: &[f32], dy: &[f32], n: usize, dx: &mut [f32]) {
+        let (k, out) = (self.inputs, self.outputs);
+        let w = &params[self.w.clone()];
+        gemm(n, out, k, dy, (out as isize, 1), w, (1, out as isize), 0.0, dx, (k as isize, 1));
+    }
+
+    /// `dx = dy W^T` (`[n x inputs]`, overwritten) as one dot product per
+    /// input over a contiguous row of `W` (for few inputs).
+    pub fn input_grad_dots(&self, params: &[f32], dy: &[f32], n: usize, dx: &mut [f32]) {
+        let (k, out) = (self.inputs, self.outputs);
+        let w = &params[self.w.clone()];
+        for (dr, xr) in dy[..n * out].chunks_exact(out).zip(dx[..n * k].chunks_exact_mut(k)) {
+            for (x, wrow) in xr.iter_mut().zip(w.chunks_exact(out)) {
+                *x = dot(dr, wrow);
+            }
+        }
+    }
+}
+
+/// `a . b` over the shorter of the two, in eight running sums (which the
+/// compiler keeps in one vector register; a single running sum would be a
+/// chain of dependent adds).
+#[inline]
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f32; 8];
+    for (ca, cb) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
+        for l in 0..8 {
+            acc[l] += ca[l] * cb[l];
+        }
+    }
+    let tail = n / 8 * 8;
+    let rest: f32 = a[tail..].iter().zip(&b[tail..]).map(|(x, y)| x * y).sum();
+    acc.iter().sum::<f32>() + rest
+}
+
 /// In-place ReLU.
 pub fn relu(x: &mut [f32]) {
     for v in x {
@@ -218,6 +306,38 @@ mod tests {
                 let num = (fp - fm) / (2.0 * h);
                 assert!((num - dx[i] as f64).abs() < 1e-3 * (1.0 + num.abs()), "x{bi}[{i}]");
             }
+        }
+    }
+
+    /// The dot-product forms agree with `forward` and `backward` (GEMM):
+    /// same outputs, parameter and input gradients, up to rounding.
+    #[test]
+    fn dot_product_forms_match_the_gemm_forms() {
+        for (inputs, outputs) in [(16usize, 1usize), (64, 3), (10, 16), (5, 7)] {
+            let mut layout = ParamLayout::default();
+            let _pad = layout.add("pad", 2);
+            let l = Linear::new(&mut layout, "l", inputs, outputs);
+            let n = 13;
+            let mut rng = Rng::new(inputs as u64);
+            let params: Vec<f32> = (0..layout.len).map(|_| rng.normal()).collect();
+            let x: Vec<f32> = (0..n * inputs).map(|_| rng.normal()).collect();
+            let dy: Vec<f32> = (0..n * outputs).map(|_| rng.normal()).collect();
+            let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(p, q)| (p - q).abs() < 1e-4 * (1.0 + q.abs()));
+            let (mut y, mut want) = (vec![0.0; n * outputs], vec![0.0; n * outputs]);
+            l.forward_dots(&params, &x, n, &mut y);
+            l.forward(&params, &[(&x, inputs)], n, &mut want);
+            assert!(close(&y, &want), "{inputs}->{outputs}: {y:?} vs {want:?}");
+            let (mut g, mut gw) = (vec![0.5f32; layout.len], vec![0.5f32; layout.len]);
+            let (mut dx, mut dxw) = (vec![9.0; n * inputs], vec![0.0; n * inputs]);
+            l.backward_dots(&x, &dy, n, &mut g);
+            l.input_grad_dots(&params, &dy, n, &mut dx);
+            let mut dx_gemm = vec![9.0; n * inputs];
+            l.input_grad(&params, &dy, n, &mut dx_gemm);
+            assert!(close(&dx_gemm, &dx), "{inputs}->{outputs}: input gradients by GEMM");
+            l.backward(&params, &[(&x, inputs)], &dy, n, &mut gw, &mut [Some(&mut dxw)]);
+            assert!(close(&g, &gw), "{inputs}->{outputs}: parameter gradients");
+            assert!(close(&dx, &dxw), "{inputs}->{outputs}: input gradients");
+            assert_eq!(g[..2], [0.5, 0.5], "padding untouched");
         }
     }
 

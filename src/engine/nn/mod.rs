@@ -1,8 +1,10 @@
 //! Neural-network building blocks over one flat parameter buffer with named
 //! ranges: linear layers and their GEMM, encodings (frequency, spherical
-//! harmonics, multiresolution hash grid), the classic NeRF MLP, and Adam.
+//! harmonics, multiresolution hash grid), the classic NeRF MLP, Adam, and
+//! per-image appearance embeddings folded into a layer's bias.
 
 pub mod adam;
+pub mod appearance;
 pub mod encoding;
 pub mod gemm;
 pub mod hashgrid;

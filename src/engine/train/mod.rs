@@ -1,8 +1,11 @@
-//! Training: the pass every model trains its fields with, the
-//! optimisation loop, the session that resumes, saves and
-//! reports around it, held-out estimates and the memory and disk estimate of
-//! a run.
+//! Training: the pass every model trains its fields with (and the
+//! real-capture model's own: `capture_levels` places its samples by
+//! proposal networks, `capture_pass` trains them and its field), the
+//! optimisation loop, the session that resumes, saves and reports around
+//! it, held-out estimates and the memory and disk estimate of a run.
 
+pub mod capture_levels;
+pub mod capture_pass;
 pub mod estimate;
 pub mod heldout;
 pub mod pass;

@@ -93,7 +93,7 @@ pub fn train_pass<F: Field>(
 
 /// Indices of the samples in front of the point where each ray's
 /// transmittance falls below `min_t` (from the densities alone).
-fn visible(spans: &[(usize, usize)], sigma: &[f32], delta: &[f32], min_t: f32, keep: &mut Vec<usize>) {
+pub(super) fn visible(spans: &[(usize, usize)], sigma: &[f32], delta: &[f32], min_t: f32, keep: &mut Vec<usize>) {
     keep.clear();
     for &(o, k) in spans {
         let mut tau = 0.0f32;

@@ -1,0 +1,324 @@
+//! The real-capture model (issue 12, design `real-captures.md`): photographs
+//! of an object in a real room, seen all around or from the front, with no
+//! box around the scene and exposures that differ from photo to photo.
+//!
+//! - **Space**: the model's own normalisation puts the point the training
+//!   cameras look at (`Scene::rig`'s focus) at the origin and the cameras
+//!   `camera_radius` from it; a scene contraction maps all of space into the
+//!   grids' cube (`fields::space`), so the background is modelled too.
+//! - **Sampling**: proposal networks (`fields::proposal`) place each ray's
+//!   samples over the ray-distance warp (`train::capture_levels`); the last
+//!   interval of a ray is opaque (photographs have no see-through pixels).
+//! - **Field**: the fast model's networks in contracted space with a
+//!   per-image appearance embedding (`fields::capture`); new views use the
+//!   mean embedding of the images trained on.
+//! - **Training**: `train::capture_pass` (colour, distortion and interlevel
+//!   losses); **rendering**: the shared loop (`render::rounds`) over the
+//!   final samples, with early termination and dropped colours.
+//!
+//! The configuration and its checks are in `capture_config`.
+//!
+//! Not built yet (later steps of the design): NDC for forward-facing
+//! captures as a model option, camera pose refinement, a chosen image's
+//! appearance when rendering.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+pub use super::capture_config::{CaptureConfig, ProposalConfig};
+use super::{BatchStats, Model, ModelError, RayOutput, StateSource, StepCtx, TrainRay};
+use crate::engine::fields::capture::{CaptureField, CaptureFieldConfig};
+use crate::engine::fields::proposal::ProposalField;
+use crate::engine::fields::space::SpaceMap;
+use crate::engine::geometry::math::Ray;
+use crate::engine::geometry::scene::Scene;
+use crate::engine::nn::linear::ParamLayout;
+use crate::engine::render::rounds::{RoundSettings, render_in_rounds};
+use crate::engine::rng::Rng;
+use crate::engine::sampling::Samples;
+use crate::engine::sampling::proposal::{ProposalRays, Warp};
+use crate::engine::train::capture_levels::Drawn;
+use crate::engine::train::capture_pass::{CaptureBuffers, CaptureNets, PassSettings, capture_pass, samplable};
+
+/// The kind's name in checkpoints, the API and `--model`.
+pub const KIND: &str = "capture";
+
+/// The space the grids live in.
+fn space(config: &CaptureConfig) -> SpaceMap {
+    SpaceMap::Contract { norm: config.contraction }
+}
+
+/// Lays out the model's parameters for `config` (without allocating
+/// them): the main field, then the proposal networks (`proposal0`, and
+/// `proposal1` unless there is one level).
+pub fn layout(layout: &mut ParamLayout, config: &CaptureConfig) -> (CaptureField, Vec<ProposalField>) {
+    let field_config = CaptureFieldConfig {
+        grid: config.grid.clone(),
+        hidden: config.hidden,
+        geo_features: config.geo_features,
+        init_density: config.init_density,
+        max_images: config.max_images,
+        appearance_dim: config.appearance_dim,
+    };
+    let field = CaptureField::new(layout, space(config), &field_config);
+    let p = &config.proposal;
+    let mut grids = vec![&p.coarse_grid];
+    if p.fine_samples > 0 {
+        grids.push(&p.fine_grid);
+    }
+    let proposals = grids
+        .into_iter()
+        .enumerate()
+        .map(|(k, g)| {
+            let name = format!("proposal{k}");
+            ProposalField::new(layout, &name, space(config), g.clone(), p.hidden, config.init_density)
+        })
+        .collect();
+    (field, proposals)
+}
+
+/// The model's own normalisation of a scene: the focus of the training
+/// cameras at the origin and their median distance at `camera_radius`;
+/// the unit cube as its box and `[near, far]` as its ray interval. A scene
+/// without a rig keeps its box normalisation. Applying it twice changes
+/// nothing (a checkpoint stores the normalised scene).
+pub fn capture_scene(scene: &Scene, config: &CaptureConfig) -> Scene {
+    let (centre, scale) = match &scene.rig {
+        Some(rig) if rig.radius.is_finite() && rig.radius > 0.0 && rig.focus.iter().all(|v| v.is_finite()) => {
+            (rig.focus, config.camera_radius / rig.radius)
+        }
+        _ => (scene.centre, scene.scale),
+    };
+    Scene {
+        centre,
+        scale,
+        aabb_min: [-1.0; 3],
+        aabb_max: [1.0; 3],
+        near: config.near,
+        far: config.far,
+        ..scene.clone()
+    }
+}
+
+/// One thread's buffers: the pass's (its levels and field context serve
+/// rendering too) and the render loop's.
+#[derive(Default)]
+struct Scratch {
+    pass: CaptureBuffers,
+    samples: Samples,
+    rays: Vec<Ray>,
+    warps: Vec<Warp>,
+    valid: Vec<usize>,
+    index: Vec<u64>,
+    out: Vec<RayOutput>,
+}
+
+thread_local! {
+    /// Each worker thread's buffers, kept across steps and views.
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
+/// Runs `f` with this thread's scratch buffers (fresh ones if they are in
+/// use further up the stack).
+fn with_scratch<R>(f: impl FnOnce(&mut Scratch) -> R) -> R {
+    SCRATCH.with(|s| match s.try_borrow_mut() {
+        Ok(mut s) => f(&mut s),
+        Err(_) => f(&mut Scratch::default()),
+    })
+}
+
+/// Rays rendered together by one thread.
+const RENDER_CHUNK_RAYS: usize = 256;
+/// Final samples per ray and round when rendering.
+const RENDER_ROUND: usize = 8;
+/// The name of the saved record of images trained on.
+const SEEN: &str = "appearance.seen";
+
+/// The real-capture model.
+pub struct CaptureModel {
+    pub config: CaptureConfig,
+    scene: Scene,
+    field: CaptureField,
+    proposals: Vec<ProposalField>,
+    params: Vec<f32>,
+    /// Intervals per ray at each level.
+    intervals: Vec<usize>,
+    /// Which images training has seen (their mean embedding is a new
+    /// view's appearance).
+    seen: Vec<AtomicBool>,
+    /// Steps done (the annealing of the proposals' weights when rendering).
+    step: u64,
+}
+
+impl CaptureModel {
+    /// A fresh model for `scene` (normalised by [`capture_scene`]).
+    pub fn new(config: CaptureConfig, scene: Scene, seed: u64) -> Self {
+        let mut ps = ParamLayout::default();
+        let (field, proposals) = layout(&mut ps, &config);
+        let mut params = vec![0.0; ps.len];
+        let mut rng = Rng::new(seed);
+        field.init(&mut params, &mut rng);
+        for p in &proposals {
+            p.init(&mut params, &mut rng);
+        }
+        let scene = capture_scene(&scene, &config);
+        let seen = (0..config.max_images).map(|_| AtomicBool::new(false)).collect();
+        let intervals = config.intervals();
+        Self { config, scene, field, proposals, params, intervals, seen, step: 0 }
+    }
+
+    /// A model with saved parameters (its state comes back through
+    /// [`Model::restore_state`]).
+    pub fn from_parts(config: CaptureConfig, scene: Scene, params: Vec<f32>) -> Result<Self, ModelError> {
+        let m = Self::new(config, scene, 0);
+        ModelError::check_size("parameters", m.params.len(), params.len())?;
+        Ok(Self { params, ..m })
+    }
+
+    /// The networks, for passes over them.
+    fn nets(&self) -> CaptureNets<'_> {
+        CaptureNets { proposals: &self.proposals, field: &self.field, params: &self.params }
+    }
+
+    /// The training images seen so far.
+    pub fn seen_images(&self) -> Vec<u32> {
+        (0..self.seen.len() as u32).filter(|&i| self.seen[i as usize].load(Ordering::Relaxed)).collect()
+    }
+
+    /// A new view's appearance: the mean embedding of the images trained on.
+    pub fn mean_embedding(&self) -> Vec<f32> {
+        self.field.appearance().mean_embedding(&self.params, self.seen_images())
+    }
+
+    /// Renders a chunk of model-space rays over `background`.
+    fn render_chunk(&self, s: &mut Scratch, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
+        let mut stats = BatchStats { rays: rays.len() as u64, ..Default::default() };
+        let miss = RayOutput { rgb: background, depth: 0.0, opacity: 0.0 };
+        s.rays.clear();
+        s.warps.clear();
+        s.valid.clear();
+        s.index.clear();
+        for (i, r) in rays.iter().enumerate() {
+            match Warp::for_ray(r, self.config.near, self.config.far) {
+                Ok(w) if samplable(r) => {
+                    s.valid.push(i);
+                    s.rays.push(*r);
+                    s.warps.push(w);
+                    s.index.push(i as u64);
+                }
+                _ => out[i] = miss,
+            }
+        }
+        if s.valid.is_empty() {
+            return stats;
+        }
+        let placed = self.config.resampling(self.step).map_err(Into::into).and_then(|how| {
+            let mut placement = Drawn::centred(how);
+            let (nets, levels) = (self.nets(), &mut s.pass.levels);
+            levels.place(nets.proposals, nets.params, &s.rays, &s.warps, &self.intervals, &mut placement, &s.index)
+        });
+        let Some(fin) = placed.ok().and(s.pass.levels.last()) else {
+            // Only with a configuration `check` refuses: nothing to show.
+            s.valid.iter().for_each(|&i| out[i] = miss);
+            return stats;
+        };
+        let Ok(mut sampler) = ProposalRays::new(&s.rays, &fin.t, true) else {
+            s.valid.iter().for_each(|&i| out[i] = miss);
+            return stats;
+        };
+        let settings = RoundSettings {
+            round: RENDER_ROUND,
+            min_transmittance: self.config.min_transmittance,
+            max_dropped_weight: self.config.max_dropped_weight,
+        };
+        s.out.clear();
+        s.out.resize(s.rays.len(), RayOutput::default());
+        let (ctx, m) = (&mut s.pass.ctx, &mut s.samples);
+        let r = render_in_rounds(&self.field, &self.params, &mut sampler, settings, background, ctx, m, &mut s.out);
+        for (&i, o) in s.valid.iter().zip(&s.out) {
+            out[i] = *o;
+        }
+        stats.samples = r.samples;
+        stats.skipped = r.skipped;
+        stats
+    }
+}
+
+impl Model for CaptureModel {
+    super::model_accessors!();
+
+    fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
+        for r in rays {
+            if let Some(flag) = self.seen.get(r.image as usize) {
+                flag.store(true, Ordering::Relaxed);
+            }
+        }
+        let mut stats = BatchStats::default();
+        let Ok(how) = self.config.resampling(ctx.step) else {
+            // Only with a configuration `check` refuses: a non-finite loss
+            // makes the trainer skip the step.
+            return BatchStats { loss: f64::NAN, rays: rays.len() as u64, ..stats };
+        };
+        let settings = PassSettings {
+            intervals: &self.intervals,
+            near: self.config.near,
+            far: self.config.far,
+            cull: Some(self.config.min_transmittance),
+            batch_rays: ctx.batch_rays,
+            interlevel: self.config.interlevel,
+            distortion: self.config.distortion,
+        };
+        with_scratch(|s| {
+            for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
+                let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);
+                let p = capture_pass(self.nets(), &settings, chunk, &mut placement, &mut s.pass, grads);
+                stats.add(&BatchStats {
+                    sq_err: p.sq_err,
+                    loss: p.loss(),
+                    samples: p.samples,
+                    skipped: p.culled,
+                    rays: p.rays,
+                });
+            }
+        });
+        stats
+    }
+
+    fn after_step(&mut self, step: u64, _seed: u64, _stats: &BatchStats) {
+        self.step = step;
+    }
+
+    fn batch_rays(&self) -> Option<usize> {
+        Some(self.config.rays_per_step)
+    }
+
+    fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
+        let seen = self.seen.iter().map(|f| f32::from(u8::from(f.load(Ordering::Relaxed)))).collect();
+        vec![(SEEN.to_string(), seen)]
+    }
+
+    fn restore_state(&mut self, state: StateSource<'_>, step: u64) -> Result<(), ModelError> {
+        let seen = state(SEEN).ok_or_else(|| ModelError::MissingState(SEEN.into()))?;
+        ModelError::check_size("images seen", self.seen.len(), seen.len())?;
+        for (flag, &v) in self.seen.iter().zip(&seen) {
+            flag.store(v != 0.0, Ordering::Relaxed);
+        }
+        self.step = step;
+        Ok(())
+    }
+
+    fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
+        let mean = self.mean_embedding();
+        with_scratch(|s| {
+            self.field.set_view_appearance(&self.params, Some(&mean), &mut s.pass.ctx);
+            let mut stats = BatchStats::default();
+            for (chunk, o) in rays.chunks(RENDER_CHUNK_RAYS).zip(out.chunks_mut(RENDER_CHUNK_RAYS)) {
+                stats.add(&self.render_chunk(s, chunk, background, o));
+            }
+            stats
+        })
+    }
+}
+
+#[cfg(test)]
+#[path = "capture_tests.rs"]
+mod tests;

@@ -1,0 +1,198 @@
+//! Unit tests of `capture.rs`: the model's normalisation, the whole training
+//! pass of `capture-tiny` against finite differences, rendering against the
+//! training pass's compositing, and the saved state.
+
+use super::*;
+use crate::engine::dataset::textured::TexturedScene;
+use crate::engine::geometry::math::Vec3;
+use crate::engine::models::config::ModelConfig;
+use crate::engine::train::capture_pass::tests::check_pass_gradients;
+
+fn scene() -> Scene {
+    Scene::from_dataset(&TexturedScene { width: 16, height: 12, views: 8, fov: 0.9 }.dataset())
+}
+
+fn tiny() -> CaptureConfig {
+    let ModelConfig::Capture(c) = ModelConfig::preset("capture-tiny").unwrap() else { unreachable!() };
+    c
+}
+
+/// The training cameras' focus goes to the origin and their median
+/// distance to `camera_radius`; normalising again changes nothing.
+#[test]
+fn the_scene_is_centred_on_the_cameras_focus() {
+    let world = scene();
+    let rig = world.rig.clone().expect("a ring of cameras has a rig");
+    let mut config = tiny();
+    config.camera_radius = 0.5;
+    let s = capture_scene(&world, &config);
+    assert_eq!((s.centre, s.scale), (rig.focus, 0.5 / rig.radius));
+    assert_eq!((s.aabb_min, s.aabb_max, s.near, s.far), ([-1.0; 3], [1.0; 3], 0.05, 1000.0));
+    assert_eq!(capture_scene(&s, &config), s, "idempotent: a checkpoint stores the normalised scene");
+    let ds = TexturedScene { width: 16, height: 12, views: 8, fov: 0.9 }.dataset();
+    let mut distances: Vec<f32> = ds
+        .frames
+        .iter()
+        .map(|f| {
+            let c = Vec3::new(f.camera.c2w[0][3], f.camera.c2w[1][3], f.camera.c2w[2][3]);
+            s.to_model(&Ray { origin: c, dir: Vec3::new(0.0, 0.0, 1.0) }).origin.norm()
+        })
+        .collect();
+    distances.sort_by(f32::total_cmp);
+    assert!((distances[distances.len() / 2] - 0.5).abs() < 0.05, "{distances:?}");
+    // Without a rig, the box normalisation stays.
+    let plain = Scene { rig: None, ..world.clone() };
+    let p = capture_scene(&plain, &config);
+    assert_eq!((p.centre, p.scale), (world.centre, world.scale));
+}
+
+/// Rays from the dataset's cameras in the model's space, from images 0-2.
+fn rays(model: &CaptureModel, count: usize) -> Vec<TrainRay> {
+    let ds = TexturedScene { width: 16, height: 12, views: 8, fov: 0.9 }.dataset();
+    (0..count)
+        .map(|k| {
+            let f = &ds.frames[k % 3];
+            let (i, j) = ((3 + 5 * k) as u32 % 16, (2 + 3 * k) as u32 % 12);
+            TrainRay {
+                ray: model.scene.to_model(&f.camera.pixel_ray(i, j)),
+                target: f.image.rgb_on(i, j, ds.background),
+                background: ds.background,
+                index: k as u64,
+                image: (k % 3) as u32,
+            }
+        })
+        .collect()
+}
+
+/// A `capture-tiny` model with its parameters moved off their initial
+/// values (zero embeddings, tiny tables), so every range has a gradient.
+fn perturbed(seed: u64) -> CaptureModel {
+    let mut m = CaptureModel::new(tiny(), scene(), seed);
+    let mut rng = Rng::new(seed + 1);
+    for p in m.params.iter_mut() {
+        *p += 0.2 * rng.normal();
+    }
+    m
+}
+
+#[test]
+fn the_whole_pass_of_capture_tiny_matches_finite_differences_with_frozen_samples() {
+    let m = perturbed(3);
+    let mut ps = ParamLayout::default();
+    layout(&mut ps, &m.config);
+    let settings = PassSettings {
+        intervals: &m.intervals,
+        near: m.config.near,
+        far: m.config.far,
+        cull: None,
+        batch_rays: 1,
+        // Strong, so the proposals' gradients stand well above rounding.
+        interlevel: 50.0,
+        distortion: 0.01,
+    };
+    // Step 0: the weights' exponent is 0, so every level spreads over the
+    // whole ray and no proposal bounds the final weights trivially.
+    let how = m.config.resampling(0).unwrap();
+    let checked = check_pass_gradients(m.nets(), &ps.names, &settings, &rays(&m, 6), &mut Drawn::jittered(how, 5, 9));
+    let names: Vec<&str> = checked.largest.iter().map(|(n, _)| n.as_str()).collect();
+    assert!(names.contains(&"appearance.embedding") && names.contains(&"proposal1.hashgrid"), "{names:?}");
+    // Each range has gradients over 3x the check's absolute tolerance.
+    for (name, largest) in &checked.largest {
+        assert!(*largest > 1e-3, "{name}: every gradient checked is tiny ({largest}): {:?}", checked.largest);
+    }
+}
+
+/// Rendering (rounds, termination and dropping off) composites the final
+/// samples exactly as the training pass does, with the mean appearance of
+/// the images seen: rendered colours as targets give a zero colour loss.
+#[test]
+fn rendering_composites_as_training_does() {
+    let mut m = perturbed(7);
+    m.config.min_transmittance = 0.0;
+    m.config.max_dropped_weight = 0.0;
+    m.seen[1].store(true, Ordering::Relaxed);
+    m.step = 40;
+    let mut train = rays(&m, 9);
+    for r in &mut train {
+        r.image = 1;
+    }
+    let plain: Vec<Ray> = train.iter().map(|r| r.ray).collect();
+    let mut out = vec![RayOutput::default(); plain.len()];
+    let stats = m.render_rays(&plain, [1.0; 3], &mut out);
+    assert_eq!((stats.rays, stats.samples), (9, 9 * 8));
+    for (r, o) in train.iter_mut().zip(&out) {
+        assert!(o.opacity == 1.0, "the last interval is opaque: {o:?}");
+        r.target = o.rgb;
+    }
+    let settings = PassSettings {
+        intervals: &m.intervals,
+        near: m.config.near,
+        far: m.config.far,
+        cull: None,
+        batch_rays: 9,
+        interlevel: 1.0,
+        distortion: 0.0,
+    };
+    let how = m.config.resampling(40).unwrap();
+    let mut grads = vec![0.0; m.params.len()];
+    let p = capture_pass(m.nets(), &settings, &train, &mut Drawn::centred(how), &mut Default::default(), &mut grads);
+    assert!(p.sq_err < 1e-12, "{p:?}");
+    // Another image's appearance is another colour.
+    for r in &mut train {
+        r.image = 2;
+    }
+    let q = capture_pass(m.nets(), &settings, &train, &mut Drawn::centred(how), &mut Default::default(), &mut grads);
+    assert!(q.sq_err > 1e-6, "{q:?}");
+}
+
+/// Rays without a finite origin or direction render as the background.
+#[test]
+fn unsamplable_rays_render_the_background() {
+    let m = perturbed(2);
+    let good = rays(&m, 2)[0].ray;
+    let rays = [
+        Ray { origin: Vec3::new(f32::NAN, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) },
+        good,
+        Ray { origin: Vec3::new(0.0, 0.0, 0.0), dir: Vec3::new(0.0, f32::INFINITY, 0.0) },
+    ];
+    let mut out = vec![RayOutput::default(); 3];
+    let stats = m.render_rays(&rays, [0.2, 0.4, 0.6], &mut out);
+    let miss = RayOutput { rgb: [0.2, 0.4, 0.6], depth: 0.0, opacity: 0.0 };
+    assert_eq!((out[0], out[2]), (miss, miss));
+    assert!(out[1].opacity > 0.99 && out[1].rgb.iter().all(|c| c.is_finite()), "{:?}", out[1]);
+    assert_eq!(stats.rays, 3);
+}
+
+/// Training marks the images it sees; the record is the model's saved
+/// state, and a missing or mis-sized record is an error.
+#[test]
+fn the_images_seen_are_saved_and_restored() {
+    let m = perturbed(4);
+    let mut train = rays(&m, 4);
+    train[0].image = 3;
+    train[1].image = 5;
+    train[2].image = 3;
+    train[3].image = 1_000_000; // beyond the table: trained without an embedding
+    let ctx = StepCtx { seed: 0, step: 0, batch_rays: 4 };
+    let stats = m.train_rays(&train, &ctx, &mut vec![0.0; m.params.len()]);
+    assert!(stats.loss.is_finite() && stats.rays == 4, "{stats:?}");
+    assert_eq!(m.seen_images(), vec![3, 5]);
+    let mean = m.mean_embedding();
+    let e = |i| m.field.appearance().embedding(&m.params, i).unwrap().to_vec();
+    for (a, (x, y)) in mean.iter().zip(e(3).iter().zip(&e(5))) {
+        assert!((a - 0.5 * (x + y)).abs() < 1e-6);
+    }
+    let state = m.state_tensors();
+    let mut fresh = CaptureModel::from_parts(tiny(), m.scene.clone(), m.params.clone()).unwrap();
+    assert!(fresh.seen_images().is_empty());
+    let mut saved = state.clone();
+    fresh.restore_state(&mut |name| saved.iter_mut().find(|(n, _)| n == name).map(|(_, v)| v.clone()), 77).unwrap();
+    assert_eq!((fresh.seen_images(), fresh.step), (vec![3, 5], 77));
+    assert_eq!(fresh.state_tensors(), state);
+    let missing = fresh.restore_state(&mut |_| None, 1).unwrap_err();
+    assert!(missing.to_string().contains("appearance.seen"), "{missing}");
+    let short = fresh.restore_state(&mut |_| Some(vec![0.0; 3]), 1).unwrap_err();
+    assert!(matches!(short, ModelError::Size { expected: 2000, found: 3, .. }), "{short}");
+    let wrong = CaptureModel::from_parts(tiny(), m.scene.clone(), vec![0.0; 5]);
+    assert!(wrong.is_err());
+}

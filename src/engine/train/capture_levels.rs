@@ -1,0 +1,322 @@
+//! Where the real-capture model samples a ray (design `real-captures.md`
+//! 2.4): proposal sampling over the ray-distance warp `s`
+//! (`sampling::proposal::Warp`). Level 0 is stratified in `s`; each
+//! proposal network's densities along its level give weights, and the next
+//! level's intervals are drawn from them; the last level's intervals are
+//! the main field's samples. Training and rendering walk the levels with
+//! the same code ([`Levels::place`]); they differ in where the edges go
+//! ([`Placement`]): jittered once per ray and level in training, at bin
+//! centres when rendering, and replayed from a record in the tests that
+//! freeze sample positions.
+//!
+//! Each proposal level's weights are composited with an opaque last
+//! interval, as the main field's are (photographs have no see-through
+//! pixels), so every level's weights sum to 1 along a ray that reaches its
+//! end.
+
+use crate::engine::fields::proposal::{ProposalCtx, ProposalField};
+use crate::engine::geometry::math::Ray;
+use crate::engine::render::InputError;
+use crate::engine::render::composite::{CompositeOptions, RaySamples, composite_with};
+use crate::engine::rng::Rng;
+use crate::engine::sampling::Samples;
+use crate::engine::sampling::proposal::{
+    EdgeSampler, ProposalError, RayEdges, Resampling, Warp, pack, stratified_edges,
+};
+
+/// Why the levels could not be placed: an edge list or a compositor's
+/// input did not fit (a bug of the caller's sizes, reported rather than a
+/// panic).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum LevelError {
+    #[error("placing samples: {0}")]
+    Proposal(#[from] ProposalError),
+    #[error("compositing a level: {0}")]
+    Input(#[from] InputError),
+}
+
+/// Where each level's interval edges (in `s`) go.
+pub trait Placement {
+    /// Starts a chunk of rays; `index[r]` identifies ray `r` (it seeds the
+    /// ray's random stream).
+    fn start(&mut self, index: &[u64]);
+    /// Appends the `n + 1` edges of level 0 of ray `r`.
+    fn first(&mut self, r: usize, n: usize, out: &mut Vec<f32>) -> Result<(), ProposalError>;
+    /// Appends the `n + 1` edges of the level after one with `edges` and
+    /// `weights` (of ray `r`).
+    fn next(
+        &mut self,
+        r: usize,
+        edges: &[f32],
+        weights: &[f32],
+        n: usize,
+        out: &mut Vec<f32>,
+    ) -> Result<(), ProposalError>;
+}
+
+/// The placement of training and rendering: level 0 stratified, the next
+/// levels drawn from the weights (`w^exponent + padding`), each with one
+/// jitter per ray and level from the ray's stream `Rng::stream(seed, step,
+/// index)`, or at bin centres without jitter.
+pub struct Drawn {
+    how: Resampling,
+    jitter: Option<(u64, u64)>,
+    rngs: Vec<Rng>,
+    sampler: EdgeSampler,
+}
+
+impl Drawn {
+    /// Jittered edges for training step `step` of a run seeded `seed`.
+    pub fn jittered(how: Resampling, seed: u64, step: u64) -> Self {
+        Self { how, jitter: Some((seed, step)), rngs: Vec::new(), sampler: EdgeSampler::default() }
+    }
+
+    /// Edges at bin centres (rendering).
+    pub fn centred(how: Resampling) -> Self {
+        Self { how, jitter: None, rngs: Vec::new(), sampler: EdgeSampler::default() }
+    }
+}
+
+impl Placement for Drawn {
+    fn start(&mut self, index: &[u64]) {
+        self.rngs.clear();
+        if let Some((seed, step)) = self.jitter {
+            self.rngs.extend(index.iter().map(|&i| Rng::stream(seed, step, i)));
+        }
+    }
+
+    fn first(&mut self, r: usize, n: usize, out: &mut Vec<f32>) -> Result<(), ProposalError> {
+        stratified_edges(n, self.rngs.get_mut(r), out)
+    }
+
+    fn next(
+        &mut self,
+        r: usize,
+        edges: &[f32],
+        weights: &[f32],
+        n: usize,
+        out: &mut Vec<f32>,
+    ) -> Result<(), ProposalError> {
+        self.sampler.pdf_edges(edges, weights, n, self.how, self.rngs.get_mut(r), out)
+    }
+}
+
+/// One level of a chunk of rays: `n` intervals per ray.
+#[derive(Debug, Default)]
+pub struct Level {
+    /// Intervals per ray.
+    pub n: usize,
+    /// Edges in `s`, `[rays x (n + 1)]`.
+    pub s: Vec<f32>,
+    /// The same edges in `t` (model units).
+    pub t: RayEdges,
+    /// One sample per interval, at its midpoint in `t`: a span of `n` per
+    /// ray, in order.
+    pub samples: Samples,
+    /// Compositing weights `[rays x n]` (proposal levels only, after
+    /// [`Levels::place`]).
+    pub weights: Vec<f32>,
+}
+
+impl Level {
+    /// Ray `r`'s edges in `s`.
+    pub fn s_of(&self, r: usize) -> &[f32] {
+        &self.s[r * (self.n + 1)..(r + 1) * (self.n + 1)]
+    }
+
+    /// Ray `r`'s weights.
+    pub fn weights_of(&self, r: usize) -> &[f32] {
+        &self.weights[r * self.n..(r + 1) * self.n]
+    }
+}
+
+/// The levels of a chunk of rays and the proposal networks' activations
+/// (kept for their backward pass); one per thread, reused.
+#[derive(Default)]
+pub struct Levels {
+    /// The proposal levels, then the final one.
+    pub levels: Vec<Level>,
+    /// One context per proposal network.
+    pub ctxs: Vec<ProposalCtx>,
+    /// Zero colours, `[3 x max n]`: proposal levels composite densities only.
+    pub zeros: Vec<f32>,
+    edges: Vec<f32>,
+}
+
+/// How a proposal level's weights are composited.
+pub const PROPOSAL_COMPOSITE: CompositeOptions =
+    CompositeOptions { background: [0.0; 3], min_transmittance: 0.0, opaque_last: true };
+
+impl Levels {
+    /// Places the levels of `rays` (model space; `warps[r]` is ray `r`'s):
+    /// `intervals[k]` per ray at level `k`, the last being the final level,
+    /// one more than there are `proposals`. Evaluates each proposal network
+    /// on its level and composites its weights. Returns the number of
+    /// proposal samples evaluated.
+    #[allow(clippy::too_many_arguments)]
+    pub fn place(
+        &mut self,
+        proposals: &[ProposalField],
+        params: &[f32],
+        rays: &[Ray],
+        warps: &[Warp],
+        intervals: &[usize],
+        placement: &mut dyn Placement,
+        index: &[u64],
+    ) -> Result<u64, LevelError> {
+        if intervals.len() != proposals.len() + 1 || warps.len() != rays.len() || index.len() != rays.len() {
+            return Err(
+                ProposalError::Length { what: "levels", expected: proposals.len() + 1, got: intervals.len() }.into()
+            );
+        }
+        self.levels.resize_with(intervals.len(), Level::default);
+        self.ctxs.resize_with(proposals.len(), ProposalCtx::default);
+        let widest = intervals.iter().copied().max().unwrap_or(0);
+        self.zeros.resize(3 * widest, 0.0);
+        placement.start(index);
+        let mut evaluated = 0u64;
+        for (k, &n) in intervals.iter().enumerate() {
+            let (before, rest) = self.levels.split_at_mut(k);
+            let level = &mut rest[0];
+            level.n = n;
+            level.s.clear();
+            level.t.clear();
+            for (r, warp) in warps.iter().enumerate() {
+                let start = level.s.len();
+                match before.last() {
+                    None => placement.first(r, n, &mut level.s)?,
+                    Some(prev) => placement.next(r, prev.s_of(r), prev.weights_of(r), n, &mut level.s)?,
+                }
+                if level.s.len() != start + n + 1 {
+                    let got = level.s.len() - start;
+                    return Err(ProposalError::Length { what: "placed edges", expected: n + 1, got }.into());
+                }
+                self.edges.clear();
+                warp.t_edges(&level.s[start..], &mut self.edges);
+                level.t.push(&self.edges)?;
+            }
+            pack(rays, &level.t, &mut level.samples)?;
+            if let Some(net) = proposals.get(k) {
+                let ctx = &mut self.ctxs[k];
+                net.density(params, &level.samples.pos, ctx);
+                evaluated += level.samples.len() as u64;
+                level.weights.clear();
+                level.weights.resize(rays.len() * n, 0.0);
+                let m = &level.samples;
+                let sigma = net.sigma(ctx);
+                for (r, w) in level.weights.chunks_exact_mut(n.max(1)).enumerate().take(rays.len()) {
+                    let (o, len) = m.spans[r];
+                    let s = RaySamples::new(
+                        &sigma[o..o + len],
+                        &self.zeros[..3 * len],
+                        &m.t[o..o + len],
+                        &m.delta[o..o + len],
+                    )?;
+                    composite_with(s, &PROPOSAL_COMPOSITE, w)?;
+                }
+            }
+        }
+        Ok(evaluated)
+    }
+
+    /// The final level (after [`Levels::place`]).
+    pub fn last(&self) -> Option<&Level> {
+        self.levels.last()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::fields::space::{Norm, SpaceMap};
+    use crate::engine::geometry::math::Vec3;
+    use crate::engine::nn::hashgrid::HashGridConfig;
+    use crate::engine::nn::linear::ParamLayout;
+
+    fn rays() -> Vec<Ray> {
+        (0..5)
+            .map(|k| {
+                let origin = Vec3::new(3.0, 0.3 * k as f32 - 0.6, 0.5);
+                Ray { origin, dir: (Vec3::new(0.0, 0.0, 0.0) - origin).normalized().unwrap() }
+            })
+            .collect()
+    }
+
+    fn nets(layout: &mut ParamLayout) -> Vec<ProposalField> {
+        let grid = HashGridConfig { levels: 3, log2_table: 8, base_resolution: 4, finest_resolution: 16 };
+        let space = SpaceMap::Contract { norm: Norm::Linf };
+        (0..2).map(|k| ProposalField::new(layout, &format!("p{k}"), space.clone(), grid.clone(), 8, 0.5)).collect()
+    }
+
+    /// Levels of 16, 8 and 6 intervals tile each ray's `[near, far]`, in
+    /// order, with samples at the midpoints; proposal weights are those of
+    /// the compositor with an opaque end (they sum to 1).
+    #[test]
+    fn levels_tile_each_ray_and_weigh_it_whole() {
+        let mut layout = ParamLayout::default();
+        let props = nets(&mut layout);
+        let mut params = vec![0.0f32; layout.len];
+        let mut rng = Rng::new(1);
+        props.iter().for_each(|p| p.init(&mut params, &mut rng));
+        let rays = rays();
+        let (near, far) = (0.05, 1000.0);
+        let warps: Vec<Warp> = rays.iter().map(|r| Warp::for_ray(r, near, far).unwrap()).collect();
+        let how = Resampling::new(1.0, 0.01).unwrap();
+        let index: Vec<u64> = (0..rays.len() as u64).collect();
+        let mut levels = Levels::default();
+        for mut placement in [Drawn::centred(how), Drawn::jittered(how, 7, 3)] {
+            let n = levels.place(&props, &params, &rays, &warps, &[16, 8, 6], &mut placement, &index).unwrap();
+            assert_eq!(n, 5 * (16 + 8));
+            for (k, level) in levels.levels.iter().enumerate() {
+                assert_eq!(level.samples.len(), 5 * level.n);
+                for r in 0..5 {
+                    let (s, t) = (level.s_of(r), level.t.ray(r));
+                    assert_eq!((s[0], s[level.n]), (0.0, 1.0));
+                    assert_eq!((t[0], t[level.n]), (near, far));
+                    assert!(t.windows(2).all(|w| w[0] <= w[1]));
+                    let (o, len) = level.samples.spans[r];
+                    assert_eq!((o, len), (r * level.n, level.n));
+                    for j in 0..len {
+                        assert_eq!(level.samples.t[o + j], 0.5 * (t[j] + t[j + 1]));
+                    }
+                    if k < 2 {
+                        let total: f32 = level.weights_of(r).iter().sum();
+                        assert!((total - 1.0).abs() < 1e-5, "level {k} ray {r}: {total}");
+                    }
+                }
+            }
+        }
+        // A wrong number of levels is an error, not a panic.
+        let e = levels.place(&props, &params, &rays, &warps, &[16, 8], &mut Drawn::centred(how), &index);
+        assert!(matches!(e, Err(LevelError::Proposal(ProposalError::Length { .. }))), "{e:?}");
+    }
+
+    /// With weight on one proposal interval, the next level's edges crowd
+    /// into it: the drawn intervals follow the proposal.
+    #[test]
+    fn the_next_level_follows_the_weights() {
+        let how = Resampling::new(1.0, 0.0).unwrap();
+        let mut d = Drawn::centred(how);
+        d.start(&[0]);
+        let edges: Vec<f32> = (0..=10).map(|k| k as f32 / 10.0).collect();
+        let mut w = vec![0.0f32; 10];
+        w[6] = 1.0;
+        let mut out = Vec::new();
+        d.next(0, &edges, &w, 8, &mut out).unwrap();
+        assert_eq!(out.len(), 9);
+        assert!(out[1..8].iter().all(|&s| (0.6..=0.7).contains(&s)), "{out:?}");
+        // Same seed, step and index: the same jitter.
+        let (mut a, mut b) = (Drawn::jittered(how, 1, 2), Drawn::jittered(how, 1, 2));
+        a.start(&[5]);
+        b.start(&[5]);
+        let (mut ea, mut eb) = (Vec::new(), Vec::new());
+        a.first(0, 6, &mut ea).unwrap();
+        b.first(0, 6, &mut eb).unwrap();
+        assert_eq!(ea, eb);
+        let mut c = Drawn::jittered(how, 1, 3);
+        c.start(&[5]);
+        let mut ec = Vec::new();
+        c.first(0, 6, &mut ec).unwrap();
+        assert_ne!(ea, ec, "another step, another jitter");
+    }
+}

@@ -1,0 +1,346 @@
+//! Unit tests of `capture_pass.rs`: the whole pass against central
+//! differences in f64 with its sample positions frozen (a record of a first
+//! pass's placement is replayed), culling, rays without samples, and the
+//! losses' bookkeeping. `check_pass_gradients` is also run on the
+//! `capture-tiny` preset's networks by the model's tests.
+
+use std::ops::Range;
+
+use super::*;
+use crate::engine::fields::capture::CaptureFieldConfig;
+use crate::engine::fields::space::{Norm, SpaceMap};
+use crate::engine::geometry::math::Vec3;
+use crate::engine::nn::hashgrid::HashGridConfig;
+use crate::engine::nn::linear::ParamLayout;
+use crate::engine::rng::Rng;
+use crate::engine::sampling::proposal::{ProposalError, Resampling};
+
+/// Records the edges another placement gives, in call order.
+pub(crate) struct Recorder<'a> {
+    pub inner: &'a mut dyn Placement,
+    pub calls: Vec<Vec<f32>>,
+}
+
+impl Placement for Recorder<'_> {
+    fn start(&mut self, index: &[u64]) {
+        self.inner.start(index);
+    }
+    fn first(&mut self, r: usize, n: usize, out: &mut Vec<f32>) -> Result<(), ProposalError> {
+        let start = out.len();
+        self.inner.first(r, n, out)?;
+        self.calls.push(out[start..].to_vec());
+        Ok(())
+    }
+    fn next(&mut self, r: usize, e: &[f32], w: &[f32], n: usize, out: &mut Vec<f32>) -> Result<(), ProposalError> {
+        let start = out.len();
+        self.inner.next(r, e, w, n, out)?;
+        self.calls.push(out[start..].to_vec());
+        Ok(())
+    }
+}
+
+/// Gives back recorded edges in the same order, whatever the weights: the
+/// samples stay where they were when parameters move.
+pub(crate) struct Replay<'a> {
+    pub calls: &'a [Vec<f32>],
+    pub next: usize,
+}
+
+impl Replay<'_> {
+    fn take(&mut self, out: &mut Vec<f32>) -> Result<(), ProposalError> {
+        let e = self.calls.get(self.next).ok_or(ProposalError::NoIntervals)?;
+        self.next += 1;
+        out.extend_from_slice(e);
+        Ok(())
+    }
+}
+
+impl Placement for Replay<'_> {
+    fn start(&mut self, _index: &[u64]) {
+        self.next = 0;
+    }
+    fn first(&mut self, _r: usize, _n: usize, out: &mut Vec<f32>) -> Result<(), ProposalError> {
+        self.take(out)
+    }
+    fn next(&mut self, _r: usize, _e: &[f32], _w: &[f32], _n: usize, out: &mut Vec<f32>) -> Result<(), ProposalError> {
+        self.take(out)
+    }
+}
+
+/// `check_pass_gradients`' summary: parameters checked, and the largest
+/// numeric gradient of each range.
+pub(crate) struct Checked {
+    pub count: usize,
+    pub largest: Vec<(String, f64)>,
+}
+
+/// Checks the gradient of a whole pass over `rays` against central
+/// differences of its loss, with the sample positions of a first pass
+/// (placed by `placement`) frozen. `settings.batch_rays` should be 1, so
+/// the loss is a sum over rays. Ranges named `proposal*` are checked
+/// against the interlevel loss, the others against the colour and
+/// distortion losses (the interlevel loss takes the final weights as
+/// constants, so the main field gets no gradient from it). In each range
+/// the parameters with the largest analytic gradients and a few others
+/// are checked; a ReLU or `max(0, .)` kink within the step spoils the
+/// wider difference, so a quarter step may agree instead.
+pub(crate) fn check_pass_gradients(
+    nets: CaptureNets<'_>,
+    names: &[(String, Range<usize>)],
+    settings: &PassSettings<'_>,
+    rays: &[TrainRay],
+    placement: &mut dyn Placement,
+) -> Checked {
+    let mut grads = vec![0.0f32; nets.params.len()];
+    let mut rec = Recorder { inner: placement, calls: Vec::new() };
+    let first = capture_pass(nets, settings, rays, &mut rec, &mut CaptureBuffers::default(), &mut grads);
+    assert!(first.loss().is_finite(), "{first:?}");
+    let calls = rec.calls;
+    // The gradient again with the placement replayed: the same numbers.
+    let mut again = vec![0.0f32; nets.params.len()];
+    let replayed = Replay { calls: &calls, next: 0 };
+    let stats = capture_pass(nets, settings, rays, &mut { replayed }, &mut CaptureBuffers::default(), &mut again);
+    assert_eq!(stats, first, "replaying the placement changes the pass");
+    assert!(grads.iter().zip(&again).all(|(a, b)| a.to_bits() == b.to_bits()));
+    let loss = |p: &[f32], proposal: bool| -> f64 {
+        let nets = CaptureNets { params: p, ..nets };
+        let mut replay = Replay { calls: &calls, next: 0 };
+        let mut g = vec![0.0f32; p.len()];
+        let s = capture_pass(nets, settings, rays, &mut replay, &mut CaptureBuffers::default(), &mut g);
+        if proposal { s.interlevel } else { s.sq_err + s.distortion }
+    };
+    let mut rng = Rng::new(99);
+    let mut checked = Checked { count: 0, largest: Vec::new() };
+    for (name, range) in names {
+        let proposal = name.starts_with("proposal");
+        let mut order: Vec<usize> = range.clone().collect();
+        order.sort_by(|&a, &b| grads[b].abs().total_cmp(&grads[a].abs()));
+        let mut picks: Vec<usize> = order.iter().take(6).copied().collect();
+        picks.extend((0..3).map(|_| range.start + rng.below(range.len() as u64) as usize));
+        let mut largest = 0.0f64;
+        for i in picks {
+            let diff = |h: f32| {
+                let mut p = nets.params.to_vec();
+                p[i] += h;
+                let up = loss(&p, proposal);
+                p[i] -= 2.0 * h;
+                (up - loss(&p, proposal)) / (2.0 * h as f64)
+            };
+            let ana = grads[i] as f64;
+            let close = |num: f64| (num - ana).abs() < 3e-4 + 2e-2 * num.abs();
+            let h = 1e-3f32 * (1.0 + nets.params[i].abs());
+            let num = diff(h);
+            assert!(
+                close(num) || close(diff(0.25 * h)),
+                "{name}[{}]: numeric {num} (and {} with a quarter step), analytic {ana}",
+                i - range.start,
+                diff(0.25 * h)
+            );
+            largest = largest.max(num.abs());
+            checked.count += 1;
+        }
+        checked.largest.push((name.clone(), largest));
+    }
+    checked
+}
+
+/// Small networks: two proposal levels and the main field, in L-inf space.
+struct Nets {
+    proposals: Vec<ProposalField>,
+    field: CaptureField,
+    layout: ParamLayout,
+    params: Vec<f32>,
+}
+
+/// Networks whose untrained densities are about `proposal_density` and
+/// `main_density`.
+fn nets(seed: u64, proposal_density: f32, main_density: f32) -> Nets {
+    let mut layout = ParamLayout::default();
+    let space = SpaceMap::Contract { norm: Norm::Linf };
+    let grid = |finest| HashGridConfig { levels: 3, log2_table: 8, base_resolution: 4, finest_resolution: finest };
+    let proposals = (0..2)
+        .map(|k| ProposalField::new(&mut layout, &format!("proposal{k}"), space.clone(), grid(16), 8, proposal_density))
+        .collect();
+    let c = CaptureFieldConfig {
+        grid: grid(32),
+        hidden: 16,
+        geo_features: 4,
+        init_density: main_density,
+        max_images: 4,
+        appearance_dim: 3,
+    };
+    let field = CaptureField::new(&mut layout, space, &c);
+    let mut params = vec![0.0f32; layout.len];
+    let mut rng = Rng::new(seed);
+    for p in &proposals {
+        ProposalField::init(p, &mut params, &mut rng);
+    }
+    field.init(&mut params, &mut rng);
+    // Larger than initial values, so that every part has a gradient.
+    for p in params.iter_mut() {
+        *p += 0.2 * rng.normal();
+    }
+    Nets { proposals, field, layout, params }
+}
+
+/// Rays from a ring of cameras at distance 1.5 through the unit cube, from
+/// images 0-2, with a target colour each.
+fn rays(count: usize) -> Vec<TrainRay> {
+    (0..count)
+        .map(|k| {
+            let a = k as f32 * 0.9;
+            let origin = Vec3::new(1.5 * a.cos(), 1.5 * a.sin(), 0.2);
+            let look = Vec3::new(0.1 * a.sin(), -0.2, 0.05 * k as f32) - origin;
+            TrainRay {
+                ray: Ray { origin, dir: look.normalized().unwrap() },
+                target: [0.2 + 0.1 * k as f32, 0.5, 0.9 - 0.1 * k as f32],
+                background: [1.0; 3],
+                index: k as u64,
+                image: (k % 3) as u32,
+            }
+        })
+        .collect()
+}
+
+fn settings(intervals: &[usize], cull: Option<f32>) -> PassSettings<'_> {
+    PassSettings { intervals, near: 0.05, far: 1000.0, cull, batch_rays: 1, interlevel: 1.0, distortion: 0.01 }
+}
+
+#[test]
+fn the_whole_pass_matches_finite_differences_with_frozen_samples() {
+    let n = nets(4, 0.5, 0.5);
+    let cn = CaptureNets { proposals: &n.proposals, field: &n.field, params: &n.params };
+    let how = Resampling::new(1.0, 0.01).unwrap();
+    // A strong interlevel weight, so the proposals' gradients stand well
+    // above the differences' rounding.
+    let checked = check_pass_gradients(
+        cn,
+        &n.layout.names,
+        &PassSettings { interlevel: 50.0, ..settings(&[12, 8, 6], None) },
+        &rays(5),
+        &mut Drawn::jittered(how, 3, 2),
+    );
+    // Each range has gradients over 3x the check's absolute tolerance.
+    for (name, largest) in &checked.largest {
+        assert!(*largest > 1e-3, "{name}: every gradient checked is tiny ({largest}): {:?}", checked.largest);
+    }
+    assert!(checked.count > 150, "{}", checked.count);
+}
+
+/// Culling drops samples whose weights the threshold bounds: the loss and
+/// gradient barely move.
+#[test]
+fn culling_drops_samples_but_barely_changes_the_loss_or_gradient() {
+    let n = nets(6, 0.5, 30.0);
+    let cn = CaptureNets { proposals: &n.proposals, field: &n.field, params: &n.params };
+    let how = Resampling::new(1.0, 0.01).unwrap();
+    let run = |cull| {
+        let mut g = vec![0.0f32; n.params.len()];
+        let s = capture_pass(
+            cn,
+            &settings(&[16, 8, 16], cull),
+            &rays(6),
+            &mut Drawn::jittered(how, 1, 1),
+            &mut CaptureBuffers::default(),
+            &mut g,
+        );
+        (s, g)
+    };
+    let (all, g_all) = run(None);
+    let (culled, g_culled) = run(Some(1e-4));
+    assert!(culled.culled > 0 && all.culled == 0, "{culled:?}");
+    assert_eq!((culled.samples, culled.proposal_samples), (6 * 16, 6 * 24));
+    assert!((culled.sq_err - all.sq_err).abs() < 1e-3, "{culled:?} {all:?}");
+    let big = g_all.iter().fold(0.0f32, |m, g| m.max(g.abs()));
+    for (a, b) in g_culled.iter().zip(&g_all) {
+        assert!((a - b).abs() < 1e-2 * big, "{a} vs {b} (largest {big})");
+    }
+}
+
+/// A ray with a non-finite origin or a zero direction shows the background
+/// in the loss and adds no gradient; the other rays are trained as without
+/// it.
+#[test]
+fn rays_without_samples_count_in_the_loss_only() {
+    let n = nets(8, 0.5, 0.5);
+    let cn = CaptureNets { proposals: &n.proposals, field: &n.field, params: &n.params };
+    let how = Resampling::new(1.0, 0.01).unwrap();
+    let good = rays(3);
+    let mut mixed = good.clone();
+    let mut bad = good[0];
+    bad.ray.origin.x = f32::NAN;
+    bad.target = [0.0, 0.5, 1.0];
+    bad.index = 100;
+    mixed.insert(1, bad);
+    let mut zero = good[1];
+    zero.ray.dir = Vec3::splat(0.0);
+    zero.index = 101;
+    mixed.push(zero);
+    let run = |rays: &[TrainRay]| {
+        let mut g = vec![0.0f32; n.params.len()];
+        let s = settings(&[8, 8, 8], None);
+        let stats = capture_pass(cn, &s, rays, &mut Drawn::jittered(how, 2, 0), &mut CaptureBuffers::default(), &mut g);
+        (stats, g)
+    };
+    let (a, ga) = run(&good);
+    let (b, gb) = run(&mixed);
+    assert_eq!(ga, gb);
+    // Background white against targets (0, 0.5, 1) and good[1]'s.
+    let t = good[1].target;
+    let background_err =
+        (1.0 + 0.25) / 3.0 + ((1.0 - t[0]).powi(2) + (1.0 - t[1]).powi(2) + (1.0 - t[2]).powi(2)) / 3.0;
+    assert!((b.sq_err - a.sq_err - background_err as f64).abs() < 1e-6, "{} {} {background_err}", b.sq_err, a.sq_err);
+    assert_eq!((b.rays, b.samples), (5, a.samples));
+    assert_eq!(b.interlevel, a.interlevel);
+}
+
+/// The reported losses are the losses the definitions give, and an
+/// untrained, transparent field's proposals are penalised by the
+/// interlevel loss only where they miss the final weights.
+#[test]
+fn stats_add_up_and_weights_sum_to_one() {
+    let n = nets(10, 0.5, 0.5);
+    let cn = CaptureNets { proposals: &n.proposals, field: &n.field, params: &n.params };
+    let how = Resampling::new(1.0, 0.01).unwrap();
+    let mut buf = CaptureBuffers::default();
+    let s = capture_pass(
+        cn,
+        &settings(&[10, 6, 5], None),
+        &rays(4),
+        &mut Drawn::centred(how),
+        &mut buf,
+        &mut vec![0.0; n.params.len()],
+    );
+    assert_eq!((s.rays, s.samples, s.proposal_samples), (4, 20, 64));
+    assert!(s.sq_err > 0.0 && s.interlevel >= 0.0 && s.distortion > 0.0, "{s:?}");
+    assert!((s.loss() - (s.sq_err + s.interlevel + s.distortion)).abs() < 1e-12);
+    // Every ray's final weights sum to 1 (opaque last interval, no culling).
+    for r in 0..4 {
+        let total: f32 = buf.full[r * 5..(r + 1) * 5].iter().sum();
+        assert!((total - 1.0).abs() < 1e-5, "{total}");
+    }
+}
+
+/// One thread's buffers serve passes of any shape in turn (a service
+/// trains models of different configurations on the same threads): a pass
+/// after a larger one gives what it gives with fresh buffers.
+#[test]
+fn buffers_serve_passes_of_any_shape() {
+    let n = nets(12, 0.5, 0.5);
+    let cn = CaptureNets { proposals: &n.proposals, field: &n.field, params: &n.params };
+    let how = Resampling::new(1.0, 0.01).unwrap();
+    let pass = |intervals: &[usize], count: usize, buf: &mut CaptureBuffers| {
+        let mut g = vec![0.0f32; n.params.len()];
+        let s = capture_pass(cn, &settings(intervals, Some(1e-4)), &rays(count), &mut Drawn::centred(how), buf, &mut g);
+        (s, g)
+    };
+    let mut shared = CaptureBuffers::default();
+    pass(&[24, 16, 12], 7, &mut shared);
+    for (intervals, count) in [(&[8usize, 6, 4][..], 3usize), (&[5, 3, 2], 9)] {
+        let (a, ga) = pass(intervals, count, &mut shared);
+        let (b, gb) = pass(intervals, count, &mut CaptureBuffers::default());
+        assert!(a.loss().is_finite(), "{a:?}");
+        assert_eq!(a, b, "{intervals:?}");
+        assert!(ga == gb, "{intervals:?}");
+    }
+}
