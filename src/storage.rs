@@ -652,11 +652,10 @@ pub struct VideoInfo {
     pub created_at: u64,
 }
 
-/// A ready scene's record with small made-up values (what tests that
-/// only need a record to enqueue on use).
+/// View defaults with small made-up values, for tests' records.
 #[cfg(test)]
-pub(crate) fn sample_scene(id: &str) -> SceneInfo {
-    let view = ViewDefaults {
+pub(crate) fn sample_view() -> ViewDefaults {
+    ViewDefaults {
         width: 4,
         height: 4,
         fov: 40.0,
@@ -667,7 +666,14 @@ pub(crate) fn sample_scene(id: &str) -> SceneInfo {
         elevation: 30.0,
         front: None,
         spiral: None,
-    };
+    }
+}
+
+/// A ready scene's record with small made-up values (what tests that
+/// only need a record to enqueue on use).
+#[cfg(test)]
+pub(crate) fn sample_scene(id: &str) -> SceneInfo {
+    let view = sample_view();
     SceneInfo {
         status: SceneStatus::Ready,
         error: None,

@@ -266,18 +266,7 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults {
-            width: 8,
-            height: 8,
-            fov: 50.0,
-            centre: [0.0; 3],
-            up: [0.0, 0.0, 1.0],
-            radius: 4.0,
-            far: 6.0,
-            elevation: 30.0,
-            front: None,
-            spiral: None,
-        }
+        ViewDefaults { width: 8, height: 8, fov: 50.0, radius: 4.0, far: 6.0, ..crate::storage::sample_view() }
     }
 
     /// The `details` of the error a render query gets.

@@ -189,18 +189,7 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults {
-            width: 200,
-            height: 100,
-            fov: 40.0,
-            centre: [0.0; 3],
-            up: [0.0, 0.0, 1.0],
-            radius: 4.0,
-            far: 6.0,
-            elevation: 30.0,
-            front: None,
-            spiral: None,
-        }
+        ViewDefaults { width: 200, height: 100, radius: 4.0, far: 6.0, ..crate::storage::sample_view() }
     }
 
     #[test]

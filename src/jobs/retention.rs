@@ -182,18 +182,7 @@ mod tests {
     }
 
     fn model(id: &str, updated_at: u64, training_state: bool) -> ModelInfo {
-        let view = ViewDefaults {
-            width: 1,
-            height: 1,
-            fov: 40.0,
-            centre: [0.0; 3],
-            up: [0.0, 0.0, 1.0],
-            radius: 1.0,
-            far: 2.0,
-            elevation: 30.0,
-            front: None,
-            spiral: None,
-        };
+        let view = ViewDefaults { width: 1, height: 1, ..crate::storage::sample_view() };
         ModelInfo {
             id: id.into(),
             scene_id: "scn_a".into(),

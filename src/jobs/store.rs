@@ -125,42 +125,15 @@ mod tests {
     use std::time::Duration;
 
     use super::*;
-    use crate::engine::dataset::DatasetFormat;
     use crate::engine::models::config::ModelConfig;
     use crate::jobs::{JobBudget, JobSpec, Scheduler, SchedulerConfig, Status, TrainSpec};
-    use crate::storage::{SceneInfo, SplitCounts, ViewDefaults, write_json};
+    use crate::storage::write_json;
 
     /// A data directory with the record of scene `scn_a` (enough to enqueue
     /// a training job on it) and a scheduler that does not start jobs.
     fn scheduler(dir: &std::path::Path) -> Scheduler {
         let storage = Storage::open(dir).unwrap();
-        let view = ViewDefaults {
-            width: 4,
-            height: 4,
-            fov: 40.0,
-            centre: [0.0; 3],
-            up: [0.0, 0.0, 1.0],
-            radius: 1.0,
-            far: 2.0,
-            elevation: 30.0,
-            front: None,
-            spiral: None,
-        };
-        let scene = SceneInfo {
-            status: Default::default(),
-            error: None,
-            poses: None,
-            id: "scn_a".into(),
-            format: DatasetFormat::Blender,
-            images: SplitCounts { train: 1, val: 0, test: 0 },
-            resolution: [4, 4],
-            warnings: Vec::new(),
-            created_at: 0,
-            size_bytes: 0,
-            root: "data".into(),
-            view,
-            mask_folder: None,
-        };
+        let scene = crate::storage::sample_scene("scn_a");
         std::fs::create_dir_all(storage.scene_dir("scn_a")).unwrap();
         write_json(&storage.scene_record("scn_a"), &scene).unwrap();
         Scheduler::open(storage, SchedulerConfig { run_jobs: false, ..Default::default() }).unwrap()

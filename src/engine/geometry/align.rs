@@ -70,7 +70,7 @@ pub fn similarity(from: &[[f64; 3]], to: &[[f64; 3]]) -> Option<Similarity> {
         [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
         [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
     ];
-    let (values, vectors) = jacobi_eigen4(n);
+    let (values, vectors) = jacobi_eigen(n);
     let mut order = [0, 1, 2, 3];
     order.sort_by(|&i, &j| values[j].total_cmp(&values[i]));
     // Points on a line leave the rotation about it free: two equal top eigenvalues.
@@ -107,23 +107,23 @@ pub fn quat_to_matrix(q: [f64; 4]) -> [[f64; 3]; 3] {
 }
 
 /// Eigenvalues and eigenvectors (the columns of the second result) of a
-/// symmetric 4x4 matrix, by cyclic Jacobi rotations.
-fn jacobi_eigen4(mut a: [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
-    let mut v = [[0.0; 4]; 4];
-    for i in 0..4 {
+/// symmetric NxN matrix, by cyclic Jacobi rotations (unsorted).
+pub fn jacobi_eigen<const N: usize>(mut a: [[f64; N]; N]) -> ([f64; N], [[f64; N]; N]) {
+    let mut v = [[0.0; N]; N];
+    for i in 0..N {
         v[i][i] = 1.0;
     }
     for _sweep in 0..100 {
-        let off: f64 = (0..4)
-            .flat_map(|i| (0..4).filter(move |&j| j != i).map(move |j| (i, j)))
+        let off: f64 = (0..N)
+            .flat_map(|i| (0..N).filter(move |&j| j != i).map(move |j| (i, j)))
             .map(|(i, j)| a[i][j] * a[i][j])
             .sum();
         let total: f64 = a.iter().flatten().map(|x| x * x).sum();
         if off <= 1e-30 * total.max(1e-300) {
             break;
         }
-        for p in 0..3 {
-            for q in p + 1..4 {
+        for p in 0..N {
+            for q in p + 1..N {
                 if a[p][q].abs() < 1e-300 {
                     continue;
                 }
@@ -132,17 +132,17 @@ fn jacobi_eigen4(mut a: [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
                 let t = if theta == 0.0 { 1.0 } else { t };
                 let c = 1.0 / (t * t + 1.0).sqrt();
                 let s = t * c;
-                for k in 0..4 {
+                for k in 0..N {
                     let (akp, akq) = (a[k][p], a[k][q]);
                     a[k][p] = c * akp - s * akq;
                     a[k][q] = s * akp + c * akq;
                 }
-                for k in 0..4 {
+                for k in 0..N {
                     let (apk, aqk) = (a[p][k], a[q][k]);
                     a[p][k] = c * apk - s * aqk;
                     a[q][k] = s * apk + c * aqk;
                 }
-                for k in 0..4 {
+                for k in 0..N {
                     let (vkp, vkq) = (v[k][p], v[k][q]);
                     v[k][p] = c * vkp - s * vkq;
                     v[k][q] = s * vkp + c * vkq;
@@ -150,7 +150,7 @@ fn jacobi_eigen4(mut a: [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
             }
         }
     }
-    ([a[0][0], a[1][1], a[2][2], a[3][3]], v)
+    (std::array::from_fn(|i| a[i][i]), v)
 }
 
 #[cfg(test)]

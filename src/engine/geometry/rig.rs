@@ -10,6 +10,7 @@
 //! the mean axis at the depth the NeRF paper's spiral path focuses on.
 
 use crate::engine::dataset::{Dataset, Split};
+use crate::engine::geometry::align::jacobi_eigen;
 use crate::engine::geometry::camera::Orbit;
 use crate::engine::geometry::math::Vec3;
 
@@ -127,48 +128,12 @@ fn unit(a: V) -> Option<V> {
     (n.is_finite() && n > 1e-12).then(|| scale(a, 1.0 / n))
 }
 
-/// Eigenvalues (ascending) and unit eigenvectors of a symmetric 3x3 matrix,
-/// by cyclic Jacobi rotations (converges in a handful of sweeps for 3x3).
-fn sym_eigen(mut a: [[f64; 3]; 3]) -> ([f64; 3], [V; 3]) {
-    let mut q = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    for _ in 0..50 {
-        let off = a[0][1].powi(2) + a[0][2].powi(2) + a[1][2].powi(2);
-        let diag = a[0][0].powi(2) + a[1][1].powi(2) + a[2][2].powi(2);
-        if off <= 1e-30 * diag.max(1e-300) {
-            break;
-        }
-        for (p, r) in [(0, 1), (0, 2), (1, 2)] {
-            if a[p][r] == 0.0 {
-                continue;
-            }
-            let theta = (a[r][r] - a[p][p]) / (2.0 * a[p][r]);
-            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-            let t = if theta == 0.0 { 1.0 } else { t };
-            let c = 1.0 / (t * t + 1.0).sqrt();
-            let s = t * c;
-            // a <- Jᵀ a J with J the rotation in the (p, r) plane.
-            for k in 0..3 {
-                let (akp, akr) = (a[k][p], a[k][r]);
-                a[k][p] = c * akp - s * akr;
-                a[k][r] = s * akp + c * akr;
-            }
-            for k in 0..3 {
-                let (apk, ark) = (a[p][k], a[r][k]);
-                a[p][k] = c * apk - s * ark;
-                a[r][k] = s * apk + c * ark;
-            }
-            for row in q.iter_mut() {
-                let (qp, qr) = (row[p], row[r]);
-                row[p] = c * qp - s * qr;
-                row[r] = s * qp + c * qr;
-            }
-        }
-    }
+/// Eigenvalues (ascending) and unit eigenvectors of a symmetric 3x3 matrix.
+fn sym_eigen(a: [[f64; 3]; 3]) -> ([f64; 3], [V; 3]) {
+    let (vals, q) = jacobi_eigen(a);
     let mut idx = [0, 1, 2];
-    idx.sort_by(|&i, &j| a[i][i].total_cmp(&a[j][j]));
-    let vals = idx.map(|i| a[i][i]);
-    let vecs = idx.map(|i| [q[0][i], q[1][i], q[2][i]]);
-    (vals, vecs)
+    idx.sort_by(|&i, &j| vals[i].total_cmp(&vals[j]));
+    (idx.map(|i| vals[i]), idx.map(|i| [q[0][i], q[1][i], q[2][i]]))
 }
 
 fn solve3(m: [[f64; 3]; 3], b: V) -> Option<V> {
