@@ -204,10 +204,10 @@ pub fn relu(x: &mut [f32]) {
 
 /// `dy *= (y > 0)`: the ReLU backward, from the layer's output.
 pub fn relu_backward(y: &[f32], dy: &mut [f32]) {
+    // An unconditional select, not a conditional store: the compiler
+    // vectorises it (a branch per value was 17% of a capture training step).
     for (d, &v) in dy.iter_mut().zip(y) {
-        if v <= 0.0 {
-            *d = 0.0;
-        }
+        *d = if v <= 0.0 { 0.0 } else { *d };
     }
 }
 
