@@ -29,6 +29,7 @@ use crate::engine::geometry::camera::Orbit;
 use crate::engine::geometry::math::Vec3;
 use crate::engine::geometry::rig::{CameraRig, Spiral};
 use crate::engine::io::fsio::write_atomic;
+use crate::engine::models::auto::SceneKind;
 
 /// Paths of the data directory.
 #[derive(Clone, Debug)]
@@ -575,6 +576,11 @@ pub struct SceneInfo {
     /// masks existed).
     #[serde(default)]
     pub mask_folder: Option<String>,
+    /// What the automatic model choice looks at (transparent training
+    /// images, the cameras' spread), measured at upload; `None` in records
+    /// from before it existed (a job's `auto` then loads the dataset).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kind: Option<SceneKind>,
 }
 
 impl SceneInfo {
@@ -600,6 +606,7 @@ impl SceneInfo {
             root,
             view: ViewDefaults::from_dataset(ds),
             mask_folder: ds.mask_folder_name(),
+            kind: Some(SceneKind::of_dataset(ds)),
         }
     }
 }
@@ -610,8 +617,13 @@ pub struct ModelInfo {
     pub id: String,
     pub scene_id: String,
     pub job_id: String,
-    /// Preset name (one of `engine::models::config::PRESETS`: `instant`, `instant-tiny`, `nerf`, `nerf-tiny`).
+    /// Preset name (one of `engine::models::config::PRESETS`: `instant`, `instant-tiny`, `nerf`, `nerf-tiny`,
+    /// `capture`, `capture-tiny`); for a job that asked for `auto`, the one chosen.
     pub model: String,
+    /// Why `auto` chose `model` (the evidence, as a sentence); `None` when
+    /// the job named its model.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_reason: Option<String>,
     pub config: serde_json::Value,
     pub steps: u64,
     pub training_seconds: f64,
@@ -687,6 +699,7 @@ pub(crate) fn sample_scene(id: &str) -> SceneInfo {
         size_bytes: 0,
         root: "data".into(),
         mask_folder: None,
+        kind: None,
         view,
     }
 }

@@ -99,3 +99,36 @@ fn bench_rejects_bad_arguments() {
         assert!(!out.status.success() && err.contains(msg), "{all:?}: {err}");
     }
 }
+
+/// `--model auto` benches the model `train` would choose (the ball's
+/// transparent pixels: `instant`) under its own name, and says why; the
+/// capture model's rows count its proposal samples: 64 + 32 per ray, in
+/// training and rendering alike (every ray of the scene can be sampled).
+#[test]
+fn bench_resolves_auto_and_counts_proposal_samples() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let json = dir.path().join("bench.json");
+    let args = ["--model", "auto,capture", "--budgets", "0.2", "--test-views", "1", "--json", json.to_str().unwrap()];
+    let out = radiance(&[&["bench", "--data", data.to_str().unwrap()][..], &args[..]].concat());
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "stdout: {stdout}\nstderr: {stderr}");
+    assert!(stderr.contains("model 'instant' (auto): 8 of 8 training images have transparent pixels"), "{stderr}");
+    let lines: Vec<&str> = stdout.lines().collect();
+    let columns: Vec<&str> = lines[0].split_whitespace().collect();
+    assert_eq!(columns[8..10], ["smp/ray", "prop/ray"], "{stdout}");
+    let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(report.model_choice.as_ref().map(|c| c.preset.as_str()), Some("instant"));
+    let models: Vec<&str> = report.rows.iter().map(|r| r.model.as_str()).collect();
+    assert_eq!(models, ["instant", "capture"], "{stdout}");
+    let (instant, capture) = (&report.rows[0], &report.rows[1]);
+    assert_eq!((instant.proposal_samples, instant.render_proposal_samples_per_ray), (0, 0.0), "{instant:?}");
+    assert!(capture.rays > 0 && capture.proposal_samples == 96 * capture.rays, "{capture:?}");
+    assert_eq!((capture.proposal_samples_per_ray, capture.render_proposal_samples_per_ray), (96.0, 96.0));
+    // The table shows the JSON's proposal samples per ray.
+    for (l, r) in lines[1..].iter().zip(&report.rows) {
+        let cells: Vec<&str> = l.split_whitespace().collect();
+        assert_eq!((cells[0], cells[7]), (r.model.as_str(), format!("{:.1}", r.proposal_samples_per_ray).as_str()));
+    }
+}

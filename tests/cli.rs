@@ -23,9 +23,22 @@ fn train_render_eval() {
     BallScene { size: 16, views: 8, ..Default::default() }.write_blender(&data).unwrap();
     let model = dir.path().join("m.ckpt");
     let (d, m) = (data.to_str().unwrap(), model.to_str().unwrap());
-    let out = ok(&radiance(&["train", "--data", d, "--steps", "2", "--batch-rays", "32", "--out", m]));
+    let run = radiance(&["train", "--data", d, "--steps", "2", "--batch-rays", "32", "--out", m]);
+    let out = ok(&run);
     assert!(out.contains("steps          2") && out.contains("rays/s"), "{out}");
     assert!(model.exists());
+    // `--model auto`, the default: the transparent ball gets the fast
+    // model, and the reason is printed before training.
+    let err = String::from_utf8_lossy(&run.stderr);
+    let chosen = "model 'instant' (auto): 8 of 8 training images have transparent pixels: an object on an empty \
+                  background, the fast model";
+    assert!(err.starts_with(chosen) || err.contains(&format!("\n{chosen}\n")), "{err}");
+    // Resuming with `auto` continues the checkpoint's model (and its choice).
+    let more = dir.path().join("more.ckpt");
+    ok(&radiance(&["train", "--data", d, "--steps", "3", "--resume", m, "--out", more.to_str().unwrap()]));
+    let resumed = radiance::engine::io::persist::load(&more).unwrap();
+    assert_eq!((resumed.model.kind(), resumed.state.step), ("instant", 3));
+    assert_eq!(resumed.train.model_choice.map(|c| c.preset), Some("instant".to_string()));
 
     let renders = dir.path().join("renders");
     let r = renders.to_str().unwrap();

@@ -114,6 +114,7 @@ fn train(scene: &str) -> JobSpec {
         seed: 7,
         batch_rays: 64,
         masks: Default::default(),
+        model_reason: None,
     }))
 }
 
@@ -146,6 +147,7 @@ fn model_of(job: &Job, scene: &SceneInfo, steps: u64) -> ModelInfo {
         scene_id: scene.id.clone(),
         job_id: job.id.clone(),
         model: "nerf-tiny".into(),
+        model_reason: None,
         config: serde_json::to_value(ModelConfig::preset("nerf-tiny").unwrap()).unwrap(),
         steps,
         training_seconds: 1.5,

@@ -13,9 +13,12 @@ use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, limits};
 use crate::engine::dataset::MaskUse;
+use crate::engine::models::auto::{self, AUTO, ModelChoice};
 use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
 use crate::engine::train::estimate;
-use crate::jobs::{Job, JobBudget, JobSpec, Status, TrainSpec};
+use crate::jobs::train::load_dataset;
+use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, check_trainable};
+use crate::storage::ScenePart;
 use crate::store::NewJob;
 
 /// `POST /v1/jobs` body.
@@ -23,8 +26,10 @@ use crate::store::NewJob;
 #[serde(deny_unknown_fields)]
 pub struct CreateJob {
     pub scene_id: String,
-    /// Preset: `instant` (default, the fast model), `instant-tiny`, `nerf`
-    /// (the paper's model) or `nerf-tiny`.
+    /// `auto` (default: the scene decides, see `engine::models::auto`) or a
+    /// preset: `instant` (the fast model), `instant-tiny`, `nerf` (the
+    /// paper's model), `nerf-tiny`, `capture` (real photographs) or
+    /// `capture-tiny`.
     #[serde(default = "default_model")]
     pub model: String,
     pub budget: JobBudget,
@@ -41,16 +46,26 @@ pub struct CreateJob {
 }
 
 fn default_model() -> String {
-    PRESETS[0].into()
+    AUTO.into()
 }
 
 /// Longest accepted time budget: a week.
 const MAX_SECONDS: f64 = 7.0 * 86400.0;
 
-fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
-    let mut config = ModelConfig::preset(&r.model).ok_or_else(|| {
-        let message = format!("unknown model '{}' (available: {})", r.model, PRESETS.join(", "));
-        ApiError::bad_field(message, "model", &r.model, &PRESETS.join(", "))
+/// The job's spec from its body. `choice` is what `auto` chose for the
+/// scene ([`auto_choice`]); it is used when `model` is `auto` and no
+/// `config` is given (a `config` decides the model itself).
+fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
+    let (model, model_reason) = match (r.model.as_str(), &r.config, choice) {
+        (AUTO, Some(c), _) => (c.kind().to_string(), None),
+        (AUTO, None, Some(choice)) => (choice.preset, Some(choice.reason)),
+        (AUTO, None, None) => return Err(ApiError::internal("the model for 'auto' was not chosen")),
+        (name, _, _) => (name.to_string(), None),
+    };
+    let allowed = || format!("{AUTO}, {}", PRESETS.join(", "));
+    let mut config = ModelConfig::preset(&model).ok_or_else(|| {
+        let message = format!("unknown model '{}' (available: {})", r.model, allowed());
+        ApiError::bad_field(message, "model", &r.model, &allowed())
     })?;
     if let Some(c) = r.config {
         if c.kind() != config.kind() {
@@ -88,7 +103,23 @@ fn to_spec(r: CreateJob) -> ApiResult<TrainSpec> {
         return Err(ApiError::bad_field("batch_rays must be in 1..=65536", "batch_rays", batch_rays, "1..=65536"));
     }
     let masks = mask_use(r.masks)?;
-    Ok(TrainSpec { scene_id: r.scene_id, model: r.model, config, budget: b, seed: r.seed, batch_rays, masks })
+    Ok(TrainSpec { scene_id: r.scene_id, model, model_reason, config, budget: b, seed: r.seed, batch_rays, masks })
+}
+
+/// What `auto` chooses for the scene `scene_id` trained with `masks`: from
+/// the kind its record keeps, or, for records from before it was kept, by
+/// loading its dataset (on the blocking threads). A scene that is unknown
+/// or not ready is refused as `enqueue` would refuse it.
+async fn auto_choice(s: &AppState, scene_id: &str, masks: MaskUse) -> ApiResult<ModelChoice> {
+    let scene = s.jobs.get_scene(scene_id).await?.ok_or_else(|| SchedError::SceneNotFound(scene_id.into()))?;
+    check_trainable(&scene)?;
+    if let Some(kind) = &scene.kind {
+        return Ok(kind.clone().with_masks(scene.mask_folder.as_deref(), masks).choose());
+    }
+    let files = s.artifacts.scene_files(&scene, ScenePart::Data).await?;
+    let loaded = tokio::task::spawn_blocking(move || load_dataset(&files.path, &scene, masks)).await?;
+    let ds = loaded.map_err(|e| ApiError::internal(format!("loading scene '{scene_id}' to choose its model: {e}")))?;
+    Ok(auto::choose(&ds))
 }
 
 /// The job's `masks`: one of the names of [`MaskUse`], `auto` when absent.
@@ -115,7 +146,14 @@ pub async fn create(
     body: Result<Json<CreateJob>, JsonRejection>,
 ) -> ApiResult<(StatusCode, Json<Job>)> {
     let Json(req) = body?;
-    let spec = to_spec(req)?;
+    let choice = match req.model == AUTO && req.config.is_none() {
+        true => Some(auto_choice(&s, &req.scene_id, mask_use(req.masks.clone())?).await?),
+        false => None,
+    };
+    let spec = to_spec(req, choice)?;
+    if let Some(reason) = &spec.model_reason {
+        tracing::info!(scene = %spec.scene_id, model = %spec.model, reason = %reason, "model chosen automatically");
+    }
     // An unknown scene has no estimate: enqueue answers 404 for it.
     let memory = match s.jobs.get_scene(&spec.scene_id).await? {
         Some(scene) => {
@@ -215,16 +253,53 @@ mod tests {
             b[k] = v.clone();
         }
         let r: CreateJob = serde_json::from_value(b).unwrap();
-        let e = to_spec(r).expect_err("a bad body");
+        let e = to_spec(r, Some(photos())).expect_err("a bad body");
         assert_eq!(e.code.info().0, "bad_request");
         e.details
+    }
+
+    /// What `auto` chooses for opaque photographs.
+    fn photos() -> ModelChoice {
+        ModelChoice { preset: "capture".into(), reason: "opaque photographs: the capture model".into() }
+    }
+
+    /// The spec of a job body (scene and budget filled in) with `choice`.
+    fn spec(body: Value, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
+        let mut b = json!({ "scene_id": "scn_x", "budget": { "steps": 10 } });
+        for (k, v) in body.as_object().unwrap() {
+            b[k] = v.clone();
+        }
+        to_spec(serde_json::from_value(b).unwrap(), choice)
+    }
+
+    #[test]
+    fn auto_is_the_default_and_takes_the_choice_with_its_reason() {
+        let s = spec(json!({}), Some(photos())).unwrap();
+        assert_eq!((s.model.as_str(), s.model_reason.as_deref()), ("capture", Some(photos().reason.as_str())));
+        assert_eq!(s.config, ModelConfig::preset("capture").unwrap());
+        // A named preset or a full config overrides the choice.
+        let s = spec(json!({ "model": "nerf-tiny" }), Some(photos())).unwrap();
+        assert_eq!((s.model.as_str(), s.model_reason), ("nerf-tiny", None));
+        let instant = ModelConfig::preset("instant-tiny").unwrap();
+        let s = spec(json!({ "model": "auto", "config": instant }), None).unwrap();
+        assert_eq!((s.model.as_str(), s.model_reason, s.config), ("instant", None, instant));
+        // `auto` without a choice is the handler's bug, not the client's.
+        let e = spec(json!({}), None).unwrap_err();
+        assert_eq!(e.code.info().0, "internal");
+        // The records keep the reason, and records without one still load.
+        let v = serde_json::to_value(spec(json!({}), Some(photos())).unwrap()).unwrap();
+        assert_eq!(v["model_reason"], json!(photos().reason));
+        let mut old = serde_json::to_value(spec(json!({ "model": "capture" }), None).unwrap()).unwrap();
+        assert!(old.get("model_reason").is_none(), "{old}");
+        old.as_object_mut().unwrap().remove("masks");
+        assert_eq!(serde_json::from_value::<TrainSpec>(old).unwrap().model_reason, None);
     }
 
     #[test]
     fn bad_job_fields_are_named_with_their_value_and_range() {
         let d = details(json!({ "model": "fast" }));
         assert_eq!((&d["field"], &d["value"]), (&json!("model"), &json!("fast")));
-        assert!(d["allowed"].as_str().unwrap().contains("instant-tiny"), "{d}");
+        assert!(d["allowed"].as_str().unwrap().starts_with("auto, instant, instant-tiny"), "{d}");
         let d = details(json!({ "budget": { "seconds": -1.0 } }));
         assert_eq!(d, json!({ "field": "budget.seconds", "value": -1.0, "allowed": "(0, 604800]" }));
         let d = details(json!({ "budget": { "steps": 0 } }));

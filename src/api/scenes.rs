@@ -336,6 +336,7 @@ fn posing(id: &str, size: u64, upload: PhotoUpload) -> Checked {
             spiral: None,
         },
         mask_folder: None,
+        kind: None,
     };
     let job = NewJob {
         id: Some(job_id),

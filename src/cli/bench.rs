@@ -13,11 +13,12 @@ use clap::Args;
 use serde::{Deserialize, Serialize};
 
 use super::eval::score;
-use super::setup::{DEFAULT_BATCH_RAYS, MODEL_KINDS, new_model_and_adam};
+use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::io::fsio;
+use crate::engine::models::auto::ModelChoice;
 use crate::engine::render::render_view;
 use crate::engine::train::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
@@ -27,8 +28,10 @@ pub struct BenchArgs {
     /// Dataset folder (its test split is scored).
     #[arg(long)]
     pub data: PathBuf,
-    /// Models to benchmark, comma-separated: `instant`, `nerf`.
-    #[arg(long, value_delimiter = ',', default_value = "instant,nerf")]
+    /// Models to benchmark, comma-separated: `auto` (the model `radiance
+    /// train` would choose for the dataset; its rows are labelled with it),
+    /// `instant`, `nerf`, `capture`.
+    #[arg(long, value_delimiter = ',', default_value = "auto")]
     pub model: Vec<String>,
     /// Seconds of training at which to score, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "10,30,60,120,300")]
@@ -75,6 +78,12 @@ pub struct BenchRow {
     /// marcher would have taken).
     pub samples_per_ray: f64,
     pub skipped_per_ray: f64,
+    /// Proposal-network evaluations in training so far, and per training
+    /// ray (the capture model's sampling; 0 for the others).
+    #[serde(default)]
+    pub proposal_samples: u64,
+    #[serde(default)]
+    pub proposal_samples_per_ray: f64,
     /// Mean over the scored test views, on the 8-bit renders.
     pub psnr: f64,
     pub ssim: f64,
@@ -88,6 +97,9 @@ pub struct BenchRow {
     pub render_ms: f64,
     /// Network samples per ray when rendering the test views.
     pub render_samples_per_ray: f64,
+    /// Proposal-network evaluations per ray when rendering them.
+    #[serde(default)]
+    pub render_proposal_samples_per_ray: f64,
     /// Peak resident memory (VmHWM) in MiB since this model's run started;
     /// `None` where /proc/self/status is unavailable.
     pub peak_memory_mib: Option<f64>,
@@ -109,10 +121,13 @@ pub struct BenchReport {
     /// What the masks did, when masks were in effect.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub masks: Option<MaskUse>,
+    /// What `--model auto` chose, and why, when it was asked for.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_choice: Option<ModelChoice>,
     pub rows: Vec<BenchRow>,
 }
 
-const HEADER: &str = "model    budget s  train s    steps          rays        samples  smp/ray  skip/ray  PSNR dB    \
+const HEADER: &str = "model    budget s  train s    steps          rays        samples  smp/ray prop/ray  skip/ray  PSNR dB    \
                       SSIM  ms/view  peak MiB";
 
 /// The header's columns from PSNR on, with the scores inside the masks.
@@ -134,7 +149,7 @@ fn format_row(r: &BenchRow, masked: bool) -> String {
         String::new()
     };
     format!(
-        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>9.1} {:>7.2} {:>7.4}{mask} {:>8.0} {:>9}",
+        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>8.1} {:>9.1} {:>7.2} {:>7.4}{mask} {:>8.0} {:>9}",
         r.model,
         format!("{}", r.budget_seconds),
         r.train_seconds,
@@ -142,6 +157,7 @@ fn format_row(r: &BenchRow, masked: bool) -> String {
         r.rays,
         r.samples,
         r.samples_per_ray,
+        r.proposal_samples_per_ray,
         r.skipped_per_ray,
         r.psnr,
         r.ssim,
@@ -161,7 +177,7 @@ fn measure(
 ) -> anyhow::Result<BenchRow> {
     let (mut sum_p, mut sum_s, mut secs) = (0.0, 0.0, 0.0);
     let (mut mask_p, mut mask_s) = (Vec::new(), Vec::new());
-    let (mut rays, mut samples) = (0u64, 0u64);
+    let (mut rays, mut samples, mut proposal) = (0u64, 0u64, 0u64);
     for &i in views {
         let f = &ds.frames[i];
         let t0 = Instant::now();
@@ -169,6 +185,7 @@ fn measure(
         secs += t0.elapsed().as_secs_f64();
         rays += v.stats.rays;
         samples += v.stats.samples;
+        proposal += v.stats.proposal_samples;
         let sc = score(&v, f, ds.background)?;
         sum_p += sc.psnr;
         sum_s += sc.ssim;
@@ -187,12 +204,15 @@ fn measure(
         samples: p.samples,
         samples_per_ray: per_ray(p.samples),
         skipped_per_ray: per_ray(p.skipped),
+        proposal_samples: p.proposal_samples,
+        proposal_samples_per_ray: per_ray(p.proposal_samples),
         psnr: sum_p / n,
         ssim: sum_s / n,
         psnr_mask: mean(&mask_p),
         ssim_mask: mean(&mask_s),
         render_ms: secs / n * 1000.0,
         render_samples_per_ray: samples as f64 / rays.max(1) as f64,
+        render_proposal_samples_per_ray: proposal as f64 / rays.max(1) as f64,
         peak_memory_mib: peak_memory().map(|b| b as f64 / (1024.0 * 1024.0)),
     })
 }
@@ -212,11 +232,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     budgets.dedup();
     anyhow::ensure!(!a.model.is_empty(), "--model needs at least one model");
     for m in &a.model {
-        anyhow::ensure!(
-            MODEL_KINDS.contains(&m.as_str()),
-            "unknown model '{m}' (available: {})",
-            MODEL_KINDS.join(", ")
-        );
+        check_model_name(m)?;
     }
     anyhow::ensure!(a.test_views > 0, "--test-views must be at least 1");
 
@@ -228,6 +244,16 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     let views: Vec<usize> = ds.test.iter().copied().take(a.test_views).collect();
+    let mut kinds = Vec::with_capacity(a.model.len());
+    let mut model_choice = None;
+    for m in &a.model {
+        let (kind, choice) = resolve_model(m, &ds)?;
+        if let Some(c) = choice {
+            eprintln!("model '{}' (auto): {}", c.preset, c.reason);
+            model_choice = Some(c);
+        }
+        kinds.push(kind);
+    }
 
     let cancel = Arc::new(AtomicBool::new(false));
     {
@@ -241,12 +267,13 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         lr: a.lr,
         set: a.set.clone(),
         masks: (ds.masks != MaskUse::Off).then_some(ds.masks),
+        model_choice,
         test_views: views.len(),
         rows: Vec::new(),
     };
     let mut failure: Option<anyhow::Error> = None;
     println!("{}", header(ds.masks != MaskUse::Off));
-    for kind in &a.model {
+    for kind in &kinds {
         let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel };
         if let Err(e) = run.model(kind, &mut report) {
             failure = Some(e);

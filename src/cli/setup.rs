@@ -2,21 +2,46 @@
 //! optimiser and the training settings: through the engine's
 //! [`ModelConfig`], as the service's jobs do.
 
+use crate::engine::dataset::Dataset;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::models::Model;
+use crate::engine::models::auto::{self, AUTO, ModelChoice};
 use crate::engine::models::config::ModelConfig;
 use crate::engine::nn::adam::Adam;
 
 pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
 
-/// The model kinds `--model` accepts (each is also a preset).
+/// The model kinds `--model` accepts besides `auto` (each is also a preset).
 pub use crate::engine::models::config::KINDS as MODEL_KINDS;
+
+/// Refuses a `--model` that is neither `auto` nor a model kind.
+pub fn check_model_name(name: &str) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        name == AUTO || MODEL_KINDS.contains(&name),
+        "unknown model '{name}' (available: {AUTO}, {})",
+        MODEL_KINDS.join(", ")
+    );
+    Ok(())
+}
+
+/// The model kind `--model name` trains on `ds`: `auto` lets the dataset
+/// (as loaded, masks included) decide, and the choice comes back with its
+/// reason; a kind is taken as it is.
+pub fn resolve_model(name: &str, ds: &Dataset) -> anyhow::Result<(String, Option<ModelChoice>)> {
+    check_model_name(name)?;
+    if name != AUTO {
+        return Ok((name.to_string(), None));
+    }
+    let choice = auto::choose(ds);
+    Ok((choice.preset.clone(), Some(choice)))
+}
 
 /// The configuration of `kind`. `skip: false` samples the whole clipped ray,
 /// without the occupancy grid (nerf only). `sets` are `--set KEY=VALUE`
 /// overrides of the preset (see [`apply_sets`]).
 pub fn model_config(kind: &str, skip: bool, sets: &[String]) -> anyhow::Result<ModelConfig> {
-    anyhow::ensure!(MODEL_KINDS.contains(&kind), "unknown model '{kind}' (available: {})", MODEL_KINDS.join(", "));
+    check_model_name(kind)?;
+    anyhow::ensure!(kind != AUTO, "the model 'auto' must be resolved for a dataset first (resolve_model)");
     let mut cfg = apply_sets(ModelConfig::preset(kind).expect("every model kind is a preset"), sets)?;
     if !skip {
         match &mut cfg {
@@ -79,6 +104,24 @@ pub fn new_model_and_adam(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn auto_resolves_by_the_dataset_and_names_are_checked() {
+        use crate::engine::dataset::synthetic::BallScene;
+        use crate::engine::dataset::textured::TexturedScene;
+        let ball = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
+        let photos = TexturedScene { width: 8, height: 6, views: 6, fov: 0.9 }.dataset();
+        let (kind, choice) = resolve_model("auto", &ball).unwrap();
+        assert_eq!((kind.as_str(), choice.map(|c| c.preset)), ("instant", Some("instant".to_string())));
+        let (kind, choice) = resolve_model("auto", &photos).unwrap();
+        assert_eq!(kind, "capture");
+        assert!(choice.unwrap().reason.starts_with("opaque photographs"));
+        // A named model is taken as it is, whatever the dataset.
+        assert_eq!(resolve_model("nerf", &photos).unwrap(), ("nerf".to_string(), None));
+        let e = resolve_model("fast", &photos).unwrap_err().to_string();
+        assert_eq!(e, "unknown model 'fast' (available: auto, instant, nerf, capture)");
+        assert!(model_config("auto", true, &[]).unwrap_err().to_string().contains("resolved"));
+    }
 
     #[test]
     fn sets_override_nested_fields_and_name_bad_keys() {

@@ -9,14 +9,16 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam};
+use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam, resolve_model};
 use super::{Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split, masks};
 use crate::engine::geometry::scene::Scene;
+use crate::engine::io::checkpoint::Checkpoint;
+use crate::engine::models::auto::{AUTO, ModelChoice};
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate::{self, DataSize, mib};
 use crate::engine::train::session::{Event, Session, SessionConfig, Start, Stop};
-use crate::engine::train::trainer::Budget;
+use crate::engine::train::trainer::{Budget, TrainConfig};
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
@@ -24,8 +26,12 @@ pub struct TrainArgs {
     /// Dataset folder.
     #[arg(long)]
     pub data: PathBuf,
-    /// Model kind: `instant` (hash grid, fast) or `nerf` (the classic model of the paper).
-    #[arg(long, default_value = "instant")]
+    /// Model kind: `auto` (the dataset decides: `instant` for an object on
+    /// an empty background, `capture` for opaque photographs; the choice and
+    /// its reason are printed), `instant` (hash grid, fast), `nerf` (the
+    /// classic model of the paper) or `capture` (real photographs). With
+    /// --resume, `auto` continues the checkpoint's model.
+    #[arg(long, default_value = "auto")]
     pub model: String,
     /// Training time budget in seconds (training only, not saving).
     #[arg(long, conflicts_with = "steps")]
@@ -89,7 +95,11 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
-    let mut session = open_session(&a, budget, &ds)?;
+    let (kind, choice) = chosen_model(&a, &ds)?;
+    if let Some(c) = &choice {
+        eprintln!("model '{}' (auto): {}", c.preset, c.reason);
+    }
+    let mut session = open_session(&a, &kind, choice, budget, &ds)?;
     describe(&a, &session, &ds, threads);
     let cancel = Arc::new(AtomicBool::new(false));
     {
@@ -111,15 +121,36 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The model kind to train and, when `auto` chose it, the choice: with
+/// `--resume` and `auto` the checkpoint's kind (the run goes on as it
+/// began), else `--model` resolved for the dataset.
+fn chosen_model(a: &TrainArgs, ds: &Dataset) -> anyhow::Result<(String, Option<ModelChoice>)> {
+    match &a.resume {
+        Some(p) if a.model == AUTO => {
+            let c = Checkpoint::load(p).with_context(|| format!("reading {}", p.display()))?;
+            Ok((c.kind, None))
+        }
+        _ => resolve_model(&a.model, ds),
+    }
+}
+
 /// A session saving to `--out`: resumed from `--resume`, else on a fresh
-/// model of `--model`.
-fn open_session<'a>(a: &TrainArgs, budget: Budget, ds: &'a Dataset) -> anyhow::Result<Session<'a>> {
-    let train = model_config(&a.model, !a.no_skip, &a.set)?.train_config(a.seed, a.batch_rays, budget);
+/// model of `kind`; `choice` is recorded in its checkpoints.
+fn open_session<'a>(
+    a: &TrainArgs,
+    kind: &str,
+    choice: Option<ModelChoice>,
+    budget: Budget,
+    ds: &'a Dataset,
+) -> anyhow::Result<Session<'a>> {
+    let train = TrainConfig {
+        model_choice: choice,
+        ..model_config(kind, !a.no_skip, &a.set)?.train_config(a.seed, a.batch_rays, budget)
+    };
     let start = match &a.resume {
-        Some(p) => Start::Resume { from: p.clone(), kind: Some(a.model.clone()) },
+        Some(p) => Start::Resume { from: p.clone(), kind: Some(kind.to_string()) },
         None => {
-            let (_, model, adam) =
-                new_model_and_adam(&a.model, Scene::from_dataset(ds), a.seed, !a.no_skip, a.lr, &a.set)?;
+            let (_, model, adam) = new_model_and_adam(kind, Scene::from_dataset(ds), a.seed, !a.no_skip, a.lr, &a.set)?;
             Start::Fresh { model, adam }
         }
     };
@@ -204,6 +235,10 @@ fn summary(session: &Session<'_>, wall: Instant, out: &Path) {
     println!("rays/s         {:.1}", rays as f64 / secs);
     println!("samples/s      {:.0}", samples as f64 / secs);
     println!("samples/ray    {:.1}", samples as f64 / rays.max(1) as f64);
+    let proposal = s.proposal_samples - start.proposal_samples;
+    if proposal > 0 {
+        println!("proposal/ray   {:.1}", proposal as f64 / rays.max(1) as f64);
+    }
     println!("train PSNR     {:.2} dB", session.trainer().progress(f64::NAN).train_psnr);
     if s.diverged_steps > 0 {
         println!("skipped steps  {} (non-finite loss or gradient)", s.diverged_steps);

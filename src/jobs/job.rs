@@ -49,8 +49,14 @@ impl std::str::FromStr for Status {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct TrainSpec {
     pub scene_id: String,
-    /// Preset name (`instant`, `instant-tiny`, `nerf`, `nerf-tiny`).
+    /// Preset name (`instant`, `instant-tiny`, `nerf`, `nerf-tiny`,
+    /// `capture`, `capture-tiny`); for a job that asked for `auto`, the one
+    /// chosen when it was posted.
     pub model: String,
+    /// Why `auto` chose `model` (the evidence, as a sentence); `None` when
+    /// the job named its model (and in records from before `auto`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_reason: Option<String>,
     /// The model configuration (the preset's, or the one given).
     pub config: ModelConfig,
     pub budget: JobBudget,

@@ -144,6 +144,7 @@ mod tests {
                 seed: 0,
                 batch_rays: 64,
                 masks: Default::default(),
+                model_reason: None,
             }))
         } else {
             let format = VideoFormat::Gif;
@@ -188,6 +189,7 @@ mod tests {
             scene_id: "scn_a".into(),
             job_id: "job_x".into(),
             model: "nerf-tiny".into(),
+            model_reason: None,
             config: serde_json::Value::Null,
             steps: 1,
             training_seconds: 1.0,

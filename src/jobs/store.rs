@@ -148,6 +148,7 @@ mod tests {
             seed: 0,
             batch_rays: 64,
             masks: Default::default(),
+            model_reason: None,
         }))
     }
 

@@ -13,9 +13,10 @@ use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::metrics::psnr;
 use crate::engine::models::Model;
+use crate::engine::models::auto::ModelChoice;
 use crate::engine::render::render_view;
 use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
-use crate::engine::train::trainer::{Progress, TrainState};
+use crate::engine::train::trainer::{Progress, TrainConfig, TrainState};
 use crate::storage::{ModelInfo, SceneInfo, ScenePart, now_ms};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.
@@ -44,6 +45,9 @@ fn train(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -
     let ds = load_dataset(&dir.path, &scene, spec.masks)?;
     if ds.train.is_empty() {
         return Err("the scene has no training views".into());
+    }
+    if let Some(reason) = &spec.model_reason {
+        tracing::info!(job = %job.id, model = %spec.model, reason = %reason, "model chosen automatically");
     }
     let model_id = job.reserved_model_id();
     let ckpt = host.job_checkpoint(job, &model_id).map_err(|e| e.to_string())?;
@@ -91,8 +95,13 @@ fn open_session<'a>(
             spec.config.build_with_adam(Scene::from_dataset(ds), spec.seed, None).map_err(|e| e.to_string())?;
         Start::Fresh { model, adam }
     };
+    let choice =
+        spec.model_reason.as_ref().map(|reason| ModelChoice { preset: spec.model.clone(), reason: reason.clone() });
     let config = SessionConfig {
-        train: spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine()),
+        train: TrainConfig {
+            model_choice: choice,
+            ..spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine())
+        },
         out: ckpt,
         checkpoint_every: host.config().checkpoint_every,
         held_out: Some(HeldOut {
@@ -249,6 +258,7 @@ impl ModelRecord<'_> {
             scene_id: self.scene.id.clone(),
             job_id: self.job.id.clone(),
             model: self.spec.model.clone(),
+            model_reason: self.spec.model_reason.clone(),
             config: self.config.clone(),
             steps: p.step,
             training_seconds: p.elapsed,

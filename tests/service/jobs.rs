@@ -326,3 +326,91 @@ async fn mp4_of_an_odd_sized_scene_is_the_size_its_job_says() {
     assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(17), Some(17)), "{job}");
     svc.stop().await;
 }
+
+/// Posts a training job that must be accepted; returns its record.
+async fn accepted(svc: &Svc, body: Value) -> Value {
+    let (s, job) = svc.post_json("/v1/jobs", body.clone()).await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{body}: {job}");
+    job
+}
+
+/// `model` `auto` (the default) is resolved when the job is posted, from
+/// what the scene's record says: the ball's transparent pixels give
+/// `instant`, the same ball photographed opaque (LLFF) `capture`, and its
+/// masks composited as alpha `instant` again; a record from before scenes
+/// were measured is measured by loading its dataset. A preset or a config
+/// overrides it. The job, the model record and the checkpoint keep why.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_chooses_the_model_by_the_scene_and_says_why() {
+    let data = tempfile::tempdir().unwrap();
+    let mut cfg = config(data.path());
+    cfg.scheduler.run_jobs = false;
+    let svc = Svc::start(cfg).await;
+    let ball = svc.upload_ball().await;
+    let (s, v) = svc.upload("application/zip", zip_of(&llff_masked_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let photos = v["id"].as_str().unwrap().to_string();
+    let (_, scene) = svc.get(&format!("/v1/scenes/{photos}")).await;
+    assert_eq!(
+        (scene["kind"]["transparent_images"].as_u64(), scene["kind"]["forward_facing"].as_bool()),
+        (Some(0), Some(false)),
+        "{scene}"
+    );
+    let body = |scene: &str| json!({ "scene_id": scene, "budget": { "steps": 2 } });
+
+    let (_, b) = svc.get(&format!("/v1/scenes/{ball}")).await;
+    let n = b["images"]["train"].as_u64().unwrap();
+    let job = accepted(&svc, body(&ball)).await;
+    assert_eq!(job["model"], "instant", "{job}");
+    let object =
+        format!("{n} of {n} training images have transparent pixels: an object on an empty background, the fast model");
+    assert_eq!(job["model_reason"], json!(object), "{job}");
+    let settings: ModelConfig = serde_json::from_value(job["config"].clone()).unwrap();
+    assert_eq!(settings, ModelConfig::preset("instant").unwrap(), "the preset's settings, unchanged");
+
+    let job = accepted(&svc, body(&photos)).await;
+    let reason = job["model_reason"].as_str().unwrap_or_default().to_string();
+    assert_eq!(job["model"], "capture", "{job}");
+    assert!(reason.starts_with("opaque photographs (cameras around their focus, axes up to "), "{reason}");
+    let mut composite = body(&photos);
+    composite["masks"] = json!("composite");
+    let job = accepted(&svc, composite).await;
+    assert_eq!(job["model"], "instant", "{job}");
+    assert!(job["model_reason"].as_str().unwrap().starts_with("the masks in masks_8/ are the images' alpha"), "{job}");
+
+    // A named preset, or a config, decides alone.
+    let mut named = body(&photos);
+    named["model"] = json!("nerf-tiny");
+    let job = accepted(&svc, named).await;
+    assert!(job["model"] == "nerf-tiny" && job.get("model_reason").is_none(), "{job}");
+    let mut configured = body(&photos);
+    configured["config"] = serde_json::to_value(ModelConfig::preset("instant-tiny").unwrap()).unwrap();
+    let job = accepted(&svc, configured).await;
+    assert!(job["model"] == "instant" && job.get("model_reason").is_none(), "{job}");
+    svc.stop().await;
+
+    // A record from before the kind was kept: the dataset is loaded.
+    let record = data.path().join("scenes").join(&photos).join("scene.json");
+    let mut old: Value = serde_json::from_slice(&std::fs::read(&record).unwrap()).unwrap();
+    assert!(old.as_object_mut().unwrap().remove("kind").is_some());
+    std::fs::write(&record, serde_json::to_vec(&old).unwrap()).unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let (_, scene) = svc.get(&format!("/v1/scenes/{photos}")).await;
+    assert!(scene.get("kind").is_none(), "{scene}");
+    let job = accepted(&svc, body(&photos)).await;
+    assert_eq!((&job["model"], job["model_reason"].as_str()), (&json!("capture"), Some(reason.as_str())), "{job}");
+
+    // The ball's job runs: its model record and checkpoint keep the choice.
+    let job = accepted(&svc, body(&ball)).await;
+    let id = job["id"].as_str().unwrap();
+    let job = svc.wait_job(id, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    assert_eq!(job["status"], "succeeded", "{job}");
+    let model = job["model_id"].as_str().unwrap().to_string();
+    let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
+    assert_eq!((&m["model"], &m["model_reason"]), (&json!("instant"), &json!(object)), "{m}");
+    svc.stop().await;
+    let ckpt = radiance::storage::Storage::open(data.path()).unwrap().checkpoint(&model);
+    let restored = radiance::engine::io::persist::load(&ckpt).unwrap();
+    let choice = restored.train.model_choice.expect("the checkpoint keeps the choice");
+    assert_eq!((choice.preset.as_str(), choice.reason), ("instant", object));
+}

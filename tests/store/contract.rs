@@ -154,6 +154,7 @@ fn sample_view_scene(id: &str) -> SceneInfo {
         size_bytes: 0,
         root: "data".into(),
         mask_folder: None,
+        kind: None,
         view: serde_json::from_value(view).unwrap(),
     }
 }
@@ -176,6 +177,7 @@ fn train(scene: &str, steps: u64, seed: u64) -> JobSpec {
         seed,
         batch_rays: 64,
         masks: Default::default(),
+        model_reason: None,
     }))
 }
 

@@ -104,6 +104,12 @@ impl Image {
         let c = |v: u8, b: f32| v as f32 / 255.0 * a + b * (1.0 - a);
         [c(p[0], background[0]), c(p[1], background[1]), c(p[2], background[2])]
     }
+
+    /// Whether some pixel is not fully opaque (only images with an alpha
+    /// channel can have one).
+    pub fn has_transparent_pixels(&self) -> bool {
+        self.has_alpha && self.rgba.chunks_exact(4).any(|p| p[3] < 255)
+    }
 }
 
 /// One posed view.

@@ -41,10 +41,7 @@ pub struct Scene {
 
 impl Scene {
     pub fn from_dataset(ds: &Dataset) -> Self {
-        let transparent = ds.train.iter().any(|&i| {
-            let im = &ds.frames[i].image;
-            im.has_alpha && im.rgba.chunks_exact(4).any(|p| p[3] < 255)
-        });
+        let transparent = ds.train.iter().any(|&i| ds.frames[i].image.has_transparent_pixels());
         Self { transparent, rig: CameraRig::from_dataset(ds), ..Self::from_bounds(ds.aabb, ds.near, ds.far) }
     }
 

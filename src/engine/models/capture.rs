@@ -216,6 +216,7 @@ impl CaptureModel {
             let (nets, levels) = (self.nets(), &mut s.pass.levels);
             levels.place(nets.proposals, nets.params, &s.rays, &s.warps, &self.intervals, &mut placement, &s.index)
         });
+        stats.proposal_samples = *placed.as_ref().unwrap_or(&0);
         let Some(fin) = placed.ok().and(s.pass.levels.last()) else {
             // Only with a configuration `check` refuses: nothing to show.
             s.valid.iter().for_each(|&i| out[i] = miss);
@@ -275,6 +276,7 @@ impl Model for CaptureModel {
                     sq_err: p.sq_err,
                     loss: p.loss(),
                     samples: p.samples,
+                    proposal_samples: p.proposal_samples,
                     skipped: p.culled,
                     rays: p.rays,
                 });

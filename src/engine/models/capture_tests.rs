@@ -196,3 +196,32 @@ fn the_images_seen_are_saved_and_restored() {
     let wrong = CaptureModel::from_parts(tiny(), m.scene.clone(), vec![0.0; 5]);
     assert!(wrong.is_err());
 }
+
+/// The proposal networks evaluate every level of every samplable ray in
+/// full (early termination stops only the main field, and culling only
+/// its colours): `coarse_samples + fine_samples` proposal samples per ray
+/// (16 + 8 for `capture-tiny`), in training and in rendering; rays that
+/// cannot be sampled have none. With one level, only the coarse ones.
+#[test]
+fn proposal_samples_are_counted_as_the_config_implies() {
+    let m = perturbed(5);
+    let per_ray = (m.config.proposal.coarse_samples + m.config.proposal.fine_samples) as u64;
+    assert_eq!(per_ray, 24);
+    let train = rays(&m, 7);
+    let ctx = StepCtx { seed: 1, step: 3, batch_rays: 7 };
+    let stats = m.train_rays(&train, &ctx, &mut vec![0.0; m.params.len()]);
+    assert_eq!((stats.rays, stats.proposal_samples), (7, 7 * per_ray), "{stats:?}");
+    assert!(stats.samples <= 7 * 8, "{stats:?}");
+
+    let mut plain: Vec<Ray> = train.iter().map(|r| r.ray).collect();
+    plain.push(Ray { origin: Vec3::new(f32::NAN, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) });
+    let mut out = vec![RayOutput::default(); plain.len()];
+    let rendered = m.render_rays(&plain, [1.0; 3], &mut out);
+    assert_eq!((rendered.rays, rendered.proposal_samples), (8, 7 * per_ray), "{rendered:?}");
+
+    let mut one_level = tiny();
+    one_level.proposal.fine_samples = 0;
+    let one = CaptureModel::new(one_level, scene(), 2);
+    let stats = one.train_rays(&rays(&one, 5), &ctx, &mut vec![0.0; one.params.len()]);
+    assert_eq!(stats.proposal_samples, 5 * 16, "{stats:?}");
+}

@@ -280,6 +280,7 @@ impl InstantModel {
             samples: p.samples,
             skipped: skipped + p.culled,
             rays: rays.len() as u64,
+            ..BatchStats::default()
         }
     }
 }

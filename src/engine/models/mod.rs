@@ -6,6 +6,7 @@
 //! the parts in `fields`, `sampling`, `render` and `train::pass`), one arm of
 //! [`config::ModelConfig`] and its presets.
 
+pub mod auto;
 pub mod capture;
 pub mod capture_config;
 pub mod config;
@@ -99,8 +100,12 @@ pub struct BatchStats {
     pub sq_err: f64,
     /// The loss summed over passes (coarse + fine for NeRF).
     pub loss: f64,
-    /// Network evaluations.
+    /// Network evaluations (of the main field, for a model with proposal
+    /// networks).
     pub samples: u64,
+    /// Evaluations of the proposal networks, which only place the main
+    /// field's samples (the capture model's; 0 for the others).
+    pub proposal_samples: u64,
     /// Samples a dense marcher would have taken but that were skipped.
     pub skipped: u64,
     pub rays: u64,
@@ -111,6 +116,7 @@ impl BatchStats {
         self.sq_err += o.sq_err;
         self.loss += o.loss;
         self.samples += o.samples;
+        self.proposal_samples += o.proposal_samples;
         self.skipped += o.skipped;
         self.rays += o.rays;
     }

@@ -28,7 +28,8 @@ pub enum Start {
     /// The model, optimiser and trainer state saved at `from`, which must
     /// keep its optimiser state (not render-only) and, when `kind` is
     /// given, hold a model of that kind. The session's [`TrainConfig`]
-    /// replaces the checkpoint's: its budget is the new total.
+    /// replaces the checkpoint's: its budget is the new total (the
+    /// checkpoint's `model_choice` is kept when the session gives none).
     Resume { from: PathBuf, kind: Option<String> },
 }
 
@@ -145,7 +146,7 @@ pub struct Session<'a> {
 
 impl<'a> Session<'a> {
     /// Builds the trainer from `start`; trains nothing yet.
-    pub fn new(start: Start, config: SessionConfig, ds: &'a Dataset) -> Result<Self, SessionError> {
+    pub fn new(start: Start, mut config: SessionConfig, ds: &'a Dataset) -> Result<Self, SessionError> {
         let (model, adam, state) = match start {
             Start::Fresh { model, adam } => (model, adam, TrainState::default()),
             Start::Resume { from, kind } => {
@@ -154,6 +155,10 @@ impl<'a> Session<'a> {
                     && r.model.kind() != expected
                 {
                     return Err(SessionError::WrongKind { path: from, expected, found: r.model.kind().into() });
+                }
+                // Why the model is what it is stays with it.
+                if config.train.model_choice.is_none() {
+                    config.train.model_choice = r.train.model_choice;
                 }
                 (r.model, r.adam, r.state)
             }
@@ -318,6 +323,36 @@ mod tests {
         let (stop, steps, _) = run(&mut s, &AtomicBool::new(false));
         assert_eq!((stop, steps), (Stop::Budget, (6..=12).collect()));
         assert!(identity(&resumed) == identity(&straight), "the resumed run saved another model");
+    }
+
+    /// The automatic choice is saved in the checkpoint's `meta.train` and
+    /// stays with the model when a session resumes without one.
+    #[test]
+    fn the_model_choice_is_saved_and_kept_on_resume() {
+        let ds = ball();
+        let dir = tempfile::tempdir().unwrap();
+        let (first, second) = (dir.path().join("a"), dir.path().join("b"));
+        let choice = crate::engine::models::auto::choose(&ds);
+        let mut c = config(&first, 2, 1e9);
+        c.train.model_choice = Some(choice.clone());
+        let mut s = Session::new(fresh(&ds), c, &ds).unwrap();
+        run(&mut s, &AtomicBool::new(false));
+        let meta = Checkpoint::load(&first).unwrap().meta;
+        assert_eq!(meta["train"]["model_choice"]["preset"], "instant", "{meta}");
+        assert_eq!(persist::load(&first).unwrap().train.model_choice.as_ref(), Some(&choice));
+        let from = Start::Resume { from: first, kind: None };
+        let mut s = Session::new(from, config(&second, 4, 1e9), &ds).unwrap();
+        run(&mut s, &AtomicBool::new(false));
+        assert_eq!(persist::load(&second).unwrap().train.model_choice, Some(choice));
+        // Without a choice (and without proposal networks) nothing new is
+        // written: the checkpoints of named models keep their bytes.
+        let mut s = Session::new(fresh(&ds), config(&dir.path().join("c"), 1, 1e9), &ds).unwrap();
+        run(&mut s, &AtomicBool::new(false));
+        let meta = Checkpoint::load(&dir.path().join("c")).unwrap().meta;
+        assert!(
+            meta["train"].get("model_choice").is_none() && meta["state"].get("proposal_samples").is_none(),
+            "{meta}"
+        );
     }
 
     #[test]

@@ -23,6 +23,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::engine::dataset::Dataset;
+use crate::engine::models::auto::ModelChoice;
 use crate::engine::models::{BatchStats, Model, StepCtx, TrainRay};
 use crate::engine::nn::adam::Adam;
 use crate::engine::rng::Rng;
@@ -58,6 +59,10 @@ pub struct TrainConfig {
     /// model learns transparency instead of the background colour.
     #[serde(default)]
     pub random_background: bool,
+    /// Why the model is the one it is, when `auto` chose it (kept in the
+    /// checkpoint's `meta.train`; absent in checkpoints from before).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_choice: Option<ModelChoice>,
 }
 
 impl Default for TrainConfig {
@@ -67,6 +72,7 @@ impl Default for TrainConfig {
             batch_rays: 1024,
             budget: Budget { steps: Some(1000), seconds: None },
             random_background: false,
+            model_choice: None,
         }
     }
 }
@@ -86,6 +92,8 @@ pub struct Progress {
     pub lr: f32,
     pub rays: u64,
     pub samples: u64,
+    /// Evaluations of the proposal networks (capture model; 0 otherwise).
+    pub proposal_samples: u64,
     pub skipped: u64,
     /// Steps skipped because the loss or a gradient was not finite.
     pub diverged_steps: u64,
@@ -103,6 +111,11 @@ pub struct TrainState {
     pub elapsed: f64,
     pub rays: u64,
     pub samples: u64,
+    /// Evaluations of the proposal networks so far (capture model; left
+    /// out of the checkpoints of the others, which have none, so their
+    /// bytes stay as they were).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub proposal_samples: u64,
     pub skipped: u64,
     pub diverged_steps: u64,
     pub smoothed_mse: f64,
@@ -118,6 +131,10 @@ fn one() -> f32 {
     1.0
 }
 
+fn is_zero(n: &u64) -> bool {
+    *n == 0
+}
+
 impl Default for TrainState {
     fn default() -> Self {
         Self {
@@ -125,6 +142,7 @@ impl Default for TrainState {
             elapsed: 0.0,
             rays: 0,
             samples: 0,
+            proposal_samples: 0,
             skipped: 0,
             diverged_steps: 0,
             smoothed_mse: 0.0,
@@ -356,6 +374,7 @@ impl<'a> Trainer<'a> {
         self.state.step += 1;
         self.state.rays += total.rays;
         self.state.samples += total.samples;
+        self.state.proposal_samples += total.proposal_samples;
         self.state.skipped += total.skipped;
         // The parameters too: ReLU (`f32::max`) swallows a NaN weight, which
         // leaves the loss finite but would make the model unsaveable.
@@ -400,6 +419,7 @@ impl<'a> Trainer<'a> {
             lr: self.adam.config.lr_at(b.progress(s.step, s.elapsed)) * s.lr_scale,
             rays: s.rays,
             samples: s.samples,
+            proposal_samples: s.proposal_samples,
             skipped: s.skipped,
             diverged_steps: s.diverged_steps,
             rollbacks: s.rollbacks,
