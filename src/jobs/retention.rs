@@ -157,6 +157,7 @@ mod tests {
                 fov: 40.0,
                 format,
                 path: None,
+                appearance: Default::default(),
             })
         };
         Job {
