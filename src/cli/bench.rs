@@ -6,19 +6,17 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
 use serde::{Deserialize, Serialize};
 
-use super::eval::score;
+use super::eval::{Scored, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, MODEL_KINDS, new_model_and_adam};
-use super::{Common, MaskArgs};
+use super::{AppearanceArgs, Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::io::fsio;
-use crate::engine::render::render_view;
 use crate::engine::train::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
 
@@ -55,6 +53,8 @@ pub struct BenchArgs {
     #[command(flatten)]
     pub masks: MaskArgs,
     #[command(flatten)]
+    pub appearance: AppearanceArgs,
+    #[command(flatten)]
     pub common: Common,
 }
 
@@ -75,9 +75,15 @@ pub struct BenchRow {
     /// marcher would have taken).
     pub samples_per_ray: f64,
     pub skipped_per_ray: f64,
-    /// Mean over the scored test views, on the 8-bit renders.
+    /// Mean over the scored test views, on the 8-bit renders (a capture
+    /// model's views with the nearest training camera's appearance, or
+    /// `--appearance`).
     pub psnr: f64,
     pub ssim: f64,
+    /// For a model with per-image appearance (capture), the mean PSNR of
+    /// the same views with the mean appearance.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_mean: Option<f64>,
     /// The same inside the views' masks, when masks are in effect (means
     /// over the views with pixels inside).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -119,12 +125,21 @@ const HEADER: &str = "model    budget s  train s    steps          rays        s
 const MASKED_TAIL: (&str, &str) =
     ("PSNR dB    SSIM  ms/view  peak MiB", "PSNR dB    SSIM  mask dB  mask SSIM  ms/view  peak MiB");
 
-/// The table's header, with the columns inside the masks when `masked`.
-fn header(masked: bool) -> String {
-    if masked { HEADER.replace(MASKED_TAIL.0, MASKED_TAIL.1) } else { HEADER.to_string() }
+/// The PSNR column, and with the mean appearance's beside it.
+const MEAN_COLUMN: (&str, &str) = ("PSNR dB ", "PSNR dB  mean dB ");
+
+/// The table's header, with the columns inside the masks when `masked`,
+/// and the mean appearance's PSNR when `mean` (a capture model is benched).
+fn header(masked: bool, mean: bool) -> String {
+    let h = if masked { HEADER.replace(MASKED_TAIL.0, MASKED_TAIL.1) } else { HEADER.to_string() };
+    if mean { h.replacen(MEAN_COLUMN.0, MEAN_COLUMN.1, 1) } else { h }
 }
 
-fn format_row(r: &BenchRow, masked: bool) -> String {
+fn format_row(r: &BenchRow, masked: bool, mean: bool) -> String {
+    let psnr_mean = match mean {
+        true => format!(" {:>8}", r.psnr_mean.map_or("-".into(), |p| format!("{p:.2}"))),
+        false => String::new(),
+    };
     let mem = r.peak_memory_mib.map_or("n/a".to_string(), |m| format!("{m:.0}"));
     let mask = if masked {
         let p = r.psnr_mask.map_or("-".into(), |p| format!("{p:.2}"));
@@ -134,7 +149,7 @@ fn format_row(r: &BenchRow, masked: bool) -> String {
         String::new()
     };
     format!(
-        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>9.1} {:>7.2} {:>7.4}{mask} {:>8.0} {:>9}",
+        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>9.1} {:>7.2}{psnr_mean} {:>7.4}{mask} {:>8.0} {:>9}",
         r.model,
         format!("{}", r.budget_seconds),
         r.train_seconds,
@@ -150,30 +165,32 @@ fn format_row(r: &BenchRow, masked: bool) -> String {
     )
 }
 
-/// Renders and scores the test views with the trainer's current model.
+/// Renders and scores the test views with the trainer's current model,
+/// as `eval` does (`render_and_score`).
 fn measure(
     t: &Trainer<'_>,
     p: &Progress,
     ds: &Dataset,
     views: &[usize],
     kind: &str,
+    appearance: &AppearanceArgs,
     budget: f64,
 ) -> anyhow::Result<BenchRow> {
     let (mut sum_p, mut sum_s, mut secs) = (0.0, 0.0, 0.0);
-    let (mut mask_p, mut mask_s) = (Vec::new(), Vec::new());
+    let (mut mask_p, mut mask_s, mut mean_p) = (Vec::new(), Vec::new(), Vec::new());
     let (mut rays, mut samples) = (0u64, 0u64);
     for &i in views {
         let f = &ds.frames[i];
-        let t0 = Instant::now();
-        let v = render_view(&*t.model, &f.camera, ds.background);
-        secs += t0.elapsed().as_secs_f64();
+        let Scored { view: v, secs: s, scores: sc, psnr_mean } =
+            render_and_score(&*t.model, f, ds.background, appearance)?;
+        secs += s;
         rays += v.stats.rays;
         samples += v.stats.samples;
-        let sc = score(&v, f, ds.background)?;
         sum_p += sc.psnr;
         sum_s += sc.ssim;
         mask_p.extend(sc.psnr_mask);
         mask_s.extend(sc.ssim_mask);
+        mean_p.extend(psnr_mean);
     }
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
     let n = views.len() as f64;
@@ -189,6 +206,7 @@ fn measure(
         skipped_per_ray: per_ray(p.skipped),
         psnr: sum_p / n,
         ssim: sum_s / n,
+        psnr_mean: mean(&mean_p),
         psnr_mask: mean(&mask_p),
         ssim_mask: mean(&mask_s),
         render_ms: secs / n * 1000.0,
@@ -245,7 +263,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         rows: Vec::new(),
     };
     let mut failure: Option<anyhow::Error> = None;
-    println!("{}", header(ds.masks != MaskUse::Off));
+    let with_mean = a.model.iter().any(|m| m == crate::engine::models::capture::KIND);
+    println!("{}", header(ds.masks != MaskUse::Off, with_mean));
     for kind in &a.model {
         let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel };
         if let Err(e) = run.model(kind, &mut report) {
@@ -301,7 +320,7 @@ impl Run<'_> {
             if next >= budgets.len() || p.elapsed < budgets[next] {
                 return true;
             }
-            let row = match measure(t, p, ds, self.views, kind, budgets[next]) {
+            let row = match measure(t, p, ds, self.views, kind, &a.appearance, budgets[next]) {
                 Ok(r) => r,
                 Err(e) => {
                     error = Some(e);
@@ -311,7 +330,8 @@ impl Run<'_> {
             // A step that crosses several budgets scores once for all of them.
             while next < budgets.len() && p.elapsed >= budgets[next] {
                 let r = BenchRow { budget_seconds: budgets[next], ..row.clone() };
-                println!("{}", format_row(&r, ds.masks != MaskUse::Off));
+                let with_mean = a.model.iter().any(|m| m == crate::engine::models::capture::KIND);
+                println!("{}", format_row(&r, ds.masks != MaskUse::Off, with_mean));
                 report.rows.push(r);
                 next += 1;
             }
