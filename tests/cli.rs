@@ -267,7 +267,7 @@ fn appearance_on_the_command_line() {
     let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "1", "--appearance", "mean"]));
     let line = out.lines().nth(1).unwrap();
     let words: Vec<&str> = line.split_whitespace().collect();
-    assert_eq!(words[4], format!("{})", words[2]), "{line}");
+    assert_eq!((words[4], words[5]), ("(mean", &*format!("{})", words[2])), "{line}");
 
     let renders = dir.path().join("renders");
     let r = renders.to_str().unwrap();

@@ -471,3 +471,61 @@ mod plot {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(psnr_mean: Option<f64>) -> BenchRow {
+        BenchRow {
+            model: "capture".into(),
+            budget_seconds: 10.0,
+            train_seconds: 10.2,
+            steps: 100,
+            rays: 409_600,
+            samples: 13_107_200,
+            samples_per_ray: 32.0,
+            skipped_per_ray: 1.5,
+            psnr: 27.104,
+            ssim: 0.8123,
+            psnr_mean,
+            psnr_mask: Some(29.5),
+            ssim_mask: Some(0.9),
+            render_ms: 1130.0,
+            render_samples_per_ray: 30.0,
+            peak_memory_mib: Some(512.0),
+        }
+    }
+
+    /// The mean appearance's column sits under its header as the PSNR's
+    /// does (the same offset), with or without the mask columns; without
+    /// it the table is as before.
+    #[test]
+    fn the_mean_appearance_column_lines_up() {
+        let end = |s: &str, word: &str| (s.find(word).map(|i| i + word.len()).unwrap()) as i64;
+        for masked in [false, true] {
+            let (plain_h, plain_r) = (header(masked, false), format_row(&row(Some(26.5)), masked, false));
+            assert!(!plain_h.contains("mean dB") && !plain_r.contains("26.50"), "{plain_h}\n{plain_r}");
+            let offset = end(&plain_h, "PSNR dB") - end(&plain_r, "27.10");
+            let (h, r) = (header(masked, true), format_row(&row(Some(26.5)), masked, true));
+            assert_eq!(end(&h, "PSNR dB") - end(&r, "27.10"), offset, "{h}\n{r}");
+            assert_eq!(end(&h, "mean dB") - end(&r, "26.50"), offset, "{h}\n{r}");
+            assert_eq!(end(&h, "SSIM") - end(&r, "0.8123"), end(&plain_h, "SSIM") - end(&plain_r, "0.8123"));
+            assert_eq!(h.len() - r.len(), plain_h.len() - plain_r.len(), "{h}\n{r}");
+            let r = format_row(&row(None), masked, true);
+            assert_eq!(end(&h, "mean dB") - end(&r, "27.10") - 9, offset, "{h}\n{r}");
+        }
+        assert_eq!(header(false, false), HEADER);
+    }
+
+    /// `psnr_mean` is in the JSON of models that have it only.
+    #[test]
+    fn psnr_mean_is_written_when_there_is_one() {
+        let with = serde_json::to_value(row(Some(26.5))).unwrap();
+        assert_eq!(with["psnr_mean"], 26.5);
+        let without = serde_json::to_value(row(None)).unwrap();
+        assert!(without.get("psnr_mean").is_none(), "{without}");
+        let back: BenchRow = serde_json::from_value(without).unwrap();
+        assert_eq!(back.psnr_mean, None);
+    }
+}
