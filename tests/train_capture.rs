@@ -12,9 +12,9 @@ use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::textured::TexturedScene;
 use radiance::engine::geometry::scene::Scene;
 use radiance::engine::io::persist;
-use radiance::engine::models::config::ModelConfig;
 use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
+use radiance::engine::models::config::ModelConfig;
 use radiance::engine::render::appearance::held_out_options;
 use radiance::engine::render::render_view_with;
 use radiance::engine::rng::Rng;
@@ -131,8 +131,7 @@ fn exposed_dataset(seed: u64) -> (Dataset, Vec<f32>) {
     let mut ds = dataset();
     let mut rng = Rng::new(seed);
     let n = ds.frames.len();
-    let runs: Vec<f32> =
-        (0..n.div_ceil(6)).map(|r| if r % 2 == 0 { 0.6 } else { 1.25 } + 0.15 * rng.f32()).collect();
+    let runs: Vec<f32> = (0..n.div_ceil(6)).map(|r| if r % 2 == 0 { 0.6 } else { 1.25 } + 0.15 * rng.f32()).collect();
     let gains: Vec<f32> = (0..n).map(|k| runs[k / 6] + 0.06 * (rng.f32() - 0.5)).collect();
     for (f, &g) in ds.frames.iter_mut().zip(&gains) {
         for p in f.image.rgba.chunks_exact_mut(4) {

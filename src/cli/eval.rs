@@ -193,7 +193,8 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
     let (mut mask_p, mut mask_s, mut mean_p) = (Vec::new(), Vec::new(), Vec::new());
     for &i in &idx {
         let f = &ds.frames[i];
-        let Scored { view: v, secs, scores: sc, psnr_mean } = render_and_score(&*r.model, f, ds.background, &a.appearance)?;
+        let Scored { view: v, secs, scores: sc, psnr_mean } =
+            render_and_score(&*r.model, f, ds.background, &a.appearance)?;
         if let Some(o) = &a.out {
             let path = o.join(format!("{}.png", f.name));
             png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;

@@ -33,7 +33,10 @@ async fn renders_and_videos_take_a_training_images_appearance() {
     assert_error(&v, "bad_request");
     let message = v["error"]["message"].as_str().unwrap();
     assert!(message.contains("image 99999") && message.contains("training images: "), "{message}");
-    assert_eq!((v["error"]["details"]["field"].as_str(), v["error"]["details"]["value"].as_u64()), (Some("appearance"), Some(99999)));
+    assert_eq!(
+        (v["error"]["details"]["field"].as_str(), v["error"]["details"]["value"].as_u64()),
+        (Some("appearance"), Some(99999))
+    );
     let allowed = v["error"]["details"]["allowed"].as_str().unwrap();
     assert!(allowed.starts_with("mean, or a training image: "), "{allowed}");
     let first = first_index(message);

@@ -182,7 +182,10 @@ fn rendering_with_an_images_appearance_is_that_images_colour() {
     assert!(p.sq_err < 1e-12, "{p:?}");
     let one = render(&RenderOptions { image: Some(1) });
     let differs = |a: &[RayOutput], b: &[RayOutput]| {
-        a.iter().zip(b).map(|(x, y)| (0..3).map(|c| (x.rgb[c] - y.rgb[c]).abs()).fold(0.0, f32::max)).fold(0.0, f32::max)
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (0..3).map(|c| (x.rgb[c] - y.rgb[c]).abs()).fold(0.0, f32::max))
+            .fold(0.0, f32::max)
     };
     assert!(differs(&one, &two) > 1e-3, "{}", differs(&one, &two));
     // The default options: the mean of images 1 and 2, as `render_rays`.

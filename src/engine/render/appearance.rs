@@ -41,7 +41,9 @@ pub enum Appearance {
 /// Why an appearance cannot be rendered with this model.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum AppearanceError {
-    #[error("appearance: image {image} was not trained on, so it has no appearance of its own (training images: {valid})")]
+    #[error(
+        "appearance: image {image} was not trained on, so it has no appearance of its own (training images: {valid})"
+    )]
     NotTrained { image: u32, valid: String },
     #[error(
         "appearance 'nearest': this model stores no training cameras (it was trained before checkpoints kept them); \
