@@ -242,3 +242,65 @@ fn masks_on_the_command_line() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("auto, score, ignore, composite or off"), "{err}");
 }
+
+/// A capture model's appearance on the command line: `eval` scores with the
+/// nearest training camera's appearance and prints the mean's beside it,
+/// `render` and `video` take a training image's index, and an index the
+/// model did not train on is an error naming the images it did.
+#[test]
+fn appearance_on_the_command_line() {
+    use radiance::engine::dataset::{Dataset, LoadOptions};
+    use radiance::engine::geometry::scene::Scene;
+    use radiance::engine::io::persist;
+    use radiance::engine::models::config::ModelConfig;
+    use radiance::engine::render::appearance::index_ranges;
+    use radiance::engine::train::trainer::{Budget, TrainState, Trainer};
+
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let model = dir.path().join("c.ckpt");
+    let (d, m) = (data.to_str().unwrap(), model.to_str().unwrap());
+    // `capture-tiny` is a preset of the library's (the command line trains the full presets).
+    let ds = Dataset::load(&data, &LoadOptions::default()).unwrap();
+    let config = ModelConfig::preset("capture-tiny").unwrap();
+    let (net, adam) = config.build_with_adam(Scene::from_dataset(&ds), 1, None).unwrap();
+    let train = config.train_config(1, 256, Budget { steps: Some(3), seconds: None });
+    let mut t = Trainer::new(net, adam, train, TrainState::default(), &ds);
+    t.run(&std::sync::atomic::AtomicBool::new(false), |_, _| true);
+    persist::save(&model, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+    let trained = t.model.appearance_images().unwrap();
+    assert!(!trained.is_empty());
+
+    let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "2"]));
+    assert!(out.starts_with("appearance: the nearest training camera's"), "{out}");
+    let last = out.lines().last().unwrap();
+    assert!(last.starts_with("2 views  PSNR ") && last.contains(" dB (mean "), "{last}");
+    // With the mean asked for, both numbers are the same.
+    let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "1", "--appearance", "mean"]));
+    let line = out.lines().nth(1).unwrap();
+    let words: Vec<&str> = line.split_whitespace().collect();
+    assert_eq!((words[4], words[5]), ("(mean", &*format!("{})", words[2])), "{line}");
+
+    let renders = dir.path().join("renders");
+    let r = renders.to_str().unwrap();
+    let first = trained[0].to_string();
+    ok(&radiance(&["render", "--model", m, "--data", d, "--limit", "1", "--appearance", &first, "--out", r]));
+    assert_eq!(std::fs::read_dir(&renders).unwrap().count(), 1);
+    let gif = dir.path().join("o.gif");
+    let g = gif.to_str().unwrap();
+    for cmd in [
+        vec!["render", "--model", m, "--data", d, "--appearance", "99999", "--out", r],
+        vec!["eval", "--model", m, "--data", d, "--appearance", "99999"],
+        vec!["video", "--model", m, "--out", g, "--frames", "2", "--appearance", "99999"],
+    ] {
+        let out = radiance(&cmd);
+        let err = String::from_utf8_lossy(&out.stderr);
+        let want = format!("training images: {}", index_ranges(&trained));
+        assert!(!out.status.success() && err.contains("99999") && err.contains(&want), "{cmd:?}: {err}");
+    }
+    assert!(!gif.exists());
+    let out = radiance(&["render", "--model", m, "--data", d, "--appearance", "bright", "--out", r]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("expected mean, nearest or a training image's index"), "{err}");
+}

@@ -26,6 +26,7 @@ use serde_json::{Value, json};
 use super::archive::{ArchiveError, Limit};
 use crate::engine::dataset::DatasetError;
 use crate::engine::io::checkpoint::CheckpointError;
+use crate::engine::render::appearance::AppearanceError;
 use crate::jobs::SchedError;
 use crate::media::video::VideoError;
 
@@ -185,6 +186,21 @@ impl From<VideoError> for ApiError {
         match e {
             VideoError::Encoder { .. } => Self::internal(e),
             e => Self::bad_request(e.to_string()),
+        }
+    }
+}
+
+/// An `appearance` the model does not have is the client's: the message
+/// and `details.allowed` name the images it does have.
+impl From<AppearanceError> for ApiError {
+    fn from(e: AppearanceError) -> Self {
+        match &e {
+            AppearanceError::NotTrained { image, valid } => {
+                Self::bad_field(e.to_string(), "appearance", image, &format!("mean, or a training image: {valid}"))
+            }
+            AppearanceError::NoCameras => {
+                Self::bad_field(e.to_string(), "appearance", "nearest", "mean, or a training image's index")
+            }
         }
     }
 }

@@ -17,6 +17,7 @@ use crate::engine::geometry::camera::Camera;
 use crate::engine::io::checkpoint::CheckpointError;
 use crate::engine::io::persist;
 use crate::engine::models::Model;
+use crate::engine::render::appearance::Appearance;
 use crate::engine::render::render_view_until;
 use crate::media::png::{self, ViewImage};
 use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
@@ -79,6 +80,10 @@ pub struct RenderQuery {
     pub output: Option<String>,
     /// `white` (default), `black` or `transparent` (RGBA).
     pub background: Option<String>,
+    /// `mean` (default: the mean appearance of the images trained on) or a
+    /// training image's index (its appearance); models without per-image
+    /// appearance ignore it.
+    pub appearance: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -123,10 +128,37 @@ pub fn parse_c2w(s: &str) -> Result<[[f32; 4]; 3], String> {
     Ok(m)
 }
 
+/// What `appearance` takes in a request.
+const APPEARANCE: &str = "mean, or a training image's index";
+
+/// Reads a request's `appearance` (render query, video body): `mean` (the
+/// default) or a training image's index. `nearest` is the command line's
+/// (and held-out scoring's) only: a request names what it wants to see.
+pub(super) fn parse_appearance(value: Option<&str>) -> ApiResult<Appearance> {
+    match value.map(str::parse::<Appearance>) {
+        None => Ok(Appearance::Mean),
+        Some(Ok(Appearance::Nearest)) | Some(Err(_)) => {
+            let v = value.unwrap_or_default();
+            let message = format!("appearance '{v}': expected mean or a training image's index");
+            Err(ApiError::bad_field(message, "appearance", v, APPEARANCE))
+        }
+        Some(Ok(a)) => Ok(a),
+    }
+}
+
 /// What `c2w` takes.
 const C2W: &str = "12 or 16 comma-separated numbers: a rigid transform, row-major";
 
-fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResult<(Camera, Output, Background)> {
+/// A render's camera and what to draw of it.
+#[derive(Debug)]
+struct Request {
+    camera: Camera,
+    output: Output,
+    background: Background,
+    appearance: Appearance,
+}
+
+fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResult<Request> {
     let orbit = q.azimuth.is_some() || q.elevation.is_some() || q.radius.is_some();
     let pose = match &q.c2w {
         Some(_) if orbit => return Err(ApiError::bad_request("give either c2w or azimuth/elevation/radius, not both")),
@@ -180,7 +212,8 @@ fn parse_query(q: &RenderQuery, view: &ViewDefaults, max_pixels: u64) -> ApiResu
             return Err(ApiError::bad_field(message, "background", b, "white, black, transparent"));
         }
     };
-    Ok((Camera::from_fov(width, height, fov.to_radians(), pose), output, background))
+    let appearance = parse_appearance(q.appearance.as_deref())?;
+    Ok(Request { camera: Camera::from_fov(width, height, fov.to_radians(), pose), output, background, appearance })
 }
 
 pub async fn render(
@@ -190,7 +223,7 @@ pub async fn render(
 ) -> ApiResult<impl IntoResponse> {
     let Query(q) = q?;
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
-    let (camera, output, background) = parse_query(&q, &info.view, s.config.max_render_pixels)?;
+    let Request { camera, output, background, appearance } = parse_query(&q, &info.view, s.config.max_render_pixels)?;
     let _slot = s.render_slots.acquire().await.map_err(ApiError::internal)?;
     let t0 = Instant::now();
     let model = model_of(&s, &info).await?;
@@ -203,7 +236,8 @@ pub async fn render(
             Background::Colour(c) => c,
             Background::Transparent => [0.0; 3],
         };
-        let Some(v) = render_view_until(&*model, &camera, bg, &flag) else { return Ok(None) };
+        let options = appearance.resolve(&*model, &camera)?;
+        let Some(v) = render_view_until(&*model, &camera, bg, &options, &flag) else { return Ok(None) };
         png::encode_view(&v, image_of(output, background, info.view.far)).map(Some).map_err(ApiError::internal)
     })
     .await??;
@@ -226,7 +260,7 @@ impl Drop for CancelOnDrop {
 
 /// Loads a model from its checkpoint (on the blocking threads), or reuses
 /// it when its record has not changed.
-async fn model_of(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
+pub(super) async fn model_of(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
     {
         let cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(c) = cache.iter().find(|c| c.id == info.id && c.updated_at == info.updated_at) {
@@ -295,6 +329,19 @@ mod tests {
         let c2w = details_of(RenderQuery { c2w: Some("1,2,3".into()), ..Default::default() });
         assert_eq!((c2w["field"].as_str(), c2w["value"].as_str()), (Some("c2w"), Some("1,2,3")));
         assert!(parse_query(&RenderQuery::default(), &view(), 1 << 20).is_ok());
+        for bad in ["nearest", "Mean", "-3", "1e3", "99999999999"] {
+            let a = details_of(RenderQuery { appearance: Some(bad.into()), ..Default::default() });
+            assert_eq!(a, json!({ "field": "appearance", "value": bad, "allowed": APPEARANCE }));
+        }
+    }
+
+    #[test]
+    fn appearance_is_mean_or_an_index() {
+        let q = |a: Option<&str>| RenderQuery { appearance: a.map(str::to_string), ..Default::default() };
+        let appearance = |a| parse_query(&q(a), &view(), 1 << 20).unwrap().appearance;
+        assert_eq!(appearance(None), Appearance::Mean);
+        assert_eq!(appearance(Some("mean")), Appearance::Mean);
+        assert_eq!(appearance(Some("12")), Appearance::Image(12));
     }
 
     #[test]

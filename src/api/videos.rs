@@ -11,7 +11,7 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use serde::Deserialize;
 
-use super::{ApiError, ApiResult, AppState, camera_path, limits};
+use super::{ApiError, ApiResult, AppState, camera_path, limits, models};
 use crate::engine::geometry::path::CameraPath;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate;
@@ -41,6 +41,9 @@ pub struct CreateVideo {
     pub format: Option<String>,
     /// Keyframes to fly through instead of an orbit (see `camera_path`).
     pub path: Option<serde_json::Value>,
+    /// `mean` (default) or a training image's index: the frames'
+    /// appearance (checked against the model in [`create`]).
+    pub appearance: Option<String>,
 }
 
 /// Most frames in one video.
@@ -49,6 +52,7 @@ pub const MAX_FRAMES: u32 = 600;
 /// Checks a request against the model's view defaults and the render cap.
 pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> ApiResult<VideoSpec> {
     let path = r.path.as_ref().map(|p| camera_path::parse(p, view.fov)).transpose()?;
+    let appearance = models::parse_appearance(r.appearance.as_deref())?;
     if let Some(p) = &path {
         if let Some((field, value)) =
             [("elevation", r.elevation), ("radius", r.radius)].into_iter().find_map(|(f, v)| v.map(|v| (f, v)))
@@ -118,7 +122,7 @@ pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) 
         }
         (None, _) => None,
     };
-    Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format, path })
+    Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format, path, appearance })
 }
 
 /// The frame size: the requested sides, the others from the training
@@ -154,6 +158,12 @@ pub async fn create(
     let Json(req) = body?;
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
     let free_disk = s.artifacts.free_space().await?;
+    if req.appearance.is_some() {
+        // An image index must be one the model trained on: refused now
+        // rather than by the job.
+        let appearance = models::parse_appearance(req.appearance.as_deref())?;
+        appearance.check(&*models::model_of(&s, &info).await?)?;
+    }
     let s2 = s.clone();
     let (spec, memory) = tokio::task::spawn_blocking(move || -> ApiResult<(VideoSpec, u64)> {
         let spec = to_spec(req, &info.view, s2.config.max_render_pixels)?;

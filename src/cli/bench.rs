@@ -6,20 +6,18 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
 use serde::{Deserialize, Serialize};
 
-use super::eval::score;
+use super::eval::{Scored, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
-use super::{Common, MaskArgs};
+use super::{AppearanceArgs, Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::io::fsio;
 use crate::engine::models::auto::ModelChoice;
-use crate::engine::render::render_view;
 use crate::engine::train::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
 
@@ -58,6 +56,8 @@ pub struct BenchArgs {
     #[command(flatten)]
     pub masks: MaskArgs,
     #[command(flatten)]
+    pub appearance: AppearanceArgs,
+    #[command(flatten)]
     pub common: Common,
 }
 
@@ -84,9 +84,15 @@ pub struct BenchRow {
     pub proposal_samples: u64,
     #[serde(default)]
     pub proposal_samples_per_ray: f64,
-    /// Mean over the scored test views, on the 8-bit renders.
+    /// Mean over the scored test views, on the 8-bit renders (a capture
+    /// model's views with the nearest training camera's appearance, or
+    /// `--appearance`).
     pub psnr: f64,
     pub ssim: f64,
+    /// For a model with per-image appearance (capture), the mean PSNR of
+    /// the same views with the mean appearance.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_mean: Option<f64>,
     /// The same inside the views' masks, when masks are in effect (means
     /// over the views with pixels inside).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -134,12 +140,21 @@ const HEADER: &str = "model    budget s  train s    steps          rays        s
 const MASKED_TAIL: (&str, &str) =
     ("PSNR dB    SSIM  ms/view  peak MiB", "PSNR dB    SSIM  mask dB  mask SSIM  ms/view  peak MiB");
 
-/// The table's header, with the columns inside the masks when `masked`.
-fn header(masked: bool) -> String {
-    if masked { HEADER.replace(MASKED_TAIL.0, MASKED_TAIL.1) } else { HEADER.to_string() }
+/// The PSNR column, and with the mean appearance's beside it.
+const MEAN_COLUMN: (&str, &str) = ("PSNR dB ", "PSNR dB  mean dB ");
+
+/// The table's header, with the columns inside the masks when `masked`,
+/// and the mean appearance's PSNR when `mean` (a capture model is benched).
+fn header(masked: bool, mean: bool) -> String {
+    let h = if masked { HEADER.replace(MASKED_TAIL.0, MASKED_TAIL.1) } else { HEADER.to_string() };
+    if mean { h.replacen(MEAN_COLUMN.0, MEAN_COLUMN.1, 1) } else { h }
 }
 
-fn format_row(r: &BenchRow, masked: bool) -> String {
+fn format_row(r: &BenchRow, masked: bool, mean: bool) -> String {
+    let psnr_mean = match mean {
+        true => format!(" {:>8}", r.psnr_mean.map_or("-".into(), |p| format!("{p:.2}"))),
+        false => String::new(),
+    };
     let mem = r.peak_memory_mib.map_or("n/a".to_string(), |m| format!("{m:.0}"));
     let mask = if masked {
         let p = r.psnr_mask.map_or("-".into(), |p| format!("{p:.2}"));
@@ -149,7 +164,7 @@ fn format_row(r: &BenchRow, masked: bool) -> String {
         String::new()
     };
     format!(
-        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>8.1} {:>9.1} {:>7.2} {:>7.4}{mask} {:>8.0} {:>9}",
+        "{:<8} {:>8} {:>8.1} {:>8} {:>13} {:>14} {:>8.1} {:>8.1} {:>9.1} {:>7.2}{psnr_mean} {:>7.4}{mask} {:>8.0} {:>9}",
         r.model,
         format!("{}", r.budget_seconds),
         r.train_seconds,
@@ -166,31 +181,33 @@ fn format_row(r: &BenchRow, masked: bool) -> String {
     )
 }
 
-/// Renders and scores the test views with the trainer's current model.
+/// Renders and scores the test views with the trainer's current model,
+/// as `eval` does (`render_and_score`).
 fn measure(
     t: &Trainer<'_>,
     p: &Progress,
     ds: &Dataset,
     views: &[usize],
     kind: &str,
+    appearance: &AppearanceArgs,
     budget: f64,
 ) -> anyhow::Result<BenchRow> {
     let (mut sum_p, mut sum_s, mut secs) = (0.0, 0.0, 0.0);
-    let (mut mask_p, mut mask_s) = (Vec::new(), Vec::new());
+    let (mut mask_p, mut mask_s, mut mean_p) = (Vec::new(), Vec::new(), Vec::new());
     let (mut rays, mut samples, mut proposal) = (0u64, 0u64, 0u64);
     for &i in views {
         let f = &ds.frames[i];
-        let t0 = Instant::now();
-        let v = render_view(&*t.model, &f.camera, ds.background);
-        secs += t0.elapsed().as_secs_f64();
+        let Scored { view: v, secs: s, scores: sc, psnr_mean } =
+            render_and_score(&*t.model, f, ds.background, appearance)?;
+        secs += s;
         rays += v.stats.rays;
         samples += v.stats.samples;
         proposal += v.stats.proposal_samples;
-        let sc = score(&v, f, ds.background)?;
         sum_p += sc.psnr;
         sum_s += sc.ssim;
         mask_p.extend(sc.psnr_mask);
         mask_s.extend(sc.ssim_mask);
+        mean_p.extend(psnr_mean);
     }
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
     let n = views.len() as f64;
@@ -208,6 +225,7 @@ fn measure(
         proposal_samples_per_ray: per_ray(p.proposal_samples),
         psnr: sum_p / n,
         ssim: sum_s / n,
+        psnr_mean: mean(&mean_p),
         psnr_mask: mean(&mask_p),
         ssim_mask: mean(&mask_s),
         render_ms: secs / n * 1000.0,
@@ -272,7 +290,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         rows: Vec::new(),
     };
     let mut failure: Option<anyhow::Error> = None;
-    println!("{}", header(ds.masks != MaskUse::Off));
+    let with_mean = kinds.iter().any(|m| m == crate::engine::models::capture::KIND);
+    println!("{}", header(ds.masks != MaskUse::Off, with_mean));
     for kind in &kinds {
         let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel };
         if let Err(e) = run.model(kind, &mut report) {
@@ -328,7 +347,7 @@ impl Run<'_> {
             if next >= budgets.len() || p.elapsed < budgets[next] {
                 return true;
             }
-            let row = match measure(t, p, ds, self.views, kind, budgets[next]) {
+            let row = match measure(t, p, ds, self.views, kind, &a.appearance, budgets[next]) {
                 Ok(r) => r,
                 Err(e) => {
                     error = Some(e);
@@ -338,7 +357,8 @@ impl Run<'_> {
             // A step that crosses several budgets scores once for all of them.
             while next < budgets.len() && p.elapsed >= budgets[next] {
                 let r = BenchRow { budget_seconds: budgets[next], ..row.clone() };
-                println!("{}", format_row(&r, ds.masks != MaskUse::Off));
+                let with_mean = a.model.iter().any(|m| m == crate::engine::models::capture::KIND);
+                println!("{}", format_row(&r, ds.masks != MaskUse::Off, with_mean));
                 report.rows.push(r);
                 next += 1;
             }
@@ -476,5 +496,63 @@ mod plot {
         let bytes = png::encode_rgb(WIDTH, HEIGHT, &buf)?;
         fsio::write_atomic(path, &bytes)?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(psnr_mean: Option<f64>) -> BenchRow {
+        BenchRow {
+            model: "capture".into(),
+            budget_seconds: 10.0,
+            train_seconds: 10.2,
+            steps: 100,
+            rays: 409_600,
+            samples: 13_107_200,
+            samples_per_ray: 32.0,
+            skipped_per_ray: 1.5,
+            psnr: 27.104,
+            ssim: 0.8123,
+            psnr_mean,
+            psnr_mask: Some(29.5),
+            ssim_mask: Some(0.9),
+            render_ms: 1130.0,
+            render_samples_per_ray: 30.0,
+            peak_memory_mib: Some(512.0),
+        }
+    }
+
+    /// The mean appearance's column sits under its header as the PSNR's
+    /// does (the same offset), with or without the mask columns; without
+    /// it the table is as before.
+    #[test]
+    fn the_mean_appearance_column_lines_up() {
+        let end = |s: &str, word: &str| (s.find(word).map(|i| i + word.len()).unwrap()) as i64;
+        for masked in [false, true] {
+            let (plain_h, plain_r) = (header(masked, false), format_row(&row(Some(26.5)), masked, false));
+            assert!(!plain_h.contains("mean dB") && !plain_r.contains("26.50"), "{plain_h}\n{plain_r}");
+            let offset = end(&plain_h, "PSNR dB") - end(&plain_r, "27.10");
+            let (h, r) = (header(masked, true), format_row(&row(Some(26.5)), masked, true));
+            assert_eq!(end(&h, "PSNR dB") - end(&r, "27.10"), offset, "{h}\n{r}");
+            assert_eq!(end(&h, "mean dB") - end(&r, "26.50"), offset, "{h}\n{r}");
+            assert_eq!(end(&h, "SSIM") - end(&r, "0.8123"), end(&plain_h, "SSIM") - end(&plain_r, "0.8123"));
+            assert_eq!(h.len() - r.len(), plain_h.len() - plain_r.len(), "{h}\n{r}");
+            let r = format_row(&row(None), masked, true);
+            assert_eq!(end(&h, "mean dB") - end(&r, "27.10") - 9, offset, "{h}\n{r}");
+        }
+        assert_eq!(header(false, false), HEADER);
+    }
+
+    /// `psnr_mean` is in the JSON of models that have it only.
+    #[test]
+    fn psnr_mean_is_written_when_there_is_one() {
+        let with = serde_json::to_value(row(Some(26.5))).unwrap();
+        assert_eq!(with["psnr_mean"], 26.5);
+        let without = serde_json::to_value(row(None)).unwrap();
+        assert!(without.get("psnr_mean").is_none(), "{without}");
+        let back: BenchRow = serde_json::from_value(without).unwrap();
+        assert_eq!(back.psnr_mean, None);
     }
 }

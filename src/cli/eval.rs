@@ -6,11 +6,12 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 
-use super::{Common, DataArgs};
+use super::{AppearanceArgs, Common, DataArgs};
 use crate::engine::dataset::{Dataset, Frame, LoadOptions, masks};
 use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
-use crate::engine::render::{View, render_view};
+use crate::engine::models::{Model, RenderOptions};
+use crate::engine::render::{View, render_view_with};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -28,6 +29,8 @@ pub struct RenderArgs {
     #[arg(long)]
     pub depth: bool,
     #[command(flatten)]
+    pub appearance: AppearanceArgs,
+    #[command(flatten)]
     pub common: Common,
 }
 
@@ -41,6 +44,8 @@ pub struct EvalArgs {
     /// Also write the rendered views here.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub appearance: AppearanceArgs,
     #[command(flatten)]
     pub common: Common,
 }
@@ -58,10 +63,46 @@ fn setup(model: &std::path::Path, data: &DataArgs) -> anyhow::Result<(persist::R
     Ok((restored, ds, idx))
 }
 
-fn render_one(r: &persist::Restored, f: &Frame, bg: [f32; 3]) -> (View, f64) {
+/// Renders frame `f` with `options`, and how long it took.
+fn render_one(model: &dyn Model, f: &Frame, bg: [f32; 3], options: &RenderOptions) -> (View, f64) {
     let t = Instant::now();
-    let v = render_view(&*r.model, &f.camera, bg);
+    let v = render_view_with(model, &f.camera, bg, options);
     (v, t.elapsed().as_secs_f64())
+}
+
+/// A frame rendered and scored (`eval`, `bench`).
+pub(super) struct Scored {
+    pub view: View,
+    /// Seconds the render took.
+    pub secs: f64,
+    pub scores: Scores,
+    /// For a model with per-image appearance, the PSNR with the mean
+    /// appearance (rendered again unless the view already had it).
+    pub psnr_mean: Option<f64>,
+}
+
+/// Renders frame `f` with the appearance `appearance` gives it and scores
+/// it; a model with per-image appearance is also scored with the mean
+/// appearance (design `real-captures.md` 2.6: held-out views take the
+/// nearest training camera's appearance, the mean is reported beside it).
+pub(super) fn render_and_score(
+    model: &dyn Model,
+    f: &Frame,
+    background: [f32; 3],
+    appearance: &AppearanceArgs,
+) -> anyhow::Result<Scored> {
+    let options = appearance.options(model, &f.camera)?;
+    let (view, secs) = render_one(model, f, background, &options);
+    let scores = score(&view, f, background)?;
+    let psnr_mean = match model.appearance_images() {
+        None => None,
+        Some(_) if options == RenderOptions::default() => Some(scores.psnr),
+        Some(_) => {
+            let (mean, _) = render_one(model, f, background, &RenderOptions::default());
+            Some(score(&mean, f, background)?.psnr)
+        }
+    };
+    Ok(Scored { view, secs, scores, psnr_mean })
 }
 
 /// A rendered view's scores against its ground truth.
@@ -106,6 +147,11 @@ fn mask_text(psnr: Option<f64>, ssim: Option<f64>) -> String {
     format!(" | inside mask PSNR {p} dB  SSIM {s}")
 }
 
+/// ` (mean 26.50)` after a PSNR, for a model with per-image appearance.
+fn mean_text(psnr_mean: Option<f64>) -> String {
+    psnr_mean.map_or(String::new(), |p| format!(" (mean {p:.2})"))
+}
+
 /// The mean of the values that exist, and how many there were.
 fn mean_of(values: &[Option<f64>]) -> Option<(f64, usize)> {
     let v: Vec<f64> = values.iter().flatten().copied().collect();
@@ -115,10 +161,12 @@ fn mean_of(values: &[Option<f64>]) -> Option<(f64, usize)> {
 pub fn render(a: RenderArgs) -> anyhow::Result<()> {
     a.common.init_threads()?;
     let (r, ds, idx) = setup(&a.model, &a.data)?;
+    a.appearance.check(&*r.model)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     for &i in &idx {
         let f = &ds.frames[i];
-        let (v, secs) = render_one(&r, f, ds.background);
+        let options = a.appearance.options(&*r.model, &f.camera)?;
+        let (v, secs) = render_one(&*r.model, f, ds.background, &options);
         let path = a.out.join(format!("{}.png", f.name));
         png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
         if a.depth {
@@ -133,26 +181,33 @@ pub fn render(a: RenderArgs) -> anyhow::Result<()> {
 pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
     a.common.init_threads()?;
     let (r, ds, idx) = setup(&a.model, &a.data)?;
+    a.appearance.check(&*r.model)?;
     if let Some(o) = &a.out {
         std::fs::create_dir_all(o).with_context(|| format!("creating {}", o.display()))?;
     }
+    if r.model.appearance_images().is_some() {
+        let chosen = a.appearance.appearance.map_or("the nearest training camera's".into(), |c| c.to_string());
+        println!("appearance: {chosen}; the mean appearance's PSNR in brackets");
+    }
     let (mut sum_p, mut sum_s, mut sum_t) = (0.0, 0.0, 0.0);
-    let (mut mask_p, mut mask_s) = (Vec::new(), Vec::new());
+    let (mut mask_p, mut mask_s, mut mean_p) = (Vec::new(), Vec::new(), Vec::new());
     for &i in &idx {
         let f = &ds.frames[i];
-        let (v, secs) = render_one(&r, f, ds.background);
-        let sc = score(&v, f, ds.background)?;
+        let Scored { view: v, secs, scores: sc, psnr_mean } =
+            render_and_score(&*r.model, f, ds.background, &a.appearance)?;
         if let Some(o) = &a.out {
             let path = o.join(format!("{}.png", f.name));
             png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
         }
         let mask = if f.mask.is_some() { mask_text(sc.psnr_mask, sc.ssim_mask) } else { String::new() };
-        println!("{:<12} PSNR {:6.2} dB  SSIM {:.4}  {:.0} ms{mask}", f.name, sc.psnr, sc.ssim, secs * 1000.0);
+        let mean = mean_text(psnr_mean);
+        println!("{:<12} PSNR {:6.2} dB{mean}  SSIM {:.4}  {:.0} ms{mask}", f.name, sc.psnr, sc.ssim, secs * 1000.0);
         sum_p += sc.psnr;
         sum_s += sc.ssim;
         sum_t += secs;
         mask_p.push(sc.psnr_mask);
         mask_s.push(sc.ssim_mask);
+        mean_p.push(psnr_mean);
     }
     let n = idx.len() as f64;
     let mut mask = String::new();
@@ -164,8 +219,9 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
             mask += &format!(" ({counted} views with pixels inside)");
         }
     }
+    let mean = mean_text(mean_of(&mean_p).map(|m| m.0));
     println!(
-        "{} views  PSNR {:.2} dB  SSIM {:.4}  {:.0} ms/view{mask}",
+        "{} views  PSNR {:.2} dB{mean}  SSIM {:.4}  {:.0} ms/view{mask}",
         idx.len(),
         sum_p / n,
         sum_s / n,
@@ -239,6 +295,8 @@ mod tests {
     fn mask_text_and_means() {
         assert_eq!(mask_text(Some(27.104), Some(0.90123)), " | inside mask PSNR  27.10 dB  SSIM 0.9012");
         assert_eq!(mask_text(None, None), " | inside mask PSNR     - dB  SSIM      -");
+        assert_eq!(mean_text(Some(26.504)), " (mean 26.50)");
+        assert_eq!(mean_text(None), "");
         assert_eq!(mean_of(&[Some(1.0), None, Some(3.0)]), Some((2.0, 2)));
         assert_eq!(mean_of(&[None]), None);
     }

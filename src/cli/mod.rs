@@ -99,6 +99,41 @@ pub struct MaskArgs {
     pub masks: crate::engine::dataset::MaskUse,
 }
 
+/// The appearance of a capture model's views (`render`, `eval`, `bench`).
+#[derive(Args, Debug, Clone)]
+pub struct AppearanceArgs {
+    /// The appearance of a capture model's views: `mean` (of the images
+    /// trained on), a training image's index (its dataset frame number), or
+    /// `nearest` (each view takes the nearest training camera's). Default:
+    /// as held-out views are scored, the nearest training camera's (the
+    /// mean for a checkpoint that kept no training cameras). Other models
+    /// ignore it.
+    #[arg(long, value_name = "mean|N|nearest")]
+    pub appearance: Option<crate::engine::render::appearance::Appearance>,
+}
+
+impl AppearanceArgs {
+    /// Checks the choice against `model` before any view is rendered.
+    pub fn check(&self, model: &dyn crate::engine::models::Model) -> anyhow::Result<()> {
+        match self.appearance {
+            Some(a) => a.check(model).map_err(|e| anyhow::anyhow!("--appearance {a}: {e}")),
+            None => Ok(()),
+        }
+    }
+
+    /// The options a view of `model` from `camera` renders with.
+    pub fn options(
+        &self,
+        model: &dyn crate::engine::models::Model,
+        camera: &crate::engine::geometry::camera::Camera,
+    ) -> anyhow::Result<crate::engine::models::RenderOptions> {
+        match self.appearance {
+            Some(a) => a.resolve(model, camera).map_err(|e| anyhow::anyhow!("--appearance {a}: {e}")),
+            None => Ok(crate::engine::render::appearance::held_out_options(model, camera)),
+        }
+    }
+}
+
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Demo(a) => demo::run(a),

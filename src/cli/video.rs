@@ -14,7 +14,8 @@ use super::Common;
 use crate::engine::geometry::camera::Camera;
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::io::persist;
-use crate::engine::render::render_view;
+use crate::engine::render::appearance::Appearance;
+use crate::engine::render::render_view_with;
 use crate::media::png;
 use crate::media::video::{self, VideoFormat};
 
@@ -46,6 +47,12 @@ pub struct VideoArgs {
     /// Horizontal field of view in degrees (default: the training cameras').
     #[arg(long)]
     pub fov: Option<f32>,
+    /// The appearance of a capture model's frames: `mean` (of the images
+    /// trained on), a training image's index (its dataset frame number), or
+    /// `nearest` (each frame takes the nearest training camera's). Other
+    /// models ignore it.
+    #[arg(long, default_value = "mean", value_name = "mean|N|nearest")]
+    pub appearance: Appearance,
     #[command(flatten)]
     pub common: Common,
 }
@@ -63,6 +70,7 @@ pub fn run(a: VideoArgs) -> anyhow::Result<()> {
     anyhow::ensure!((1..=3600).contains(&a.frames), "--frames must be in 1..=3600");
     anyhow::ensure!((1..=60).contains(&a.fps), "--fps must be in 1..=60");
     let restored = persist::load(&a.model).with_context(|| format!("loading {}", a.model.display()))?;
+    a.appearance.check(&*restored.model).map_err(|e| anyhow::anyhow!("--appearance {}: {e}", a.appearance))?;
     let rig = restored.model.scene().rig.clone().with_context(|| {
         format!(
             "{} has no camera rig (it was trained before checkpoints stored one): train it again",
@@ -102,7 +110,8 @@ pub fn run(a: VideoArgs) -> anyhow::Result<()> {
     let mut frames = Vec::with_capacity(n);
     for (k, c2w) in poses.into_iter().enumerate() {
         let camera = Camera::from_fov(width, height, fov.to_radians(), c2w);
-        frames.push(png::rgb_image(&render_view(&*restored.model, &camera, [1.0; 3]))?);
+        let options = a.appearance.resolve(&*restored.model, &camera)?;
+        frames.push(png::rgb_image(&render_view_with(&*restored.model, &camera, [1.0; 3], &options))?);
         eprint!("\rframe {}/{n}", k + 1);
     }
     eprintln!();

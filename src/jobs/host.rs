@@ -168,6 +168,7 @@ mod tests {
             fov: 40.0,
             format: VideoFormat::Gif,
             path: None,
+            appearance: Default::default(),
         };
         Job { model_id: Some("mdl_a".into()), ..job(JobSpec::Video(spec)) }
     }

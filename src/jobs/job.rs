@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 use crate::engine::dataset::MaskUse;
 use crate::engine::geometry::path::CameraPath;
 use crate::engine::models::config::ModelConfig;
+use crate::engine::render::appearance::Appearance;
 use crate::engine::train::trainer::Budget;
 use crate::media::video::VideoFormat;
 
@@ -111,6 +112,10 @@ pub struct VideoSpec {
     /// over their times; each keyframe has its own field of view).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub path: Option<CameraPath>,
+    /// The frames' appearance (`render::appearance`): the mean of the
+    /// images trained on (left out of the record), or one image's.
+    #[serde(default, skip_serializing_if = "Appearance::is_mean")]
+    pub appearance: Appearance,
 }
 
 /// What a pose-estimation job poses: the photos (or video) uploaded to a

@@ -158,6 +158,7 @@ mod tests {
                 fov: 40.0,
                 format,
                 path: None,
+                appearance: Default::default(),
             })
         };
         Job {

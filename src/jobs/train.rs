@@ -14,7 +14,8 @@ use crate::engine::geometry::scene::Scene;
 use crate::engine::metrics::psnr;
 use crate::engine::models::Model;
 use crate::engine::models::auto::ModelChoice;
-use crate::engine::render::render_view;
+use crate::engine::render::appearance::held_out_options;
+use crate::engine::render::render_view_with;
 use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
 use crate::engine::train::trainer::{Progress, TrainConfig, TrainState};
 use crate::storage::{ModelInfo, SceneInfo, ScenePart, now_ms};
@@ -215,7 +216,10 @@ impl<'a> Report<'a> {
     }
 }
 
-/// Mean PSNR over up to `max_views` held-out views (test split, else val).
+/// Mean PSNR over up to `max_views` held-out views (test split, else val),
+/// each rendered with the appearance `eval` scores it with by default
+/// (`held_out_options`: the nearest training camera's), as the held-out
+/// chart (`HeldOutPixels`) does.
 fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBool) -> Option<(f64, usize)> {
     let split = if ds.test.is_empty() { Split::Val } else { Split::Test };
     let mut sum = 0.0;
@@ -224,7 +228,7 @@ fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBo
         if cancel.load(Ordering::Relaxed) {
             return None;
         }
-        let v = render_view(model, &f.camera, ds.background);
+        let v = render_view_with(model, &f.camera, ds.background, &held_out_options(model, &f.camera));
         let gt: Vec<f32> = (0..f.camera.height)
             .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
             .flat_map(|(i, j)| f.image.rgb_on(i, j, ds.background))

@@ -10,7 +10,7 @@ use super::host::JobHost;
 use super::{Job, Outcome, VideoSpec};
 use crate::engine::geometry::camera::Camera;
 use crate::engine::io::persist;
-use crate::engine::render::render_view;
+use crate::engine::render::render_view_with;
 use crate::media::{png, video};
 use crate::storage::{VideoInfo, now_ms};
 
@@ -45,7 +45,8 @@ fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) 
                 .camera(360.0 * k as f32 / spec.frames as f32, spec.width, spec.height, spec.fov)
                 .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?,
         };
-        let view = render_view(&*model, &camera, [1.0; 3]);
+        let options = spec.appearance.resolve(&*model, &camera).map_err(|e| e.to_string())?;
+        let view = render_view_with(&*model, &camera, [1.0; 3], &options);
         frames.push(png::rgb_image(&view).map_err(|e| e.to_string())?);
         let done = k as u64 + 1;
         let elapsed = started.elapsed().as_secs_f64();

@@ -5,6 +5,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod appearance;
 mod auth;
 mod jobs;
 mod openapi;

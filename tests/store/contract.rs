@@ -193,6 +193,7 @@ fn video() -> JobSpec {
         fov: 40.0,
         format: VideoFormat::Gif,
         path: None,
+        appearance: Default::default(),
     })
 }
 

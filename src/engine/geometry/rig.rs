@@ -61,6 +61,22 @@ pub struct CameraRig {
     pub image: [u32; 2],
     #[serde(default)]
     pub fov_deg: f32,
+    /// Every training camera's centre and optical axis, by dataset frame
+    /// index: a new view takes the appearance of the nearest one
+    /// ([`CameraRig::nearest_frame`]). Empty in checkpoints from before it
+    /// existed.
+    #[serde(default)]
+    pub frames: Vec<RigFrame>,
+}
+
+/// A training camera as the rig keeps it (world units).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RigFrame {
+    /// The dataset frame index (the image index training rays carry).
+    pub image: u32,
+    pub centre: [f32; 3],
+    /// Unit optical axis (the direction the camera looks).
+    pub axis: [f32; 3],
 }
 
 /// A closed spiral of cameras in the plane of the mean training camera,
@@ -289,7 +305,37 @@ impl CameraRig {
             },
             image: [0, 0],
             fov_deg: 0.0,
+            frames: cams
+                .iter()
+                .enumerate()
+                .map(|(k, c)| RigFrame { image: k as u32, centre: f(c.0), axis: f(c.1) })
+                .collect(),
         })
+    }
+
+    /// The training frame nearest a camera at `centre` looking along the
+    /// unit `axis`, among those `allowed` accepts: the one minimising
+    /// `|c - c_i| / radius + (1 - a . a_i)`, the distance between centres
+    /// in rig radii plus one minus the cosine of the angle between the axes
+    /// (design `real-captures.md` 2.6), the first on ties. `None` when no
+    /// frame is allowed.
+    pub fn nearest_frame(&self, centre: Vec3, axis: Vec3, allowed: impl Fn(u32) -> bool) -> Option<u32> {
+        let r = if self.radius.is_finite() && self.radius > 0.0 { self.radius as f64 } else { 1.0 };
+        let (c, a) = (v(centre), v(axis));
+        let cost = |fr: &RigFrame| {
+            let (ci, ai) = (fr.centre.map(f64::from), fr.axis.map(f64::from));
+            norm(sub(c, ci)) / r + (1.0 - dot(a, ai))
+        };
+        self.frames
+            .iter()
+            .filter(|fr| allowed(fr.image))
+            .map(|fr| (cost(fr), fr.image))
+            .filter(|(k, _)| k.is_finite())
+            .fold(None, |best: Option<(f64, u32)>, (k, i)| match best {
+                Some((b, _)) if b <= k => best,
+                _ => Some((k, i)),
+            })
+            .map(|(_, i)| i)
     }
 
     /// The orbit around the focus, about the rig's up axis, azimuth 0
@@ -308,7 +354,10 @@ impl CameraRig {
     pub fn from_dataset(ds: &Dataset) -> Option<Self> {
         let poses: Vec<_> = ds.split_frames(Split::Train).map(|f| f.camera.c2w).collect();
         let cam = &ds.split_frames(Split::Train).next()?.camera;
-        let rig = Self::from_poses(&poses, ds.near, ds.far, ds.centre())?;
+        let mut rig = Self::from_poses(&poses, ds.near, ds.far, ds.centre())?;
+        for (fr, &i) in rig.frames.iter_mut().zip(&ds.train) {
+            fr.image = i as u32;
+        }
         let fov_deg = (2.0 * (0.5 * cam.width as f32 / cam.fx).atan()).to_degrees();
         Some(Self { image: [cam.width, cam.height], fov_deg, ..rig })
     }
@@ -442,5 +491,49 @@ mod tests {
         let mut bad = poses.clone();
         bad[0][0][3] = f32::NAN;
         assert!(CameraRig::from_poses(&bad, 0.5, 10.0, Vec3::splat(0.0)).is_none());
+    }
+
+    #[test]
+    fn every_training_camera_is_its_own_nearest_frame() {
+        let poses = ring(12, Vec3::new(1.0, -2.0, 0.5), 3.0, 1.0, Vec3::new(0.0, 0.0, 1.0));
+        let rig = CameraRig::from_poses(&poses, 0.1, 20.0, Vec3::splat(0.0)).unwrap();
+        assert_eq!(rig.frames.iter().map(|f| f.image).collect::<Vec<_>>(), (0..12).collect::<Vec<_>>());
+        for (k, m) in poses.iter().enumerate() {
+            let centre = Vec3::new(m[0][3], m[1][3], m[2][3]);
+            let axis = Vec3::new(-m[0][2], -m[1][2], -m[2][2]);
+            assert_eq!(rig.nearest_frame(centre, axis, |_| true), Some(k as u32));
+            // Without itself, one of its two neighbours on the ring.
+            let other = rig.nearest_frame(centre, axis, |i| i != k as u32).unwrap();
+            assert!(other == (k as u32 + 1) % 12 || other == (k as u32 + 11) % 12, "{k}: {other}");
+        }
+    }
+
+    #[test]
+    fn the_nearest_frame_weighs_distance_in_radii_against_the_angle() {
+        let poses = ring(8, Vec3::splat(0.0), 2.0, 0.0, Vec3::new(0.0, 0.0, 1.0));
+        let mut rig = CameraRig::from_poses(&poses, 0.1, 20.0, Vec3::splat(0.0)).unwrap();
+        rig.radius = 2.0;
+        rig.frames = vec![
+            RigFrame { image: 10, centre: [0.0, 0.0, 2.0], axis: [0.0, 0.0, -1.0] },
+            RigFrame { image: 11, centre: [0.5, 0.0, 2.0], axis: [0.0, 0.0, -1.0] },
+            RigFrame { image: 12, centre: [0.0, 0.0, 2.0], axis: [1.0, 0.0, 0.0] },
+        ];
+        // Costs by hand: 10: 0.4 / 2 = 0.2; 11: 0.1 / 2 = 0.05; 12: 0.2 + (1 - 0) = 1.2.
+        let ahead = Vec3::new(0.0, 0.0, -1.0);
+        assert_eq!(rig.nearest_frame(Vec3::new(0.4, 0.0, 2.0), ahead, |_| true), Some(11));
+        // Turned towards +x (cos 0.6 with -z, 0.8 with +x): 10: 0 + 0.4; 11: 0.25 + 0.4; 12: 0 + 0.2.
+        let turned = Vec3::new(0.8, 0.0, -0.6);
+        assert_eq!(rig.nearest_frame(Vec3::new(0.0, 0.0, 2.0), turned, |_| true), Some(12));
+        assert_eq!(rig.nearest_frame(Vec3::new(0.0, 0.0, 2.0), turned, |i| i != 12), Some(10));
+        assert_eq!(rig.nearest_frame(Vec3::new(0.0, 0.0, 2.0), turned, |_| false), None);
+        // The radius sets the trade: from (0.4, 0, 2) looking `turned`, with r = 0.25:
+        // 10: 1.6 + 0.4; 11: 0.4 + 0.4; 12: 1.6 + 0.2. With r = 4: 10: 0.1 + 0.4; 11: 0.025 + 0.4; 12: 0.1 + 0.2.
+        rig.radius = 0.25;
+        assert_eq!(rig.nearest_frame(Vec3::new(0.4, 0.0, 2.0), turned, |_| true), Some(11));
+        rig.radius = 4.0;
+        assert_eq!(rig.nearest_frame(Vec3::new(0.4, 0.0, 2.0), turned, |_| true), Some(12));
+        // A tie keeps the first frame.
+        rig.frames[1] = RigFrame { image: 11, ..rig.frames[0] };
+        assert_eq!(rig.nearest_frame(Vec3::new(0.0, 0.0, 2.0), ahead, |_| true), Some(10));
     }
 }

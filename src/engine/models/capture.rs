@@ -10,8 +10,9 @@
 //!   samples over the ray-distance warp (`train::capture_levels`); the last
 //!   interval of a ray is opaque (photographs have no see-through pixels).
 //! - **Field**: the fast model's networks in contracted space with a
-//!   per-image appearance embedding (`fields::capture`); new views use the
-//!   mean embedding of the images trained on.
+//!   per-image appearance embedding (`fields::capture`); a new view takes
+//!   the mean embedding of the images trained on, or one image's
+//!   ([`RenderOptions::image`], chosen by `render::appearance`).
 //! - **Training**: `train::capture_pass` (colour, distortion and interlevel
 //!   losses); **rendering**: the shared loop (`render::rounds`) over the
 //!   final samples, with early termination and dropped colours.
@@ -19,13 +20,12 @@
 //! The configuration and its checks are in `capture_config`.
 //!
 //! Not built yet (later steps of the design): NDC for forward-facing
-//! captures as a model option, camera pose refinement, a chosen image's
-//! appearance when rendering.
+//! captures as a model option, camera pose refinement.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
 pub use super::capture_config::{CaptureConfig, ProposalConfig};
-use super::{BatchStats, Model, ModelError, RayOutput, StateSource, StepCtx, TrainRay};
+use super::{BatchStats, Model, ModelError, RayOutput, RenderOptions, StateSource, StepCtx, TrainRay};
 use crate::engine::fields::capture::{CaptureField, CaptureFieldConfig};
 use crate::engine::fields::proposal::ProposalField;
 use crate::engine::fields::space::SpaceMap;
@@ -293,6 +293,10 @@ impl Model for CaptureModel {
         Some(self.config.rays_per_step)
     }
 
+    fn appearance_images(&self) -> Option<Vec<u32>> {
+        Some(self.seen_images())
+    }
+
     fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
         let seen = self.seen.iter().map(|f| f32::from(u8::from(f.load(Ordering::Relaxed)))).collect();
         vec![(SEEN.to_string(), seen)]
@@ -309,9 +313,26 @@ impl Model for CaptureModel {
     }
 
     fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
-        let mean = self.mean_embedding();
+        self.render_rays_with(rays, background, &RenderOptions::default(), out)
+    }
+
+    /// Renders with the appearance `options` names: an image's embedding
+    /// (zero for an image beyond the table, or one never trained on:
+    /// `render::appearance` refuses those before they get here), or the
+    /// mean of the images trained on.
+    fn render_rays_with(
+        &self,
+        rays: &[Ray],
+        background: [f32; 3],
+        options: &RenderOptions,
+        out: &mut [RayOutput],
+    ) -> BatchStats {
+        let embedding = match options.image {
+            Some(i) => self.field.appearance().embedding(&self.params, i).map(<[f32]>::to_vec),
+            None => Some(self.mean_embedding()),
+        };
         with_scratch(|s| {
-            self.field.set_view_appearance(&self.params, Some(&mean), &mut s.pass.ctx);
+            self.field.set_view_appearance(&self.params, embedding.as_deref(), &mut s.pass.ctx);
             let mut stats = BatchStats::default();
             for (chunk, o) in rays.chunks(RENDER_CHUNK_RAYS).zip(out.chunks_mut(RENDER_CHUNK_RAYS)) {
                 stats.add(&self.render_chunk(s, chunk, background, o));

@@ -145,6 +145,57 @@ fn rendering_composites_as_training_does() {
     assert!(q.sq_err > 1e-6, "{q:?}");
 }
 
+/// A view rendered with an image's appearance ([`RenderOptions::image`])
+/// composites as training on that image does; the default options are the
+/// mean appearance, and another image's appearance is another colour.
+#[test]
+fn rendering_with_an_images_appearance_is_that_images_colour() {
+    let mut m = perturbed(9);
+    m.config.min_transmittance = 0.0;
+    m.config.max_dropped_weight = 0.0;
+    m.seen[1].store(true, Ordering::Relaxed);
+    m.seen[2].store(true, Ordering::Relaxed);
+    m.step = 40;
+    let mut train = rays(&m, 9);
+    let plain: Vec<Ray> = train.iter().map(|r| r.ray).collect();
+    let render = |options: &RenderOptions| {
+        let mut out = vec![RayOutput::default(); plain.len()];
+        m.render_rays_with(&plain, [1.0; 3], options, &mut out);
+        out
+    };
+    let two = render(&RenderOptions { image: Some(2) });
+    for (r, o) in train.iter_mut().zip(&two) {
+        (r.target, r.image) = (o.rgb, 2);
+    }
+    let settings = PassSettings {
+        intervals: &m.intervals,
+        near: m.config.near,
+        far: m.config.far,
+        cull: None,
+        batch_rays: 9,
+        interlevel: 1.0,
+        distortion: 0.0,
+    };
+    let how = m.config.resampling(40).unwrap();
+    let mut grads = vec![0.0; m.params.len()];
+    let p = capture_pass(m.nets(), &settings, &train, &mut Drawn::centred(how), &mut Default::default(), &mut grads);
+    assert!(p.sq_err < 1e-12, "{p:?}");
+    let one = render(&RenderOptions { image: Some(1) });
+    let differs = |a: &[RayOutput], b: &[RayOutput]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (0..3).map(|c| (x.rgb[c] - y.rgb[c]).abs()).fold(0.0, f32::max))
+            .fold(0.0, f32::max)
+    };
+    assert!(differs(&one, &two) > 1e-3, "{}", differs(&one, &two));
+    // The default options: the mean of images 1 and 2, as `render_rays`.
+    let mean = render(&RenderOptions::default());
+    let mut plain_out = vec![RayOutput::default(); plain.len()];
+    m.render_rays(&plain, [1.0; 3], &mut plain_out);
+    assert_eq!(mean, plain_out);
+    assert!(differs(&mean, &one) > 1e-4 && differs(&mean, &two) > 1e-4);
+}
+
 /// Rays without a finite origin or direction render as the background.
 #[test]
 fn unsamplable_rays_render_the_background() {

@@ -131,6 +131,17 @@ pub struct RayOutput {
     pub opacity: f32,
 }
 
+/// Options of one render that some models read; a model without them
+/// ignores them and renders exactly as [`Model::render_rays`] does.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RenderOptions {
+    /// The training image whose appearance embedding the view takes;
+    /// `None`: the mean embedding of the images trained on. The engine's
+    /// choice of it (a user's `mean`, index or `nearest`, checked against
+    /// the model) is `render::appearance`.
+    pub image: Option<u32>,
+}
+
 /// A trainable radiance field.
 pub trait Model: Send + Sync {
     /// "instant", "nerf" or "capture".
@@ -163,4 +174,21 @@ pub trait Model: Send + Sync {
     fn as_any(&self) -> &dyn std::any::Any;
     /// Renders model-space rays.
     fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats;
+    /// [`Model::render_rays`] with `options`; models that read none keep
+    /// this default, which ignores them.
+    fn render_rays_with(
+        &self,
+        rays: &[Ray],
+        background: [f32; 3],
+        _options: &RenderOptions,
+        out: &mut [RayOutput],
+    ) -> BatchStats {
+        self.render_rays(rays, background, out)
+    }
+    /// The training images whose appearance a view can take
+    /// ([`RenderOptions::image`]), ascending; `None` for a model without
+    /// per-image appearance (every view of it looks alike).
+    fn appearance_images(&self) -> Option<Vec<u32>> {
+        None
+    }
 }

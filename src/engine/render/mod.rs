@@ -2,8 +2,10 @@
 //!
 //! The parts: `composite` (volume rendering of one ray, forward and
 //! backward), `loss` (the photometric loss), `regularize` (losses on a ray's
-//! weights: distortion and interlevel), `rounds` (the one render loop).
+//! weights: distortion and interlevel), `rounds` (the one render loop),
+//! `appearance` (which training image's appearance a new view takes).
 
+pub mod appearance;
 pub mod composite;
 pub mod loss;
 pub mod regularize;
@@ -15,7 +17,7 @@ use rayon::prelude::*;
 
 use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::math::Ray;
-use crate::engine::models::{BatchStats, Model, RayOutput};
+use crate::engine::models::{BatchStats, Model, RayOutput, RenderOptions};
 
 /// Why a per-ray function of `composite` or `regularize` refused its
 /// inputs: the slices of one ray must fit each other, and interval edges
@@ -68,23 +70,30 @@ const TILE: usize = 256;
 
 /// Renders every pixel of `camera`.
 pub fn render_view(model: &dyn Model, camera: &Camera, background: [f32; 3]) -> View {
-    render_view_until(model, camera, background, &AtomicBool::new(false)).expect("never cancelled")
+    render_view_with(model, camera, background, &RenderOptions::default())
 }
 
-/// [`render_view`], stopping early (`None`) once `cancel` is set: tiles not
+/// [`render_view`] with render options (a chosen appearance:
+/// `appearance::Appearance::resolve` gives them for a camera).
+pub fn render_view_with(model: &dyn Model, camera: &Camera, background: [f32; 3], options: &RenderOptions) -> View {
+    render_view_until(model, camera, background, options, &AtomicBool::new(false)).expect("never cancelled")
+}
+
+/// [`render_view_with`], stopping early (`None`) once `cancel` is set: tiles not
 /// yet started are skipped. A client that goes away mid-render (the web
 /// viewer, moving on to a newer view) frees the workers at once.
 pub fn render_view_until(
     model: &dyn Model,
     camera: &Camera,
     background: [f32; 3],
+    options: &RenderOptions,
     cancel: &AtomicBool,
 ) -> Option<View> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let scene = model.scene();
     let rays: Vec<Ray> =
         (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| camera.pixel_ray(i as u32, j as u32)).collect();
-    let (out, stats) = render_rays_until(model, &rays, background, cancel)?;
+    let (out, stats) = render_rays_until(model, &rays, background, options, cancel)?;
     let inv = 1.0 / scene.scale;
     Some(View {
         width: camera.width,
@@ -98,28 +107,43 @@ pub fn render_view_until(
 
 /// Renders world-space rays in parallel tiles; depths stay in model units.
 pub fn render_rays(model: &dyn Model, rays: &[Ray], background: [f32; 3]) -> (Vec<RayOutput>, BatchStats) {
-    render_rays_until(model, rays, background, &AtomicBool::new(false)).expect("never cancelled")
+    render_rays_with(model, rays, background, &RenderOptions::default())
 }
 
-/// [`render_rays`], or `None` once `cancel` is set.
+/// [`render_rays`] with render options.
+pub fn render_rays_with(
+    model: &dyn Model,
+    rays: &[Ray],
+    background: [f32; 3],
+    options: &RenderOptions,
+) -> (Vec<RayOutput>, BatchStats) {
+    render_rays_until(model, rays, background, options, &AtomicBool::new(false)).expect("never cancelled")
+}
+
+/// [`render_rays_with`], or `None` once `cancel` is set.
 fn render_rays_until(
     model: &dyn Model,
     rays: &[Ray],
     background: [f32; 3],
+    options: &RenderOptions,
     cancel: &AtomicBool,
 ) -> Option<(Vec<RayOutput>, BatchStats)> {
     let scene = model.scene();
     let rays: Vec<Ray> = rays.iter().map(|r| scene.to_model(r)).collect();
     let mut out = vec![RayOutput::default(); rays.len()];
-    let stats =
-        rays.par_chunks(TILE)
-            .zip(out.par_chunks_mut(TILE))
-            .map(|(r, o)| {
-                if cancel.load(Ordering::Relaxed) { BatchStats::default() } else { model.render_rays(r, background, o) }
-            })
-            .reduce(BatchStats::default, |mut a, b| {
-                a.add(&b);
-                a
-            });
+    let stats = rays
+        .par_chunks(TILE)
+        .zip(out.par_chunks_mut(TILE))
+        .map(|(r, o)| {
+            if cancel.load(Ordering::Relaxed) {
+                BatchStats::default()
+            } else {
+                model.render_rays_with(r, background, options, o)
+            }
+        })
+        .reduce(BatchStats::default, |mut a, b| {
+            a.add(&b);
+            a
+        });
     (!cancel.load(Ordering::Relaxed)).then_some((out, stats))
 }
