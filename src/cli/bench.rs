@@ -18,7 +18,7 @@ use super::{Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::io::fsio;
-use crate::engine::render::render_view;
+use crate::engine::render::render_heldout_view;
 use crate::engine::train::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
 
@@ -165,7 +165,7 @@ fn measure(
     for &i in views {
         let f = &ds.frames[i];
         let t0 = Instant::now();
-        let v = render_view(&*t.model, &f.camera, ds.background);
+        let v = render_heldout_view(&*t.model, &f.camera, ds.background);
         secs += t0.elapsed().as_secs_f64();
         rays += v.stats.rays;
         samples += v.stats.samples;

@@ -10,7 +10,7 @@ use super::{Common, DataArgs};
 use crate::engine::dataset::{Dataset, Frame, LoadOptions, masks};
 use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
-use crate::engine::render::{View, render_view};
+use crate::engine::render::{View, render_heldout_view};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -60,7 +60,7 @@ fn setup(model: &std::path::Path, data: &DataArgs) -> anyhow::Result<(persist::R
 
 fn render_one(r: &persist::Restored, f: &Frame, bg: [f32; 3]) -> (View, f64) {
     let t = Instant::now();
-    let v = render_view(&*r.model, &f.camera, bg);
+    let v = render_heldout_view(&*r.model, &f.camera, bg);
     (v, t.elapsed().as_secs_f64())
 }
 

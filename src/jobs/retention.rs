@@ -199,6 +199,7 @@ mod tests {
             complete: true,
             training_state,
             view,
+            poses: None,
         }
     }
 
