@@ -27,11 +27,17 @@ const TURN_DEG: f64 = 1.5;
 /// cameras' distance from the focus.
 const SHIFT: f64 = 0.02;
 
+/// A training frame's pose error: its index, the rotation vector it was
+/// turned by and the world translation it was moved by.
+type PoseError = (usize, [f64; 3], [f64; 3]);
+/// A camera's correction `(τ, ω)` (model units) and its centre `c`.
+type Row = ([f64; 3], [f64; 3], [f64; 3]);
+
 /// `train_capture.rs`'s scene (a textured ball on a textured ground, a
 /// ring of 36 cameras at 40x30, every 6th held out), with the training
 /// cameras' poses wrong by their own `(ω_i, Δc_i)` (world units), returned
 /// per training frame.
-fn perturbed() -> (Dataset, Vec<(usize, [f64; 3], [f64; 3])>) {
+fn perturbed() -> (Dataset, Vec<PoseError>) {
     let mut ds = TexturedScene { width: 40, height: 30, views: 36, fov: 0.9 }.dataset();
     let n = ds.frames.len();
     ds.test = (0..n).filter(|k| k % 6 == 3).collect();
@@ -91,9 +97,9 @@ fn heldout_psnr(model: &dyn Model, ds: &Dataset) -> f64 {
 /// out: `delta[i] = (τ_i, ω_i)` in model units against the cameras'
 /// centres `c_i`, the drift fitted as the model fits it (`ω_g = mean ω`,
 /// `t_g = mean(τ - ω_g × c)`).
-fn relative_error(rows: &[([f64; 3], [f64; 3], [f64; 3])], radius: f64) -> (f64, f64) {
+fn relative_error(rows: &[Row], radius: f64) -> (f64, f64) {
     let n = rows.len() as f64;
-    let mean = |f: &dyn Fn(&([f64; 3], [f64; 3], [f64; 3])) -> [f64; 3]| {
+    let mean = |f: &dyn Fn(&Row) -> [f64; 3]| {
         rows.iter().fold([0.0; 3], |a, r| {
             let v = f(r);
             std::array::from_fn(|k| a[k] + v[k] / n)

@@ -143,9 +143,12 @@ mod tests {
     use crate::engine::nn::linear::ParamLayout;
     use crate::engine::rng::Rng;
 
+    /// The images trained on and their camera centres.
+    type Centres = Vec<(u32, [f64; 3])>;
+
     /// Cameras on a ring of radius 2 with corrections made of a known drift
     /// plus each camera's own small move.
-    fn drifted(own: f64) -> (PoseRefine, Vec<f32>, Vec<(u32, [f64; 3])>, Gauge) {
+    fn drifted(own: f64) -> (PoseRefine, Vec<f32>, Centres, Gauge) {
         let mut layout = ParamLayout::default();
         let pose = PoseRefine::new(&mut layout, "pose", 10);
         let mut params = vec![0.0f32; layout.len];
