@@ -642,6 +642,10 @@ pub struct ModelInfo {
     #[serde(default = "yes")]
     pub training_state: bool,
     pub view: ViewDefaults,
+    /// For a capture model that refines its cameras: how far they moved
+    /// (written when training ends).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub poses: Option<crate::engine::nn::pose_report::PoseReport>,
 }
 
 fn yes() -> bool {

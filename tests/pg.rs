@@ -159,6 +159,7 @@ fn model_of(job: &Job, scene: &SceneInfo, steps: u64) -> ModelInfo {
         complete: false,
         training_state: true,
         view: scene.view.clone(),
+        poses: None,
     }
 }
 

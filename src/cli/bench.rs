@@ -513,6 +513,8 @@ mod tests {
             samples: 13_107_200,
             samples_per_ray: 32.0,
             skipped_per_ray: 1.5,
+            proposal_samples: 9_830_400,
+            proposal_samples_per_ray: 24.0,
             psnr: 27.104,
             ssim: 0.8123,
             psnr_mean,
@@ -520,6 +522,7 @@ mod tests {
             ssim_mask: Some(0.9),
             render_ms: 1130.0,
             render_samples_per_ray: 30.0,
+            render_proposal_samples_per_ray: 24.0,
             peak_memory_mib: Some(512.0),
         }
     }

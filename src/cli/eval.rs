@@ -11,7 +11,7 @@ use crate::engine::dataset::{Dataset, Frame, LoadOptions, masks};
 use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
 use crate::engine::models::{Model, RenderOptions};
-use crate::engine::render::{View, render_view_with};
+use crate::engine::render::{View, render_heldout_view};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -66,7 +66,7 @@ fn setup(model: &std::path::Path, data: &DataArgs) -> anyhow::Result<(persist::R
 /// Renders frame `f` with `options`, and how long it took.
 fn render_one(model: &dyn Model, f: &Frame, bg: [f32; 3], options: &RenderOptions) -> (View, f64) {
     let t = Instant::now();
-    let v = render_view_with(model, &f.camera, bg, options);
+    let v = render_heldout_view(model, &f.camera, bg, options);
     (v, t.elapsed().as_secs_f64())
 }
 

@@ -15,6 +15,7 @@ use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split, masks};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::io::checkpoint::Checkpoint;
 use crate::engine::models::auto::{AUTO, ModelChoice};
+use crate::engine::models::capture::CaptureModel;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate::{self, DataSize, mib};
 use crate::engine::train::session::{Event, Session, SessionConfig, Start, Stop};
@@ -224,7 +225,8 @@ fn train_with_bar(session: &mut Session<'_>, budget: Budget, cancel: &AtomicBool
     Ok(stop?)
 }
 
-/// What this run did: its steps, speed and training PSNR.
+/// What this run did: its steps, speed and training PSNR (and, for a
+/// capture model that refines its cameras, how far they moved).
 fn summary(session: &Session<'_>, wall: Instant, out: &Path) {
     let (s, start) = (&session.trainer().state, session.started());
     let secs = (s.elapsed - start.elapsed).max(1e-9);
@@ -245,6 +247,10 @@ fn summary(session: &Session<'_>, wall: Instant, out: &Path) {
     }
     if let Some(peak) = peak_memory() {
         println!("peak memory    {}", mib(peak));
+    }
+    let model = session.trainer().model.as_any().downcast_ref::<CaptureModel>();
+    if let Some(report) = model.and_then(CaptureModel::pose_report) {
+        println!("poses          {report}");
     }
     println!("model          {}", out.display());
 }

@@ -202,6 +202,7 @@ mod tests {
             complete: true,
             training_state,
             view,
+            poses: None,
         }
     }
 

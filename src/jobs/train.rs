@@ -14,8 +14,10 @@ use crate::engine::geometry::scene::Scene;
 use crate::engine::metrics::psnr;
 use crate::engine::models::Model;
 use crate::engine::models::auto::ModelChoice;
+use crate::engine::models::capture::CaptureModel;
+use crate::engine::nn::pose_report::PoseReport;
 use crate::engine::render::appearance::held_out_options;
-use crate::engine::render::render_view_with;
+use crate::engine::render::render_heldout_view;
 use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
 use crate::engine::train::trainer::{Progress, TrainConfig, TrainState};
 use crate::storage::{ModelInfo, SceneInfo, ScenePart, now_ms};
@@ -70,7 +72,9 @@ fn train(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -
             report.step(&progress, held_out_psnr);
             true
         }
-        Event::Saved { progress } => record.write(&progress, false, None).map_err(|e| record_error = Some(e)).is_ok(),
+        Event::Saved { progress } => {
+            record.write(&progress, false, None, None).map_err(|e| record_error = Some(e)).is_ok()
+        }
     });
     let stop = stop.map_err(|e| e.to_string())?;
     if let Some(e) = record_error {
@@ -140,6 +144,7 @@ fn finish(
         Stop::Budget | Stop::Cancelled | Stop::Aborted => {}
     }
     let p = session.trainer().progress(f64::NAN);
+    let poses = session.trainer().model.as_any().downcast_ref::<CaptureModel>().and_then(CaptureModel::pose_report);
     host.set_progress(&job.id, &mut |j| {
         j.progress.step = p.step;
         j.progress.elapsed = p.elapsed;
@@ -149,13 +154,13 @@ fn finish(
     });
     if stop == Stop::Cancelled {
         // Canceled or shut down: keep what was learnt as a usable model.
-        record.write(&p, true, None)?;
+        record.write(&p, true, None, poses)?;
         return Ok(Outcome::Stopped);
     }
-    record.write(&p, false, None)?;
+    record.write(&p, false, None, poses)?;
     let metric = evaluate(&*session.trainer().model, ds, host.config().eval_views, cancel);
     if cancel.load(Ordering::SeqCst) {
-        record.write(&p, true, None)?;
+        record.write(&p, true, None, poses)?;
         return Ok(Outcome::Stopped);
     }
     host.set_progress(&job.id, &mut |j| {
@@ -163,7 +168,7 @@ fn finish(
             (j.progress.test_psnr, j.progress.test_psnr_step) = (Some(m.0), Some(p.step));
         }
     });
-    record.write(&p, true, metric)?;
+    record.write(&p, true, metric, poses)?;
     Ok(Outcome::Succeeded)
 }
 
@@ -228,7 +233,7 @@ fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBo
         if cancel.load(Ordering::Relaxed) {
             return None;
         }
-        let v = render_view_with(model, &f.camera, ds.background, &held_out_options(model, &f.camera));
+        let v = render_heldout_view(model, &f.camera, ds.background, &held_out_options(model, &f.camera));
         let gt: Vec<f32> = (0..f.camera.height)
             .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
             .flat_map(|(i, j)| f.image.rgb_on(i, j, ds.background))
@@ -254,8 +259,16 @@ struct ModelRecord<'a> {
 }
 
 impl ModelRecord<'_> {
-    /// Writes the record of the checkpoint saved at `p.step`.
-    fn write(&self, p: &Progress, complete: bool, metric: Option<(f64, usize)>) -> Result<(), String> {
+    /// Writes the record of the checkpoint saved at `p.step`; `poses` is
+    /// the pose report of a model that refines its cameras (given when
+    /// training has ended).
+    fn write(
+        &self,
+        p: &Progress,
+        complete: bool,
+        metric: Option<(f64, usize)>,
+        poses: Option<PoseReport>,
+    ) -> Result<(), String> {
         let previous = self.host.model(self.model_id).ok().flatten();
         let info = ModelInfo {
             id: self.model_id.to_string(),
@@ -274,6 +287,7 @@ impl ModelRecord<'_> {
             complete,
             training_state: true,
             view: self.scene.view.clone(),
+            poses,
         };
         self.host.publish_model(self.job, &info, &self.ckpt).map_err(|e| e.to_string())?;
         self.host.set_progress(&self.job.id, &mut |j| j.model_id = Some(info.id.clone()));

@@ -104,6 +104,11 @@ pub struct Ctx {
     d_b: Vec<f32>,
     d_geo: Vec<f32>,
     d_enc: Vec<f32>,
+    // input gradients (`CaptureField::backward_with_input_grads` only)
+    d_shd: Vec<f32>,
+    d_unit: Vec<f32>,
+    d_pos: Vec<f32>,
+    d_dirs: Vec<f32>,
 }
 
 /// Makes `v` hold at least `n` values. Buffers never shrink, so reusing one
@@ -278,7 +283,70 @@ impl Field for CaptureField {
     /// images of the last density pass. A pass without images (the view
     /// appearance) gives the appearance parameters no gradient.
     fn backward(&self, p: &[f32], ctx: &mut Ctx, dsigma: &[f32], drgb: &[f32], grads: &mut [f32]) {
+        self.backward_inner(p, ctx, dsigma, drgb, grads, None);
+    }
+}
+
+impl CaptureField {
+    /// [`Field::backward`] (the same parameter gradients, bit for bit), and
+    /// also the gradients with respect to the inputs of the last density
+    /// pass (after any [`Field::compact`]) and colour pass, for camera pose
+    /// refinement: read them with [`CaptureField::input_grads`]. `pos` and
+    /// `dirs` (`[n x 3]` each, model space) are what those passes were
+    /// given.
+    ///
+    /// The positions' gradient flows through both outputs (the density and
+    /// the colour's geometry features both come from the hash grid,
+    /// [`HashGrid::backward_with_input_grad`]), then through the space map
+    /// ([`SpaceMap::vjp`]). The directions' gradient comes from the colour
+    /// network's spherical-harmonics input ([`sh::encode_backward`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward_with_input_grads(
+        &self,
+        params: &[f32],
+        ctx: &mut Ctx,
+        pos: &[f32],
+        dirs: &[f32],
+        dsigma: &[f32],
+        drgb: &[f32],
+        grads: &mut [f32],
+    ) {
+        self.backward_inner(params, ctx, dsigma, drgb, grads, Some(dirs));
         let n = ctx.n;
+        size(&mut ctx.d_pos, n * 3);
+        if n == 0 {
+            return;
+        }
+        for ((x, du), dx) in
+            pos[..3 * n].chunks_exact(3).zip(ctx.d_unit.chunks_exact(3)).zip(ctx.d_pos.chunks_exact_mut(3))
+        {
+            dx.copy_from_slice(&self.space.vjp([x[0], x[1], x[2]], [du[0], du[1], du[2]]));
+        }
+    }
+
+    /// dL/d(position) (model space) and dL/d(direction), `[n x 3]` each, of
+    /// the last [`CaptureField::backward_with_input_grads`].
+    pub fn input_grads<'c>(&self, ctx: &'c Ctx) -> (&'c [f32], &'c [f32]) {
+        (&ctx.d_pos[..3 * ctx.n], &ctx.d_dirs[..3 * ctx.n])
+    }
+
+    /// The backward pass; with `dirs`, also dL/du of the grid coordinates
+    /// (`ctx.d_unit`) and dL/d(direction) (`ctx.d_dirs`).
+    fn backward_inner(
+        &self,
+        p: &[f32],
+        ctx: &mut Ctx,
+        dsigma: &[f32],
+        drgb: &[f32],
+        grads: &mut [f32],
+        dirs: Option<&[f32]>,
+    ) {
+        let n = ctx.n;
+        if dirs.is_some() {
+            ctx.d_dirs.clear();
+            ctx.d_dirs.resize(n * 3, 0.0);
+            size(&mut ctx.d_unit, n * 3);
+        }
         if n == 0 {
             return;
         }
@@ -298,8 +366,15 @@ impl Field for CaptureField {
             self.appearance.backward(p, &mut ctx.app, &ctx.d_b[..n * h], grads);
         }
         size(&mut ctx.d_geo, n * g);
+        let d_shd = match dirs {
+            Some(_) => {
+                size(&mut ctx.d_shd, n * sh::WIDTH);
+                Some(&mut ctx.d_shd[..])
+            }
+            None => None,
+        };
         let blocks = [(&ctx.geo[..], g), (&ctx.shd[..], sh::WIDTH)];
-        self.c1.backward(p, &blocks, &ctx.d_b, n, grads, &mut [Some(&mut ctx.d_geo), None]);
+        self.c1.backward(p, &blocks, &ctx.d_b, n, grads, &mut [Some(&mut ctx.d_geo), d_shd]);
         // dσ/draw = σ (zero where the NDC selector zeroed σ).
         for ((row, &ds), &s) in ctx.d_geo.chunks_exact_mut(g).zip(&dsigma[..n]).zip(&ctx.sigma) {
             row[0] += ds * s;
@@ -308,7 +383,12 @@ impl Field for CaptureField {
         relu_backward(&ctx.h1[..n * h], &mut ctx.d_a[..n * h]);
         size(&mut ctx.d_enc, n * gw);
         self.d1.backward(p, &[(&ctx.enc, gw)], &ctx.d_a, n, grads, &mut [Some(&mut ctx.d_enc)]);
-        self.grid.backward(&ctx.unit[..n * 3], &ctx.d_enc, grads);
+        let Some(dirs) = dirs else {
+            self.grid.backward(&ctx.unit[..n * 3], &ctx.d_enc, grads);
+            return;
+        };
+        self.grid.backward_with_input_grad(p, &ctx.unit[..n * 3], &ctx.d_enc, grads, &mut ctx.d_unit);
+        sh::encode_backward(&dirs[..n * 3], &ctx.d_shd[..n * sh::WIDTH], &mut ctx.d_dirs);
     }
 }
 

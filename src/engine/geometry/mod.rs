@@ -8,3 +8,4 @@ pub mod path;
 pub mod quat;
 pub mod rig;
 pub mod scene;
+pub mod so3;

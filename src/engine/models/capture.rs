@@ -16,13 +16,18 @@
 //! - **Training**: `train::capture_pass` (colour, distortion and interlevel
 //!   losses); **rendering**: the shared loop (`render::rounds`) over the
 //!   final samples, with early termination and dropped colours.
+//! - **Poses** (`pose_refine`): each training image's camera is corrected
+//!   by six parameters (`nn::pose`) learning at `pose_lr_scale` times the
+//!   networks' rate; held-out views are rendered from their cameras moved
+//!   by the training cameras' common drift ([`Model::heldout_pose`]), and
+//!   [`CaptureModel::pose_report`] says how far the cameras moved.
 //!
 //! The configuration and its checks are in `capture_config`.
 //!
 //! Not built yet (later steps of the design): NDC for forward-facing
-//! captures as a model option, camera pose refinement.
+//! captures as a model option.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 pub use super::capture_config::{CaptureConfig, ProposalConfig};
 use super::{BatchStats, Model, ModelError, RayOutput, RenderOptions, StateSource, StepCtx, TrainRay};
@@ -31,7 +36,11 @@ use crate::engine::fields::proposal::ProposalField;
 use crate::engine::fields::space::SpaceMap;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
+use crate::engine::geometry::so3;
+use crate::engine::nn::adam::LrGroup;
 use crate::engine::nn::linear::ParamLayout;
+use crate::engine::nn::pose::PoseRefine;
+use crate::engine::nn::pose_report::{Gauge, PoseReport};
 use crate::engine::render::rounds::{RoundSettings, render_in_rounds};
 use crate::engine::rng::Rng;
 use crate::engine::sampling::Samples;
@@ -47,10 +56,20 @@ fn space(config: &CaptureConfig) -> SpaceMap {
     SpaceMap::Contract { norm: config.contraction }
 }
 
+/// The model's networks and pose corrections, as laid out in its buffer.
+pub struct Parts {
+    pub field: CaptureField,
+    pub proposals: Vec<ProposalField>,
+    /// With `pose_refine` only.
+    pub pose: Option<PoseRefine>,
+}
+
 /// Lays out the model's parameters for `config` (without allocating
 /// them): the main field, then the proposal networks (`proposal0`, and
-/// `proposal1` unless there is one level).
-pub fn layout(layout: &mut ParamLayout, config: &CaptureConfig) -> (CaptureField, Vec<ProposalField>) {
+/// `proposal1` unless there is one level), then with `pose_refine` the
+/// pose corrections (`pose`, `max_images` rows of 6), last, so that a model
+/// without them is laid out as before they existed.
+pub fn layout(layout: &mut ParamLayout, config: &CaptureConfig) -> Parts {
     let field_config = CaptureFieldConfig {
         grid: config.grid.clone(),
         hidden: config.hidden,
@@ -73,7 +92,8 @@ pub fn layout(layout: &mut ParamLayout, config: &CaptureConfig) -> (CaptureField
             ProposalField::new(layout, &name, space(config), g.clone(), p.hidden, config.init_density)
         })
         .collect();
-    (field, proposals)
+    let pose = config.pose_refine.then(|| PoseRefine::new(layout, "pose", config.max_images));
+    Parts { field, proposals, pose }
 }
 
 /// The model's own normalisation of a scene: the focus of the training
@@ -132,6 +152,9 @@ const RENDER_CHUNK_RAYS: usize = 256;
 const RENDER_ROUND: usize = 8;
 /// The name of the saved record of images trained on.
 const SEEN: &str = "appearance.seen";
+/// The name of the saved camera centres of the images trained on (with
+/// pose refinement only).
+const CENTRES: &str = "pose.centres";
 
 /// The real-capture model.
 pub struct CaptureModel {
@@ -145,6 +168,12 @@ pub struct CaptureModel {
     /// Which images training has seen (their mean embedding is a new
     /// view's appearance).
     seen: Vec<AtomicBool>,
+    /// The pose corrections (with `pose_refine`).
+    pose: Option<PoseRefine>,
+    /// Each image's camera centre in model space (f32 bits), as its
+    /// training rays start there; `[max_images x 3]` with `pose_refine`,
+    /// empty otherwise. The common drift is fitted over them.
+    centres: Vec<AtomicU32>,
     /// Steps done (the annealing of the proposals' weights when rendering).
     step: u64,
 }
@@ -153,7 +182,7 @@ impl CaptureModel {
     /// A fresh model for `scene` (normalised by [`capture_scene`]).
     pub fn new(config: CaptureConfig, scene: Scene, seed: u64) -> Self {
         let mut ps = ParamLayout::default();
-        let (field, proposals) = layout(&mut ps, &config);
+        let Parts { field, proposals, pose } = layout(&mut ps, &config);
         let mut params = vec![0.0; ps.len];
         let mut rng = Rng::new(seed);
         field.init(&mut params, &mut rng);
@@ -162,8 +191,12 @@ impl CaptureModel {
         }
         let scene = capture_scene(&scene, &config);
         let seen = (0..config.max_images).map(|_| AtomicBool::new(false)).collect();
+        let centres = match pose {
+            Some(_) => (0..3 * config.max_images).map(|_| AtomicU32::new(0)).collect(),
+            None => Vec::new(),
+        };
         let intervals = config.intervals();
-        Self { config, scene, field, proposals, params, intervals, seen, step: 0 }
+        Self { config, scene, field, proposals, params, intervals, seen, pose, centres, step: 0 }
     }
 
     /// A model with saved parameters (its state comes back through
@@ -187,6 +220,28 @@ impl CaptureModel {
     /// A new view's appearance: the mean embedding of the images trained on.
     pub fn mean_embedding(&self) -> Vec<f32> {
         self.field.appearance().mean_embedding(&self.params, self.seen_images())
+    }
+
+    /// The camera centres (model space) of the images trained on.
+    fn trained_centres(&self) -> Vec<(u32, [f64; 3])> {
+        let at = |k: usize| self.centres.get(k).map_or(0.0, |c| f64::from(f32::from_bits(c.load(Ordering::Relaxed))));
+        let centre = |i: u32| std::array::from_fn(|a| at(3 * i as usize + a));
+        self.seen_images().into_iter().map(|i| (i, centre(i))).collect()
+    }
+
+    /// How far pose refinement moved the cameras of the images trained on;
+    /// `None` without pose refinement.
+    pub fn pose_report(&self) -> Option<PoseReport> {
+        let pose = self.pose.as_ref()?;
+        Some(PoseReport::new(pose, &self.params, &self.trained_centres(), f64::from(self.config.camera_radius)))
+    }
+
+    /// The training cameras' common drift (zero without pose refinement).
+    pub fn pose_gauge(&self) -> Gauge {
+        match &self.pose {
+            Some(pose) => Gauge::fit(pose, &self.params, &self.trained_centres()),
+            None => Gauge::default(),
+        }
     }
 
     /// Renders a chunk of model-space rays over `background`.
@@ -252,6 +307,11 @@ impl Model for CaptureModel {
             if let Some(flag) = self.seen.get(r.image as usize) {
                 flag.store(true, Ordering::Relaxed);
             }
+            // A pinhole camera's rays all start at its centre.
+            let origin = [r.ray.origin.x, r.ray.origin.y, r.ray.origin.z];
+            if let Some(c) = self.centres.get(3 * r.image as usize..3 * r.image as usize + 3) {
+                c.iter().zip(origin).for_each(|(c, v)| c.store(v.to_bits(), Ordering::Relaxed));
+            }
         }
         let mut stats = BatchStats::default();
         let Ok(how) = self.config.resampling(ctx.step) else {
@@ -267,6 +327,7 @@ impl Model for CaptureModel {
             batch_rays: ctx.batch_rays,
             interlevel: self.config.interlevel,
             distortion: self.config.distortion,
+            pose: self.pose.as_ref(),
         };
         with_scratch(|s| {
             for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
@@ -299,7 +360,12 @@ impl Model for CaptureModel {
 
     fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
         let seen = self.seen.iter().map(|f| f32::from(u8::from(f.load(Ordering::Relaxed)))).collect();
-        vec![(SEEN.to_string(), seen)]
+        let mut state = vec![(SEEN.to_string(), seen)];
+        if self.pose.is_some() {
+            let centres = self.centres.iter().map(|c| f32::from_bits(c.load(Ordering::Relaxed))).collect();
+            state.push((CENTRES.to_string(), centres));
+        }
+        state
     }
 
     fn restore_state(&mut self, state: StateSource<'_>, step: u64) -> Result<(), ModelError> {
@@ -308,8 +374,39 @@ impl Model for CaptureModel {
         for (flag, &v) in self.seen.iter().zip(&seen) {
             flag.store(v != 0.0, Ordering::Relaxed);
         }
+        if self.pose.is_some() {
+            let centres = state(CENTRES).ok_or_else(|| ModelError::MissingState(CENTRES.into()))?;
+            ModelError::check_size("camera centres", self.centres.len(), centres.len())?;
+            for (c, v) in self.centres.iter().zip(centres) {
+                c.store(v.to_bits(), Ordering::Relaxed);
+            }
+        }
         self.step = step;
         Ok(())
+    }
+
+    fn lr_groups(&self) -> Vec<LrGroup> {
+        let scale = self.config.pose_lr_scale;
+        self.pose.iter().map(|p| LrGroup { range: p.range.clone(), scale }).collect()
+    }
+
+    /// The camera moved by the training cameras' common drift (design 2.7):
+    /// its centre `c` (model space) by `ω_g × c + t_g`, its axes turned by
+    /// `exp(ω_g)`. The pose itself without pose refinement.
+    fn heldout_pose(&self, c2w: [[f32; 4]; 3]) -> [[f32; 4]; 3] {
+        let Some(_) = &self.pose else { return c2w };
+        let g = self.pose_gauge();
+        let scale = f64::from(self.scene.scale);
+        let centre: [f64; 3] =
+            std::array::from_fn(|a| (f64::from(c2w[a][3]) - f64::from(self.scene.centre[a])) * scale);
+        let shift = g.translation_at(centre);
+        let turn = so3::exp(g.omega);
+        let axes: so3::Mat3 = std::array::from_fn(|i| std::array::from_fn(|j| f64::from(c2w[i][j])));
+        let turned = so3::mul(&turn, &axes);
+        std::array::from_fn(|i| {
+            let moved = f64::from(c2w[i][3]) + shift[i] / scale;
+            [turned[i][0] as f32, turned[i][1] as f32, turned[i][2] as f32, moved as f32]
+        })
     }
 
     fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {

@@ -89,6 +89,22 @@ pub struct CaptureConfig {
     pub min_transmittance: f32,
     /// Weight per ray that rendering may leave uncoloured (1e-3).
     pub max_dropped_weight: f32,
+    /// Whether each training image's camera pose is refined (design 2.7:
+    /// six parameters per image, `max_images` rows after the networks'),
+    /// on in the `capture` preset. Off, the model is the one of before
+    /// pose refinement, bit for bit (and checkpoints from before it read
+    /// as off).
+    #[serde(default)]
+    pub pose_refine: bool,
+    /// The pose corrections' learning rate as a fraction of the networks'
+    /// (0.1: 1e-3 decaying to 1e-4, nerfacto's `camera_opt`).
+    #[serde(default = "default_pose_lr_scale")]
+    pub pose_lr_scale: f32,
+}
+
+/// [`CaptureConfig::pose_lr_scale`]'s default.
+fn default_pose_lr_scale() -> f32 {
+    0.1
 }
 
 impl Default for CaptureConfig {
@@ -121,13 +137,16 @@ impl Default for CaptureConfig {
             distortion: 0.002,
             min_transmittance: 1e-4,
             max_dropped_weight: 1e-3,
+            pose_refine: true,
+            pose_lr_scale: default_pose_lr_scale(),
         }
     }
 }
 
 impl CaptureConfig {
     /// A small model for previews and tests: 8 grid levels up to 256,
-    /// narrow MLPs, proposals of 16 and 8 intervals and 8 final samples.
+    /// narrow MLPs, proposals of 16 and 8 intervals and 8 final samples;
+    /// no pose refinement (the tests that want it turn it on).
     pub fn tiny() -> Self {
         let d = Self::default();
         Self {
@@ -146,6 +165,7 @@ impl CaptureConfig {
             samples: 8,
             rays_per_step: 512,
             chunk_rays: 128,
+            pose_refine: false,
             ..d
         }
     }
@@ -230,6 +250,7 @@ impl ModelSpec for CaptureConfig {
         non_negative(c, "distortion", self.distortion);
         c.unit_open("min_transmittance", self.min_transmittance);
         c.unit_open("max_dropped_weight", self.max_dropped_weight);
+        non_negative(c, "pose_lr_scale", self.pose_lr_scale);
     }
 
     fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model> {
@@ -259,6 +280,9 @@ impl ModelSpec for CaptureConfig {
     fn footprint(&self, threads: u64) -> Footprint {
         let mut ps = ParamLayout::default();
         layout(&mut ps, self);
+        // With pose refinement, each main sample's input gradients: grid
+        // coordinates, SH code, position and direction.
+        let pose = if self.pose_refine { 3 + sh::WIDTH as u64 + 3 + 3 } else { 0 };
         let rays = (self.chunk_rays as u64).min((self.rays_per_step as u64).div_ceil(threads.max(1))).max(1);
         let width = |g: &HashGridConfig| HashGrid::new(&mut ParamLayout::default(), g.clone()).width() as u64;
         // Samples (t, delta, position, direction) and edges in s and t,
@@ -278,7 +302,7 @@ impl ModelSpec for CaptureConfig {
         // hidden, features, density, SH code, two colour hiddens, colour;
         // their gradients), the image and its slot, and the pass's weight,
         // gradients, full weights and kept index.
-        let main = sample + (3 + gw + h + g + 1 + sh::WIDTH as u64 + 2 * h + 3) + (3 + 2 * h + g + gw) + 2 + 8;
+        let main = sample + (3 + gw + h + g + 1 + sh::WIDTH as u64 + 2 * h + 3) + (3 + 2 * h + g + gw) + 2 + 8 + pose;
         per_ray += self.samples as u64 * main;
         Footprint { params: ps.len as u64, occupancy_cells: 0, activations: rays * per_ray }
     }

@@ -6,6 +6,7 @@ use super::*;
 use crate::engine::dataset::textured::TexturedScene;
 use crate::engine::geometry::math::Vec3;
 use crate::engine::models::config::ModelConfig;
+use crate::engine::nn::adam::LrGroup;
 use crate::engine::train::capture_pass::tests::check_pass_gradients;
 
 fn scene() -> Scene {
@@ -79,7 +80,7 @@ fn perturbed(seed: u64) -> CaptureModel {
 fn the_whole_pass_of_capture_tiny_matches_finite_differences_with_frozen_samples() {
     let m = perturbed(3);
     let mut ps = ParamLayout::default();
-    layout(&mut ps, &m.config);
+    let _ = layout(&mut ps, &m.config);
     let settings = PassSettings {
         intervals: &m.intervals,
         near: m.config.near,
@@ -89,6 +90,7 @@ fn the_whole_pass_of_capture_tiny_matches_finite_differences_with_frozen_samples
         // Strong, so the proposals' gradients stand well above rounding.
         interlevel: 50.0,
         distortion: 0.01,
+        pose: None,
     };
     // Step 0: the weights' exponent is 0, so every level spreads over the
     // whole ray and no proposal bounds the final weights trivially.
@@ -132,6 +134,7 @@ fn rendering_composites_as_training_does() {
         batch_rays: 9,
         interlevel: 1.0,
         distortion: 0.0,
+        pose: None,
     };
     let how = m.config.resampling(40).unwrap();
     let mut grads = vec![0.0; m.params.len()];
@@ -175,6 +178,7 @@ fn rendering_with_an_images_appearance_is_that_images_colour() {
         batch_rays: 9,
         interlevel: 1.0,
         distortion: 0.0,
+        pose: None,
     };
     let how = m.config.resampling(40).unwrap();
     let mut grads = vec![0.0; m.params.len()];
@@ -275,4 +279,79 @@ fn proposal_samples_are_counted_as_the_config_implies() {
     let one = CaptureModel::new(one_level, scene(), 2);
     let stats = one.train_rays(&rays(&one, 5), &ctx, &mut vec![0.0; one.params.len()]);
     assert_eq!(stats.proposal_samples, 5 * 16, "{stats:?}");
+}
+
+/// Pose refinement off lays out the parameters of before it existed, with
+/// no learning-rate group and no saved centres; on, 6 rows per image come
+/// last, learning at `pose_lr_scale`.
+#[test]
+fn pose_rows_come_last_and_only_when_on() {
+    let off = CaptureModel::new(tiny(), scene(), 1);
+    let on = CaptureModel::new(CaptureConfig { pose_refine: true, pose_lr_scale: 0.25, ..tiny() }, scene(), 1);
+    let (mut a, mut b) = (ParamLayout::default(), ParamLayout::default());
+    assert!(layout(&mut a, &off.config).pose.is_none());
+    let pose = layout(&mut b, &on.config).pose.expect("rows with pose_refine");
+    assert_eq!(b.names[..b.names.len() - 1], a.names[..], "the networks are laid out as without poses");
+    assert_eq!(pose.range, a.len..a.len + 6 * 2000);
+    assert_eq!(on.params[..a.len], off.params[..], "the same seed initialises the networks alike");
+    assert!(on.params[a.len..].iter().all(|&p| p == 0.0), "corrections start at zero");
+    assert!(off.lr_groups().is_empty() && off.pose_report().is_none());
+    assert_eq!(on.lr_groups(), vec![LrGroup { range: pose.range, scale: 0.25 }]);
+    assert_eq!(off.state_tensors().len(), 1);
+    // Old checkpoints' configurations have neither field: off, at 0.1.
+    let mut json = serde_json::to_value(tiny()).unwrap();
+    let fields = json.as_object_mut().unwrap();
+    fields.remove("pose_refine");
+    fields.remove("pose_lr_scale");
+    let old: CaptureConfig = serde_json::from_value(json).unwrap();
+    assert_eq!((old.pose_refine, old.pose_lr_scale), (false, 0.1));
+    let ModelConfig::Capture(preset) = ModelConfig::preset("capture").unwrap() else { unreachable!() };
+    assert!(preset.pose_refine, "on in the capture preset");
+}
+
+/// Training records each image's camera centre (saved and restored with
+/// the model); the report and the common drift come from the corrections
+/// of the images trained on. Held-out poses move by that drift: not at all
+/// with zero corrections, and by a pure translation `t_g` (world units
+/// `t_g / scale`) when every image moved by it.
+#[test]
+fn centres_drift_and_heldout_poses() {
+    let mut m = CaptureModel::new(CaptureConfig { pose_refine: true, ..tiny() }, scene(), 2);
+    let train = rays(&m, 6);
+    m.train_rays(&train, &StepCtx { seed: 0, step: 0, batch_rays: 6 }, &mut vec![0.0; m.params.len()]);
+    let c2w = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, -1.0, -2.0], [0.0, 1.0, 0.0, 0.25]];
+    assert_eq!(m.heldout_pose(c2w), c2w, "no drift at zero corrections");
+    let centres = m.trained_centres();
+    assert_eq!(centres.iter().map(|c| c.0).collect::<Vec<_>>(), vec![0, 1, 2]);
+    for (i, c) in &centres {
+        let o = train.iter().find(|r| r.image == *i).unwrap().ray.origin;
+        assert_eq!(c.map(|v| v as f32), [o.x, o.y, o.z]);
+    }
+    // Every trained image moved by the same translation; image 7 (never
+    // trained on) by something else, which must not count.
+    let pose = m.pose.clone().unwrap();
+    for i in 0..3 {
+        m.params[pose.row(i).unwrap()].copy_from_slice(&[0.02, -0.01, 0.03, 0.0, 0.0, 0.0]);
+    }
+    m.params[pose.row(7).unwrap()].copy_from_slice(&[1.0, 1.0, 1.0, 0.5, 0.5, 0.5]);
+    let report = m.pose_report().unwrap();
+    assert_eq!(report.images, 3);
+    let pct = 100.0 * (0.02f64.powi(2) + 0.01f64.powi(2) + 0.03f64.powi(2)).sqrt();
+    assert!((report.raw.translation_max_pct - pct).abs() < 1e-4 && report.relative.translation_max_pct < 1e-4);
+    let moved = m.heldout_pose(c2w);
+    let s = m.scene.scale;
+    for (a, t) in [0.02f32, -0.01, 0.03].into_iter().enumerate() {
+        assert!((moved[a][3] - (c2w[a][3] + t / s)).abs() < 1e-5, "{moved:?}");
+        assert_eq!(moved[a][..3], c2w[a][..3], "no rotation");
+    }
+    // The centres come back with the model's state; without them, an error.
+    let state = m.state_tensors();
+    let mut fresh = CaptureModel::from_parts(m.config.clone(), m.scene.clone(), m.params.clone()).unwrap();
+    let mut saved = state.clone();
+    fresh.restore_state(&mut |name| saved.iter_mut().find(|(n, _)| n == name).map(|(_, v)| v.clone()), 3).unwrap();
+    assert_eq!((fresh.trained_centres(), fresh.pose_report()), (centres, Some(report)));
+    let only_seen =
+        &mut |name: &str| state.iter().find(|(n, _)| n == name && name != "pose.centres").map(|(_, v)| v.clone());
+    let missing = fresh.restore_state(only_seen, 3).unwrap_err();
+    assert!(missing.to_string().contains("pose.centres"), "{missing}");
 }

@@ -42,6 +42,7 @@ pub(crate) use model_accessors;
 
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
+use crate::engine::nn::adam::LrGroup;
 
 /// A training ray in model space with its target colour.
 #[derive(Clone, Copy, Debug)]
@@ -169,6 +170,18 @@ pub trait Model: Send + Sync {
     /// Takes back what [`Model::state_tensors`] saved, after `step` steps.
     fn restore_state(&mut self, _state: StateSource<'_>, _step: u64) -> Result<(), ModelError> {
         Ok(())
+    }
+    /// Ranges of the parameters that learn at a scaled rate (sorted, not
+    /// overlapping; e.g. camera pose corrections).
+    fn lr_groups(&self) -> Vec<LrGroup> {
+        Vec::new()
+    }
+    /// The camera-to-world pose (world units, 3x4 rows) a held-out view
+    /// is rendered from: a model that refines the training cameras moves it
+    /// with their common drift, which the photographs cannot see. The pose
+    /// itself for the others.
+    fn heldout_pose(&self, c2w: [[f32; 4]; 3]) -> [[f32; 4]; 3] {
+        c2w
     }
     /// The concrete model, for callers that need its own API.
     fn as_any(&self) -> &dyn std::any::Any;

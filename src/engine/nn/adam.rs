@@ -1,5 +1,17 @@
 //! Adam over a flat parameter buffer, with an exponential learning-rate
-//! schedule. Its state is saved with the checkpoint.
+//! schedule, and ranges of the buffer whose learning rate is scaled
+//! ([`LrGroup`]: the camera poses learn at a tenth of the networks' rate).
+//! Its state is saved with the checkpoint; the groups come from the model.
+
+use std::ops::Range;
+
+/// A range of the parameter buffer that learns at `scale` times the
+/// schedule's rate (the range outside every group at 1).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LrGroup {
+    pub range: Range<usize>,
+    pub scale: f32,
+}
 
 /// Adam's hyper-parameters. `Default` gives the NeRF paper's values.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -46,6 +58,13 @@ impl Adam {
     /// The gradient is consumed: `grads` is left zeroed, ready to accumulate
     /// the next step's (in the same pass over memory).
     pub fn step(&mut self, params: &mut [f32], grads: &mut [f32], lr: f32) {
+        self.step_groups(params, grads, lr, &[]);
+    }
+
+    /// [`Adam::step`] with the learning rate of each of `groups` (ranges in
+    /// increasing order that do not overlap; cut at the buffer's end) scaled. Outside the groups, and inside a group of
+    /// scale 1, the update is bit for bit [`Adam::step`]'s.
+    pub fn step_groups(&mut self, params: &mut [f32], grads: &mut [f32], lr: f32, groups: &[LrGroup]) {
         use rayon::prelude::*;
         self.t += 1;
         let (b1, b2, eps) = (self.config.beta1, self.config.beta2, self.config.eps);
@@ -59,14 +78,30 @@ impl Adam {
             .zip(grads.par_chunks_mut(CHUNK))
             .zip(self.m.par_chunks_mut(CHUNK))
             .zip(self.v.par_chunks_mut(CHUNK))
-            .for_each(|(((p, g), m), v)| {
-                for i in 0..p.len() {
-                    let gi = g[i];
-                    g[i] = 0.0;
-                    m[i] = b1 * m[i] + (1.0 - b1) * gi;
-                    v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
-                    p[i] -= step * m[i] / (v[i].sqrt() + eps_hat);
+            .enumerate()
+            .for_each(|(c, (((p, g), m), v))| {
+                let start = c * CHUNK;
+                let chunk = start..start + p.len();
+                let mut update = |r: Range<usize>, step: f32| {
+                    for i in r {
+                        let gi = g[i];
+                        g[i] = 0.0;
+                        m[i] = b1 * m[i] + (1.0 - b1) * gi;
+                        v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
+                        p[i] -= step * m[i] / (v[i].sqrt() + eps_hat);
+                    }
+                };
+                // The chunk in pieces: before each group, the group's part.
+                let mut at = chunk.start;
+                for grp in groups {
+                    let (lo, hi) = (grp.range.start.max(at), grp.range.end.min(chunk.end));
+                    if lo < hi {
+                        update(at - start..lo - start, step);
+                        update(lo - start..hi - start, step * grp.scale);
+                        at = hi;
+                    }
                 }
+                update(at - start..chunk.end - start, step);
             });
     }
 }
@@ -95,6 +130,40 @@ mod tests {
         assert!((p[0] - 0.9).abs() < 1e-5);
         assert!((p[1] - 1.1).abs() < 1e-3);
         assert_eq!(p[2], 1.0);
+    }
+
+    /// A group's parameters move by `scale` times as much on the first
+    /// step (where the move is `lr` times the gradient's sign); the others
+    /// exactly as without groups, across chunk boundaries.
+    #[test]
+    fn groups_scale_their_range_only() {
+        let n = 40_000;
+        let grads: Vec<f32> = (0..n).map(|i| ((i * 7919) % 13) as f32 - 6.0).collect();
+        let (mut plain, mut grouped) = (Adam::new(AdamConfig::default(), n), Adam::new(AdamConfig::default(), n));
+        let (mut p0, mut p1) = (vec![0.0f32; n], vec![0.0f32; n]);
+        // The last one runs past the buffer's end: cut there.
+        let groups = [
+            LrGroup { range: 100..200, scale: 0.1 },
+            LrGroup { range: 16_000..17_000, scale: 1.0 },
+            LrGroup { range: 30_000..n + 10, scale: 0.5 },
+        ];
+        for _ in 0..3 {
+            plain.step(&mut p0, &mut grads.clone(), 0.01);
+            grouped.step_groups(&mut p1, &mut grads.clone(), 0.01, &groups);
+        }
+        for i in 0..n {
+            let scale = if (100..200).contains(&i) {
+                0.1
+            } else if i >= 30_000 {
+                0.5
+            } else {
+                assert_eq!(p0[i].to_bits(), p1[i].to_bits(), "parameter {i} outside a scaled group");
+                continue;
+            };
+            let (a, b) = (p0[i], p1[i]);
+            assert!((b - scale * a).abs() <= 1e-5 * a.abs(), "{i}: {b} vs {scale} x {a}");
+        }
+        assert!(plain.m == grouped.m && plain.v == grouped.v, "the moments do not depend on the rate");
     }
 
     #[test]

@@ -79,6 +79,16 @@ pub fn render_view_with(model: &dyn Model, camera: &Camera, background: [f32; 3]
     render_view_until(model, camera, background, options, &AtomicBool::new(false)).expect("never cancelled")
 }
 
+/// Renders a held-out view of the dataset the model was trained on: from
+/// `camera` moved as the model says held-out cameras move
+/// ([`Model::heldout_pose`]: a model that refined its training cameras
+/// applies their common drift; the camera itself for the others), with
+/// render `options` (`appearance::held_out_options` for the held-out rule).
+pub fn render_heldout_view(model: &dyn Model, camera: &Camera, background: [f32; 3], options: &RenderOptions) -> View {
+    let moved = Camera { c2w: model.heldout_pose(camera.c2w), ..camera.clone() };
+    render_view_with(model, &moved, background, options)
+}
+
 /// [`render_view_with`], stopping early (`None`) once `cancel` is set: tiles not
 /// yet started are skipped. A client that goes away mid-render (the web
 /// viewer, moving on to a newer view) frees the workers at once.

@@ -17,12 +17,24 @@
 //!    the interlevel gradients through each proposal network. The final
 //!    weights are detached in the interlevel loss (it trains the proposals
 //!    only), and no gradient flows through where samples were placed.
+//!
+//! With pose refinement (design 2.7, [`PassSettings::pose`]) each ray is
+//! first moved by its image's correction (`o' = o + τ`, `d' = R(ω) d`) and
+//! the main field's backward also gives each sample's position and
+//! direction gradients: per ray `∂L/∂o' = Σ g_k` and
+//! `∂L/∂d' = Σ (t_k g_k + h_k)` (samples at `x_k = o' + t_k d'`), which
+//! [`Correction::backward`] takes to the image's six parameters. Sample
+//! distances are detached: the ray-distance warp is that of the uncorrected
+//! ray, so where samples sit along a ray (in `t`) does not depend on the
+//! pose at all. The proposal networks give the poses no gradient (their
+//! interlevel loss only shapes sampling).
 
 use crate::engine::fields::capture::{CaptureField, Ctx};
 use crate::engine::fields::proposal::ProposalField;
 use crate::engine::fields::{Field, Points};
 use crate::engine::geometry::math::Ray;
 use crate::engine::models::TrainRay;
+use crate::engine::nn::pose::{Correction, PoseRefine};
 use crate::engine::render::composite::{
     CompositeOptions, RaySamples, Upstream, composite_backward_with, composite_with,
 };
@@ -60,6 +72,9 @@ pub struct PassSettings<'a> {
     pub interlevel: f32,
     /// Weight of the distortion loss.
     pub distortion: f32,
+    /// The camera pose corrections to apply and train (`None`: rays as
+    /// given, and the pass of before pose refinement, bit for bit).
+    pub pose: Option<&'a PoseRefine>,
 }
 
 /// What a pass measured, summed over its rays (the batch loss is `loss /
@@ -98,6 +113,8 @@ pub struct CaptureBuffers {
     rays: Vec<Ray>,
     warps: Vec<Warp>,
     index: Vec<u64>,
+    /// Each valid ray's pose correction (with pose refinement only).
+    corrections: Vec<Option<Correction>>,
     image: Vec<u32>,
     keep: Vec<usize>,
     /// Compositing weights of the kept final samples.
@@ -152,10 +169,15 @@ fn run(
     buf.rays.clear();
     buf.warps.clear();
     buf.index.clear();
+    buf.corrections.clear();
     for (i, r) in rays.iter().enumerate() {
         if samplable(&r.ray) {
             buf.valid.push(i);
-            buf.rays.push(r.ray);
+            let correction = settings.pose.and_then(|p| p.correction(nets.params, r.image));
+            buf.rays.push(correction.map_or(r.ray, |c| c.apply(&r.ray)));
+            buf.corrections.push(correction);
+            // The uncorrected ray's warp: sample distances do not depend
+            // on the pose.
             buf.warps.push(Warp::for_ray(&r.ray, settings.near, settings.far)?);
             buf.index.push(r.index);
         } else {
@@ -242,10 +264,46 @@ fn main_field(
         let (ds, dc) = (&mut buf.dsigma[o..o + k], &mut buf.drgb[3 * o..3 * (o + k)]);
         composite_backward_with(s, &buf.weights[o..o + k], &opts, comp.used, upstream, ds, dc)?;
     }
-    if kept > 0 {
-        field.backward(params, &mut buf.ctx, &buf.dsigma, &buf.drgb, grads);
+    if kept == 0 {
+        return Ok(());
+    }
+    match settings.pose {
+        None => field.backward(params, &mut buf.ctx, &buf.dsigma, &buf.drgb, grads),
+        Some(pose) => {
+            let ctx = &mut buf.ctx;
+            field.backward_with_input_grads(params, ctx, &m.pos, &m.dirs, &buf.dsigma, &buf.drgb, grads);
+            pose_backward(pose, field.input_grads(ctx), m, &buf.rays, &buf.corrections, grads);
+        }
     }
     Ok(())
+}
+
+/// Takes the main field's gradients with respect to each kept sample's
+/// position and direction (`d_pos`, `d_dirs`, `[kept x 3]` each) to the pose
+/// corrections of the rays' images: per ray `∂L/∂o' = Σ g_k`,
+/// `∂L/∂d' = Σ (t_k g_k + h_k)`, summed in f64.
+fn pose_backward(
+    pose: &PoseRefine,
+    (d_pos, d_dirs): (&[f32], &[f32]),
+    m: &crate::engine::sampling::Samples,
+    rays: &[Ray],
+    corrections: &[Option<Correction>],
+    grads: &mut [f32],
+) {
+    for (r, (ray, c)) in rays.iter().zip(corrections).enumerate() {
+        let (Some(c), Some(&(o, k))) = (c, m.spans.get(r)) else { continue };
+        let (mut d_origin, mut d_dir) = ([0.0f64; 3], [0.0f64; 3]);
+        for j in o..o + k {
+            let t = f64::from(m.t[j]);
+            for a in 0..3 {
+                let g = f64::from(d_pos[3 * j + a]);
+                d_origin[a] += g;
+                d_dir[a] += t * g + f64::from(d_dirs[3 * j + a]);
+            }
+        }
+        let dir = [ray.dir.x, ray.dir.y, ray.dir.z].map(f64::from);
+        c.backward(pose, dir, d_origin, d_dir, grads);
+    }
 }
 
 /// The interlevel loss of proposal level `k` against the final weights,

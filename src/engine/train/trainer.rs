@@ -388,7 +388,8 @@ impl<'a> Trainer<'a> {
         self.bad_streak = 0;
         let lr = self.adam.config.lr_at(self.config.budget.progress(step, self.state.elapsed)) * self.state.lr_scale;
         // Adam leaves `grads` zeroed for the next step.
-        self.adam.step(self.model.params_mut(), grads, lr);
+        let groups = self.model.lr_groups();
+        self.adam.step_groups(self.model.params_mut(), grads, lr, &groups);
         self.model.after_step(self.state.step, self.config.seed, &total);
         let mse = total.sq_err / total.rays.max(1) as f64;
         self.state.smoothed_mse =
