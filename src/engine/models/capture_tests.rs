@@ -306,7 +306,7 @@ fn pose_rows_come_last_and_only_when_on() {
     let old: CaptureConfig = serde_json::from_value(json).unwrap();
     assert_eq!((old.pose_refine, old.pose_lr_scale), (false, 0.1));
     let ModelConfig::Capture(preset) = ModelConfig::preset("capture").unwrap() else { unreachable!() };
-    assert!(preset.pose_refine, "on in the capture preset");
+    assert!(!preset.pose_refine, "off in the capture preset (measured: it lowered held-out PSNR on fox and gold_cape)");
 }
 
 /// Training records each image's camera centre (saved and restored with
