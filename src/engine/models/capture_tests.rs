@@ -67,7 +67,7 @@ fn rays(model: &CaptureModel, count: usize) -> Vec<TrainRay> {
 /// A `capture-tiny` model with its parameters moved off their initial
 /// values (zero embeddings, tiny tables), so every range has a gradient.
 fn perturbed(seed: u64) -> CaptureModel {
-    let mut m = CaptureModel::new(tiny(), scene(), seed);
+    let mut m = CaptureModel::new(tiny(), scene(), seed).unwrap();
     let mut rng = Rng::new(seed + 1);
     for p in m.params.iter_mut() {
         *p += 0.2 * rng.normal();
@@ -221,7 +221,7 @@ fn proposal_samples_are_counted_as_the_config_implies() {
 
     let mut one_level = tiny();
     one_level.proposal.fine_samples = 0;
-    let one = CaptureModel::new(one_level, scene(), 2);
+    let one = CaptureModel::new(one_level, scene(), 2).unwrap();
     let stats = one.train_rays(&rays(&one, 5), &ctx, &mut vec![0.0; one.params.len()]);
     assert_eq!(stats.proposal_samples, 5 * 16, "{stats:?}");
 }

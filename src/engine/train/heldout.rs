@@ -69,7 +69,7 @@ mod tests {
     #[test]
     fn estimate_matches_the_full_views() {
         let ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
-        let model = ModelConfig::preset("instant-tiny").unwrap().build(Scene::from_dataset(&ds), 3);
+        let model = ModelConfig::preset("instant-tiny").unwrap().build(Scene::from_dataset(&ds), 3).unwrap();
         let mut exact = 0.0;
         let mut n = 0usize;
         for f in ds.split_frames(Split::Test) {
