@@ -4,9 +4,9 @@
 
 use crate::engine::dataset::Dataset;
 use crate::engine::geometry::scene::Scene;
-use crate::engine::models::Model;
 use crate::engine::models::auto::{self, AUTO, ModelChoice};
 use crate::engine::models::config::ModelConfig;
+use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::Adam;
 
 pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
@@ -97,7 +97,11 @@ pub fn new_model_and_adam(
     sets: &[String],
 ) -> anyhow::Result<(ModelConfig, Box<dyn Model>, Adam)> {
     let cfg = model_config(kind, skip, sets)?;
-    let (model, adam) = cfg.build_with_adam(scene, seed, lr).map_err(|e| anyhow::anyhow!("--lr: {e}"))?;
+    let (model, adam) = cfg.build_with_adam(scene, seed, lr).map_err(|e| match e {
+        ModelError::LearningRate(_) => anyhow::anyhow!("--lr: {e}"),
+        // The configuration does not suit the dataset (e.g. space=ndc).
+        _ => anyhow::anyhow!("{e}"),
+    })?;
     Ok((cfg, model, adam))
 }
 
@@ -135,5 +139,26 @@ mod tests {
         assert!(err("grid.log2_table=40").contains("--set: instant config: grid.log2_table is 40, allowed 8..=24"));
         assert!(err("hidden").contains("KEY=VALUE"));
         assert!(err("kind=nerf").contains("--model"));
+    }
+
+    /// `space` is a setting of the capture model; the NDC camera it uses is
+    /// derived from the cameras, so it is not one.
+    #[test]
+    fn sets_choose_the_capture_models_space() {
+        use crate::engine::models::capture::Space;
+        let space = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            model_config("capture", true, &sets).map(|c| match c {
+                ModelConfig::Capture(c) => (c.space, c.ndc_camera),
+                _ => panic!("capture expected"),
+            })
+        };
+        assert_eq!(space(&[]).unwrap(), (Space::Contract, None));
+        assert_eq!(space(&["space=ndc"]).unwrap(), (Space::Ndc, None));
+        assert_eq!(space(&["space=ndc", "space=contract"]).unwrap(), (Space::Contract, None));
+        let err = space(&["space=sphere"]).unwrap_err().to_string();
+        assert!(err.contains("--set") && err.contains("sphere"), "{err}");
+        let err = space(&["ndc_camera.near=2"]).unwrap_err().to_string();
+        assert!(err.contains("no field 'ndc_camera.near'"), "{err}");
     }
 }

@@ -73,33 +73,65 @@ impl TexturedScene {
     /// Renders every view; all are training views (pose estimation uses
     /// them all), the last four also make the test split.
     pub fn dataset(&self) -> Dataset {
-        let frames: Vec<Frame> = (0..self.views)
-            .map(|k| {
-                let camera = self.camera(k);
-                let mut rgba = Vec::with_capacity((self.width * self.height * 4) as usize);
-                for j in 0..self.height {
-                    for i in 0..self.width {
-                        // 3x3 samples a pixel: edges without aliasing, which
-                        // would move features by fractions of a pixel.
-                        let mut c = [0.0f32; 3];
-                        for (sx, sy) in (0..9).map(|s| ((s % 3) as f32, (s / 3) as f32)) {
-                            let ray = camera.ray(i as f32 + (sx + 0.5) / 3.0, j as f32 + (sy + 0.5) / 3.0);
-                            let v = self.shade(&ray);
-                            (0..3).for_each(|k| c[k] += v[k] / 9.0);
-                        }
-                        rgba.extend(c.iter().map(|v| (v * 255.0).round() as u8).chain([255]));
-                    }
+        self.dataset_of((0..self.views).map(|k| self.frame(k, self.camera(k))).collect())
+    }
+
+    /// The camera of view `k` of a forward-facing capture (as LLFF's): the
+    /// `views` cameras on a grid of rows of `ceil(sqrt(views))`, 0.8 wide
+    /// and 0.5 high, in a plane 3 units out on +x, looking towards the
+    /// ball with axes that spread within 2 degrees of their mean (they
+    /// would meet about 15 units away).
+    pub fn forward_camera(&self, k: usize) -> Camera {
+        let cols = (self.views as f32).sqrt().ceil().max(1.0) as usize;
+        let rows = self.views.div_ceil(cols).max(1);
+        let along = |i: usize, n: usize| if n > 1 { i as f32 / (n - 1) as f32 - 0.5 } else { 0.0 };
+        let (dy, dz) = (0.8 * along(k % cols, cols), 0.5 * along(k / cols, rows));
+        let eye = Vec3::new(RING, dy, 1.0 + dz);
+        let target = Vec3::new(0.0, 0.8 * dy, -0.2 + 0.8 * dz);
+        let pose = look_at(eye, target, Vec3::new(0.0, 0.0, 1.0)).unwrap_or([[0.0; 4]; 3]);
+        Camera::from_fov(self.width, self.height, self.fov, pose)
+    }
+
+    /// The same scene captured forward-facing ([`TexturedScene::forward_camera`]),
+    /// in LLFF's manner: the nearest surface is about 2.2 units in front of
+    /// the cameras (near bound 1.5), the white beyond the ground is at
+    /// infinity. Every fourth view (from the third) is held out.
+    pub fn forward_facing(&self) -> Dataset {
+        let frames: Vec<Frame> = (0..self.views).map(|k| self.frame(k, self.forward_camera(k))).collect();
+        let n = frames.len();
+        let held_out: Vec<usize> = (0..n).filter(|k| k % 4 == 2).collect();
+        Dataset {
+            train: (0..n).filter(|k| k % 4 != 2).collect(),
+            val: held_out.clone(),
+            test: held_out,
+            near: 1.5,
+            far: 12.0,
+            ..self.dataset_of(frames)
+        }
+    }
+
+    /// View `k` seen by `camera`, rendered exactly.
+    fn frame(&self, k: usize, camera: Camera) -> Frame {
+        let mut rgba = Vec::with_capacity((self.width * self.height * 4) as usize);
+        for j in 0..self.height {
+            for i in 0..self.width {
+                // 3x3 samples a pixel: edges without aliasing, which
+                // would move features by fractions of a pixel.
+                let mut c = [0.0f32; 3];
+                for (sx, sy) in (0..9).map(|s| ((s % 3) as f32, (s / 3) as f32)) {
+                    let ray = camera.ray(i as f32 + (sx + 0.5) / 3.0, j as f32 + (sy + 0.5) / 3.0);
+                    let v = self.shade(&ray);
+                    (0..3).for_each(|k| c[k] += v[k] / 9.0);
                 }
-                let image = Image { width: self.width, height: self.height, rgba, has_alpha: false };
-                Frame {
-                    name: format!("view_{k:03}"),
-                    path: format!("view_{k:03}.png").into(),
-                    camera,
-                    image,
-                    mask: None,
-                }
-            })
-            .collect();
+                rgba.extend(c.iter().map(|v| (v * 255.0).round() as u8).chain([255]));
+            }
+        }
+        let image = Image { width: self.width, height: self.height, rgba, has_alpha: false };
+        Frame { name: format!("view_{k:03}"), path: format!("view_{k:03}.png").into(), camera, image, mask: None }
+    }
+
+    /// A dataset of `frames`, all trained on, the last four also held out.
+    fn dataset_of(&self, frames: Vec<Frame>) -> Dataset {
         let n = frames.len();
         Dataset {
             format: DatasetFormat::Blender,

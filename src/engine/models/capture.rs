@@ -5,7 +5,9 @@
 //! - **Space**: the model's own normalisation puts the point the training
 //!   cameras look at (`Scene::rig`'s focus) at the origin and the cameras
 //!   `camera_radius` from it; a scene contraction maps all of space into the
-//!   grids' cube (`fields::space`), so the background is modelled too.
+//!   grids' cube (`fields::space`), so the background is modelled too. For
+//!   forward-facing captures, `space: ndc` maps the mean training camera's
+//!   frustum there instead (`capture_space`).
 //! - **Sampling**: proposal networks (`fields::proposal`) place each ray's
 //!   samples over the ray-distance warp (`train::capture_levels`); the last
 //!   interval of a ray is opaque (photographs have no see-through pixels).
@@ -24,16 +26,14 @@
 //!
 //! The configuration and its checks are in `capture_config`.
 //!
-//! Not built yet (later steps of the design): NDC for forward-facing
-//! captures as a model option.
 
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
-pub use super::capture_config::{CaptureConfig, ProposalConfig};
+pub use super::capture_config::{CaptureConfig, ProposalConfig, Space};
+use super::capture_space::{check_resolved, resolve, space_map};
 use super::{BatchStats, Model, ModelError, RayOutput, RenderOptions, StateSource, StepCtx, TrainRay};
 use crate::engine::fields::capture::{CaptureField, CaptureFieldConfig};
 use crate::engine::fields::proposal::ProposalField;
-use crate::engine::fields::space::SpaceMap;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::geometry::so3;
@@ -50,11 +50,6 @@ use crate::engine::train::capture_pass::{CaptureBuffers, CaptureNets, PassSettin
 
 /// The kind's name in checkpoints, the API and `--model`.
 pub const KIND: &str = "capture";
-
-/// The space the grids live in.
-fn space(config: &CaptureConfig) -> SpaceMap {
-    SpaceMap::Contract { norm: config.contraction }
-}
 
 /// The model's networks and pose corrections, as laid out in its buffer.
 pub struct Parts {
@@ -78,7 +73,7 @@ pub fn layout(layout: &mut ParamLayout, config: &CaptureConfig) -> Parts {
         max_images: config.max_images,
         appearance_dim: config.appearance_dim,
     };
-    let field = CaptureField::new(layout, space(config), &field_config);
+    let field = CaptureField::new(layout, space_map(config), &field_config);
     let p = &config.proposal;
     let mut grids = vec![&p.coarse_grid];
     if p.fine_samples > 0 {
@@ -89,7 +84,7 @@ pub fn layout(layout: &mut ParamLayout, config: &CaptureConfig) -> Parts {
         .enumerate()
         .map(|(k, g)| {
             let name = format!("proposal{k}");
-            ProposalField::new(layout, &name, space(config), g.clone(), p.hidden, config.init_density)
+            ProposalField::new(layout, &name, space_map(config), g.clone(), p.hidden, config.init_density)
         })
         .collect();
     let pose = config.pose_refine.then(|| PoseRefine::new(layout, "pose", config.max_images));
@@ -179,8 +174,17 @@ pub struct CaptureModel {
 }
 
 impl CaptureModel {
-    /// A fresh model for `scene` (normalised by [`capture_scene`]).
-    pub fn new(config: CaptureConfig, scene: Scene, seed: u64) -> Self {
+    /// A fresh model for `scene` (as the dataset gives it; normalised by
+    /// [`capture_scene`]). With `space: ndc`, its NDC camera comes from the
+    /// scene's training cameras (`capture_space::resolve`), and a scene
+    /// that cannot give one is refused.
+    pub fn new(config: CaptureConfig, scene: Scene, seed: u64) -> Result<Self, ModelError> {
+        let config = resolve(config, &scene)?;
+        Ok(Self::init(config, scene, seed))
+    }
+
+    /// A fresh model for a configuration whose space is resolved.
+    fn init(config: CaptureConfig, scene: Scene, seed: u64) -> Self {
         let mut ps = ParamLayout::default();
         let Parts { field, proposals, pose } = layout(&mut ps, &config);
         let mut params = vec![0.0; ps.len];
@@ -202,7 +206,8 @@ impl CaptureModel {
     /// A model with saved parameters (its state comes back through
     /// [`Model::restore_state`]).
     pub fn from_parts(config: CaptureConfig, scene: Scene, params: Vec<f32>) -> Result<Self, ModelError> {
-        let m = Self::new(config, scene, 0);
+        check_resolved(&config)?;
+        let m = Self::init(config, scene, 0);
         ModelError::check_size("parameters", m.params.len(), params.len())?;
         Ok(Self { params, ..m })
     }
@@ -442,3 +447,7 @@ impl Model for CaptureModel {
 #[cfg(test)]
 #[path = "capture_tests.rs"]
 mod tests;
+
+#[cfg(test)]
+#[path = "capture_ndc_tests.rs"]
+mod ndc_tests;

@@ -6,7 +6,7 @@
 use super::capture::{CaptureModel, KIND, layout};
 use super::config::{Checks, FieldValue, Footprint, ModelSpec};
 use super::{Model, ModelError};
-use crate::engine::fields::space::Norm;
+use crate::engine::fields::space::{NdcFrame, Norm};
 use crate::engine::geometry::scene::Scene;
 use crate::engine::nn::adam::AdamConfig;
 use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
@@ -37,10 +37,35 @@ pub struct ProposalConfig {
     pub anneal_slope: f32,
 }
 
+/// Which map takes model space into the grids' cube (design section 2.3).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Space {
+    /// Scene contraction (of norm `contraction`): all of space, for
+    /// captures seen from any side.
+    #[default]
+    Contract,
+    /// NDC of the training cameras' mean pose: their frustum from the
+    /// dataset's near bound to infinity, depth spent as disparity. For
+    /// forward-facing captures only (LLFF's); a model refuses others.
+    Ndc,
+}
+
 /// The real-capture model's configuration: every tunable is a scalar, so
 /// `--set key=value` reaches each.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CaptureConfig {
+    /// The space the grids live in: `contract` (the default) or `ndc`.
+    /// Configurations from before it existed read `contract`.
+    #[serde(default)]
+    pub space: Space,
+    /// With `space: ndc`, the reference camera in model units: not a
+    /// setting, but derived from the training cameras when a model is built
+    /// (`capture_space::resolve`) and stored with its configuration, so a
+    /// checkpoint reloads, resumes and renders with the map it was trained
+    /// with. `None` (and not written) otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ndc_camera: Option<NdcFrame>,
     /// The norm of the scene contraction: `linf` (the whole grid cube is
     /// used) or `l2`.
     pub contraction: Norm,
@@ -118,6 +143,8 @@ fn default_pose_lr_scale() -> f32 {
 impl Default for CaptureConfig {
     fn default() -> Self {
         Self {
+            space: Space::Contract,
+            ndc_camera: None,
             contraction: Norm::Linf,
             camera_radius: 1.0,
             near: 0.05,
@@ -261,8 +288,8 @@ impl ModelSpec for CaptureConfig {
         non_negative(c, "pose_lr_scale", self.pose_lr_scale);
     }
 
-    fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model> {
-        Box::new(CaptureModel::new(self.clone(), scene, seed))
+    fn build(&self, scene: Scene, seed: u64) -> Result<Box<dyn Model>, ModelError> {
+        Ok(Box::new(CaptureModel::new(self.clone(), scene, seed)?))
     }
 
     fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError> {

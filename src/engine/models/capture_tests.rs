@@ -68,7 +68,7 @@ fn rays(model: &CaptureModel, count: usize) -> Vec<TrainRay> {
 /// A `capture-tiny` model with its parameters moved off their initial
 /// values (zero embeddings, tiny tables), so every range has a gradient.
 fn perturbed(seed: u64) -> CaptureModel {
-    let mut m = CaptureModel::new(tiny(), scene(), seed);
+    let mut m = CaptureModel::new(tiny(), scene(), seed).unwrap();
     let mut rng = Rng::new(seed + 1);
     for p in m.params.iter_mut() {
         *p += 0.2 * rng.normal();
@@ -276,7 +276,7 @@ fn proposal_samples_are_counted_as_the_config_implies() {
 
     let mut one_level = tiny();
     one_level.proposal.fine_samples = 0;
-    let one = CaptureModel::new(one_level, scene(), 2);
+    let one = CaptureModel::new(one_level, scene(), 2).unwrap();
     let stats = one.train_rays(&rays(&one, 5), &ctx, &mut vec![0.0; one.params.len()]);
     assert_eq!(stats.proposal_samples, 5 * 16, "{stats:?}");
 }
@@ -286,8 +286,8 @@ fn proposal_samples_are_counted_as_the_config_implies() {
 /// last, learning at `pose_lr_scale`.
 #[test]
 fn pose_rows_come_last_and_only_when_on() {
-    let off = CaptureModel::new(tiny(), scene(), 1);
-    let on = CaptureModel::new(CaptureConfig { pose_refine: true, pose_lr_scale: 0.25, ..tiny() }, scene(), 1);
+    let off = CaptureModel::new(tiny(), scene(), 1).unwrap();
+    let on = CaptureModel::new(CaptureConfig { pose_refine: true, pose_lr_scale: 0.25, ..tiny() }, scene(), 1).unwrap();
     let (mut a, mut b) = (ParamLayout::default(), ParamLayout::default());
     assert!(layout(&mut a, &off.config).pose.is_none());
     let pose = layout(&mut b, &on.config).pose.expect("rows with pose_refine");
@@ -316,7 +316,7 @@ fn pose_rows_come_last_and_only_when_on() {
 /// `t_g / scale`) when every image moved by it.
 #[test]
 fn centres_drift_and_heldout_poses() {
-    let mut m = CaptureModel::new(CaptureConfig { pose_refine: true, ..tiny() }, scene(), 2);
+    let mut m = CaptureModel::new(CaptureConfig { pose_refine: true, ..tiny() }, scene(), 2).unwrap();
     let train = rays(&m, 6);
     m.train_rays(&train, &StepCtx { seed: 0, step: 0, batch_rays: 6 }, &mut vec![0.0; m.params.len()]);
     let c2w = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, -1.0, -2.0], [0.0, 1.0, 0.0, 0.25]];

@@ -25,8 +25,10 @@ pub trait ModelSpec {
     fn kind(&self) -> &'static str;
     /// Records every field out of range in `c`.
     fn check(&self, c: &mut Checks);
-    /// A freshly initialised model for `scene`.
-    fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model>;
+    /// A freshly initialised model for `scene`; an error when the
+    /// configuration does not suit the scene (e.g. `capture`'s NDC space on
+    /// cameras that do not face one way).
+    fn build(&self, scene: Scene, seed: u64) -> Result<Box<dyn Model>, ModelError>;
     /// A model with saved parameters (its state then comes back through
     /// `Model::restore_state`).
     fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError>;
@@ -154,8 +156,8 @@ impl ModelConfig {
         c.finish()
     }
 
-    /// A freshly initialised model for `scene`.
-    pub fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model> {
+    /// A freshly initialised model for `scene` (see [`ModelSpec::build`]).
+    pub fn build(&self, scene: Scene, seed: u64) -> Result<Box<dyn Model>, ModelError> {
         self.spec().build(scene, seed)
     }
 
@@ -180,7 +182,7 @@ impl ModelConfig {
             cfg.lr_end = lr * cfg.lr_end / cfg.lr;
             cfg.lr = lr;
         }
-        let model = self.build(scene, seed);
+        let model = self.build(scene, seed)?;
         let adam = Adam::new(cfg, model.params().len());
         Ok((model, adam))
     }

@@ -114,8 +114,8 @@ impl ModelSpec for InstantConfig {
         c.int("chunk_rays", i.chunk_rays, 1..=4096);
     }
 
-    fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model> {
-        Box::new(InstantModel::new(self.clone(), scene, seed))
+    fn build(&self, scene: Scene, seed: u64) -> Result<Box<dyn Model>, ModelError> {
+        Ok(Box::new(InstantModel::new(self.clone(), scene, seed)))
     }
 
     fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError> {

@@ -9,6 +9,7 @@
 pub mod auto;
 pub mod capture;
 pub mod capture_config;
+pub mod capture_space;
 pub mod config;
 pub mod instant;
 pub mod nerf;

@@ -91,8 +91,8 @@ impl ModelSpec for NerfConfig {
         }
     }
 
-    fn build(&self, scene: Scene, seed: u64) -> Box<dyn Model> {
-        Box::new(NerfModel::new(self.clone(), scene, seed))
+    fn build(&self, scene: Scene, seed: u64) -> Result<Box<dyn Model>, ModelError> {
+        Ok(Box::new(NerfModel::new(self.clone(), scene, seed)))
     }
 
     fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError> {

@@ -18,7 +18,7 @@ fn dataset() -> Dataset {
 
 /// A `capture-tiny` model of `ds` that has trained on `seen`.
 fn capture(ds: &Dataset, seen: &[u32]) -> Box<dyn Model> {
-    let mut m = ModelConfig::preset("capture-tiny").unwrap().build(Scene::from_dataset(ds), 1);
+    let mut m = ModelConfig::preset("capture-tiny").unwrap().build(Scene::from_dataset(ds), 1).unwrap();
     let mut flags = vec![0.0; 2000];
     for &i in seen {
         flags[i as usize] = 1.0;
@@ -117,7 +117,7 @@ fn nearest_needs_the_training_cameras() {
     let ds = dataset();
     let mut scene = Scene::from_dataset(&ds);
     scene.rig.as_mut().unwrap().frames.clear();
-    let mut m = ModelConfig::preset("capture-tiny").unwrap().build(scene, 1);
+    let mut m = ModelConfig::preset("capture-tiny").unwrap().build(scene, 1).unwrap();
     m.restore_state(&mut |_| Some(vec![1.0; 2000]), 1).unwrap();
     let cam = &ds.frames[0].camera;
     assert_eq!(Appearance::Nearest.resolve(&*m, cam), Err(AppearanceError::NoCameras));
@@ -131,7 +131,7 @@ fn nearest_needs_the_training_cameras() {
 fn other_models_ignore_the_choice() {
     let ds = dataset();
     for preset in ["instant-tiny", "nerf-tiny"] {
-        let m = ModelConfig::preset(preset).unwrap().build(Scene::from_dataset(&ds), 1);
+        let m = ModelConfig::preset(preset).unwrap().build(Scene::from_dataset(&ds), 1).unwrap();
         assert_eq!(m.appearance_images(), None);
         for a in [Appearance::Mean, Appearance::Image(99_999), Appearance::Nearest] {
             assert_eq!(a.resolve(&*m, &ds.frames[0].camera), Ok(RenderOptions::default()), "{preset} {a}");

@@ -161,7 +161,7 @@ mod tests {
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
         for name in crate::engine::models::config::PRESETS {
             let c = ModelConfig::preset(name).unwrap();
-            let m = c.build(Scene::from_dataset(&ds), 1);
+            let m = c.build(Scene::from_dataset(&ds), 1).unwrap();
             let e = training(&c, DataSize::uniform(2, 8, 8), 2);
             assert_eq!(e.params, m.params().len() as u64, "{name}");
         }

@@ -107,7 +107,7 @@ mod tests {
     fn estimate_matches_the_full_views() {
         let ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
         for preset in ["instant-tiny", "capture-tiny"] {
-            let mut model = ModelConfig::preset(preset).unwrap().build(Scene::from_dataset(&ds), 3);
+            let mut model = ModelConfig::preset(preset).unwrap().build(Scene::from_dataset(&ds), 3).unwrap();
             if model.appearance_images().is_some() {
                 let mut seen = vec![0.0; 2000];
                 ds.train.iter().for_each(|&i| seen[i] = 1.0);
