@@ -233,10 +233,11 @@ impl JobStore for PgJobStore {
     /// Stops the change feed and closes the pool: later calls fail. Jobs
     /// run on workers, which stop on their own.
     fn shutdown(&self) -> Fut<'_, ()> {
-        self.closed.store(true, Ordering::SeqCst);
-        self.changes.stop();
-        self.queue.close();
-        Box::pin(std::future::ready(()))
+        Box::pin(async move {
+            self.closed.store(true, Ordering::SeqCst);
+            self.changes.stop();
+            self.queue.close();
+        })
     }
 }
 

@@ -122,7 +122,7 @@ impl PgQueue {
 }
 
 /// A row's `record` column as `T`; an error naming the row when it is not one.
-pub(super) fn record<T: DeserializeOwned>(row: &Row) -> Result<T, PgError> {
+fn record<T: DeserializeOwned>(row: &Row) -> Result<T, PgError> {
     let id: String = row.try_get("id")?;
     row.try_get::<_, Json<T>>("record")
         .map(|Json(r)| r)
