@@ -8,8 +8,8 @@
 //!
 //! `embedded` implements both over one data directory with the scheduler,
 //! its redb job database and the files beside it: the default, one node.
-//! `pg` is the PostgreSQL job queue meant to implement [`JobStore`] for
-//! many nodes; nothing in the service uses it yet.
+//! `pg` is the PostgreSQL job queue, and `pg::PgJobStore` the [`JobStore`]
+//! over it for many nodes; nothing in the service uses it yet.
 //!
 //! Both interfaces are async (the API is tokio) and dyn-compatible: every
 //! method returns a boxed future ([`Fut`]), so the API holds them as

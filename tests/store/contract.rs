@@ -168,7 +168,7 @@ async fn listed_jobs(st: &Stores, status: Option<Status>) -> Vec<String> {
 }
 
 /// A nerf-tiny training job of `steps` steps on `scene`.
-fn train(scene: &str, steps: u64, seed: u64) -> JobSpec {
+pub fn train(scene: &str, steps: u64, seed: u64) -> JobSpec {
     JobSpec::Train(Box::new(TrainSpec {
         scene_id: scene.into(),
         model: "nerf-tiny".into(),
@@ -182,7 +182,7 @@ fn train(scene: &str, steps: u64, seed: u64) -> JobSpec {
 }
 
 /// A one-frame 16x16 GIF orbit.
-fn video() -> JobSpec {
+pub fn video() -> JobSpec {
     JobSpec::Video(VideoSpec {
         frames: 1,
         fps: 1,
@@ -197,7 +197,7 @@ fn video() -> JobSpec {
     })
 }
 
-fn new_job(spec: JobSpec, memory_estimate: u64) -> NewJob {
+pub fn new_job(spec: JobSpec, memory_estimate: u64) -> NewJob {
     NewJob { id: None, spec, model_id: None, memory_estimate }
 }
 

@@ -1,9 +1,15 @@
 //! The contract of the job store and the artifact store
 //! (`radiance::store`): what every pair of stores does alike, written once
 //! as async checks over how a pair is opened (`contract`), and run here on
-//! the embedded pair (`embedded`). Another backend runs the same checks
-//! with `contract_tests!(its_opener)`.
+//! the embedded pair (`embedded`) and on the PostgreSQL job store with the
+//! embedded artifact store (`pg`; `pg_jobs` checks what it does beyond the
+//! contract). Another backend runs the same checks with
+//! `contract_tests!(its_opener)`.
 
+#[path = "../common/mod.rs"]
+mod common;
 #[macro_use]
 mod contract;
 mod embedded;
+mod pg;
+mod pg_jobs;

@@ -22,8 +22,9 @@ pub enum PgError {
     /// A statement failed.
     #[error("database error: {}", chain(.0))]
     Db(#[from] tokio_postgres::Error),
-    /// A row that does not read back as the record it should hold.
-    #[error("job '{id}' in the database cannot be read: {reason}")]
+    /// A row that does not read back as the record it should hold (a
+    /// job's, a scene's, a model's or a video's: the id's prefix says which).
+    #[error("the record '{id}' in the database cannot be read: {reason}")]
     BadRecord { id: String, reason: String },
     /// An argument the store cannot take (e.g. a lease of no time).
     #[error("{0}")]

@@ -34,8 +34,15 @@ impl Migration {
 }
 
 /// This binary's migrations, in order.
-pub const MIGRATIONS: &[Migration] =
-    &[Migration { version: 1, name: "init", sql: include_str!("migrations/0001_init.sql") }];
+pub const MIGRATIONS: &[Migration] = &[
+    Migration { version: 1, name: "init", sql: include_str!("migrations/0001_init.sql") },
+    Migration { version: 2, name: "now_ms_floor", sql: include_str!("migrations/0002_now_ms_floor.sql") },
+];
+
+/// The newest migration this binary knows: the schema it needs.
+pub fn newest_version() -> i32 {
+    MIGRATIONS.last().map_or(0, |m| m.version)
+}
 
 /// The session advisory lock the runner holds: "radiance" in ASCII.
 pub const LOCK_KEY: i64 = 0x7261_6469_616e_6365;

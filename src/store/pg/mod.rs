@@ -12,22 +12,32 @@
 //!   with a fencing token), heartbeat, finish, reclaim of expired leases
 //!   with crash counting, the fenced model publish;
 //! - `notify`: LISTEN for the `radiance` channel the `jobs` trigger
-//!   announces changes on.
+//!   announces changes on;
+//! - `changes`: one listener per node whose notices every follower of a
+//!   job shares, connecting again when its connection ends;
+//! - `records`: the records of scenes, models and videos (read, list,
+//!   delete unless in use);
+//! - `jobs`: [`PgJobStore`], the [`JobStore`](crate::store::JobStore) over
+//!   all of these (records only: files are the artifact store's).
 //!
 //! Every write a worker makes for a job is fenced by its lease's token: once
 //! the lease is lost (expired and reclaimed), the old owner can change
 //! nothing. Lease times come from the database clock.
 
+mod changes;
 mod connect;
 mod error;
+mod jobs;
 mod lease;
 pub mod migrate;
 mod notify;
 mod queue;
+mod records;
 mod rows;
 
 pub use connect::Database;
 pub use error::PgError;
+pub use jobs::{CHANGE_FALLBACK, PgJobStore, PgStoreConfig, READY_WITHIN};
 pub use lease::{Admission, Claimed, Heartbeat, Lease, Reclaimed, RunEnd, RunState};
 pub use notify::{CHANNEL, Listener, Notice};
 pub use queue::{PgQueue, QueueConfig};

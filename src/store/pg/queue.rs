@@ -1,6 +1,6 @@
 //! The API's side of the queue: enqueue (in `seq` order, with the embedded
 //! queue's checks and answers), store a scene together with its pose
-//! estimation job, read jobs, cancel.
+//! estimation job, read and count jobs, cancel, delete a finished job.
 //!
 //! Each call is one transaction. Row locks take the place of the embedded
 //! scheduler's lock: an enqueue holds `FOR SHARE` on the scene or model it
@@ -8,6 +8,7 @@
 //! at a time under a transaction advisory lock so the `max_queued` count
 //! stays exact.
 
+use std::collections::HashMap;
 use std::io;
 
 use deadpool_postgres::{Pool, Transaction};
@@ -50,6 +51,18 @@ impl PgQueue {
         Self { pool, config }
     }
 
+    /// The newest migration the database has applied (0 before any).
+    pub async fn schema_version(&self) -> Result<i32, PgError> {
+        let client = self.pool.get().await?;
+        let row = client.query_one("SELECT coalesce(max(version), 0) FROM radiance_migrations", &[]).await?;
+        Ok(row.try_get(0)?)
+    }
+
+    /// Closes the pool: every later call fails at once (`Unavailable`).
+    pub fn close(&self) {
+        self.pool.close();
+    }
+
     /// Registers a job and answers with its queued record, as the embedded
     /// `Scheduler::enqueue_as` does: a training job needs a ready scene, a
     /// pose estimation its scene, a video its model (`model_id`); a full
@@ -71,9 +84,12 @@ impl PgQueue {
             return Err(PgError::Invalid(format!("'{}' is not a valid scene id", scene.id)));
         }
         if let Some(j) = &poses_job
-            && j.spec.scene_id() != Some(scene.id.as_str())
+            && (!matches!(j.spec, JobSpec::Poses(_)) || j.spec.scene_id() != Some(scene.id.as_str()))
         {
-            return Err(PgError::Invalid(format!("the job stored with scene '{}' is not about it", scene.id)));
+            return Err(PgError::Invalid(format!(
+                "the job stored with scene '{}' is not its pose estimation",
+                scene.id
+            )));
         }
         let record = serde_json::to_value(scene).map_err(|e| PgError::Invalid(format!("scene record: {e}")))?;
         let mut client = self.pool.get().await?;
@@ -119,6 +135,36 @@ impl PgQueue {
             )
             .await?;
         rows.iter().map(job).collect()
+    }
+
+    /// How many jobs have each status (a status no job has is missing).
+    pub async fn count_by_status(&self) -> Result<HashMap<Status, usize>, PgError> {
+        let client = self.pool.get().await?;
+        let rows = client.query("SELECT status, count(*) FROM jobs GROUP BY status", &[]).await?;
+        let mut counts = HashMap::new();
+        for row in &rows {
+            let (status, n): (String, i64) = (row.try_get(0)?, row.try_get(1)?);
+            let status = status.parse::<Status>().map_err(PgError::Invalid)?;
+            counts.insert(status, usize::try_from(n).unwrap_or(0));
+        }
+        Ok(counts)
+    }
+
+    /// Removes a finished job's record (and its runs' history); what it
+    /// made stays. A queued or running job is refused (`JobNotFinal`): it
+    /// must be canceled first.
+    pub async fn delete_job(&self, id: &str) -> Result<(), PgError> {
+        let mut client = self.pool.get().await?;
+        let tx = client.transaction().await?;
+        let row = tx.query_opt("SELECT status FROM jobs WHERE id = $1 FOR UPDATE", &[&id]).await?;
+        let Some(row) = row else { return Err(SchedError::JobNotFound(id.into()).into()) };
+        let status = row.try_get::<_, String>(0)?.parse::<Status>().map_err(PgError::Invalid)?;
+        if !status.is_final() {
+            return Err(SchedError::JobNotFinal { id: id.into(), status: status.name() }.into());
+        }
+        tx.execute("DELETE FROM jobs WHERE id = $1", &[&id]).await?;
+        tx.commit().await?;
+        Ok(())
     }
 
     /// Cancels a queued job at once (a pose estimation's scene becomes
