@@ -73,6 +73,7 @@ fn model_of(job: &Job, scene: &SceneInfo) -> ModelInfo {
         complete: true,
         training_state: true,
         view: scene.view.clone(),
+        poses: None,
     }
 }
 
