@@ -132,3 +132,25 @@ fn bench_resolves_auto_and_counts_proposal_samples() {
         assert_eq!((cells[0], cells[7]), (r.model.as_str(), format!("{:.1}", r.proposal_samples_per_ray).as_str()));
     }
 }
+
+/// When `auto` chooses the capture model (opaque photographs), the table has
+/// the mean appearance's column in its header and in its rows alike.
+#[test]
+fn bench_auto_capture_rows_have_the_mean_column() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_llff(&data).unwrap();
+    let json = dir.path().join("bench.json");
+    let args = ["--model", "auto", "--budgets", "0.2", "--test-views", "1", "--json", json.to_str().unwrap()];
+    let out = radiance(&[&["bench", "--data", data.to_str().unwrap()][..], &args[..]].concat());
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "stdout: {stdout}\nstderr: {stderr}");
+    assert!(stderr.contains("model 'capture' (auto)"), "{stderr}");
+    let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert!(lines[0].contains("PSNR dB  mean dB"), "{stdout}");
+    let mean = report.rows[0].psnr_mean.expect("a capture row has the mean appearance's PSNR");
+    let cells: Vec<&str> = lines[1].split_whitespace().collect();
+    // model, budget, train s, steps, rays, samples, smp/ray, prop/ray, skip/ray, PSNR, mean.
+    assert_eq!(cells[10], format!("{mean:.2}"), "{stdout}");
+}

@@ -293,7 +293,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let with_mean = kinds.iter().any(|m| m == crate::engine::models::capture::KIND);
     println!("{}", header(ds.masks != MaskUse::Off, with_mean));
     for kind in &kinds {
-        let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel };
+        let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel, with_mean };
         if let Err(e) = run.model(kind, &mut report) {
             failure = Some(e);
             break;
@@ -319,6 +319,9 @@ struct Run<'a> {
     budgets: &'a [f64],
     threads: usize,
     cancel: &'a AtomicBool,
+    /// Whether the table has the mean appearance's column (a capture model
+    /// is benched, named or chosen by `auto`).
+    with_mean: bool,
 }
 
 impl Run<'_> {
@@ -357,8 +360,7 @@ impl Run<'_> {
             // A step that crosses several budgets scores once for all of them.
             while next < budgets.len() && p.elapsed >= budgets[next] {
                 let r = BenchRow { budget_seconds: budgets[next], ..row.clone() };
-                let with_mean = a.model.iter().any(|m| m == crate::engine::models::capture::KIND);
-                println!("{}", format_row(&r, ds.masks != MaskUse::Off, with_mean));
+                println!("{}", format_row(&r, ds.masks != MaskUse::Off, self.with_mean));
                 report.rows.push(r);
                 next += 1;
             }
