@@ -25,6 +25,7 @@ use crate::jobs::{Counters, Job, JobSpec, SchedError, Status};
 use crate::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
 
 pub mod embedded;
+pub mod object;
 pub mod pg;
 
 /// The future every store method returns: boxed, so the traits are
