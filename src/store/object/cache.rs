@@ -163,10 +163,12 @@ impl Cache {
             let used = index.clock;
             index.total += size;
             index.entries.insert(key.to_string(), Entry { size, used, pins: 1 });
-            index.evict(self.max_bytes)
+            // Out of the way while the index is locked (a rename, quick), so
+            // a fetch of an evicted key finds its path free; removed after.
+            let evicted = index.evict(self.max_bytes);
+            evicted.iter().map(|k| self.set_aside(k)).collect::<io::Result<Vec<_>>>()?
         };
-        let paths: Vec<PathBuf> = evicted.iter().map(|k| self.path(k)).collect();
-        super::blocking(move || paths.iter().try_for_each(|p| remove_path(p))).await??;
+        super::blocking(move || evicted.iter().try_for_each(|p| remove_path(p))).await??;
         Ok(Pin { cache: self.clone(), key: key.to_string() })
     }
 
@@ -179,6 +181,16 @@ impl Cache {
         entry.pins += 1;
         entry.used = used;
         Some(Pin { cache: self.clone(), key: key.to_string() })
+    }
+
+    /// Moves entry `key`'s file or folder into `tmp/` (to be removed);
+    /// answers where it went.
+    fn set_aside(&self, key: &str) -> io::Result<PathBuf> {
+        let aside = self.root.join("tmp").join(format!("evicted-{}", uuid::Uuid::now_v7().simple()));
+        match std::fs::rename(self.path(key), &aside) {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+            _ => Ok(aside),
+        }
     }
 
     fn lock(&self) -> MutexGuard<'_, Index> {
@@ -267,6 +279,7 @@ mod tests {
         let (_, pin_c) = cache.get_or_fetch("models/c", |t| file_of(t, 40)).await.unwrap();
         assert!(!cache.contains("models/b") && !cache.path("models/b").exists(), "b, least recent, went");
         assert_eq!(cache.total_bytes(), 80);
+        assert_eq!(std::fs::read_dir(dir.path().join("tmp")).unwrap().count(), 0, "set aside, then removed");
 
         // `a` is older than `c` but pinned: `c` goes when `d` comes.
         drop(pin_c);

@@ -212,6 +212,14 @@ impl ArtifactStore for ObjectArtifacts {
     fn put_scene_files<'a>(&'a self, id: &'a str, part: ScenePart, files: &'a Path) -> Fut<'a, io::Result<()>> {
         Box::pin(async move {
             check_id(id, "scene")?;
+            // The folder is removed once stored: only a staged upload is.
+            if !files.starts_with(self.staging_dir(id)) {
+                let staging = self.staging_dir(id);
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidInput,
+                    format!("{} is not in scene {id}'s staging folder {}", files.display(), staging.display()),
+                ));
+            }
             let key = scene_key(id, part);
             let size = upload::put_tar(&self.store, &key, files.to_path_buf(), self.config.part_size).await?;
             tracing::info!(scene = id, bytes = size, "scene upload stored");

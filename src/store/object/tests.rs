@@ -98,6 +98,11 @@ async fn photo_uploads_are_their_own_object_and_bad_ids_are_refused() {
     assert_eq!(e.kind(), io::ErrorKind::InvalidInput);
     assert!(e.to_string().contains("'../x'"), "{e}");
     assert!(store.scene_files(&sample_scene("../x"), ScenePart::Data).await.is_err());
+    // Only a staged upload is stored (and removed): not another scene's, not any folder.
+    let e = store.put_scene_files("scn_c", ScenePart::Data, &staged).await.unwrap_err();
+    assert_eq!(e.kind(), io::ErrorKind::InvalidInput);
+    assert!(e.to_string().contains("staging folder"), "{e}");
+    assert!(staged.is_dir(), "left in place");
     assert!(store.put_video("a/b", vec![1]).await.is_err());
     assert_eq!(keys(&store).await, vec!["scenes/scn_b/upload.tar"]);
 }
