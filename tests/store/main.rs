@@ -3,7 +3,8 @@
 //! as async checks over how a pair is opened (`contract`), and run here on
 //! the embedded pair (`embedded`) and on the PostgreSQL job store with the
 //! embedded artifact store (`pg`; `pg_jobs` checks what it does beyond the
-//! contract). Another backend runs the same checks with
+//! contract), and on the embedded job store with the object artifact store
+//! over `file://` (`object`). Another backend runs the same checks with
 //! `contract_tests!(its_opener)`.
 
 #[path = "../common/mod.rs"]
@@ -11,5 +12,6 @@ mod common;
 #[macro_use]
 mod contract;
 mod embedded;
+mod object;
 mod pg;
 mod pg_jobs;
