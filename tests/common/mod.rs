@@ -133,15 +133,24 @@ pub struct Svc {
     pub base: String,
 }
 
+/// The tests' HTTP client. reqwest is built with `rustls-no-provider` (the
+/// object store's TLS, with ring rather than aws-lc), so a process must
+/// install a crypto provider before it builds a client, even one that only
+/// speaks plain HTTP to 127.0.0.1; installing it twice is harmless.
+pub fn http_client() -> Client {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+    Client::new()
+}
+
 impl Svc {
     pub async fn start(config: ServiceConfig) -> Svc {
         let server = Server::start(config, "127.0.0.1:0".parse().unwrap()).await.unwrap();
         let base = format!("http://{}", server.addr);
-        Svc { server: Some(server), client: Client::new(), base }
+        Svc { server: Some(server), client: http_client(), base }
     }
 
     pub fn remote(base: String) -> Svc {
-        Svc { server: None, client: Client::new(), base }
+        Svc { server: None, client: http_client(), base }
     }
 
     pub async fn stop(self) {
