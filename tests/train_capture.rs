@@ -8,6 +8,7 @@ use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use common::psnr::{ground_truth, test_psnr};
+use common::tiny::in_pool;
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::textured::TexturedScene;
 use radiance::engine::geometry::scene::Scene;
@@ -34,14 +35,7 @@ fn dataset() -> Dataset {
 
 /// `capture-tiny` on `ds`, seeded `seed`, for `steps` steps.
 fn trainer(ds: &Dataset, seed: u64, steps: u64) -> Trainer<'_> {
-    let config = ModelConfig::preset("capture-tiny").unwrap();
-    let (model, adam) = config.build_with_adam(Scene::from_dataset(ds), seed, None).unwrap();
-    let train = config.train_config(seed, 1024, Budget { steps: Some(steps), seconds: None });
-    Trainer::new(model, adam, train, TrainState::default(), ds)
-}
-
-fn in_pool<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
-    rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(f)
+    common::tiny::trainer(&ModelConfig::preset("capture-tiny").unwrap(), ds, seed, steps)
 }
 
 /// 400 steps of `capture-tiny` (about 2 s): the held-out views go from

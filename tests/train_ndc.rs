@@ -9,14 +9,14 @@ use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use common::psnr::test_psnr;
+use common::tiny::{in_pool, trainer};
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::textured::TexturedScene;
-use radiance::engine::geometry::scene::Scene;
 use radiance::engine::io::persist;
 use radiance::engine::models::capture::{CaptureConfig, Space};
 use radiance::engine::models::config::ModelConfig;
 use radiance::engine::render::render_view;
-use radiance::engine::train::trainer::{Budget, TrainState, Trainer};
+use radiance::engine::train::trainer::Trainer;
 
 /// The textured ball and ground of `tests/train_capture.rs` from 20 cameras
 /// on a 5x4 grid facing it from one side (axes within 2 degrees of their
@@ -28,17 +28,6 @@ fn dataset() -> Dataset {
 fn ndc_tiny() -> ModelConfig {
     let ModelConfig::Capture(c) = ModelConfig::preset("capture-tiny").unwrap() else { unreachable!() };
     ModelConfig::Capture(CaptureConfig { space: Space::Ndc, ..c })
-}
-
-/// `config` on `ds`, seeded `seed`, for `steps` steps.
-fn trainer<'a>(config: &ModelConfig, ds: &'a Dataset, seed: u64, steps: u64) -> Trainer<'a> {
-    let (model, adam) = config.build_with_adam(Scene::from_dataset(ds), seed, None).unwrap();
-    let train = config.train_config(seed, 1024, Budget { steps: Some(steps), seconds: None });
-    Trainer::new(model, adam, train, TrainState::default(), ds)
-}
-
-fn in_pool<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
-    rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(f)
 }
 
 /// 300 steps of `capture-tiny` in NDC (about 1.3 s): the held-out views go

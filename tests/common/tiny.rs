@@ -5,12 +5,15 @@
 //! it records how the fixtures were made.)
 #![allow(unused_imports)] // the re-exports: each test binary uses its own
 
+use radiance::engine::dataset::Dataset;
+use radiance::engine::geometry::scene::Scene;
+use radiance::engine::models::config::ModelConfig;
 pub use radiance::engine::models::instant::{InstantConfig, InstantModel};
 pub use radiance::engine::models::nerf::{NerfConfig, NerfModel};
 pub use radiance::engine::nn::hashgrid::HashGridConfig;
 pub use radiance::engine::nn::nerf_net::NetConfig;
 pub use radiance::engine::sampling::occupancy::OccupancyConfig;
-use radiance::engine::train::trainer::{Budget, TrainConfig};
+use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
 
 /// The smallest classic model that still learns something: for long runs.
 pub fn nerf_nano() -> NerfConfig {
@@ -71,4 +74,18 @@ pub fn instant_small() -> InstantConfig {
 /// `steps` steps of `batch_rays` rays, seeded with `seed`.
 pub fn train_config(seed: u64, batch_rays: usize, steps: u64) -> TrainConfig {
     TrainConfig { seed, batch_rays, budget: Budget { steps: Some(steps), seconds: None }, ..Default::default() }
+}
+
+/// A fresh trainer of `config` on `ds`, seeded `seed`, for `steps` steps of
+/// 1024 rays (models that choose their own batch keep theirs).
+pub fn trainer<'a>(config: &ModelConfig, ds: &'a Dataset, seed: u64, steps: u64) -> Trainer<'a> {
+    let (model, adam) = config.build_with_adam(Scene::from_dataset(ds), seed, None).unwrap();
+    let train = config.train_config(seed, 1024, Budget { steps: Some(steps), seconds: None });
+    Trainer::new(model, adam, train, TrainState::default(), ds)
+}
+
+/// Runs `f` on a pool of `threads` threads (results are deterministic per
+/// thread count).
+pub fn in_pool<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+    rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(f)
 }
