@@ -249,6 +249,21 @@ impl CaptureModel {
         }
     }
 
+    /// The training pass's settings for a batch of `batch_rays` rays, from
+    /// the configuration (tests override single fields of it).
+    fn pass_settings(&self, batch_rays: usize) -> PassSettings<'_> {
+        PassSettings {
+            intervals: &self.intervals,
+            near: self.config.near,
+            far: self.config.far,
+            cull: Some(self.config.min_transmittance),
+            batch_rays,
+            interlevel: self.config.interlevel,
+            distortion: self.config.distortion,
+            pose: self.pose.as_ref(),
+        }
+    }
+
     /// Renders a chunk of model-space rays over `background`.
     fn render_chunk(&self, s: &mut Scratch, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
         let mut stats = BatchStats { rays: rays.len() as u64, ..Default::default() };
@@ -324,16 +339,7 @@ impl Model for CaptureModel {
             // makes the trainer skip the step.
             return BatchStats { loss: f64::NAN, rays: rays.len() as u64, ..stats };
         };
-        let settings = PassSettings {
-            intervals: &self.intervals,
-            near: self.config.near,
-            far: self.config.far,
-            cull: Some(self.config.min_transmittance),
-            batch_rays: ctx.batch_rays,
-            interlevel: self.config.interlevel,
-            distortion: self.config.distortion,
-            pose: self.pose.as_ref(),
-        };
+        let settings = self.pass_settings(ctx.batch_rays);
         with_scratch(|s| {
             for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
                 let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);

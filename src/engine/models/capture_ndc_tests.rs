@@ -55,16 +55,7 @@ fn the_whole_pass_in_ndc_matches_finite_differences_with_frozen_samples() {
     assert!(matches!(m.field.space(), SpaceMap::Ndc(_)));
     let mut ps = ParamLayout::default();
     layout(&mut ps, &m.config);
-    let settings = PassSettings {
-        intervals: &m.intervals,
-        near: m.config.near,
-        far: m.config.far,
-        cull: None,
-        batch_rays: 1,
-        interlevel: 50.0,
-        distortion: 0.01,
-        pose: None,
-    };
+    let settings = PassSettings { cull: None, interlevel: 50.0, distortion: 0.01, pose: None, ..m.pass_settings(1) };
     let how = m.config.resampling(0).unwrap();
     let checked = check_pass_gradients(m.nets(), &ps.names, &settings, &rays(&m, 6), &mut Drawn::jittered(how, 5, 9));
     let names: Vec<&str> = checked.largest.iter().map(|(n, _)| n.as_str()).collect();

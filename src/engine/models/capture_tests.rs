@@ -82,15 +82,12 @@ fn the_whole_pass_of_capture_tiny_matches_finite_differences_with_frozen_samples
     let mut ps = ParamLayout::default();
     let _ = layout(&mut ps, &m.config);
     let settings = PassSettings {
-        intervals: &m.intervals,
-        near: m.config.near,
-        far: m.config.far,
         cull: None,
-        batch_rays: 1,
         // Strong, so the proposals' gradients stand well above rounding.
         interlevel: 50.0,
         distortion: 0.01,
         pose: None,
+        ..m.pass_settings(1)
     };
     // Step 0: the weights' exponent is 0, so every level spreads over the
     // whole ray and no proposal bounds the final weights trivially.
@@ -126,16 +123,7 @@ fn rendering_composites_as_training_does() {
         assert!(o.opacity == 1.0, "the last interval is opaque: {o:?}");
         r.target = o.rgb;
     }
-    let settings = PassSettings {
-        intervals: &m.intervals,
-        near: m.config.near,
-        far: m.config.far,
-        cull: None,
-        batch_rays: 9,
-        interlevel: 1.0,
-        distortion: 0.0,
-        pose: None,
-    };
+    let settings = PassSettings { cull: None, interlevel: 1.0, distortion: 0.0, pose: None, ..m.pass_settings(9) };
     let how = m.config.resampling(40).unwrap();
     let mut grads = vec![0.0; m.params.len()];
     let p = capture_pass(m.nets(), &settings, &train, &mut Drawn::centred(how), &mut Default::default(), &mut grads);
@@ -170,16 +158,7 @@ fn rendering_with_an_images_appearance_is_that_images_colour() {
     for (r, o) in train.iter_mut().zip(&two) {
         (r.target, r.image) = (o.rgb, 2);
     }
-    let settings = PassSettings {
-        intervals: &m.intervals,
-        near: m.config.near,
-        far: m.config.far,
-        cull: None,
-        batch_rays: 9,
-        interlevel: 1.0,
-        distortion: 0.0,
-        pose: None,
-    };
+    let settings = PassSettings { cull: None, interlevel: 1.0, distortion: 0.0, pose: None, ..m.pass_settings(9) };
     let how = m.config.resampling(40).unwrap();
     let mut grads = vec![0.0; m.params.len()];
     let p = capture_pass(m.nets(), &settings, &train, &mut Drawn::centred(how), &mut Default::default(), &mut grads);
