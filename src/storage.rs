@@ -461,6 +461,13 @@ pub struct ViewDefaults {
     /// spiral that default videos follow instead of a full orbit.
     #[serde(default)]
     pub spiral: Option<Spiral>,
+    /// For captures that saw the subject from one side (the cameras leave a
+    /// gap of more than 120 degrees around it): the azimuths they span,
+    /// degrees `[start, end]` (0 towards `front`); default videos sweep
+    /// across this arc and back instead of a full orbit. `None` otherwise
+    /// and in records from before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arc: Option<[f32; 2]>,
 }
 
 impl ViewDefaults {
@@ -506,6 +513,7 @@ impl ViewDefaults {
             far: ds.far,
             elevation: rig.as_ref().map_or(Self::default_elevation(), |r| r.elevation_deg),
             front: rig.as_ref().map(|r| r.front),
+            arc: rig.as_ref().and_then(|r| r.arc_deg),
             spiral: rig.filter(|r| r.forward_facing).map(|r| r.spiral),
         }
     }
@@ -682,6 +690,7 @@ pub(crate) fn sample_view() -> ViewDefaults {
         elevation: 30.0,
         front: None,
         spiral: None,
+        arc: None,
     }
 }
 

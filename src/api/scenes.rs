@@ -334,6 +334,7 @@ fn posing(id: &str, size: u64, upload: PhotoUpload) -> Checked {
             elevation: 0.0,
             front: None,
             spiral: None,
+            arc: None,
         },
         mask_folder: None,
         kind: None,

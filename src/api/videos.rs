@@ -107,20 +107,27 @@ pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) 
         return Err(ApiError::bad_field("fov must be between 1 and 179 degrees", "fov", fov, "(1, 179)"));
     }
     crate::media::video::validate(format, width, height, fps)?;
-    // A forward-facing capture seen from behind is no view: with no orbit
-    // asked for, its video follows a spiral through the cameras' spread.
-    let path = match (path, &view.spiral) {
-        (Some(p), _) => Some(p.path),
-        (None, Some(spiral)) if r.elevation.is_none() && r.radius.is_none() => {
+    // A capture seen from where no photo was taken is no view: with no
+    // orbit asked for, a forward-facing capture's video follows a spiral
+    // through the cameras' spread, and a one-sided capture's sweeps across
+    // the cameras' arc and back.
+    let default_path = |poses: Option<Vec<[[f32; 4]; 3]>>, what: &str| {
+        let poses = poses.ok_or_else(|| ApiError::bad_request(format!("the default {what} has a degenerate camera")))?;
+        let keys = poses.into_iter().map(|c2w| (c2w, fov)).collect();
+        CameraPath::evenly_timed(keys).map_err(|e| ApiError::bad_request(format!("the default {what}: {e}")))
+    };
+    let orbit_asked = r.elevation.is_some() || r.radius.is_some();
+    let path = match (path, &view.spiral, view.arc) {
+        (Some(p), _, _) => Some(p.path),
+        (None, Some(spiral), _) if !orbit_asked => {
             let mut poses = spiral.poses(view.centre, frames as usize);
             poses.truncate(frames as usize);
-            let keys = poses.into_iter().map(|c2w| (c2w, fov)).collect();
-            Some(
-                CameraPath::evenly_timed(keys)
-                    .map_err(|e| ApiError::bad_request(format!("the default spiral: {e}")))?,
-            )
+            Some(default_path(Some(poses), "spiral")?)
         }
-        (None, _) => None,
+        (None, None, Some(arc)) if !orbit_asked => {
+            Some(default_path(view.orbit(elevation, radius).sweep(arc, frames as usize), "sweep")?)
+        }
+        (None, _, _) => None,
     };
     Ok(VideoSpec { frames, fps, width, height, elevation, radius, fov, format, path, appearance })
 }
@@ -240,6 +247,28 @@ mod tests {
         ] {
             assert!(to_spec(asked, &ff, 1 << 20).unwrap().path.is_none());
         }
+    }
+
+    #[test]
+    fn one_sided_scenes_sweep_their_arc_unless_an_orbit_is_asked_for() {
+        // Sample view: up z, front None (azimuth 0 = world x), elevation 30.
+        let side = ViewDefaults { arc: Some([-20.0, 60.0]), ..view() };
+        let s = to_spec(CreateVideo { frames: Some(24), ..Default::default() }, &side, 1 << 20).unwrap();
+        let path = s.path.expect("a sweep");
+        assert_eq!(path.keyframes().len(), 24);
+        let azimuths: Vec<f32> = (0..24)
+            .map(|k| {
+                let (c2w, _) = path.at(path.frame_time(k, 24));
+                c2w[1][3].atan2(c2w[0][3]).to_degrees()
+            })
+            .collect();
+        // Middle first, both ends reached, never outside the arc.
+        assert!((azimuths[0] - 20.0).abs() < 1e-3, "{azimuths:?}");
+        assert!((azimuths[6] - 60.0).abs() < 1e-3 && (azimuths[18] + 20.0).abs() < 1e-3, "{azimuths:?}");
+        assert!(azimuths.iter().all(|a| (-20.01..=60.01).contains(a)), "{azimuths:?}");
+        // An explicit elevation or radius asks for the full orbit.
+        let asked = CreateVideo { radius: Some(2.0), ..Default::default() };
+        assert!(to_spec(asked, &side, 1 << 20).unwrap().path.is_none());
     }
 
     #[test]

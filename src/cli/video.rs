@@ -2,7 +2,9 @@
 //! model with no other parameters. The checkpoint's scene holds the training
 //! cameras' rig (`engine::geometry::rig`): the orbit turns around the point
 //! they looked at, at their distance and elevation; a forward-facing capture
-//! gets a spiral through the cameras' own spread instead of a full turn.
+//! gets a spiral through the cameras' own spread instead of a full turn, and
+//! a capture whose cameras saw one side (`CameraRig::arc_deg`) a sweep
+//! across their arc and back.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -38,7 +40,8 @@ pub struct VideoArgs {
     #[arg(long)]
     pub height: Option<u32>,
     /// Degrees above the horizon (default: the training cameras' mean). Given
-    /// (or --radius), a forward-facing capture is orbited too.
+    /// (or --radius), a forward-facing or one-sided capture is orbited all
+    /// around too.
     #[arg(long)]
     pub elevation: Option<f32>,
     /// Distance from the point the cameras look at (default: theirs, median).
@@ -93,18 +96,29 @@ pub fn run(a: VideoArgs) -> anyhow::Result<()> {
     anyhow::ensure!(radius.is_finite() && radius > 0.0, "--radius must be a positive number");
 
     let n = a.frames as usize;
-    let spiral = rig.forward_facing && a.elevation.is_none() && a.radius.is_none();
-    let poses: Vec<[[f32; 4]; 3]> = if spiral {
-        eprintln!("a forward-facing capture: a spiral through the cameras' spread, looking at the point they look at");
-        rig.spiral.poses(rig.focus, n).into_iter().take(n).collect()
-    } else {
-        eprintln!(
-            "an orbit around the point the cameras look at: radius {radius:.3}, elevation {elevation:.1} degrees, azimuth 0 on the cameras' side"
-        );
-        let orbit = rig.orbit(elevation, radius);
-        (0..n)
-            .map(|k| orbit.pose(360.0 * k as f32 / n as f32).context("this orbit gives no well-defined camera"))
-            .collect::<anyhow::Result<_>>()?
+    let orbit_asked = a.elevation.is_some() || a.radius.is_some();
+    let poses: Vec<[[f32; 4]; 3]> = match rig.arc_deg {
+        _ if rig.forward_facing && !orbit_asked => {
+            eprintln!("a forward-facing capture: a spiral through the cameras' spread, looking at the point they look at");
+            rig.spiral.poses(rig.focus, n).into_iter().take(n).collect()
+        }
+        Some(arc) if !orbit_asked => {
+            eprintln!(
+                "the cameras saw one side ({:.0} degrees of azimuth around the point they look at): a sweep across \
+                 it and back, radius {radius:.3}, elevation {elevation:.1} degrees (--elevation or --radius: a full orbit)",
+                arc[1] - arc[0]
+            );
+            rig.orbit(elevation, radius).sweep(arc, n).context("this sweep gives no well-defined camera")?
+        }
+        _ => {
+            eprintln!(
+                "an orbit around the point the cameras look at: radius {radius:.3}, elevation {elevation:.1} degrees, azimuth 0 on the cameras' side"
+            );
+            let orbit = rig.orbit(elevation, radius);
+            (0..n)
+                .map(|k| orbit.pose(360.0 * k as f32 / n as f32).context("this orbit gives no well-defined camera"))
+                .collect::<anyhow::Result<_>>()?
+        }
     };
     let started = Instant::now();
     let mut frames = Vec::with_capacity(n);

@@ -175,6 +175,18 @@ impl Orbit {
         look_at(self.centre + dir * self.radius, self.centre, up)
     }
 
+    /// `n` poses sweeping across the azimuths `arc_deg` (`[start, end]`,
+    /// degrees) and back: from the middle to `end`, back through the middle
+    /// to `start` and back again, slowing at the ends (azimuth = middle +
+    /// half-width * sin(2 pi k / n)), so the video loops without a jump.
+    /// `None` when a pose is degenerate (as for [`Orbit::pose`]).
+    pub fn sweep(&self, arc_deg: [f32; 2], n: usize) -> Option<Vec<[[f32; 4]; 3]>> {
+        let (mid, half) = (0.5 * (arc_deg[0] + arc_deg[1]), 0.5 * (arc_deg[1] - arc_deg[0]));
+        (0..n)
+            .map(|k| self.pose(mid + half * (std::f32::consts::TAU * k as f32 / n.max(1) as f32).sin()))
+            .collect()
+    }
+
     /// The camera at `azimuth_deg` with a `width x height` image and a
     /// horizontal field of view of `fov_deg` degrees (`None` as for
     /// [`Orbit::pose`]).
@@ -239,5 +251,29 @@ mod tests {
         assert_eq!(orbit.pose(90.0), Some(cam.c2w));
         // A zero up axis has no camera.
         assert!(Orbit { up: Vec3::splat(0.0), ..orbit }.camera(0.0, 8, 8, 50.0).is_none());
+    }
+
+    #[test]
+    fn a_sweep_spans_its_arc_and_loops() {
+        let orbit = Orbit {
+            centre: Vec3::splat(0.0),
+            up: Vec3::new(0.0, 0.0, 1.0),
+            front: Some(Vec3::new(1.0, 0.0, 0.0)),
+            elevation_deg: 0.0,
+            radius: 2.0,
+        };
+        let poses = orbit.sweep([-30.0, 90.0], 40).unwrap();
+        assert_eq!(poses.len(), 40);
+        let azimuth = |p: &[[f32; 4]; 3]| p[1][3].atan2(p[0][3]).to_degrees();
+        let az: Vec<f32> = poses.iter().map(azimuth).collect();
+        // Starts in the middle, reaches both ends (a quarter and three
+        // quarters of the way), never leaves the arc.
+        assert!((az[0] - 30.0).abs() < 1e-3 && (az[10] - 90.0).abs() < 1e-3 && (az[30] + 30.0).abs() < 1e-3, "{az:?}");
+        assert!(az.iter().all(|a| (-30.001..=90.001).contains(a)), "{az:?}");
+        // The step from the last frame back to the first is no larger than
+        // the largest step inside: the loop has no jump.
+        let step = |a: f32, b: f32| (a - b).abs();
+        let largest = az.windows(2).map(|w| step(w[0], w[1])).fold(0.0, f32::max);
+        assert!(step(az[39], az[0]) <= largest + 1e-3, "{} vs {largest}", step(az[39], az[0]));
     }
 }

@@ -18,6 +18,14 @@ use crate::engine::geometry::math::Vec3;
 /// forward-facing (LLFF's fern: 9.5; a hand-held walk-around such as fox: 52).
 pub const FORWARD_FACING_SPREAD_DEG: f32 = 30.0;
 
+/// Cameras that leave a gap of more than this (degrees of azimuth around
+/// the focus) saw the subject from one side only: a full orbit would show
+/// the side no photo saw, so default videos sweep across the cameras' arc
+/// ([`CameraRig::arc_deg`]). Fox's hand-held cameras span 91 degrees (a gap
+/// of 269); gold_cape's walk-around and ethiopian_head's turntable leave no
+/// gap this wide.
+pub const ARC_GAP_DEG: f32 = 120.0;
+
 /// How the focus was found.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -67,6 +75,15 @@ pub struct CameraRig {
     /// existed.
     #[serde(default)]
     pub frames: Vec<RigFrame>,
+    /// When the cameras saw the subject from one side (they leave a gap of
+    /// more than [`ARC_GAP_DEG`] around it): the azimuths they span,
+    /// degrees, `[start, end]` with `start < end`, in the convention of
+    /// [`CameraRig::orbit`] (0 towards `front`, increasing towards `up x
+    /// front`). `None` when they go all around, for forward-facing captures
+    /// (their default is the spiral), and in checkpoints from before it
+    /// existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arc_deg: Option<[f32; 2]>,
 }
 
 /// A training camera as the rig keeps it (world units).
@@ -163,6 +180,31 @@ fn solve3(m: [[f64; 3]; 3], b: V) -> Option<V> {
     let y = dot(cols[0], cross(b, cols[2])) / det;
     let z = dot(cols[0], cross(cols[1], b)) / det;
     Some([x, y, z])
+}
+
+/// The arc (degrees, `[start, end]`, `start` in (-180, 180], `end - start`
+/// < 360) that a set of azimuths spans when the widest gap between
+/// neighbours (around the circle) exceeds `min_gap`; `None` otherwise or for
+/// fewer than 3 azimuths.
+fn covered_arc(mut azimuths: Vec<f64>, min_gap: f64) -> Option<[f64; 2]> {
+    azimuths.retain(|a| a.is_finite());
+    if azimuths.len() < 3 {
+        return None;
+    }
+    azimuths.sort_by(f64::total_cmp);
+    let n = azimuths.len();
+    // The gap after azimuth k: to the next one, or around to the first.
+    let gap = |k: usize| if k + 1 < n { azimuths[k + 1] - azimuths[k] } else { azimuths[0] + 360.0 - azimuths[k] };
+    let widest = (0..n).max_by(|&a, &b| gap(a).total_cmp(&gap(b)))?;
+    let g = gap(widest);
+    if g <= min_gap {
+        return None;
+    }
+    let mut start = azimuths[(widest + 1) % n];
+    if start > 180.0 {
+        start -= 360.0;
+    }
+    Some([start, start + 360.0 - g])
 }
 
 fn percentile(mut xs: Vec<f64>, p: f64) -> f64 {
@@ -283,6 +325,16 @@ impl CameraRig {
                 unit(horizontal(x)).unwrap_or([1.0, 0.0, 0.0])
             });
 
+        // Azimuths as `orbit` counts them: from `front` towards up x front.
+        let side = cross(up, front);
+        let azimuths = dirs
+            .iter()
+            .filter_map(|d| unit(horizontal(*d)))
+            .map(|h| dot(h, side).atan2(dot(h, front)).to_degrees())
+            .collect();
+        let forward_facing = (spread as f32) < FORWARD_FACING_SPREAD_DEG;
+        let arc = covered_arc(azimuths, ARC_GAP_DEG as f64).filter(|_| !forward_facing);
+
         let mean_right = unit(mean(&|c| c.3)).unwrap_or([1.0, 0.0, 0.0]);
         let mean_up = unit(cross(scale(a_mean, -1.0), mean_right)).unwrap_or(up);
         let mean_right = cross(mean_up, scale(a_mean, -1.0));
@@ -296,7 +348,7 @@ impl CameraRig {
             elevation_deg: elevation.to_degrees() as f32,
             front: f(front),
             spread_deg: spread as f32,
-            forward_facing: (spread as f32) < FORWARD_FACING_SPREAD_DEG,
+            forward_facing,
             spiral: Spiral {
                 centre: f(c_mean),
                 right: f(mean_right),
@@ -310,6 +362,7 @@ impl CameraRig {
                 .enumerate()
                 .map(|(k, c)| RigFrame { image: k as u32, centre: f(c.0), axis: f(c.1) })
                 .collect(),
+            arc_deg: arc.map(|[a, b]| [a as f32, b as f32]),
         })
     }
 
@@ -535,5 +588,39 @@ mod tests {
         // A tie keeps the first frame.
         rig.frames[1] = RigFrame { image: 11, ..rig.frames[0] };
         assert_eq!(rig.nearest_frame(Vec3::new(0.0, 0.0, 2.0), ahead, |_| true), Some(10));
+    }
+
+    #[test]
+    fn arcs_are_found_across_the_widest_gap() {
+        // Around 0 (wrapping): 300..360 and 0..60 are covered.
+        let arc = covered_arc(vec![10.0, -50.0, 60.0, 300.0 - 360.0, 0.0], 120.0).unwrap();
+        assert!((arc[0] + 60.0).abs() < 1e-9 && (arc[1] - 60.0).abs() < 1e-9, "{arc:?}");
+        // An arc away from 0, and one whose widest gap wraps.
+        assert_eq!(covered_arc(vec![100.0, 170.0, 130.0], 120.0), Some([100.0, 170.0]));
+        assert_eq!(covered_arc(vec![-170.0, 170.0, 150.0], 120.0), Some([150.0, 190.0]));
+        // All around (largest gap 90), or too few cameras: no arc.
+        assert_eq!(covered_arc(vec![0.0, 90.0, 180.0, 270.0], 120.0), None);
+        assert_eq!(covered_arc(vec![0.0, 10.0], 120.0), None);
+    }
+
+    #[test]
+    fn one_sided_captures_get_an_arc_and_rings_do_not() {
+        let up = Vec3::new(0.0, 0.0, 1.0);
+        // A ring all around: no arc.
+        let rig = CameraRig::from_poses(&ring(12, Vec3::splat(0.0), 3.0, 1.0, up), 0.1, 10.0, Vec3::splat(0.0)).unwrap();
+        assert_eq!(rig.arc_deg, None);
+        // The same ring's cameras within 100 degrees of +x: an arc of 90
+        // degrees (the cameras at -45..45), centred on azimuth 0 (front).
+        let poses: Vec<_> = ring(24, Vec3::splat(0.0), 3.0, 1.0, up)
+            .into_iter()
+            .filter(|p| p[1][3].atan2(p[0][3]).to_degrees().abs() < 50.0)
+            .collect();
+        assert_eq!(poses.len(), 7);
+        let rig = CameraRig::from_poses(&poses, 0.1, 10.0, Vec3::new(40.0, 0.0, 0.0)).unwrap();
+        let [a, b] = rig.arc_deg.expect("a one-sided capture has an arc");
+        assert!((a + 45.0).abs() < 0.5 && (b - 45.0).abs() < 0.5, "{a} {b}");
+        // Its sweep stays on the cameras' side of the focus.
+        let sweep = rig.orbit(rig.elevation_deg, rig.radius).sweep([a, b], 16).unwrap();
+        assert!(sweep.iter().all(|p| p[0][3] > 0.0), "{sweep:?}");
     }
 }
