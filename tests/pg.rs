@@ -718,3 +718,53 @@ fn the_harness_fails_with_what_to_install_when_postgresql_is_missing() {
     );
     assert_eq!(with_database("postgres://u@h", "t_2"), "postgres://u@h/t_2");
 }
+
+// ---- measurement (run by hand: the README's "Scaling out" figures) ----
+
+/// Jobs claimed and finished per second through the queue's SQL, with 1, 2
+/// and 4 claimers: the queue's ceiling, whatever the jobs do. Each count
+/// runs on a fresh database of 5 000 queued jobs; every job must be claimed
+/// exactly once. `cargo test --release --test pg claims_per_second --
+/// --ignored --nocapture`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "a measurement, run by hand"]
+async fn claims_per_second() {
+    const JOBS: usize = 5000;
+    let mut table = Vec::new();
+    for claimers in [1usize, 2, 4] {
+        let t = setup(JOBS).await;
+        let scene = t.ready_scene().await;
+        for _ in 0..JOBS {
+            t.queue.enqueue(new_job(None, train(&scene.id), 1)).await.unwrap();
+        }
+        let started = Instant::now();
+        let tasks: Vec<_> = (0..claimers)
+            .map(|w| {
+                let queue = t.queue.clone();
+                tokio::spawn(async move {
+                    let worker = format!("worker-{w}");
+                    let mut n = 0usize;
+                    while let Some(c) = queue.claim(&worker, &idle(false), LONG).await.unwrap() {
+                        queue.finish(&c.lease, RunEnd::Succeeded, &RunState::default()).await.unwrap();
+                        n += 1;
+                    }
+                    n
+                })
+            })
+            .collect();
+        let mut claimed = 0;
+        for task in tasks {
+            claimed += within(600, task).await.unwrap();
+        }
+        let secs = started.elapsed().as_secs_f64();
+        assert_eq!(claimed, JOBS, "every job claimed once");
+        let runs: i64 =
+            t.sql().await.query_one("SELECT count(DISTINCT job_id) FROM job_runs", &[]).await.unwrap().get(0);
+        assert_eq!(runs, JOBS as i64);
+        table.push(format!("| {claimers} | {JOBS} | {secs:.2} s | {:.0} |", JOBS as f64 / secs));
+    }
+    println!("| claimers | jobs | time | claims/s (claim + finish) |\n| --- | --- | --- | --- |");
+    for row in table {
+        println!("{row}");
+    }
+}

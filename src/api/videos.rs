@@ -112,7 +112,8 @@ pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) 
     // through the cameras' spread, and a one-sided capture's sweeps across
     // the cameras' arc and back.
     let default_path = |poses: Option<Vec<[[f32; 4]; 3]>>, what: &str| {
-        let poses = poses.ok_or_else(|| ApiError::bad_request(format!("the default {what} has a degenerate camera")))?;
+        let poses =
+            poses.ok_or_else(|| ApiError::bad_request(format!("the default {what} has a degenerate camera")))?;
         let keys = poses.into_iter().map(|c2w| (c2w, fov)).collect();
         CameraPath::evenly_timed(keys).map_err(|e| ApiError::bad_request(format!("the default {what}: {e}")))
     };

@@ -99,7 +99,9 @@ pub fn run(a: VideoArgs) -> anyhow::Result<()> {
     let orbit_asked = a.elevation.is_some() || a.radius.is_some();
     let poses: Vec<[[f32; 4]; 3]> = match rig.arc_deg {
         _ if rig.forward_facing && !orbit_asked => {
-            eprintln!("a forward-facing capture: a spiral through the cameras' spread, looking at the point they look at");
+            eprintln!(
+                "a forward-facing capture: a spiral through the cameras' spread, looking at the point they look at"
+            );
             rig.spiral.poses(rig.focus, n).into_iter().take(n).collect()
         }
         Some(arc) if !orbit_asked => {

@@ -182,9 +182,7 @@ impl Orbit {
     /// `None` when a pose is degenerate (as for [`Orbit::pose`]).
     pub fn sweep(&self, arc_deg: [f32; 2], n: usize) -> Option<Vec<[[f32; 4]; 3]>> {
         let (mid, half) = (0.5 * (arc_deg[0] + arc_deg[1]), 0.5 * (arc_deg[1] - arc_deg[0]));
-        (0..n)
-            .map(|k| self.pose(mid + half * (std::f32::consts::TAU * k as f32 / n.max(1) as f32).sin()))
-            .collect()
+        (0..n).map(|k| self.pose(mid + half * (std::f32::consts::TAU * k as f32 / n.max(1) as f32).sin())).collect()
     }
 
     /// The camera at `azimuth_deg` with a `width x height` image and a

@@ -607,7 +607,8 @@ mod tests {
     fn one_sided_captures_get_an_arc_and_rings_do_not() {
         let up = Vec3::new(0.0, 0.0, 1.0);
         // A ring all around: no arc.
-        let rig = CameraRig::from_poses(&ring(12, Vec3::splat(0.0), 3.0, 1.0, up), 0.1, 10.0, Vec3::splat(0.0)).unwrap();
+        let rig =
+            CameraRig::from_poses(&ring(12, Vec3::splat(0.0), 3.0, 1.0, up), 0.1, 10.0, Vec3::splat(0.0)).unwrap();
         assert_eq!(rig.arc_deg, None);
         // The same ring's cameras within 100 degrees of +x: an arc of 90
         // degrees (the cameras at -45..45), centred on azimuth 0 (front).
