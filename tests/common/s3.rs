@@ -24,7 +24,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
-use object_store::ObjectStore;
+use object_store::{ObjectStore, ObjectStoreExt};
 use radiance::store::object::{S3Keys, S3Options, open_url};
 
 /// The s3s-fs release `.ci/run` installs.
@@ -158,11 +158,29 @@ impl Server {
 }
 
 impl Drop for S3 {
+    /// Kills a server of our own (its folder goes with it); on an existing
+    /// server, deletes the test's objects (best effort, within 10 s).
     fn drop(&mut self) {
         if let Some(server) = &mut self.server {
             let _ = server.child.kill();
             let _ = server.child.wait();
+            return;
         }
+        // Drop may run inside a runtime: a thread of its own.
+        let store = self.store();
+        let (done, wait) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+            rt.block_on(async {
+                let keys: Vec<_> =
+                    store.list(None).filter_map(|m| async { m.ok().map(|m| m.location) }).collect().await;
+                for key in keys {
+                    let _ = store.delete(&key).await;
+                }
+            });
+            let _ = done.send(());
+        });
+        let _ = wait.recv_timeout(Duration::from_secs(10));
     }
 }
 

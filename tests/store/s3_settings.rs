@@ -63,6 +63,56 @@ async fn the_aws_environment_alone_reaches_the_server() {
     assert_eq!(got, b"GIF89a".as_slice());
 }
 
+/// A test run with the `RADIANCE_TEST_S3_*` variables uses that server
+/// (here one of our own, started by this test) under a prefix of its own,
+/// and deletes what it stored when it ends.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_existing_server_is_used_through_the_radiance_test_s3_variables() {
+    let s3 = S3::start().await;
+    let keys = s3.options().keys.unwrap();
+    // A check that leaves its object (scenes/scn_b/upload.tar) behind.
+    let check = "objects::s3::photo_uploads_are_their_own_object_and_bad_ids_are_refused";
+    let mut child = Command::new(std::env::current_exe().unwrap());
+    child
+        .args(["--exact", check, "--nocapture"])
+        .env("RADIANCE_TEST_S3_ENDPOINT", s3.endpoint())
+        .env("RADIANCE_TEST_S3_ACCESS_KEY_ID", &keys.access_key_id)
+        .env("RADIANCE_TEST_S3_SECRET_ACCESS_KEY", &keys.secret_access_key)
+        .env("RADIANCE_TEST_S3_BUCKET", "radiance-test")
+        // No s3s-fs to find: the check must not start one.
+        .env("RADIANCE_S3S_FS", "/nonexistent/s3s-fs")
+        .stdin(Stdio::null());
+    let out = tokio::task::spawn_blocking(move || run_within(child, Duration::from_secs(60))).await.unwrap();
+    assert!(
+        out.status.success() && String::from_utf8_lossy(&out.stdout).contains("1 passed"),
+        "the check failed on the existing server ({}):\n{}{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // It stored its scene under a prefix of its own, and deleted it at the end.
+    let bucket = s3.root().unwrap().join("data/radiance-test");
+    let prefixes: Vec<String> =
+        std::fs::read_dir(&bucket).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    // (s3s-fs keeps a deleted key's folders.)
+    assert!(prefixes.len() == 1 && prefixes[0].starts_with("t-"), "{prefixes:?}");
+    let left = files_in(&bucket);
+    assert!(left.is_empty(), "left behind: {left:?}");
+}
+
+/// The files under `dir`, recursively.
+fn files_in(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap().flatten() {
+        if entry.file_type().unwrap().is_dir() {
+            out.extend(files_in(&entry.path()));
+        } else {
+            out.push(entry.path());
+        }
+    }
+    out
+}
+
 /// Runs `cmd` to its end, killing it after `limit`.
 fn run_within(mut cmd: Command, limit: Duration) -> std::process::Output {
     let mut child = cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
