@@ -7,7 +7,9 @@
 //! completes. An upload that fails is aborted; one whose writer is dropped
 //! is never completed, so no object appears either way. An upload whose
 //! future is dropped (its task aborted, its request gone) stops at its
-//! next write rather than sending the rest for nothing.
+//! next write rather than sending the rest for nothing, and is aborted
+//! (an S3 server keeps an incomplete upload's parts until then, or until
+//! the bucket's lifecycle rule removes them).
 
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
@@ -32,10 +34,11 @@ pub fn writer(store: &Arc<dyn ObjectStore>, key: &Key, part_size: usize) -> BufW
 /// to `dir`), streamed: the tar is written into the upload as it is made,
 /// never held whole. Answers the tar's size.
 pub async fn put_tar(store: &Arc<dyn ObjectStore>, key: &Key, dir: PathBuf, part_size: usize) -> io::Result<u64> {
-    let (bridge, _abandon) = Bridge::new(writer(store, key, part_size));
+    let (bridge, _abandon) = Bridge::new(writer(store, key, part_size), key);
     let (bridge, made) = blocking(move || {
         let mut bridge = bridge;
         let made = write_tar(&mut bridge, &dir);
+        bridge.abort_if_abandoned();
         (bridge, made)
     })
     .await?;
@@ -44,10 +47,11 @@ pub async fn put_tar(store: &Arc<dyn ObjectStore>, key: &Key, dir: PathBuf, part
 
 /// Stores the file `file` as object `key`, streamed. Answers its size.
 pub async fn put_file(store: &Arc<dyn ObjectStore>, key: &Key, file: PathBuf, part_size: usize) -> io::Result<u64> {
-    let (bridge, _abandon) = Bridge::new(writer(store, key, part_size));
+    let (bridge, _abandon) = Bridge::new(writer(store, key, part_size), key);
     let (bridge, copied) = blocking(move || {
         let mut bridge = bridge;
         let copied = std::fs::File::open(&file).and_then(|mut f| io::copy(&mut f, &mut bridge));
+        bridge.abort_if_abandoned();
         (bridge, copied)
     })
     .await?;
@@ -104,6 +108,8 @@ pub fn sha256_file(file: &Path) -> io::Result<(String, u64)> {
 /// runtime for the writer (which uploads a part whenever one fills).
 struct Bridge {
     writer: BufWriter,
+    /// The object's key, for the log.
+    key: Key,
     runtime: Handle,
     written: u64,
     /// Set once nobody waits for the upload any more ([`Abandon`]).
@@ -121,18 +127,30 @@ impl Drop for Abandon {
 }
 
 impl Bridge {
-    /// A bridge to `writer` (on the current runtime), and the guard whose
-    /// drop stops it.
-    fn new(writer: BufWriter) -> (Bridge, Abandon) {
+    /// A bridge to `writer` of `key` (on the current runtime), and the
+    /// guard whose drop stops it.
+    fn new(writer: BufWriter, key: &Key) -> (Bridge, Abandon) {
         let abandoned = Arc::new(AtomicBool::new(false));
-        let bridge = Bridge { writer, runtime: Handle::current(), written: 0, abandoned: abandoned.clone() };
+        let bridge =
+            Bridge { writer, key: key.clone(), runtime: Handle::current(), written: 0, abandoned: abandoned.clone() };
         (bridge, Abandon(abandoned))
+    }
+
+    /// Aborts the upload if nobody waits for it any more (nobody will
+    /// complete or abort it then): its stored parts are deleted.
+    fn abort_if_abandoned(&mut self) {
+        if !self.abandoned.load(Ordering::Relaxed) {
+            return;
+        }
+        match self.runtime.block_on(self.writer.abort()) {
+            Ok(()) => tracing::info!(key = %self.key, "abandoned upload aborted"),
+            Err(e) => tracing::warn!(key = %self.key, error = %io_error(e), "could not abort an abandoned upload"),
+        }
     }
 }
 
 impl Write for Bridge {
-    /// Refused once the upload is abandoned (the writer is then dropped
-    /// with the thread's result, and its upload never completed).
+    /// Refused once the upload is abandoned (the thread then aborts it).
     fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
         if self.abandoned.load(Ordering::Relaxed) {
             return Err(io::Error::other("the upload was abandoned: nobody waits for it any more"));
@@ -160,7 +178,8 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn an_abandoned_bridge_refuses_to_write() {
         let store: Arc<dyn ObjectStore> = Arc::new(InMemory::new());
-        let (mut bridge, abandon) = Bridge::new(writer(&store, &Key::from("a"), 1024));
+        let key = Key::from("a");
+        let (mut bridge, abandon) = Bridge::new(writer(&store, &key, 1024), &key);
         let wrote = tokio::task::spawn_blocking(move || {
             let first = bridge.write_all(b"kept");
             (bridge, first)
