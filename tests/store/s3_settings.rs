@@ -147,6 +147,30 @@ async fn the_server_refuses_a_wrong_secret_and_readiness_says_why() {
     store.ready().await.unwrap();
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn readiness_names_a_missing_bucket_and_an_unreachable_server() {
+    let s3 = S3::start().await;
+    let dir = tempfile::tempdir().unwrap();
+    let config = ObjectConfig { s3: s3.options(), ready_timeout: Duration::from_secs(10), ..ObjectConfig::default() };
+    let url = "s3://no-such-bucket/x";
+    let e = ObjectArtifacts::open(dir.path(), url, config.clone()).unwrap().ready().await.unwrap_err();
+    let said = e.to_string();
+    assert!(said.starts_with(&format!("the object store {url}: ")) && said.contains("NoSuchBucket"), "{said}");
+
+    // Nothing listens on the port: readiness gives up after its timeout.
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut options = s3.options();
+    options.endpoint = Some(format!("http://127.0.0.1:{port}"));
+    let config = ObjectConfig { s3: options, ready_timeout: Duration::from_secs(1), ..ObjectConfig::default() };
+    let store = ObjectArtifacts::open(dir.path(), &s3.url(), config).unwrap();
+    let asked = Instant::now();
+    let e = store.ready().await.unwrap_err();
+    assert!(asked.elapsed() < Duration::from_secs(5), "answered after {:?}", asked.elapsed());
+    assert_eq!(e.kind(), std::io::ErrorKind::TimedOut, "{e}");
+    let said = e.to_string();
+    assert!(said.contains(&s3.url()) && said.contains("did not answer a listing within 1s"), "{said}");
+}
+
 #[test]
 fn a_missing_server_binary_names_the_install_command() {
     let empty = tempfile::tempdir().unwrap();

@@ -81,6 +81,8 @@ pub struct Stored {
 /// local cache.
 pub struct ObjectArtifacts {
     store: Arc<dyn ObjectStore>,
+    /// What readiness errors call the store: its URL.
+    name: String,
     /// `DATA/tmp`: where uploads are staged before they are stored.
     tmp: PathBuf,
     cache: Arc<Cache>,
@@ -93,7 +95,9 @@ impl ObjectArtifacts {
     /// AWS environment's with `config.s3` over them ([`s3`]); nothing is
     /// asked of the server yet (`ready` does).
     pub fn open(data_dir: &Path, url: &str, config: ObjectConfig) -> io::Result<Self> {
-        Self::with_store(data_dir, open_url(url, &config.s3)?, config)
+        let mut opened = Self::with_store(data_dir, open_url(url, &config.s3)?, config)?;
+        opened.name = url.to_string();
+        Ok(opened)
     }
 
     /// `store`, with its local folders in `data_dir`; the cache's leftover
@@ -102,7 +106,8 @@ impl ObjectArtifacts {
         let tmp = data_dir.join("tmp");
         std::fs::create_dir_all(&tmp)?;
         let cache = Cache::open(&data_dir.join("cache"), config.cache_max_bytes)?;
-        Ok(Self { store, tmp, cache, config })
+        let name = store.to_string();
+        Ok(Self { store, name, tmp, cache, config })
     }
 
     /// The object store underneath.
@@ -300,7 +305,7 @@ impl ArtifactStore for ObjectArtifacts {
     }
 
     /// The store answers a listing of `scenes/` (its first entry, if any)
-    /// within `ready_timeout`.
+    /// within `ready_timeout`. The errors name the store.
     fn ready(&self) -> Fut<'_, io::Result<()>> {
         Box::pin(async move {
             let prefix = Key::from("scenes");
@@ -308,9 +313,15 @@ impl ArtifactStore for ObjectArtifacts {
             match tokio::time::timeout(self.config.ready_timeout, listing.next()).await {
                 Err(_) => Err(io::Error::new(
                     io::ErrorKind::TimedOut,
-                    format!("the object store did not answer a listing within {:?}", self.config.ready_timeout),
+                    format!(
+                        "the object store {} did not answer a listing within {:?}",
+                        self.name, self.config.ready_timeout
+                    ),
                 )),
-                Ok(Some(Err(e))) => Err(io_error(e)),
+                Ok(Some(Err(e))) => {
+                    let e = io_error(e);
+                    Err(io::Error::new(e.kind(), format!("the object store {}: {e}", self.name)))
+                }
                 Ok(_) => Ok(()),
             }
         })
