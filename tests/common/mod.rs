@@ -2,7 +2,7 @@
 //! as the binary), tiny generated scenes and their archives, and readers for
 //! what the service answers; the tiny model configs ([`tiny`]), PSNR
 //! ([`psnr`]) and the MP4 reader ([`mp4`]) in their own modules; a real
-//! PostgreSQL per test in [`pg`].
+//! PostgreSQL per test in [`pg`], a real S3 server per test in [`s3`].
 #![allow(dead_code)] // each test binary uses its own part of this module
 
 pub mod cdp;
@@ -10,6 +10,7 @@ pub mod mp4;
 pub mod pg;
 pub mod poses;
 pub mod psnr;
+pub mod s3;
 pub mod tiny;
 
 use std::io::Write;

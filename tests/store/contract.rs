@@ -136,7 +136,7 @@ async fn add_posing_scene(st: &Stores) -> (SceneInfo, Result<Option<Job>, SchedE
 }
 
 /// A scene record with made-up view defaults (the posing scene's).
-fn sample_view_scene(id: &str) -> SceneInfo {
+pub fn sample_view_scene(id: &str) -> SceneInfo {
     let view = serde_json::json!({
         "width": 16, "height": 16, "fov": 40.0, "centre": [0.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0],
         "radius": 4.0, "far": 6.0,

@@ -1,5 +1,6 @@
 //! The contract on the embedded job store with the object artifact store
-//! (`ObjectArtifacts` over a `file://` store in a temporary folder).
+//! (`ObjectArtifacts`), over a `file://` store in a temporary folder
+//! (`file::`) and over a real S3 server (`s3::`, `common::s3`).
 //!
 //! The embedded scheduler runs the jobs and reads and writes its own data
 //! directory (no worker publishes to an object store yet: design step 8),
@@ -23,9 +24,10 @@ use std::sync::Arc;
 
 use radiance::jobs::SchedulerConfig;
 use radiance::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
-use radiance::store::object::{ObjectArtifacts, ObjectConfig};
+use radiance::store::object::ObjectArtifacts;
 use radiance::store::{ArtifactStore, Fut, embedded};
 
+use crate::bucket::{Backend, Bucket};
 use crate::contract::{Opening, Settings, Stores};
 
 /// The object store, fed the embedded scheduler's files (see the module
@@ -103,8 +105,8 @@ impl ArtifactStore for MirroredArtifacts {
 }
 
 /// The embedded job store over `dir/data` (checkpoints every 0.2 s of
-/// training), the object store in `dir/bucket` with 64 KiB parts.
-fn open(settings: Settings) -> Opening {
+/// training), the object store on `backend` (see `bucket`).
+fn open(backend: Backend, settings: Settings) -> Opening {
     Box::pin(async move {
         let dir = tempfile::tempdir().unwrap();
         let config = SchedulerConfig {
@@ -116,12 +118,30 @@ fn open(settings: Settings) -> Opening {
         let data = dir.path().join("data");
         let opened = tokio::task::spawn_blocking(move || embedded::open(&data, config)).await.unwrap();
         let (jobs, embedded) = opened.unwrap();
-        let url = format!("file://{}", dir.path().join("bucket").display());
-        let object_config = ObjectConfig { part_size: 64 << 10, ..ObjectConfig::default() };
-        let object = ObjectArtifacts::open(&dir.path().join("data"), &url, object_config).unwrap();
+        let bucket = Bucket::new(backend, dir.path()).await;
+        let object = bucket.open(&dir.path().join("data"));
         let artifacts = MirroredArtifacts { embedded, object };
-        Stores { jobs: Arc::new(jobs), artifacts: Arc::new(artifacts), _keep: Box::new(dir) }
+        // Dropped after the stores: the S3 server before its folder.
+        Stores { jobs: Arc::new(jobs), artifacts: Arc::new(artifacts), _keep: Box::new((bucket, dir)) }
     })
 }
 
-contract_tests!(open);
+mod file {
+    use super::*;
+
+    fn open_file(settings: Settings) -> Opening {
+        open(Backend::File, settings)
+    }
+
+    contract_tests!(open_file);
+}
+
+mod s3 {
+    use super::*;
+
+    fn open_s3(settings: Settings) -> Opening {
+        open(Backend::S3, settings)
+    }
+
+    contract_tests!(open_s3);
+}

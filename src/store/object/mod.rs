@@ -17,7 +17,8 @@
 //! cache (`cache`): a scene is unpacked once to `DATA/cache/scenes/`, a
 //! checkpoint fetched once to `DATA/cache/models/`.
 //!
-//! Not wired into `radiance serve` yet (the next step).
+//! Its S3 settings come from the AWS environment with [`S3Options`] over
+//! it (`s3`). Not wired into `radiance serve` yet (the next step).
 
 use std::io;
 use std::path::{Path, PathBuf};
@@ -33,10 +34,12 @@ use crate::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInf
 use crate::store::{ArtifactStore, Fut};
 
 pub mod cache;
+pub mod s3;
 pub mod upload;
 pub mod url;
 
 pub use cache::{Cache, Pin};
+pub use s3::{S3Keys, S3Options};
 pub use url::open_url;
 
 /// How an [`ObjectArtifacts`] writes and caches.
@@ -49,13 +52,21 @@ pub struct ObjectConfig {
     pub cache_max_bytes: u64,
     /// How long `ready` waits for the store to answer a listing.
     pub ready_timeout: Duration,
+    /// S3 settings over the AWS environment's (`s3://` stores only; see
+    /// [`s3`]): what `serve`'s `--s3-endpoint` and `--s3-region` set.
+    pub s3: S3Options,
 }
 
 impl Default for ObjectConfig {
     /// 8 MiB parts (`--upload-part-mb`), a 4 GiB cache (`--cache-max-mb`),
-    /// 1 s for readiness.
+    /// 1 s for readiness, S3 settings from the environment alone.
     fn default() -> Self {
-        Self { part_size: 8 << 20, cache_max_bytes: 4096 << 20, ready_timeout: Duration::from_secs(1) }
+        Self {
+            part_size: 8 << 20,
+            cache_max_bytes: 4096 << 20,
+            ready_timeout: Duration::from_secs(1),
+            s3: S3Options::default(),
+        }
     }
 }
 
@@ -70,6 +81,8 @@ pub struct Stored {
 /// local cache.
 pub struct ObjectArtifacts {
     store: Arc<dyn ObjectStore>,
+    /// What readiness errors call the store: its URL.
+    name: String,
     /// `DATA/tmp`: where uploads are staged before they are stored.
     tmp: PathBuf,
     cache: Arc<Cache>,
@@ -78,9 +91,13 @@ pub struct ObjectArtifacts {
 
 impl ObjectArtifacts {
     /// The store `url` names (see [`open_url`]), with its local folders
-    /// (`tmp/`, `cache/`) in `data_dir`.
+    /// (`tmp/`, `cache/`) in `data_dir`. An `s3://` store's settings are the
+    /// AWS environment's with `config.s3` over them ([`s3`]); nothing is
+    /// asked of the server yet (`ready` does).
     pub fn open(data_dir: &Path, url: &str, config: ObjectConfig) -> io::Result<Self> {
-        Self::with_store(data_dir, open_url(url)?, config)
+        let mut opened = Self::with_store(data_dir, open_url(url, &config.s3)?, config)?;
+        opened.name = url.to_string();
+        Ok(opened)
     }
 
     /// `store`, with its local folders in `data_dir`; the cache's leftover
@@ -89,7 +106,8 @@ impl ObjectArtifacts {
         let tmp = data_dir.join("tmp");
         std::fs::create_dir_all(&tmp)?;
         let cache = Cache::open(&data_dir.join("cache"), config.cache_max_bytes)?;
-        Ok(Self { store, tmp, cache, config })
+        let name = store.to_string();
+        Ok(Self { store, name, tmp, cache, config })
     }
 
     /// The object store underneath.
@@ -287,7 +305,7 @@ impl ArtifactStore for ObjectArtifacts {
     }
 
     /// The store answers a listing of `scenes/` (its first entry, if any)
-    /// within `ready_timeout`.
+    /// within `ready_timeout`. The errors name the store.
     fn ready(&self) -> Fut<'_, io::Result<()>> {
         Box::pin(async move {
             let prefix = Key::from("scenes");
@@ -295,9 +313,15 @@ impl ArtifactStore for ObjectArtifacts {
             match tokio::time::timeout(self.config.ready_timeout, listing.next()).await {
                 Err(_) => Err(io::Error::new(
                     io::ErrorKind::TimedOut,
-                    format!("the object store did not answer a listing within {:?}", self.config.ready_timeout),
+                    format!(
+                        "the object store {} did not answer a listing within {:?}",
+                        self.name, self.config.ready_timeout
+                    ),
                 )),
-                Ok(Some(Err(e))) => Err(io_error(e)),
+                Ok(Some(Err(e))) => {
+                    let e = io_error(e);
+                    Err(io::Error::new(e.kind(), format!("the object store {}: {e}", self.name)))
+                }
                 Ok(_) => Ok(()),
             }
         })
@@ -328,5 +352,5 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> 
     tokio::task::spawn_blocking(f).await.map_err(|e| io::Error::other(format!("worker task failed: {e}")))
 }
 
-#[cfg(test)]
-mod tests;
+// Tested on a folder and on a real S3 server by tests/store/objects.rs
+// (and the contract, tests/store/object.rs).
