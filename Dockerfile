@@ -7,9 +7,10 @@ COPY src ./src
 RUN cargo build --release --locked --bin radiance
 
 FROM debian:bookworm-slim
-# COLMAP poses photo-only uploads (CPU SIFT, no CUDA); ffmpeg takes frames from videos.
+# COLMAP poses photo-only uploads (CPU SIFT, no CUDA); ffmpeg takes frames from videos;
+# ca-certificates: the root certificates HTTPS to an S3 object store needs (--object-store s3://).
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends curl=7.* colmap=3.8-* ffmpeg=7:5.1.* \
+    && apt-get install -y --no-install-recommends curl=7.* colmap=3.8-* ffmpeg=7:5.1.* ca-certificates=202* \
     && rm -rf /var/lib/apt/lists/* \
     && groupadd --system --gid 10001 radiance \
     && useradd --system --uid 10001 --gid 10001 --home-dir /data --no-create-home radiance \
