@@ -14,6 +14,7 @@
 //! shows that each check can fail.
 
 mod checks;
+mod compose;
 mod help;
 mod mutations;
 mod parse;
@@ -32,6 +33,32 @@ fn read(name: &str) -> String {
 fn dockerfile_and_readme_match_the_binary() {
     let p = problems(&Inputs::real());
     assert!(p.is_empty(), "{} problem(s):\n  {}", p.len(), p.join("\n  "));
+}
+
+#[test]
+fn compose_file_matches_the_binary() {
+    let serve = help_of("serve").expect("serve is a subcommand");
+    let p = compose::problems(&read("compose.yaml"), serve);
+    assert!(p.is_empty(), "{} problem(s):\n  {}", p.len(), p.join("\n  "));
+}
+
+#[test]
+fn compose_checks_can_fail() {
+    let serve = help_of("serve").expect("serve is a subcommand");
+    let text = read("compose.yaml");
+    for (from, to, expect) in [
+        ("\"--role\", \"worker\"", "\"--role\", \"workers\"", "is not a role"),
+        ("RADIANCE_OBJECT_STORE:", "RADIANCE_OBJECTS:", "does not read RADIANCE_OBJECTS"),
+        ("@postgres:5432", "@db:5432", "does not name the PostgreSQL service"),
+        ("http://garage:3900", "http://s3:3900", "does not name the S3 service"),
+        ("AWS_ALLOW_HTTP: \"true\"", "AWS_ALLOW_HTTP: \"false\"", "needs AWS_ALLOW_HTTP=true"),
+        ("replicas: 2", "replicas: 1", "1 worker(s)"),
+        ("image: postgres:16", "image: mysql:8", "no PostgreSQL service"),
+    ] {
+        assert!(text.contains(from), "compose.yaml no longer has `{from}`: update this test");
+        let p = compose::problems(&text.replacen(from, to, 1), serve);
+        assert!(p.iter().any(|m| m.contains(expect)), "{from} -> {to}: expected `{expect}` in {p:?}");
+    }
 }
 
 #[test]
