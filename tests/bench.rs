@@ -133,7 +133,7 @@ fn bench_resolves_auto_and_counts_proposal_samples() {
     }
 }
 
-/// When `auto` chooses the capture model (opaque photographs), the table has
+/// When `auto` chooses a capture model (opaque photographs all around: `capture-360`), the table has
 /// the mean appearance's column in its header and in its rows alike.
 #[test]
 fn bench_auto_capture_rows_have_the_mean_column() {
@@ -145,7 +145,7 @@ fn bench_auto_capture_rows_have_the_mean_column() {
     let out = radiance(&[&["bench", "--data", data.to_str().unwrap()][..], &args[..]].concat());
     let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "stdout: {stdout}\nstderr: {stderr}");
-    assert!(stderr.contains("model 'capture' (auto)"), "{stderr}");
+    assert!(stderr.contains("model 'capture-360' (auto)"), "{stderr}");
     let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let lines: Vec<&str> = stdout.lines().collect();
     assert!(lines[0].contains("PSNR dB  mean dB"), "{stdout}");

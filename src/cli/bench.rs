@@ -28,7 +28,8 @@ pub struct BenchArgs {
     pub data: PathBuf,
     /// Models to benchmark, comma-separated: `auto` (the model `radiance
     /// train` would choose for the dataset; its rows are labelled with it),
-    /// `instant`, `nerf`, `capture`.
+    /// `instant`, `nerf`, `capture`, or another preset (`capture-360`, the
+    /// `-tiny` ones).
     #[arg(long, value_delimiter = ',', default_value = "auto")]
     pub model: Vec<String>,
     /// Seconds of training at which to score, comma-separated.
@@ -290,7 +291,10 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         rows: Vec::new(),
     };
     let mut failure: Option<anyhow::Error> = None;
-    let with_mean = kinds.iter().any(|m| m == crate::engine::models::capture::KIND);
+    let with_mean = kinds.iter().any(|m| {
+        crate::engine::models::config::ModelConfig::preset(m)
+            .is_some_and(|c| c.kind() == crate::engine::models::capture::KIND)
+    });
     println!("{}", header(ds.masks != MaskUse::Off, with_mean));
     for kind in &kinds {
         let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel, with_mean };

@@ -11,15 +11,16 @@ use crate::engine::nn::adam::Adam;
 
 pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
 
-/// The model kinds `--model` accepts besides `auto` (each is also a preset).
-pub use crate::engine::models::config::KINDS as MODEL_KINDS;
+/// The names `--model` accepts besides `auto`: the presets (each model
+/// kind is one, and `auto` may choose `capture-360`).
+pub use crate::engine::models::config::PRESETS as MODEL_NAMES;
 
-/// Refuses a `--model` that is neither `auto` nor a model kind.
+/// Refuses a `--model` that is neither `auto` nor a preset.
 pub fn check_model_name(name: &str) -> anyhow::Result<()> {
     anyhow::ensure!(
-        name == AUTO || MODEL_KINDS.contains(&name),
+        name == AUTO || MODEL_NAMES.contains(&name),
         "unknown model '{name}' (available: {AUTO}, {})",
-        MODEL_KINDS.join(", ")
+        MODEL_NAMES.join(", ")
     );
     Ok(())
 }
@@ -118,12 +119,16 @@ mod tests {
         let (kind, choice) = resolve_model("auto", &ball).unwrap();
         assert_eq!((kind.as_str(), choice.map(|c| c.preset)), ("instant", Some("instant".to_string())));
         let (kind, choice) = resolve_model("auto", &photos).unwrap();
-        assert_eq!(kind, "capture");
+        assert_eq!(kind, "capture-360", "the test scene's cameras go all around");
         assert!(choice.unwrap().reason.starts_with("opaque photographs"));
         // A named model is taken as it is, whatever the dataset.
         assert_eq!(resolve_model("nerf", &photos).unwrap(), ("nerf".to_string(), None));
         let e = resolve_model("fast", &photos).unwrap_err().to_string();
-        assert_eq!(e, "unknown model 'fast' (available: auto, instant, nerf, capture)");
+        assert_eq!(
+            e,
+            "unknown model 'fast' (available: auto, instant, instant-tiny, nerf, nerf-tiny, capture, capture-360, \
+             capture-tiny)"
+        );
         assert!(model_config("auto", true, &[]).unwrap_err().to_string().contains("resolved"));
     }
 

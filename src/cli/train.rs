@@ -30,8 +30,11 @@ pub struct TrainArgs {
     /// Model kind: `auto` (the dataset decides: `instant` for an object on
     /// an empty background, `capture` for opaque photographs; the choice and
     /// its reason are printed), `instant` (hash grid, fast), `nerf` (the
-    /// classic model of the paper) or `capture` (real photographs). With
-    /// --resume, `auto` continues the checkpoint's model.
+    /// classic model of the paper) or `capture` (real photographs); or a
+    /// preset: `instant-tiny`, `nerf-tiny`, `capture-tiny` (small, for
+    /// previews), `capture-360` (capture with a larger hash table, auto's
+    /// choice when the cameras go all around). With --resume, `auto`
+    /// continues the checkpoint's model.
     #[arg(long, default_value = "auto")]
     pub model: String,
     /// Training time budget in seconds (training only, not saving).
@@ -144,12 +147,10 @@ fn open_session<'a>(
     budget: Budget,
     ds: &'a Dataset,
 ) -> anyhow::Result<Session<'a>> {
-    let train = TrainConfig {
-        model_choice: choice,
-        ..model_config(kind, !a.no_skip, &a.set)?.train_config(a.seed, a.batch_rays, budget)
-    };
+    let config = model_config(kind, !a.no_skip, &a.set)?;
+    let train = TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) };
     let start = match &a.resume {
-        Some(p) => Start::Resume { from: p.clone(), kind: Some(kind.to_string()) },
+        Some(p) => Start::Resume { from: p.clone(), kind: Some(config.kind().to_string()) },
         None => {
             let (_, model, adam) = new_model_and_adam(kind, Scene::from_dataset(ds), a.seed, !a.no_skip, a.lr, &a.set)?;
             Start::Fresh { model, adam }

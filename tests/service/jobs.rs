@@ -370,8 +370,8 @@ async fn auto_chooses_the_model_by_the_scene_and_says_why() {
 
     let job = accepted(&svc, body(&photos)).await;
     let reason = job["model_reason"].as_str().unwrap_or_default().to_string();
-    assert_eq!(job["model"], "capture", "{job}");
-    assert!(reason.starts_with("opaque photographs (cameras around their focus, axes up to "), "{reason}");
+    assert_eq!(job["model"], "capture-360", "{job}");
+    assert!(reason.starts_with("opaque photographs (cameras all around their focus, axes up to "), "{reason}");
     let mut composite = body(&photos);
     composite["masks"] = json!("composite");
     let job = accepted(&svc, composite).await;
@@ -398,7 +398,7 @@ async fn auto_chooses_the_model_by_the_scene_and_says_why() {
     let (_, scene) = svc.get(&format!("/v1/scenes/{photos}")).await;
     assert!(scene.get("kind").is_none(), "{scene}");
     let job = accepted(&svc, body(&photos)).await;
-    assert_eq!((&job["model"], job["model_reason"].as_str()), (&json!("capture"), Some(reason.as_str())), "{job}");
+    assert_eq!((&job["model"], job["model_reason"].as_str()), (&json!("capture-360"), Some(reason.as_str())), "{job}");
 
     // The ball's job runs: its model record and checkpoint keep the choice.
     let job = accepted(&svc, body(&ball)).await;

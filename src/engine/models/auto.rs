@@ -28,6 +28,8 @@ pub const AUTO: &str = "auto";
 pub const OBJECT_PRESET: &str = "instant";
 /// The preset chosen for opaque photographs.
 pub const PHOTO_PRESET: &str = "capture";
+/// The preset chosen for opaque photographs taken all around the subject.
+pub const ALL_AROUND_PRESET: &str = "capture-360";
 
 /// What the automatic choice picked, and why.
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -59,6 +61,11 @@ pub struct SceneKind {
     /// their mean, degrees (the rig's `spread_deg`).
     #[serde(default)]
     pub spread_deg: Option<f32>,
+    /// Whether the cameras saw the subject from one side, leaving a gap of
+    /// more than `rig::ARC_GAP_DEG` around it (the rig's `arc_deg`); `None`
+    /// when the cameras give no rig, and in records from before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub one_sided: Option<bool>,
 }
 
 impl SceneKind {
@@ -73,6 +80,7 @@ impl SceneKind {
             composited_masks: if composited { ds.mask_folder_name() } else { None },
             forward_facing: rig.as_ref().map(|r| r.forward_facing),
             spread_deg: rig.as_ref().map(|r| r.spread_deg),
+            one_sided: rig.as_ref().map(|r| r.arc_deg.is_some()),
         }
     }
 
@@ -104,14 +112,32 @@ impl SceneKind {
             let have = if n == 1 { "has" } else { "have" };
             (OBJECT_PRESET, format!("{n} of {m} training images {have} transparent pixels: {OBJECT}"))
         } else {
-            let cameras = match (self.forward_facing, self.spread_deg) {
-                (Some(true), Some(s)) => format!(" (forward-facing: axes within {s:.1} deg of their mean)"),
-                (Some(false), Some(s)) => {
-                    format!(" (cameras around their focus, axes up to {s:.0} deg from their mean)")
+            match (self.forward_facing, self.spread_deg, self.one_sided) {
+                (Some(true), Some(s), _) => (
+                    PHOTO_PRESET,
+                    format!(
+                        "opaque photographs (forward-facing: axes within {s:.1} deg of their mean): the capture model"
+                    ),
+                ),
+                (Some(false), Some(s), Some(false)) => (
+                    ALL_AROUND_PRESET,
+                    format!(
+                        "opaque photographs (cameras all around their focus, axes up to {s:.0} deg from their mean): \
+                         the capture model with a larger hash table"
+                    ),
+                ),
+                (Some(false), Some(s), one_sided) => {
+                    let side = if one_sided == Some(true) { " from one side" } else { "" };
+                    (
+                        PHOTO_PRESET,
+                        format!(
+                            "opaque photographs (cameras around their focus{side}, axes up to {s:.0} deg from their mean): \
+                             the capture model"
+                        ),
+                    )
                 }
-                _ => String::new(),
-            };
-            (PHOTO_PRESET, format!("opaque photographs{cameras}: the capture model"))
+                _ => (PHOTO_PRESET, "opaque photographs: the capture model".to_string()),
+            }
         };
         ModelChoice { preset: preset.to_string(), reason }
     }
@@ -166,23 +192,59 @@ mod tests {
     }
 
     #[test]
-    fn opaque_photographs_around_their_focus_give_the_capture_model() {
+    fn opaque_photographs_all_around_their_focus_give_the_larger_capture_model() {
         let ds = photos();
         let kind = SceneKind::of_dataset(&ds);
-        assert_eq!((kind.transparent_images, kind.forward_facing), (0, Some(false)));
+        assert_eq!((kind.transparent_images, kind.forward_facing, kind.one_sided), (0, Some(false), Some(false)));
+        let spread = kind.spread_deg.unwrap();
+        let c = kind.choose();
+        assert_eq!(c.preset, "capture-360");
+        assert_eq!(
+            c.reason,
+            format!(
+                "opaque photographs (cameras all around their focus, axes up to {spread:.0} deg from their mean): \
+                 the capture model with a larger hash table"
+            )
+        );
+        // An alpha channel that is opaque everywhere is a photograph.
+        let mut ds = photos();
+        ds.frames.iter_mut().for_each(|f| f.image.has_alpha = true);
+        assert_eq!(choose(&ds).preset, "capture-360");
+        // The preset differs from `capture` in its table alone.
+        let (Some(ModelConfig::Capture(wide)), Some(ModelConfig::Capture(plain))) =
+            (ModelConfig::preset("capture-360"), ModelConfig::preset("capture"))
+        else {
+            panic!("both are capture presets")
+        };
+        assert_eq!((wide.grid.log2_table, plain.grid.log2_table), (18, 16));
+        let mut same = wide.clone();
+        same.grid.log2_table = 16;
+        assert_eq!(same, plain);
+    }
+
+    #[test]
+    fn photographs_from_one_side_give_the_capture_model() {
+        let mut ds = photos();
+        // Cameras on a quarter circle around the origin, looking at it.
+        for (k, f) in ds.frames.iter_mut().enumerate() {
+            let a = (k as f32 * 12.0 - 45.0).to_radians();
+            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.5);
+            f.camera = Camera::from_fov(8, 6, 0.9, look_at(eye, Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap());
+        }
+        let kind = SceneKind::of_dataset(&ds);
+        assert_eq!((kind.forward_facing, kind.one_sided), (Some(false), Some(true)), "{kind:?}");
         let spread = kind.spread_deg.unwrap();
         let c = kind.choose();
         assert_eq!(c.preset, "capture");
         assert_eq!(
             c.reason,
             format!(
-                "opaque photographs (cameras around their focus, axes up to {spread:.0} deg from their mean): the capture model"
+                "opaque photographs (cameras around their focus from one side, axes up to {spread:.0} deg from their \
+                 mean): the capture model"
             )
         );
-        // An alpha channel that is opaque everywhere is a photograph.
-        let mut ds = photos();
-        ds.frames.iter_mut().for_each(|f| f.image.has_alpha = true);
-        assert_eq!(choose(&ds).preset, "capture");
+        // A record from before `one_sided` existed: the plain capture model.
+        assert_eq!(SceneKind { one_sided: None, ..kind }.choose().preset, "capture");
     }
 
     #[test]
@@ -213,10 +275,10 @@ mod tests {
     fn composited_masks_make_an_object_scene() {
         let kind = SceneKind::of_dataset(&photos());
         for masks in [MaskUse::Auto, MaskUse::Score, MaskUse::Ignore, MaskUse::Off] {
-            assert_eq!(kind.clone().with_masks(Some("masks_8/"), masks).choose().preset, "capture", "{masks}");
+            assert_eq!(kind.clone().with_masks(Some("masks_8/"), masks).choose().preset, "capture-360", "{masks}");
         }
         // Without a mask folder there is nothing to composite.
-        assert_eq!(kind.clone().with_masks(None, MaskUse::Composite).choose().preset, "capture");
+        assert_eq!(kind.clone().with_masks(None, MaskUse::Composite).choose().preset, "capture-360");
         let c = kind.with_masks(Some("masks_8/"), MaskUse::Composite).choose();
         assert_eq!(c.preset, "instant");
         assert_eq!(
@@ -241,7 +303,7 @@ mod tests {
             let kind = SceneKind::of_dataset(&ds);
             let transparent = Scene::from_dataset(&ds).transparent;
             assert_eq!(kind.transparent(), transparent);
-            assert_eq!(kind.choose().preset, if transparent { "instant" } else { "capture" });
+            assert_eq!(kind.choose().preset, if transparent { "instant" } else { "capture-360" });
             assert!(ModelConfig::preset(&kind.choose().preset).is_some());
         }
     }
