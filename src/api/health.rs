@@ -67,7 +67,7 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> 
     }
     let _ = writeln!(out, "# HELP radiance_queue_depth Jobs waiting to run.\n# TYPE radiance_queue_depth gauge");
     let _ = writeln!(out, "radiance_queue_depth {queue}");
-    if let Some(c) = s.jobs.counters() {
+    if let Some(c) = s.jobs.counters().or(s.worker_counters.as_deref()) {
         write_counters(&mut out, c);
     }
     let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
