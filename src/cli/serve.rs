@@ -248,8 +248,11 @@ fn distributed_settings(a: &ServeArgs, database_url: &str, object_store: &str) -
     let node_id = match &a.node_id {
         Some(id) => {
             anyhow::ensure!(
-                !id.is_empty() && id.len() <= 100 && id.chars().all(|c| c.is_ascii_graphic()),
-                "--node-id must be 1 to 100 printable ASCII characters without spaces"
+                !id.is_empty()
+                    && id.len() <= 100
+                    && id.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-')),
+                "--node-id {id:?}: expected 1 to 100 letters, digits, '.', '_' or '-' (it names the node in \
+                 leases, logs and metrics)"
             );
             id.clone()
         }

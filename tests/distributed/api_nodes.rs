@@ -43,7 +43,7 @@ async fn api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores(
     let (s, _) = w.get("/v1/jobs").await;
     assert_eq!(s, StatusCode::NOT_FOUND);
     let metrics = w.client.get(w.url("/metrics")).send().await.unwrap().text().await.unwrap();
-    assert!(metrics.contains("radiance_node_info{role=\"worker\""), "{metrics}");
+    assert!(metrics.contains("radiance_node_info{role=\"worker\",node=\"worker-1\""), "{metrics}");
     let (s, v) = svc_a.get("/readyz").await;
     assert_eq!((s, v["role"].as_str()), (StatusCode::OK, Some("api")), "{v}");
 

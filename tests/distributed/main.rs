@@ -10,3 +10,4 @@ mod common;
 mod api_nodes;
 mod cluster;
 mod failover;
+mod fencing;
