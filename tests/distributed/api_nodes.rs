@@ -29,7 +29,7 @@ async fn events(svc: &Svc, id: &str) -> Vec<(String, Value)> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores() {
-    let _serial = serial();
+    let _serial = serial().await;
     let t0 = Instant::now();
     let cluster = Cluster::start().await;
     let (a, b) = (cluster.node("api", "api-a", &[]), cluster.node("api", "api-b", &[]));

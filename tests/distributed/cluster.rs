@@ -12,7 +12,6 @@
 use std::io::BufRead;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use crate::common::pg::Pg;
@@ -24,11 +23,12 @@ pub const LEASE_SECONDS: u64 = 3;
 /// How long a node may take to print its address.
 const START_WITHIN: Duration = Duration::from_secs(60);
 
-static SERIAL: Mutex<()> = Mutex::new(());
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
-/// Held for the whole of a test: one cluster at a time.
-pub fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+/// Held for the whole of a test: one cluster at a time (an async mutex: it
+/// is held across awaits, and a failed test does not poison it).
+pub async fn serial() -> tokio::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().await
 }
 
 /// The shared stores.

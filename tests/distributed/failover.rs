@@ -46,11 +46,11 @@ async fn runs(sql: &tokio_postgres::Client) -> HashMap<String, Vec<RunRow>> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_workers_job_resumes_on_the_other_from_its_checkpoint() {
-    let _serial = serial();
+    let _serial = serial().await;
     let t0 = Instant::now();
     let cluster = Cluster::start().await;
     let api = cluster.node("api", "api-1", &[]);
-    let mut workers = vec![cluster.node("worker", "worker-1", &[]), cluster.node("worker", "worker-2", &[])];
+    let mut workers = [cluster.node("worker", "worker-1", &[]), cluster.node("worker", "worker-2", &[])];
     eprintln!("cluster up in {:.1} s", t0.elapsed().as_secs_f64());
     let svc = Svc::remote(api.base.clone());
     let scene = svc.upload_ball().await;
@@ -67,7 +67,7 @@ async fn a_killed_workers_job_resumes_on_the_other_from_its_checkpoint() {
         for id in &jobs {
             let (_, v) = svc.get(&format!("/v1/jobs/{id}")).await;
             let step = v["progress"]["step"].as_u64().unwrap_or(0);
-            if v["status"] == "running" && v["model_id"].is_string() && step >= 10 && step < STEPS / 2 {
+            if v["status"] == "running" && v["model_id"].is_string() && (10..STEPS / 2).contains(&step) {
                 found = Some((id.clone(), v));
                 break;
             }

@@ -38,7 +38,7 @@ async fn wait_log(node: &Node, secs: u64, pred: impl Fn(&str) -> bool) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigterm_requeues_the_job_and_another_worker_resumes_it() {
-    let _serial = serial();
+    let _serial = serial().await;
     let cluster = Cluster::start().await;
     let api = cluster.node("api", "api-1", &[]);
     let mut first = cluster.node("worker", "worker-1", &[]);
@@ -74,7 +74,7 @@ async fn sigterm_requeues_the_job_and_another_worker_resumes_it() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_frozen_past_its_lease_fences_itself_and_writes_nothing() {
-    let _serial = serial();
+    let _serial = serial().await;
     let cluster = Cluster::start().await;
     let api = cluster.node("api", "api-1", &[]);
     let frozen = cluster.node("worker", "worker-1", &[]);
