@@ -33,7 +33,8 @@ pub async fn serial() -> tokio::sync::MutexGuard<'static, ()> {
 
 /// The shared stores.
 pub struct Cluster {
-    _pg: Pg,
+    /// `None` once [`Cluster::stop_database`] stopped it.
+    pg: Option<Pg>,
     pub database_url: String,
     pub object_store: String,
     /// The `file://` store's folder, when the tests made one.
@@ -60,7 +61,7 @@ impl Cluster {
                 (format!("file://{}", dir.path().display()), Some(dir))
             }
         };
-        Cluster { _pg: pg, database_url, object_store, _store_dir: store_dir }
+        Cluster { pg: Some(pg), database_url, object_store, _store_dir: store_dir }
     }
 
     /// Starts a node with `role` (`api`, `worker`, `all`) named `name`,
@@ -102,6 +103,11 @@ impl Cluster {
             panic!("node {name} did not start ({line:?}):\n{}", tail(&dir.path().join("node.log")));
         };
         Node { name: name.to_string(), child, base: addr.to_string(), dir }
+    }
+
+    /// Stops the PostgreSQL server (immediate shutdown), as an outage.
+    pub fn stop_database(&mut self) {
+        drop(self.pg.take());
     }
 
     /// A connection to the cluster's database (for the tests' own checks).

@@ -11,3 +11,4 @@ mod api_nodes;
 mod cluster;
 mod failover;
 mod fencing;
+mod ready;
