@@ -108,3 +108,25 @@ async fn api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores(
     eprintln!("test done in {:.1} s", t0.elapsed().as_secs_f64());
     drop((a, b, worker));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_all_node_over_the_shared_stores_serves_and_runs_jobs() {
+    let _serial = serial().await;
+    let cluster = Cluster::start().await;
+    let node = cluster.node("all", "all-1", &[]);
+    let svc = Svc::remote(node.base.clone());
+    let scene = svc.upload_ball().await;
+    let id = svc.job(&scene, json!({ "steps": 30 })).await;
+    let done = svc.wait_job(&id, 60.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let (_, m) = svc.get(&format!("/v1/models/{}", done["model_id"].as_str().unwrap())).await;
+    assert_eq!(m["steps"], 30, "{m}");
+    let sql = cluster.sql().await;
+    let worker: String =
+        sql.query_one("SELECT worker_id FROM job_runs WHERE job_id = $1", &[&id]).await.unwrap().get(0);
+    assert_eq!(worker, "all-1", "the node's own worker ran it");
+    let metrics = svc.client.get(svc.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(metrics.contains("radiance_node_info{role=\"all\",node=\"all-1\""), "{metrics}");
+    let steps = metrics.lines().find_map(|l| l.strip_prefix("radiance_train_steps_total ")).expect("its counters");
+    assert!(steps.parse::<f64>().unwrap() >= 30.0, "{metrics}");
+}
