@@ -93,7 +93,7 @@ impl Ctx {
         let id = claimed.job.id.clone();
         let run = Arc::new(keeper::Run::new(claimed.job.clone(), claimed.lease.clone()));
         self.running().insert(id.clone(), run.clone());
-        let ctx = self.clone();
+        let (ctx, failed_id) = (self.clone(), id.clone());
         let spawned = std::thread::Builder::new().name(format!("job-{id}")).spawn(move || {
             run::run_claimed(ctx.clone(), claimed, run);
             ctx.running().remove(&id);
@@ -106,8 +106,10 @@ impl Ctx {
                 threads.push(t);
             }
             Err(e) => {
-                // The lease expires and another pass (or worker) takes it back.
-                tracing::error!(worker = %self.node, error = %e, "cannot start a job's thread");
+                // Not run here: its lease expires and a reclaim (here or on
+                // another worker) queues it again.
+                self.running().remove(&failed_id);
+                tracing::error!(worker = %self.node, job = %failed_id, error = %e, "cannot start a job's thread");
             }
         }
     }
