@@ -69,8 +69,13 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> 
     }
     let _ = writeln!(out, "# HELP radiance_queue_depth Jobs waiting to run.\n# TYPE radiance_queue_depth gauge");
     let _ = writeln!(out, "radiance_queue_depth {queue}");
-    if let Some(c) = s.jobs.counters().or(s.worker_counters.as_deref()) {
+    if let Some(c) = s.jobs.counters().or(s.worker_stats.as_deref().map(|w| &w.train)) {
         write_counters(&mut out, c);
+    }
+    if let Some(w) = &s.worker_stats {
+        for (name, help, kind, v) in w.series() {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {v}");
+        }
     }
     let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
     let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");

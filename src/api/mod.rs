@@ -113,9 +113,9 @@ pub struct AppInner {
     pub render_slots: tokio::sync::Semaphore,
     /// Recently used models, most recent first.
     pub model_cache: Mutex<Vec<CachedModel>>,
-    /// The training counters of this node's worker (distributed mode; the
-    /// embedded job store has its own, `JobStore::counters`).
-    pub worker_counters: Option<Arc<crate::jobs::Counters>>,
+    /// What this node's worker counts (distributed mode; the embedded job
+    /// store has its training counters, `JobStore::counters`).
+    pub worker_stats: Option<Arc<crate::worker::WorkerStats>>,
 }
 
 /// A loaded model, valid while its record's `updated_at` is unchanged.
@@ -244,7 +244,7 @@ impl Server {
             artifacts,
             renders: Mutex::new(RenderStats::default()),
             model_cache: Mutex::new(Vec::new()),
-            worker_counters: worker.as_ref().map(crate::worker::Worker::counters),
+            worker_stats: worker.as_ref().map(crate::worker::Worker::stats),
         });
         let listener = tokio::net::TcpListener::bind(addr).await?;
         let addr = listener.local_addr()?;

@@ -88,6 +88,7 @@ fn cancel_here(ctx: &Ctx, id: &str) {
 async fn reclaim(ctx: &Ctx) {
     match ctx.queue.reclaim().await {
         Ok(taken) => {
+            ctx.stats.reclaimed.fetch_add(taken.len() as u64, Ordering::Relaxed);
             for r in taken {
                 tracing::warn!(job = %r.job.id, worker = %ctx.node, lost_by = %r.worker, attempt = r.attempt,
                     status = r.job.status.name(), "took back a job whose worker stopped renewing its lease");

@@ -68,7 +68,7 @@ impl JobHost for RemoteHost {
     }
 
     fn counters(&self) -> &Counters {
-        &self.ctx.counters
+        &self.ctx.stats.train
     }
 
     /// The job's progress in memory; the next heartbeat writes it.

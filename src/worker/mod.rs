@@ -25,7 +25,7 @@ use std::time::Duration;
 
 use tokio::sync::{Notify, watch};
 
-use crate::jobs::{Counters, SchedulerConfig};
+use crate::jobs::SchedulerConfig;
 use crate::store::object::ObjectArtifacts;
 use crate::store::pg::{Admission, Claimed, Database, PgQueue};
 
@@ -33,8 +33,10 @@ mod claim;
 mod host;
 mod keeper;
 mod run;
+mod stats;
 
 pub use keeper::{FENCE_AFTER, heartbeat_every};
+pub use stats::WorkerStats;
 
 /// What a worker needs to run.
 pub struct WorkerConfig {
@@ -57,7 +59,7 @@ pub(crate) struct Ctx {
     artifacts: Arc<ObjectArtifacts>,
     config: SchedulerConfig,
     lease: Duration,
-    counters: Arc<Counters>,
+    stats: Arc<WorkerStats>,
     rt: tokio::runtime::Handle,
     scratch: PathBuf,
     /// Jobs running here, by id.
@@ -93,10 +95,13 @@ impl Ctx {
         let id = claimed.job.id.clone();
         let run = Arc::new(keeper::Run::new(claimed.job.clone(), claimed.lease.clone()));
         self.running().insert(id.clone(), run.clone());
+        self.stats.claims.fetch_add(1, Ordering::Relaxed);
+        self.stats.running.fetch_add(1, Ordering::Relaxed);
         let (ctx, failed_id) = (self.clone(), id.clone());
         let spawned = std::thread::Builder::new().name(format!("job-{id}")).spawn(move || {
             run::run_claimed(ctx.clone(), claimed, run);
             ctx.running().remove(&id);
+            ctx.stats.running.fetch_sub(1, Ordering::Relaxed);
             ctx.ended.notify_one();
         });
         match spawned {
@@ -109,6 +114,7 @@ impl Ctx {
                 // Not run here: its lease expires and a reclaim (here or on
                 // another worker) queues it again.
                 self.running().remove(&failed_id);
+                self.stats.running.fetch_sub(1, Ordering::Relaxed);
                 tracing::error!(worker = %self.node, job = %failed_id, error = %e, "cannot start a job's thread");
             }
         }
@@ -142,7 +148,7 @@ impl Worker {
             artifacts,
             config: config.scheduler,
             lease: config.lease,
-            counters: Arc::new(Counters::default()),
+            stats: Arc::new(WorkerStats::default()),
             rt: tokio::runtime::Handle::current(),
             scratch: config.scratch,
             running: Mutex::default(),
@@ -157,9 +163,9 @@ impl Worker {
         Ok(Worker { ctx, stop, task })
     }
 
-    /// The training counters of the jobs this worker runs (/metrics).
-    pub fn counters(&self) -> Arc<Counters> {
-        self.ctx.counters.clone()
+    /// What this worker counts (/metrics).
+    pub fn stats(&self) -> Arc<WorkerStats> {
+        self.ctx.stats.clone()
     }
 
     /// Stops claiming, stops the running jobs (each checkpoints and is

@@ -9,6 +9,7 @@
 //! (`interrupted`) and resumes on any worker from its last checkpoint.
 
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use super::Ctx;
@@ -57,6 +58,7 @@ fn record_end(ctx: &Ctx, run: &Run, outcome: Outcome) {
     for attempt in 1..=FINISH_ATTEMPTS {
         if !run.holds() {
             run.fence("the run ended without the lease");
+            ctx.stats.leases_lost.fetch_add(1, Ordering::Relaxed);
             tracing::warn!("the job's end is not recorded: its lease is lost");
             return;
         }
@@ -68,6 +70,7 @@ fn record_end(ctx: &Ctx, run: &Run, outcome: Outcome) {
             }
             Err(crate::store::pg::PgError::LeaseLost(_)) => {
                 run.fence("recording the end was refused: the lease is lost");
+                ctx.stats.leases_lost.fetch_add(1, Ordering::Relaxed);
                 return;
             }
             Err(e) => {

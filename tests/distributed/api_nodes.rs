@@ -127,6 +127,8 @@ async fn an_all_node_over_the_shared_stores_serves_and_runs_jobs() {
     assert_eq!(worker, "all-1", "the node's own worker ran it");
     let metrics = svc.client.get(svc.url("/metrics")).send().await.unwrap().text().await.unwrap();
     assert!(metrics.contains("radiance_node_info{role=\"all\",node=\"all-1\""), "{metrics}");
-    let steps = metrics.lines().find_map(|l| l.strip_prefix("radiance_train_steps_total ")).expect("its counters");
-    assert!(steps.parse::<f64>().unwrap() >= 30.0, "{metrics}");
+    assert!(node.metric("radiance_train_steps_total").await >= 30.0, "{metrics}");
+    assert_eq!(node.metric("radiance_worker_claims_total").await, 1.0);
+    assert_eq!(node.metric("radiance_worker_running_jobs").await, 0.0);
+    assert_eq!(node.metric("radiance_worker_leases_lost_total").await, 0.0);
 }

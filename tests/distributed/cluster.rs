@@ -123,6 +123,15 @@ impl Node {
         std::fs::read_to_string(self.dir.path().join("node.log")).unwrap_or_default()
     }
 
+    /// The value of the unlabelled series `name` in the node's `/metrics`.
+    pub async fn metric(&self, name: &str) -> f64 {
+        let text = crate::common::http_client().get(format!("{}/metrics", self.base)).send().await.unwrap();
+        let text = text.text().await.unwrap();
+        let prefix = format!("{name} ");
+        let line = text.lines().find_map(|l| l.strip_prefix(prefix.as_str()));
+        line.unwrap_or_else(|| panic!("no {name} in the metrics of {}:\n{text}", self.name)).parse().unwrap()
+    }
+
     /// SIGKILL: no chance to checkpoint, record or release anything.
     pub fn kill9(&mut self) {
         self.child.kill().unwrap();

@@ -106,6 +106,8 @@ async fn a_killed_workers_job_resumes_on_the_other_from_its_checkpoint() {
     let (_, done) = svc.get(&format!("/v1/jobs/{victim}")).await;
     assert_eq!((done["attempts"].as_u64(), done["crashes"].as_u64()), (Some(2), Some(1)), "{done}");
 
+    // The survivor took it back (API nodes never reclaim).
+    assert_eq!(survivor.metric("radiance_jobs_reclaimed_total").await, 1.0);
     // The survivor resumed it from the checkpoint, not from scratch.
     let log = survivor.log();
     let resume_line = log

@@ -106,6 +106,8 @@ async fn a_worker_frozen_past_its_lease_fences_itself_and_writes_nothing() {
     wait_log(&frozen, 10, |log| log.contains("is not recorded: its lease is lost")).await;
     let (_, job) = svc.get(&format!("/v1/jobs/{id}")).await;
     assert_eq!((job["status"].as_str(), job["attempts"].as_u64()), (Some("running"), Some(2)), "{job}");
+    assert_eq!(frozen.metric("radiance_worker_leases_lost_total").await, 1.0);
+    assert_eq!(other.metric("radiance_jobs_reclaimed_total").await, 1.0);
     let row = sql.query_one("SELECT lease_owner FROM jobs WHERE id = $1", &[&id]).await.unwrap();
     assert_eq!(row.get::<_, String>(0), "worker-2");
     assert_eq!(runs(&sql, &id).await, vec![(1, "worker-1".into(), Some("lost".into())), (2, "worker-2".into(), None)]);
