@@ -24,7 +24,7 @@ use crate::worker::{Worker, WorkerConfig};
 const RETRY_EVERY: Duration = Duration::from_secs(1);
 
 /// The shared stores of a node of a distributed deployment.
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct Distributed {
     /// `postgres://…` (`--database-url`; may hold a password: never logged).
     pub database_url: String,
@@ -40,6 +40,23 @@ pub struct Distributed {
     pub db_pool_size: usize,
     /// How long start-up waits for the database and the object store.
     pub startup_wait: Duration,
+}
+
+/// Not derived: the database URL may hold a password, so it shows as the
+/// server it names.
+impl std::fmt::Debug for Distributed {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let database = Database::parse(&self.database_url).map(|d| d.target().to_string());
+        f.debug_struct("Distributed")
+            .field("database", &database.unwrap_or_else(|_| "(an invalid URL)".into()))
+            .field("object_store", &self.object_store)
+            .field("node_id", &self.node_id)
+            .field("lease", &self.lease)
+            .field("cache_max_bytes", &self.cache_max_bytes)
+            .field("db_pool_size", &self.db_pool_size)
+            .field("startup_wait", &self.startup_wait)
+            .finish()
+    }
 }
 
 /// The stores a distributed node opened, and its worker.
@@ -60,6 +77,7 @@ pub(super) async fn open(
     let db =
         Database::parse(&d.database_url).map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e.to_string()))?;
     let deadline = Instant::now() + d.startup_wait;
+    let database = db.target().to_string();
     let store_config =
         PgStoreConfig { pool_size: d.db_pool_size, queue: QueueConfig { max_queued: scheduler.max_queued } };
     let jobs = retry(deadline, &format!("PostgreSQL ({})", db.target()), || async {
@@ -89,14 +107,9 @@ pub(super) async fn open(
             Some(Worker::start(config, db, jobs.queue().clone(), artifacts.clone())?)
         }
     };
-    tracing::info!(role = %role, node = %d.node_id, database = %jobs_target(&d.database_url),
+    tracing::info!(role = %role, node = %d.node_id, database = %database,
         object_store = %d.object_store, "distributed mode: the shared stores are open");
     Ok(Opened { jobs, artifacts, worker })
-}
-
-/// The database as logs may name it (no password).
-fn jobs_target(url: &str) -> String {
-    Database::parse(url).map(|d| d.target().to_string()).unwrap_or_default()
 }
 
 /// Whether a failed attempt is worth another.
@@ -135,6 +148,21 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn debug_never_shows_the_database_password() {
+        let d = Distributed {
+            database_url: "postgres://radiance:s3cret@db.example:5433/radiance".into(),
+            object_store: "file:///srv/store".into(),
+            node_id: "w1".into(),
+            lease: Duration::from_secs(10),
+            cache_max_bytes: 1 << 30,
+            db_pool_size: 8,
+            startup_wait: Duration::from_secs(60),
+        };
+        let shown = format!("{d:?}");
+        assert!(!shown.contains("s3cret") && shown.contains("db.example:5433"), "{shown}");
+    }
 
     #[tokio::test]
     async fn start_up_retries_until_its_deadline_and_names_the_store() {
