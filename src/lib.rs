@@ -19,3 +19,4 @@ pub mod poses;
 pub mod storage;
 pub mod store;
 pub mod system;
+pub mod worker;

@@ -546,6 +546,56 @@ async fn a_stale_lease_can_neither_heartbeat_nor_finish_nor_publish() {
     assert_eq!(t.runs(&job.id).await, [run(1, "w1", "lost"), run(2, "w2", "succeeded")]);
 }
 
+#[tokio::test]
+async fn a_video_is_published_under_its_lease_and_a_models_checkpoint_reads_back() {
+    let t = setup(100).await;
+    let scene = t.ready_scene().await;
+    let trainer = t.enqueue(train(&scene.id), 1).await;
+    let lease = t.queue.claim("w1", &idle(false), LONG).await.unwrap().unwrap().lease;
+    let model = model_of(&trainer, &scene, 3);
+    assert_eq!(t.queue.checkpoint_sha256(&model.id).await.unwrap(), None, "no record yet");
+    t.queue.publish_model(&lease, &model, &sha(4)).await.unwrap();
+    assert_eq!(t.queue.checkpoint_sha256(&model.id).await.unwrap(), Some(sha(4)), "what a resumed job fetches");
+    t.queue.finish(&lease, RunEnd::Succeeded, &RunState::default()).await.unwrap();
+
+    let spec: JobSpec = serde_json::from_value(serde_json::json!({
+        "kind": "video", "frames": 2, "fps": 2, "width": 16, "height": 16, "elevation": 20.0, "radius": 3.0,
+        "fov": 40.0, "format": "gif"
+    }))
+    .unwrap();
+    let new = NewJob { model_id: Some(model.id.clone()), ..new_job(None, spec, 1) };
+    let job = t.queue.enqueue(new).await.unwrap();
+    let old = t.queue.claim("w1", &idle(false), SHORT).await.unwrap().unwrap().lease;
+    t.reclaim_one().await;
+    let lease = t.queue.claim("w2", &idle(false), LONG).await.unwrap().unwrap().lease;
+    let video = radiance::storage::VideoInfo {
+        id: job.reserved_video_id(),
+        model_id: model.id.clone(),
+        job_id: job.id.clone(),
+        format: radiance::media::video::VideoFormat::Gif,
+        frames: 2,
+        fps: 2,
+        width: 16,
+        height: 16,
+        size_bytes: 10,
+        created_at: now_ms(),
+    };
+    // The worker that lost the job publishes nothing; a video record for
+    // another job is refused.
+    let e = t.queue.publish_video(&old, &video).await.expect_err("fenced");
+    assert!(matches!(e, PgError::LeaseLost(_)), "{e}");
+    assert_eq!(t.queue.video(&video.id).await.unwrap().map(|v| v.id), None);
+    let other = radiance::storage::VideoInfo { job_id: trainer.id.clone(), ..video.clone() };
+    let e = t.queue.publish_video(&lease, &other).await.expect_err("not this job's video");
+    assert!(e.to_string().contains("does not make video"), "{e}");
+    // The holder does: the record and the job's video_id together.
+    t.queue.publish_video(&lease, &video).await.unwrap();
+    assert_eq!(t.queue.video(&video.id).await.unwrap().map(|v| v.size_bytes), Some(10));
+    assert_eq!(t.job(&job.id).await.video_id, Some(video.id.clone()));
+    let done = t.queue.finish(&lease, RunEnd::Succeeded, &RunState::default()).await.unwrap();
+    assert_eq!((done.status, done.video_id), (Status::Succeeded, Some(video.id)));
+}
+
 // ---- cancel and notifications ----
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

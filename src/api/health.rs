@@ -60,15 +60,22 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<impl IntoResponse> 
     let _ =
         writeln!(out, "# HELP radiance_node_info This node: its role and version.\n# TYPE radiance_node_info gauge");
     let (role, version) = (s.config.role.name(), env!("CARGO_PKG_VERSION"));
-    let _ = writeln!(out, "radiance_node_info{{role=\"{role}\",version=\"{version}\"}} 1");
+    // Distributed nodes also say which node they are (`--node-id`).
+    let node = s.config.distributed.as_ref().map(|d| format!(",node=\"{}\"", d.node_id)).unwrap_or_default();
+    let _ = writeln!(out, "radiance_node_info{{role=\"{role}\"{node},version=\"{version}\"}} 1");
     let _ = writeln!(out, "# HELP radiance_jobs Jobs by status.\n# TYPE radiance_jobs gauge");
     for st in Status::ALL {
         let _ = writeln!(out, "radiance_jobs{{status=\"{}\"}} {}", st.name(), by_status.get(&st).copied().unwrap_or(0));
     }
     let _ = writeln!(out, "# HELP radiance_queue_depth Jobs waiting to run.\n# TYPE radiance_queue_depth gauge");
     let _ = writeln!(out, "radiance_queue_depth {queue}");
-    if let Some(c) = s.jobs.counters() {
+    if let Some(c) = s.jobs.counters().or(s.worker_stats.as_deref().map(|w| &w.train)) {
         write_counters(&mut out, c);
+    }
+    if let Some(w) = &s.worker_stats {
+        for (name, help, kind, v) in w.series() {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {v}");
+        }
     }
     let _ = writeln!(out, "# HELP radiance_render_seconds Render latency.\n# TYPE radiance_render_seconds summary");
     let _ = writeln!(out, "radiance_render_seconds_sum {render_secs}\nradiance_render_seconds_count {renders}");

@@ -4,7 +4,8 @@
 //! One file per resource (`scenes`, `jobs`, `models`, `videos`, `demo`), one
 //! error type (`error`), archive extraction (`archive`), `/healthz`,
 //! `/readyz` and `/metrics` (`health`), the web app's embedded files
-//! (`web`), the node's role (`role`) and the tower-http layers around it all
+//! (`web`), the node's role (`role`), the shared stores and worker of
+//! distributed mode (`deploy`) and the tower-http layers around it all
 //! (`layers`). Handlers reach jobs, records and stored files only through
 //! the stores (`crate::store`: the job store and the artifact store; the
 //! embedded pair runs the job scheduler beside the router). Handlers never
@@ -30,6 +31,7 @@ use crate::store::{ArtifactStore, JobStore, embedded};
 pub mod archive;
 pub mod camera_path;
 pub mod demo;
+pub mod deploy;
 pub mod error;
 pub mod health;
 pub mod jobs;
@@ -41,6 +43,7 @@ pub mod scenes;
 pub mod videos;
 pub mod web;
 
+pub use deploy::Distributed;
 pub use error::{ApiError, ApiResult, Code};
 pub use role::Role;
 
@@ -64,9 +67,12 @@ pub struct ServiceConfig {
     /// Origins allowed to call the API from a browser page of their own
     /// (CORS); empty: none but the service's own page.
     pub cors_origins: Vec<String>,
-    /// What this node does: only `all` (the API and the jobs over the
-    /// embedded stores) is built; [`Server::start`] refuses the others.
+    /// What this node does: the API, the jobs, or both (`all`, the only
+    /// role of an embedded node).
     pub role: Role,
+    /// The shared stores of distributed mode; `None`: the embedded stores
+    /// in `data_dir`.
+    pub distributed: Option<Distributed>,
     pub scheduler: SchedulerConfig,
 }
 
@@ -83,6 +89,7 @@ impl ServiceConfig {
             min_free_disk_bytes: 1 << 30,
             cors_origins: Vec::new(),
             role: Role::All,
+            distributed: None,
             scheduler: SchedulerConfig::default(),
         }
     }
@@ -106,6 +113,9 @@ pub struct AppInner {
     pub render_slots: tokio::sync::Semaphore,
     /// Recently used models, most recent first.
     pub model_cache: Mutex<Vec<CachedModel>>,
+    /// What this node's worker counts (distributed mode; the embedded job
+    /// store has its training counters, `JobStore::counters`).
+    pub worker_stats: Option<Arc<crate::worker::WorkerStats>>,
 }
 
 /// A loaded model, valid while its record's `updated_at` is unchanged.
@@ -151,6 +161,22 @@ pub fn app(state: AppState) -> Router {
     layers::around(Router::new().fallback_service(routes), max_body, &cors)
 }
 
+/// The router of a `worker` node: health, readiness and metrics only (its
+/// jobs come from the queue, not from requests).
+pub fn worker_app(state: AppState) -> Router {
+    let (max_body, cors) = (state.config.max_upload_bytes, state.config.cors_origins.clone());
+    let metrics = Router::new()
+        .route("/metrics", layers::quick(get(health::metrics)))
+        .route_layer(middleware::from_fn_with_state(state.clone(), auth));
+    let routes = Router::new()
+        .route("/healthz", get(health::healthz))
+        .route("/readyz", get(health::readyz))
+        .merge(metrics)
+        .fallback(not_found)
+        .with_state(state);
+    layers::around(Router::new().fallback_service(routes), max_body, &cors)
+}
+
 async fn not_found(req: Request) -> ApiError {
     ApiError::new(Code::NotFound, format!("no route for {} {}", req.method(), req.uri().path()))
 }
@@ -185,29 +211,45 @@ pub struct Server {
     pub state: AppState,
     stop: tokio::sync::oneshot::Sender<()>,
     task: tokio::task::JoinHandle<std::io::Result<()>>,
+    /// The worker of a distributed `worker` or `all` node.
+    worker: Option<crate::worker::Worker>,
 }
 
 impl Server {
-    /// Opens the stores (the embedded pair: the data directory, and the job
-    /// queue resumed), binds `addr` and serves in a background task. A role
-    /// other than `all` is refused: the shared stores it needs are not built.
+    /// Opens the stores, binds `addr` and serves in a background task.
+    /// Embedded (no [`ServiceConfig::distributed`]): the data directory,
+    /// and the job queue resumed; only role `all`. Distributed: PostgreSQL
+    /// and the object store (see `deploy`), the full router on `api` and
+    /// `all` nodes, health and metrics alone on `worker` nodes, and a
+    /// worker claiming jobs on `worker` and `all` nodes.
     pub async fn start(config: ServiceConfig, addr: SocketAddr) -> std::io::Result<Server> {
-        if config.role != Role::All {
-            return Err(std::io::Error::new(std::io::ErrorKind::Unsupported, role::not_built(config.role)));
-        }
-        let (jobs, artifacts) = embedded::open(&config.data_dir, config.scheduler.clone())?;
+        let (jobs, artifacts, worker): (Arc<dyn JobStore>, Arc<dyn ArtifactStore>, _) = match &config.distributed {
+            None if config.role != Role::All => {
+                return Err(std::io::Error::new(std::io::ErrorKind::Unsupported, role::needs_stores(config.role)));
+            }
+            None => {
+                let (jobs, artifacts) = embedded::open(&config.data_dir, config.scheduler.clone())?;
+                (Arc::new(jobs), Arc::new(artifacts), None)
+            }
+            Some(d) => {
+                let opened = deploy::open(d, config.role, &config.data_dir, &config.scheduler).await?;
+                (opened.jobs, opened.artifacts, opened.worker)
+            }
+        };
+        let role = config.role;
         let state = Arc::new(AppInner {
             render_slots: tokio::sync::Semaphore::new(config.max_concurrent_renders.max(1)),
             config,
-            jobs: Arc::new(jobs),
-            artifacts: Arc::new(artifacts),
+            jobs,
+            artifacts,
             renders: Mutex::new(RenderStats::default()),
             model_cache: Mutex::new(Vec::new()),
+            worker_stats: worker.as_ref().map(crate::worker::Worker::stats),
         });
         let listener = tokio::net::TcpListener::bind(addr).await?;
         let addr = listener.local_addr()?;
         let (stop, rx) = tokio::sync::oneshot::channel::<()>();
-        let router = app(state.clone());
+        let router = if role == Role::Worker { worker_app(state.clone()) } else { app(state.clone()) };
         let task = tokio::spawn(async move {
             axum::serve(listener, router)
                 .with_graceful_shutdown(async move {
@@ -215,15 +257,19 @@ impl Server {
                 })
                 .await
         });
-        tracing::info!(%addr, "listening");
-        Ok(Server { addr, state, stop, task })
+        tracing::info!(%addr, %role, "listening");
+        Ok(Server { addr, state, stop, task, worker })
     }
 
-    /// Stops accepting requests, lets running ones finish, then stops the
-    /// job store (running jobs checkpoint and resume at the next start).
+    /// Stops accepting requests, lets running ones finish, stops the
+    /// worker, then the job store (running jobs checkpoint and resume: at
+    /// the next start, or on any worker).
     pub async fn shutdown(self) -> std::io::Result<()> {
         let _ = self.stop.send(());
         let served = self.task.await.map_err(std::io::Error::other)?;
+        if let Some(w) = self.worker {
+            w.shutdown().await;
+        }
         self.state.jobs.shutdown().await;
         served
     }

@@ -1,9 +1,9 @@
 //! The role a `radiance serve` node plays (docs/design/scale-out.md,
 //! section 2.5). `all`, the default, serves the API and runs the jobs in
-//! one process over the embedded stores: the only role built. `api` (the
-//! API alone) and `worker` (the jobs alone) need the shared stores of
-//! issue 16, PostgreSQL and an object store, which are not built yet; a
-//! node asked to play them refuses to start, saying so.
+//! one process: over the embedded stores, or over the shared ones. `api`
+//! (the API alone) and `worker` (the jobs alone) need the shared stores,
+//! PostgreSQL and an object store; a node asked to play them without those
+//! refuses to start, saying so.
 
 use std::fmt;
 use std::str::FromStr;
@@ -11,12 +11,12 @@ use std::str::FromStr;
 /// What a node does.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Role {
-    /// The API and the jobs, over the embedded stores.
+    /// The API and the jobs, over the embedded stores or the shared ones.
     #[default]
     All,
-    /// The API alone, over the shared stores (not built yet).
+    /// The API alone, over the shared stores.
     Api,
-    /// The jobs alone, over the shared stores (not built yet).
+    /// The jobs alone, over the shared stores (and health and metrics).
     Worker,
 }
 
@@ -51,12 +51,12 @@ impl FromStr for Role {
     }
 }
 
-/// Why a node cannot play `role` yet.
-pub fn not_built(role: Role) -> String {
+/// Why a node cannot play `role` over the embedded stores.
+pub fn needs_stores(role: Role) -> String {
     format!(
-        "role '{role}' is not built yet: it needs the shared job and artifact stores of issue 16 (PostgreSQL \
-         and an object store, docs/design/scale-out.md), which this version does not have. Run one node with \
-         role 'all' (the default), which serves the API and runs the jobs over its data directory"
+        "role '{role}' needs the shared job and artifact stores (a PostgreSQL database and an object store, \
+         docs/design/scale-out.md); over its own data directory a node plays role 'all' (the default), which \
+         serves the API and runs the jobs"
     )
 }
 
@@ -73,6 +73,6 @@ mod tests {
         assert_eq!(Role::default(), Role::All);
         let e = "API".parse::<Role>().unwrap_err();
         assert!(e.contains("'API'") && e.contains("all, api or worker"), "{e}");
-        assert!(not_built(Role::Worker).starts_with("role 'worker' is not built yet"));
+        assert!(needs_stores(Role::Worker).starts_with("role 'worker' needs the shared job and artifact stores"));
     }
 }

@@ -7,7 +7,7 @@ use anyhow::Context;
 use clap::Args;
 
 use super::Common;
-use crate::api::{Role, Server, ServiceConfig};
+use crate::api::{Distributed, Role, Server, ServiceConfig};
 use crate::jobs::poses::PosesSetup;
 use crate::jobs::{SchedulerConfig, default_memory_budget};
 use crate::poses::Tools;
@@ -74,19 +74,39 @@ pub struct ServeArgs {
     /// Off by default: only the service's own page at `/` can.
     #[arg(long = "cors-origin", env = "RADIANCE_CORS_ORIGINS", value_delimiter = ',')]
     pub cors_origins: Vec<String>,
-    /// What this node does: `all` serves the API and runs the jobs over the
-    /// data directory. `api` (the API alone) and `worker` (the jobs alone),
-    /// over shared stores, are not built yet and are refused.
+    /// What this node does: `all` serves the API and runs the jobs (over
+    /// the data directory, or over the shared stores); `api` serves the API
+    /// alone and `worker` runs the jobs alone, both over the shared stores.
     #[arg(long, env = "RADIANCE_ROLE", default_value = "all", value_parser = role_parser())]
     pub role: Role,
     /// The PostgreSQL database (`postgres://USER:PASSWORD@HOST/DB`) shared
-    /// by `api` and `worker` nodes: not built yet, refused.
+    /// by the nodes of a distributed deployment (with --object-store).
     #[arg(long, env = "RADIANCE_DATABASE_URL", hide_env_values = true)]
     pub database_url: Option<String>,
     /// The object store (`s3://BUCKET/PREFIX` or `file:///PATH`) shared by
-    /// `api` and `worker` nodes: not built yet, refused.
+    /// the nodes of a distributed deployment (with --database-url).
     #[arg(long, env = "RADIANCE_OBJECT_STORE")]
     pub object_store: Option<String>,
+    /// This node's id in job leases and logs (distributed mode; default:
+    /// the host name and 8 random hex digits).
+    #[arg(long, env = "RADIANCE_NODE_ID")]
+    pub node_id: Option<String>,
+    /// Seconds a worker's lease on a job lasts without a heartbeat
+    /// (distributed mode): a worker that dies loses its job to another
+    /// after about this long.
+    #[arg(long, env = "RADIANCE_LEASE_SECONDS", default_value_t = 10.0)]
+    pub lease_seconds: f64,
+    /// Largest size of the local cache of scenes and checkpoints fetched
+    /// from the object store, in MiB (distributed mode).
+    #[arg(long, env = "RADIANCE_CACHE_MAX_MB", default_value_t = 4096)]
+    pub cache_max_mb: u64,
+    /// Connections to the database each node keeps (distributed mode).
+    #[arg(long, env = "RADIANCE_DB_POOL_SIZE", default_value_t = 8)]
+    pub db_pool_size: usize,
+    /// Seconds start-up waits for the database and the object store to
+    /// answer (distributed mode).
+    #[arg(long, env = "RADIANCE_STARTUP_WAIT_SECONDS", default_value_t = 60.0)]
+    pub startup_wait_seconds: f64,
     #[command(flatten)]
     pub common: Common,
 }
@@ -98,7 +118,8 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .try_init();
-    deployment(a.role, a.database_url.as_deref(), a.object_store.as_deref())?;
+    let shared = deployment(a.role, a.database_url.as_deref(), a.object_store.as_deref())?;
+    let distributed = shared.map(|(db, store)| distributed_settings(&a, db, store)).transpose()?;
     let api_key = api_key(a.api_key)?;
     let threads = a.common.init_threads()?;
     anyhow::ensure!(a.checkpoint_every.is_finite() && a.checkpoint_every > 0.0, "--checkpoint-every must be positive");
@@ -134,11 +155,12 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         .ok()
         .filter(|d| !d.is_zero())
         .ok_or_else(|| anyhow::anyhow!("--poses-time-limit-min must be a positive number of minutes"))?;
-    let poses = pose_tools(a.colmap.as_deref()).map(|tools| PosesSetup {
-        tools,
-        max_size: a.poses_max_size,
-        time_limit: poses_time_limit,
-    });
+    if distributed.is_some() {
+        tracing::warn!("photo-only uploads are disabled in distributed mode: workers do not estimate poses yet");
+    }
+    let tools = if distributed.is_some() { None } else { pose_tools(a.colmap.as_deref()) };
+    let poses = tools.map(|tools| PosesSetup { tools, max_size: a.poses_max_size, time_limit: poses_time_limit });
+    config.distributed = distributed;
     config.scheduler = SchedulerConfig {
         max_concurrent: a.max_concurrent_jobs,
         max_queued: a.max_queued_jobs,
@@ -149,6 +171,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         poses,
         ..SchedulerConfig::default()
     };
+    let config_node = config.distributed.as_ref().map(|d| d.node_id.clone());
     // The runtime only moves bytes: the work runs on the rayon pool.
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     rt.block_on(async move {
@@ -159,6 +182,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         eprintln!("open http://{}/ in a browser for the web app", server.addr);
         tracing::info!(
             role = %a.role,
+            node = config_node.as_deref().unwrap_or(""),
             data_dir = %a.data_dir.display(),
             threads,
             memory_budget_mib = budget >> 20,
@@ -178,12 +202,15 @@ fn role_parser() -> impl clap::builder::TypedValueParser<Value = Role> {
     clap::builder::PossibleValuesParser::new(Role::NAMES).try_map(|name| name.parse::<Role>())
 }
 
-/// Checks what the role and store flags ask for. One embedded node (`--role
-/// all` and neither store) is what is built; the distributed mode of issue
-/// 16 (`--role api|worker` over a shared database and object store) is
-/// refused with what it would need and why it cannot run. A database URL is
-/// never quoted back: it may hold a password.
-fn deployment(role: Role, database_url: Option<&str>, object_store: Option<&str>) -> anyhow::Result<()> {
+/// Checks what the role and store flags ask for, and answers the shared
+/// stores of distributed mode (the database URL and the object store), or
+/// `None` for one embedded node (`--role all` and neither store). A
+/// database URL is never quoted back: it may hold a password.
+fn deployment<'a>(
+    role: Role,
+    database_url: Option<&'a str>,
+    object_store: Option<&'a str>,
+) -> anyhow::Result<Option<(&'a str, &'a str)>> {
     if let Some(url) = database_url
         && !(url.starts_with("postgres://") || url.starts_with("postgresql://"))
     {
@@ -194,20 +221,61 @@ fn deployment(role: Role, database_url: Option<&str>, object_store: Option<&str>
     {
         anyhow::bail!("--object-store {store}: expected s3://BUCKET/PREFIX or file:///PATH");
     }
-    let not_built = "distributed mode (issue 16, docs/design/scale-out.md) is not built yet: for now, run one node \
-                     with --role all (the default) and neither --database-url nor --object-store";
-    match (role, database_url.is_some(), object_store.is_some()) {
-        (Role::All, false, false) => Ok(()),
-        (_, true, false) | (_, false, true) => anyhow::bail!(
-            "--database-url and --object-store go together (the shared job store and artifact store of \
-             distributed mode); and {not_built}"
+    match (role, database_url, object_store) {
+        (Role::All, None, None) => Ok(None),
+        (_, Some(_), None) | (_, None, Some(_)) => anyhow::bail!(
+            "--database-url and --object-store go together: distributed mode needs both the shared job store \
+             (PostgreSQL) and the shared artifact store; give both, or neither for one node over --data-dir"
         ),
-        (role, false, false) => anyhow::bail!(
-            "--role {role} needs the shared stores (--database-url and --object-store) of distributed mode; \
-             and {not_built}"
+        (role, None, None) => anyhow::bail!(
+            "--role {role} needs the shared stores of distributed mode (--database-url and --object-store); \
+             one node over its --data-dir runs with --role all (the default)"
         ),
-        (_, true, true) => anyhow::bail!("{not_built}"),
+        (_, Some(db), Some(store)) => Ok(Some((db, store))),
     }
+}
+
+/// The settings of distributed mode from the flags.
+fn distributed_settings(a: &ServeArgs, database_url: &str, object_store: &str) -> anyhow::Result<Distributed> {
+    let lease = std::time::Duration::try_from_secs_f64(a.lease_seconds)
+        .ok()
+        .filter(|l| *l >= std::time::Duration::from_secs(1) && *l <= std::time::Duration::from_secs(3600))
+        .ok_or_else(|| anyhow::anyhow!("--lease-seconds must be between 1 and 3600"))?;
+    let startup_wait = std::time::Duration::try_from_secs_f64(a.startup_wait_seconds)
+        .map_err(|_| anyhow::anyhow!("--startup-wait-seconds must be a number of seconds, 0 or more"))?;
+    anyhow::ensure!(a.db_pool_size > 0, "--db-pool-size must be at least 1");
+    anyhow::ensure!(a.cache_max_mb > 0, "--cache-max-mb must be positive");
+    let node_id = match &a.node_id {
+        Some(id) => {
+            anyhow::ensure!(
+                !id.is_empty()
+                    && id.len() <= 100
+                    && id.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-')),
+                "--node-id {id:?}: expected 1 to 100 letters, digits, '.', '_' or '-' (it names the node in \
+                 leases, logs and metrics)"
+            );
+            id.clone()
+        }
+        None => default_node_id(),
+    };
+    Ok(Distributed {
+        database_url: database_url.to_string(),
+        object_store: object_store.to_string(),
+        node_id,
+        lease,
+        cache_max_bytes: a.cache_max_mb << 20,
+        db_pool_size: a.db_pool_size,
+        startup_wait,
+    })
+}
+
+/// `<host name>-<8 hex digits>`: unique among the nodes of a deployment
+/// even when they share a host name (containers from one image).
+fn default_node_id() -> String {
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+    let host = host.trim();
+    let random = uuid::Uuid::now_v7().simple().to_string();
+    format!("{}-{}", if host.is_empty() { "node" } else { host }, &random[random.len() - 8..])
 }
 
 /// COLMAP (and ffmpeg) for photo-only uploads, said plainly in the log
@@ -281,25 +349,29 @@ mod tests {
     }
 
     #[test]
-    fn only_one_embedded_node_is_accepted_and_the_rest_says_why() {
-        deployment(Role::All, None, None).unwrap();
+    fn embedded_is_role_all_alone_and_distributed_needs_both_stores() {
+        assert_eq!(deployment(Role::All, None, None).unwrap(), None);
         for role in [Role::Api, Role::Worker] {
             let e = refusal(role, None, None);
-            assert!(
-                e.starts_with(&format!("--role {role} needs the shared stores")) && e.contains("not built yet"),
-                "{e}"
-            );
+            assert!(e.starts_with(&format!("--role {role} needs the shared stores")), "{e}");
         }
         let db = "postgres://radiance:s3cret@db.example/radiance";
         for role in [Role::All, Role::Api, Role::Worker] {
             let e = refusal(role, Some(db), None);
-            assert!(e.starts_with("--database-url and --object-store go together"), "{e}");
+            assert!(e.starts_with("--database-url and --object-store go together") && !e.contains("s3cret"), "{e}");
             let e = refusal(role, None, Some("s3://bucket/prefix"));
             assert!(e.starts_with("--database-url and --object-store go together"), "{e}");
-            let e = refusal(role, Some(db), Some("file:///srv/radiance"));
-            assert!(e.starts_with("distributed mode") && e.contains("not built yet"), "{e}");
-            assert!(!e.contains("s3cret"), "{e}");
+            let both = deployment(role, Some(db), Some("file:///srv/radiance")).unwrap();
+            assert_eq!(both, Some((db, "file:///srv/radiance")));
         }
+    }
+
+    #[test]
+    fn node_ids_default_to_the_host_and_random_digits() {
+        let (a, b) = (default_node_id(), default_node_id());
+        assert_ne!(a, b);
+        let (host, digits) = a.rsplit_once('-').unwrap();
+        assert!(!host.is_empty() && digits.len() == 8 && digits.chars().all(|c| c.is_ascii_hexdigit()), "{a}");
     }
 
     #[test]

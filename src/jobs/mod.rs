@@ -22,7 +22,7 @@ use crate::storage::{SceneInfo, SceneStatus, Storage, new_id, now_ms};
 pub use job::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec, reserved_model_id};
 use store::{JobStore, Record};
 
-mod host;
+pub(crate) mod host;
 mod job;
 mod lifecycle;
 pub mod poses;

@@ -18,7 +18,9 @@
 //! checkpoint fetched once to `DATA/cache/models/`.
 //!
 //! Its S3 settings come from the AWS environment with [`S3Options`] over
-//! it (`s3`). Not wired into `radiance serve` yet (the next step).
+//! it (`s3`). `radiance serve` uses it in distributed mode
+//! (`--object-store`); its workers put checkpoints and videos with the
+//! inherent `put_*` methods.
 
 use std::io;
 use std::path::{Path, PathBuf};
@@ -136,6 +138,33 @@ impl ObjectArtifacts {
             Err(e) => return Err(io_error(e)),
         }
         Ok(Stored { sha256, size })
+    }
+
+    /// Downloads checkpoint `sha256` of model `model_id` to the new file
+    /// `dest` (a worker resuming a job writes its session's checkpoint
+    /// there), through a temporary name beside it: `dest` appears whole.
+    pub async fn fetch_checkpoint(&self, model_id: &str, sha256: &str, dest: &Path) -> io::Result<()> {
+        check_id(model_id, "model")?;
+        let tmp = dest.with_extension("download");
+        let _ = tokio::fs::remove_file(&tmp).await;
+        let fetched = download(&self.store, &checkpoint_key(model_id, sha256), &tmp).await;
+        match fetched {
+            Ok(()) => tokio::fs::rename(&tmp, dest).await,
+            Err(e) => {
+                let _ = tokio::fs::remove_file(&tmp).await;
+                Err(e)
+            }
+        }
+    }
+
+    /// Deletes checkpoint `sha256` of model `model_id` (one a newer
+    /// checkpoint replaced); a missing object is not an error.
+    pub async fn delete_checkpoint(&self, model_id: &str, sha256: &str) -> io::Result<()> {
+        check_id(model_id, "model")?;
+        match self.store.delete(&checkpoint_key(model_id, sha256)).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(io_error(e)),
+        }
     }
 
     /// Stores a video's bytes at `videos/<id>.bin` (one atomic put).

@@ -11,6 +11,7 @@
 //! - `lease`: the workers' side: claim (`FOR UPDATE SKIP LOCKED`, a lease
 //!   with a fencing token), heartbeat, finish, reclaim of expired leases
 //!   with crash counting, the fenced model publish;
+//! - `publish`: the checkpoint a job resumes from, the fenced video publish;
 //! - `notify`: LISTEN for the `radiance` channel the `jobs` trigger
 //!   announces changes on;
 //! - `changes`: one listener per node whose notices every follower of a
@@ -31,6 +32,7 @@ mod jobs;
 mod lease;
 pub mod migrate;
 mod notify;
+mod publish;
 mod queue;
 mod records;
 mod rows;

@@ -1,0 +1,17 @@
+//! Distributed mode end to end (issue 16, docs/design/scale-out.md): API
+//! nodes and workers as separate processes of the built binary over a
+//! real PostgreSQL (a throwaway cluster) and a shared object store (a
+//! `file://` folder, or `RADIANCE_TEST_OBJECT_STORE`), one cluster at a
+//! time (`cluster`): a worker killed mid-training (`failover`), what API
+//! nodes serve and a cancel reaching the worker (`api_nodes`), SIGTERM and
+//! a frozen worker's self-fence (`fencing`), readiness and start-up
+//! (`ready`).
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod api_nodes;
+mod cluster;
+mod failover;
+mod fencing;
+mod ready;
