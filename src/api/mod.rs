@@ -26,7 +26,7 @@ use axum::routing::{delete, get, post};
 
 use crate::engine::models::Model;
 use crate::jobs::SchedulerConfig;
-use crate::store::{ArtifactStore, JobStore, embedded};
+use crate::store::{Artifact, ArtifactStore, JobStore, embedded};
 
 pub mod archive;
 pub mod camera_path;
@@ -175,6 +175,16 @@ pub fn worker_app(state: AppState) -> Router {
         .fallback(not_found)
         .with_state(state);
     layers::around(Router::new().fallback_service(routes), max_body, &cors)
+}
+
+/// Removes the bytes behind a record just deleted. The delete has happened
+/// (the record is gone, and the client is answered 204): bytes that could
+/// not be removed stay in the object store, unreachable, and the log says
+/// which.
+async fn remove_artifact(s: &AppState, what: Artifact<'_>) {
+    if let Err(e) = s.artifacts.remove(what).await {
+        tracing::warn!(what = ?what, error = %e, "deleted the record, but not its bytes: they stay in the store, unused");
+    }
 }
 
 async fn not_found(req: Request) -> ApiError {

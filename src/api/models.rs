@@ -21,6 +21,7 @@ use crate::engine::render::appearance::Appearance;
 use crate::engine::render::render_view_until;
 use crate::media::png::{self, ViewImage};
 use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
+use crate::store::Artifact;
 
 /// A model as the API shows it: its record and the disk use of its videos.
 #[derive(Debug, Serialize)]
@@ -52,6 +53,7 @@ pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiRe
 /// Videos made from it stay.
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     s.jobs.delete_model(&id).await?;
+    super::remove_artifact(&s, Artifact::Model(&id)).await;
     s.model_cache.lock().unwrap_or_else(|e| e.into_inner()).retain(|c| c.id != id);
     Ok(StatusCode::NO_CONTENT)
 }

@@ -23,6 +23,7 @@ use crate::engine::dataset::{DatasetError, DatasetFormat, detect_format};
 use crate::jobs::{JobSpec, PosesSpec, poses as poses_job};
 use crate::poses::photos;
 use crate::storage::{SceneInfo, ScenePart, ScenePoses, SceneStatus, SplitCounts, ViewDefaults, new_id, now_ms};
+use crate::store::Artifact;
 use crate::store::{ArtifactStore, NewJob};
 
 pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
@@ -360,5 +361,6 @@ pub async fn get_one(State(s): State<AppState>, UrlPath(id): UrlPath<String>) ->
 /// trained on it stay usable.
 pub async fn delete(State(s): State<AppState>, UrlPath(id): UrlPath<String>) -> ApiResult<StatusCode> {
     s.jobs.delete_scene(&id).await?;
+    super::remove_artifact(&s, Artifact::Scene(&id)).await;
     Ok(StatusCode::NO_CONTENT)
 }

@@ -18,6 +18,7 @@ use crate::engine::train::estimate;
 use crate::jobs::{Job, JobSpec, VideoSpec};
 use crate::media::video::VideoFormat;
 use crate::storage::ViewDefaults;
+use crate::store::Artifact;
 use crate::store::NewJob;
 
 /// `POST /v1/models/{id}/videos` body; every field is optional.
@@ -199,6 +200,7 @@ pub async fn get_one(State(s): State<AppState>, Path(id): Path<String>) -> ApiRe
 /// has not ended.
 pub async fn delete(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     s.jobs.delete_video(&id).await?;
+    super::remove_artifact(&s, Artifact::Video(&id)).await;
     Ok(StatusCode::NO_CONTENT)
 }
 

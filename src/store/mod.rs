@@ -134,6 +134,18 @@ pub trait JobStore: Send + Sync + 'static {
     fn shutdown(&self) -> Fut<'_, ()>;
 }
 
+/// The bytes behind a record the [`JobStore`] deleted, for
+/// [`ArtifactStore::remove`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Artifact<'a> {
+    /// Every part of scene `id` (its dataset, its uploaded photos).
+    Scene(&'a str),
+    /// Every checkpoint of model `id`.
+    Model(&'a str),
+    /// Video `id`'s file.
+    Video(&'a str),
+}
+
 /// The bytes of scenes, models and videos. Their records are the
 /// [`JobStore`]'s: an artifact is visible once its record is.
 pub trait ArtifactStore: Send + Sync + 'static {
@@ -166,4 +178,11 @@ pub trait ArtifactStore: Send + Sync + 'static {
 
     /// Whether the store can serve (/readyz); the error says what is wrong.
     fn ready(&self) -> Fut<'_, io::Result<()>>;
+
+    /// Removes the bytes behind a record the [`JobStore`] has just deleted
+    /// (record first: a delete it refuses, such as a scene a queued job
+    /// uses, must leave the bytes). What is already gone is no error. The
+    /// embedded job store deletes its files with their records, so the
+    /// embedded artifact store has nothing left to do.
+    fn remove<'a>(&'a self, what: Artifact<'a>) -> Fut<'a, io::Result<()>>;
 }

@@ -25,7 +25,7 @@ use std::sync::Arc;
 use radiance::jobs::SchedulerConfig;
 use radiance::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
 use radiance::store::object::ObjectArtifacts;
-use radiance::store::{ArtifactStore, Fut, embedded};
+use radiance::store::{Artifact, ArtifactStore, Fut, embedded};
 
 use crate::bucket::{Backend, Bucket};
 use crate::contract::{Opening, Settings, Stores};
@@ -101,6 +101,12 @@ impl ArtifactStore for MirroredArtifacts {
 
     fn ready(&self) -> Fut<'_, io::Result<()>> {
         self.object.ready()
+    }
+
+    /// The object store's copies (the embedded job store removed its own
+    /// files with the record).
+    fn remove<'a>(&'a self, what: Artifact<'a>) -> Fut<'a, io::Result<()>> {
+        self.object.remove(what)
     }
 }
 

@@ -12,8 +12,8 @@ use futures_util::StreamExt;
 use object_store::path::Path as Key;
 use object_store::{ObjectStore, ObjectStoreExt};
 use radiance::storage::{ModelInfo, ScenePart, VideoInfo};
-use radiance::store::ArtifactStore;
 use radiance::store::object::{ObjectArtifacts, Stored, scene_key, upload};
+use radiance::store::{Artifact, ArtifactStore};
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 
@@ -51,6 +51,7 @@ on_both_backends!(
     a_failed_tar_is_aborted_and_names_the_key,
     checkpoints_are_content_addressed,
     videos_usage_and_readiness,
+    removing_a_deleted_records_bytes_takes_its_objects_and_no_others,
 );
 
 fn model(id: &str) -> ModelInfo {
@@ -362,4 +363,43 @@ async fn wait_for_staged_bytes_at_most(bucket: &Bucket, at_most: u64) {
         assert!(Instant::now() < deadline, "{staged} bytes of parts still stored after 30 s, not {at_most}");
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
+}
+
+/// `remove` deletes every object of the record named (all parts of a
+/// scene, all checkpoints of a model, a video) and nothing of the others;
+/// removing again, or what never existed, is no error; a bad id is refused.
+async fn removing_a_deleted_records_bytes_takes_its_objects_and_no_others(backend: Backend) {
+    let dir = tempfile::tempdir().unwrap();
+    let bucket = Bucket::new(backend, dir.path()).await;
+    let store = bucket.open(&dir.path().join("data"));
+    for id in ["scn_a", "scn_b"] {
+        for part in [ScenePart::Data, ScenePart::Upload] {
+            let staged = store.staging_dir(id).join(format!("{part:?}"));
+            std::fs::create_dir_all(&staged).unwrap();
+            std::fs::write(staged.join("f"), id).unwrap();
+            store.put_scene_files(id, part, &staged).await.unwrap();
+        }
+    }
+    let file = dir.path().join("model.ckpt");
+    for (id, contents) in [("mdl_a", "one"), ("mdl_a", "two"), ("mdl_b", "three")] {
+        std::fs::write(&file, contents).unwrap();
+        store.put_checkpoint(id, &file).await.unwrap();
+    }
+    store.put_video("vid_a", b"GIF89a".to_vec()).await.unwrap();
+    store.put_video("vid_b", b"GIF89a".to_vec()).await.unwrap();
+    assert_eq!(keys(&**store.store()).await.len(), 9);
+
+    store.remove(Artifact::Scene("scn_a")).await.unwrap();
+    store.remove(Artifact::Model("mdl_a")).await.unwrap();
+    store.remove(Artifact::Video("vid_a")).await.unwrap();
+    let left = keys(&**store.store()).await;
+    assert_eq!(left.len(), 4, "{left:?}");
+    assert!(left.iter().all(|k| k.contains("scn_b") || k.contains("mdl_b") || k.contains("vid_b")), "{left:?}");
+    // Again, and what never was: nothing to do, no error.
+    for what in [Artifact::Scene("scn_a"), Artifact::Model("mdl_none"), Artifact::Video("vid_a")] {
+        store.remove(what).await.unwrap();
+    }
+    assert_eq!(keys(&**store.store()).await, left);
+    let e = store.remove(Artifact::Scene("../scenes")).await.unwrap_err();
+    assert_eq!(e.kind(), io::ErrorKind::InvalidInput, "{e}");
 }

@@ -24,7 +24,7 @@ use std::sync::Arc;
 use radiance::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, Storage, VideoInfo};
 use radiance::store::embedded::EmbeddedArtifacts;
 use radiance::store::pg::{Database, PgJobStore, PgStoreConfig, QueueConfig};
-use radiance::store::{ArtifactStore, Fut};
+use radiance::store::{Artifact, ArtifactStore, Fut};
 
 use crate::common::pg::Pg;
 use crate::contract::{Opening, Settings, Stores};
@@ -81,6 +81,10 @@ impl ArtifactStore for PublishingArtifacts {
 
     fn ready(&self) -> Fut<'_, io::Result<()>> {
         self.inner.ready()
+    }
+
+    fn remove<'a>(&'a self, what: Artifact<'a>) -> Fut<'a, io::Result<()>> {
+        self.inner.remove(what)
     }
 }
 

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use super::{blocking, invalid};
 use crate::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, Storage, VideoInfo, valid_id};
-use crate::store::{ArtifactStore, Fut};
+use crate::store::{Artifact, ArtifactStore, Fut};
 
 /// The data directory's files.
 pub struct EmbeddedArtifacts {
@@ -98,6 +98,12 @@ impl ArtifactStore for EmbeddedArtifacts {
     fn ready(&self) -> Fut<'_, io::Result<()>> {
         let (storage, probe) = (self.storage.clone(), self.probes.fetch_add(1, Ordering::Relaxed));
         Box::pin(async move { blocking(move || check_writable(&storage, probe)).await? })
+    }
+
+    /// Nothing: the embedded job store's deletes remove the files with
+    /// their records.
+    fn remove<'a>(&'a self, _what: Artifact<'a>) -> Fut<'a, io::Result<()>> {
+        Box::pin(std::future::ready(Ok(())))
     }
 }
 

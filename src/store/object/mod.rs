@@ -33,7 +33,7 @@ use object_store::{ObjectStore, ObjectStoreExt};
 use tokio::io::AsyncWriteExt;
 
 use crate::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInfo, valid_id};
-use crate::store::{ArtifactStore, Fut};
+use crate::store::{Artifact, ArtifactStore, Fut};
 
 pub mod cache;
 pub mod s3;
@@ -353,6 +353,39 @@ impl ArtifactStore for ObjectArtifacts {
                 }
                 Ok(_) => Ok(()),
             }
+        })
+    }
+
+    /// Deletes `scenes/ID/*`, `models/ID/*` or `videos/ID.bin` (a listing
+    /// of the folder, then each object; a missing object is no error).
+    fn remove<'a>(&'a self, what: Artifact<'a>) -> Fut<'a, io::Result<()>> {
+        Box::pin(async move {
+            let (id, kind, prefix) = match what {
+                Artifact::Scene(id) => (id, "scene", Some(format!("scenes/{id}/"))),
+                Artifact::Model(id) => (id, "model", Some(format!("models/{id}/"))),
+                Artifact::Video(id) => (id, "video", None),
+            };
+            check_id(id, kind)?;
+            let keys: Vec<Key> = match prefix {
+                Some(p) => {
+                    let prefix = Key::from(p.trim_end_matches('/'));
+                    let mut listing = self.store.list(Some(&prefix));
+                    let mut keys = Vec::new();
+                    while let Some(meta) = listing.next().await {
+                        keys.push(meta.map_err(io_error)?.location);
+                    }
+                    keys
+                }
+                None => vec![Key::from(format!("videos/{id}.bin"))],
+            };
+            for key in keys {
+                match self.store.delete(&key).await {
+                    Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+                    Err(e) => return Err(io_error(e)),
+                }
+            }
+            tracing::info!(what = ?what, "object store: removed the bytes of a deleted record");
+            Ok(())
         })
     }
 }
