@@ -15,3 +15,4 @@ mod cluster;
 mod failover;
 mod fencing;
 mod ready;
+mod upload;
