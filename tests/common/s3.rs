@@ -109,6 +109,59 @@ impl S3 {
         self.server.as_ref().map(|s| s.root.path())
     }
 
+    /// The parts of incomplete multipart uploads a server of our own holds
+    /// (s3s-fs writes each part whole, then renames it to
+    /// `.upload_id-<id>.part-<n>` in its data folder): their file names,
+    /// sorted. Empty on an existing server, which this cannot see.
+    pub fn multipart_parts(&self) -> Vec<String> {
+        let Some(root) = self.root() else { return Vec::new() };
+        let mut parts: Vec<String> = std::fs::read_dir(root.join("data"))
+            .map(|d| d.filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+            .unwrap_or_default();
+        parts.retain(|n| n.starts_with(".upload_id-") && n.contains(".part-"));
+        parts.sort();
+        parts
+    }
+
+    /// The files under the test's prefix as a server of our own keeps them
+    /// (readable while the server is paused), relative to the prefix.
+    pub fn files_on_disk(&self) -> Vec<String> {
+        fn walk(root: &Path, dir: &Path, out: &mut Vec<String>) {
+            for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    walk(root, &p, out);
+                } else {
+                    out.push(p.strip_prefix(root).unwrap().to_string_lossy().into_owned());
+                }
+            }
+        }
+        let Some(root) = self.root() else { return Vec::new() };
+        let prefix = root.join("data").join(&self.bucket).join(&self.prefix);
+        let mut files = Vec::new();
+        walk(&prefix, &prefix, &mut files);
+        files.sort();
+        files
+    }
+
+    /// SIGSTOP to a server of our own: requests in flight and new ones
+    /// wait until [`S3::resume`]. Panics on an existing server.
+    pub fn pause(&self) {
+        self.signal(libc::SIGSTOP);
+    }
+
+    /// SIGCONT after [`S3::pause`].
+    pub fn resume(&self) {
+        self.signal(libc::SIGCONT);
+    }
+
+    fn signal(&self, signal: libc::c_int) {
+        let server = self.server.as_ref().expect("only a server of our own can be paused");
+        // SAFETY: a plain kill(2) of our own child, which has not been waited for.
+        let rc = unsafe { libc::kill(server.child.id() as libc::pid_t, signal) };
+        assert_eq!(rc, 0, "kill({signal}) of s3s-fs: {}", std::io::Error::last_os_error());
+    }
+
     /// The object store of the test's prefix.
     pub fn store(&self) -> Arc<dyn ObjectStore> {
         open_url(&self.url(), &self.options()).unwrap_or_else(|e| panic!("cannot open {}: {e}", self.url()))

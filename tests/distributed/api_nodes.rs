@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 
-use crate::cluster::{Cluster, serial};
+use crate::cluster::{Backend, Cluster, serial};
 use crate::common::Svc;
 
 /// The events of a job's stream, read to its end (bounded).
@@ -29,9 +29,21 @@ async fn events(svc: &Svc, id: &str) -> Vec<(String, Value)> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores() {
+    api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores_on(Backend::File).await;
+}
+
+/// The same over a real S3 server: checkpoints, scenes and videos go
+/// through S3 (one PUT or a multipart upload by size, listings, reads).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores_on_s3() {
+    api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores_on(Backend::S3).await;
+}
+
+/// What the API nodes serve, with the objects kept by `backend`.
+async fn api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores_on(backend: Backend) {
     let _serial = serial().await;
     let t0 = Instant::now();
-    let cluster = Cluster::start().await;
+    let cluster = Cluster::start_on(backend).await;
     let (a, b) = (cluster.node("api", "api-a", &[]), cluster.node("api", "api-b", &[]));
     let worker = cluster.node("worker", "worker-1", &[]);
     let (svc_a, svc_b) = (Svc::remote(a.base.clone()), Svc::remote(b.base.clone()));

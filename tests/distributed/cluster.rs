@@ -1,8 +1,9 @@
 //! A distributed deployment for a test: a throwaway PostgreSQL
-//! (`common::pg`), an object store shared by the nodes (a `file://` folder
-//! in a tempdir, or the store `RADIANCE_TEST_OBJECT_STORE` names, e.g. an
-//! S3 server's `s3://bucket/prefix` with its `AWS_*` variables set), and
-//! `radiance serve` nodes as child processes of the built binary.
+//! (`common::pg`), an object store shared by the nodes ([`Backend`]: a
+//! `file://` folder in a tempdir, or a real S3 server of the test's own
+//! from `common::s3`, whose `AWS_*` settings every node gets; or the store
+//! `RADIANCE_TEST_OBJECT_STORE` names in place of the `file://` folder),
+//! and `radiance serve` nodes as child processes of the built binary.
 //!
 //! Each node has its own data directory (scratch and cache) and writes its
 //! log to `node.log` there; a test that fails prints the logs' tails.
@@ -15,6 +16,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use crate::common::pg::Pg;
+use crate::common::s3::S3;
 
 /// The lease the tests' workers take: short, so a dead worker's job moves
 /// on quickly.
@@ -31,6 +33,16 @@ pub async fn serial() -> tokio::sync::MutexGuard<'static, ()> {
     SERIAL.lock().await
 }
 
+/// Where a cluster keeps its objects.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// A `file://` folder in a tempdir (or `RADIANCE_TEST_OBJECT_STORE`).
+    File,
+    /// A real S3 server started for the test (`common::s3`; it fails, not
+    /// skips, without `s3s-fs`).
+    S3,
+}
+
 /// The shared stores.
 pub struct Cluster {
     /// `None` once [`Cluster::stop_database`] stopped it.
@@ -39,6 +51,11 @@ pub struct Cluster {
     pub object_store: String,
     /// The `file://` store's folder, when the tests made one.
     _store_dir: Option<tempfile::TempDir>,
+    /// The S3 server of a [`Backend::S3`] cluster.
+    pub s3: Option<S3>,
+    /// What every node's environment gets on top of the test's (the S3
+    /// server's `AWS_*` settings).
+    env: Vec<(&'static str, String)>,
 }
 
 /// A `radiance serve` process.
@@ -51,24 +68,41 @@ pub struct Node {
 }
 
 impl Cluster {
+    /// A cluster over a `file://` store (or `RADIANCE_TEST_OBJECT_STORE`).
     pub async fn start() -> Cluster {
+        Cluster::start_on(Backend::File).await
+    }
+
+    /// A cluster whose objects are kept by `backend`.
+    pub async fn start_on(backend: Backend) -> Cluster {
         let pg = Pg::start().await;
         let database_url = pg.database().await;
-        let (object_store, store_dir) = match std::env::var("RADIANCE_TEST_OBJECT_STORE") {
-            Ok(url) => (url, None),
-            Err(_) => {
+        let (object_store, store_dir, s3) = match (backend, std::env::var("RADIANCE_TEST_OBJECT_STORE")) {
+            (Backend::S3, _) => {
+                let s3 = S3::start().await;
+                (s3.url(), None, Some(s3))
+            }
+            (Backend::File, Ok(url)) => (url, None, None),
+            (Backend::File, Err(_)) => {
                 let dir = tempfile::Builder::new().prefix("radiance-store-").tempdir().unwrap();
-                (format!("file://{}", dir.path().display()), Some(dir))
+                (format!("file://{}", dir.path().display()), Some(dir), None)
             }
         };
-        Cluster { pg: Some(pg), database_url, object_store, _store_dir: store_dir }
+        let env = s3.as_ref().map(S3::env).unwrap_or_default();
+        Cluster { pg: Some(pg), database_url, object_store, _store_dir: store_dir, s3, env }
     }
 
     /// Starts a node with `role` (`api`, `worker`, `all`) named `name`,
     /// with `extra` arguments; returns once it listens.
     pub fn node(&self, role: &str, name: &str, extra: &[&str]) -> Node {
         let dir = tempfile::Builder::new().prefix(&format!("radiance-{name}-")).tempdir().unwrap();
-        let log = std::fs::File::create(dir.path().join("node.log")).unwrap();
+        self.node_in(role, name, extra, dir)
+    }
+
+    /// [`Cluster::node`] on an existing data directory (e.g. a killed
+    /// node's, from [`Node::into_dir`]); its log is appended to.
+    pub fn node_in(&self, role: &str, name: &str, extra: &[&str], dir: tempfile::TempDir) -> Node {
+        let log = std::fs::OpenOptions::new().create(true).append(true).open(dir.path().join("node.log")).unwrap();
         let lease = LEASE_SECONDS.to_string();
         let mut child = Command::new(env!("CARGO_BIN_EXE_radiance"))
             .args(["serve", "--addr", "127.0.0.1:0", "--threads", "1", "--role", role, "--node-id", name])
@@ -81,6 +115,7 @@ impl Cluster {
             .arg(dir.path())
             .args(extra)
             .env_remove("RADIANCE_API_KEY")
+            .envs(self.env.iter().map(|(k, v)| (*k, v.as_str())))
             .env("RUST_LOG", "info,tower_http=warn")
             .env("NO_COLOR", "1")
             .stdout(Stdio::piped())
@@ -136,6 +171,14 @@ impl Node {
     pub fn kill9(&mut self) {
         self.child.kill().unwrap();
         self.child.wait().unwrap();
+    }
+
+    /// Kills the node (SIGKILL) and hands back its data directory, for a
+    /// node started on it again ([`Cluster::node_in`]).
+    pub fn into_dir(mut self) -> tempfile::TempDir {
+        self.kill9();
+        let placeholder = tempfile::Builder::new().prefix("radiance-gone-").tempdir().unwrap();
+        std::mem::replace(&mut self.dir, placeholder)
     }
 
     /// SIGTERM, then waits up to `within` for the process to exit; its

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use serde_json::json;
 
-use crate::cluster::{Cluster, LEASE_SECONDS, serial};
+use crate::cluster::{Backend, Cluster, LEASE_SECONDS, serial};
 use crate::common::Svc;
 
 /// Steps of each job: long enough that the first is still training when
@@ -46,9 +46,21 @@ async fn runs(sql: &tokio_postgres::Client) -> HashMap<String, Vec<RunRow>> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_workers_job_resumes_on_the_other_from_its_checkpoint() {
+    a_killed_workers_job_resumes_on_the_other_from_its_checkpoint_on(Backend::File).await;
+}
+
+/// The same over a real S3 server: checkpoints, scenes and videos go
+/// through S3 (one PUT or a multipart upload by size, listings, reads).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_workers_job_resumes_on_the_other_from_its_checkpoint_on_s3() {
+    a_killed_workers_job_resumes_on_the_other_from_its_checkpoint_on(Backend::S3).await;
+}
+
+/// The kill -9 of a worker mid-training, with the objects kept by `backend`.
+async fn a_killed_workers_job_resumes_on_the_other_from_its_checkpoint_on(backend: Backend) {
     let _serial = serial().await;
     let t0 = Instant::now();
-    let cluster = Cluster::start().await;
+    let cluster = Cluster::start_on(backend).await;
     let api = cluster.node("api", "api-1", &[]);
     let mut workers = [cluster.node("worker", "worker-1", &[]), cluster.node("worker", "worker-2", &[])];
     eprintln!("cluster up in {:.1} s", t0.elapsed().as_secs_f64());

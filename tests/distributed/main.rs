@@ -1,11 +1,12 @@
 //! Distributed mode end to end (issue 16, docs/design/scale-out.md): API
 //! nodes and workers as separate processes of the built binary over a
 //! real PostgreSQL (a throwaway cluster) and a shared object store (a
-//! `file://` folder, or `RADIANCE_TEST_OBJECT_STORE`), one cluster at a
-//! time (`cluster`): a worker killed mid-training (`failover`), what API
-//! nodes serve and a cancel reaching the worker (`api_nodes`), SIGTERM and
-//! a frozen worker's self-fence (`fencing`), readiness and start-up
-//! (`ready`).
+//! `file://` folder, `RADIANCE_TEST_OBJECT_STORE`, or a real S3 server of
+//! the test's own), one cluster at a time (`cluster`): a worker killed
+//! mid-training (`failover`, on `file://` and on S3), what API nodes serve
+//! and a cancel reaching the worker (`api_nodes`, on `file://` and on S3),
+//! SIGTERM and a frozen worker's self-fence (`fencing`), readiness and
+//! start-up (`ready`), an API node killed mid-upload to S3 (`upload`).
 
 #[path = "../common/mod.rs"]
 mod common;
@@ -15,3 +16,4 @@ mod cluster;
 mod failover;
 mod fencing;
 mod ready;
+mod upload;

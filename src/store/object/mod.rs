@@ -103,9 +103,18 @@ impl ObjectArtifacts {
     }
 
     /// `store`, with its local folders in `data_dir`; the cache's leftover
-    /// temporary files are removed and its entries indexed.
+    /// temporary files are removed and its entries indexed, and `tmp/` is
+    /// emptied: what is there is staged uploads of a node that died before
+    /// storing them (a kill -9 mid-upload), which nobody will finish.
     pub fn with_store(data_dir: &Path, store: Arc<dyn ObjectStore>, config: ObjectConfig) -> io::Result<Self> {
         let tmp = data_dir.join("tmp");
+        if tmp.exists() {
+            let leftovers = std::fs::read_dir(&tmp)?.count();
+            std::fs::remove_dir_all(&tmp)?;
+            if leftovers > 0 {
+                tracing::info!(entries = leftovers, "removed uploads staged by an interrupted run");
+            }
+        }
         std::fs::create_dir_all(&tmp)?;
         let cache = Cache::open(&data_dir.join("cache"), config.cache_max_bytes)?;
         let name = store.to_string();
