@@ -5,12 +5,14 @@
 //! time (`cluster`): a worker killed mid-training (`failover`), what API
 //! nodes serve and a cancel reaching the worker (`api_nodes`), SIGTERM and
 //! a frozen worker's self-fence (`fencing`), readiness and start-up
-//! (`ready`).
+//! (`ready`); and, run by hand, the measurements of the README's "Scaling
+//! out" (`bench`).
 
 #[path = "../common/mod.rs"]
 mod common;
 
 mod api_nodes;
+mod bench;
 mod cluster;
 mod failover;
 mod fencing;
