@@ -58,8 +58,7 @@ async fn tiny_jobs_per_second() {
         let cluster = Cluster::start().await;
         // The default refuses more than 100 queued jobs.
         let api = cluster.node("api", "api-1", &["--max-queued-jobs", "10000"]);
-        let nodes: Vec<Node> =
-            (1..=workers).map(|i| cluster.node("worker", &format!("worker-{i}"), &[])).collect();
+        let nodes: Vec<Node> = (1..=workers).map(|i| cluster.node("worker", &format!("worker-{i}"), &[])).collect();
         let svc = Svc::remote(api.base.clone());
         let scene = svc.upload_ball().await;
         let sql = cluster.sql().await;
@@ -158,7 +157,11 @@ struct Resume {
 /// by the reclaim), to `running` on the other worker (the second run's
 /// claim) and to its first progress past the checkpoint it resumed from
 /// (as clients see it: written by the heartbeats, at most a second apart).
-async fn one_kill(lease_seconds: u64) -> Resume {
+///
+/// The checkpoint is seen in the progress a heartbeat just wrote, so the
+/// kill waits `phase` more: the kills of a series fall at different points
+/// of the heartbeat (and reclaim) second, not all right after a renewal.
+async fn one_kill(lease_seconds: u64, phase: Duration) -> Resume {
     let cluster = Cluster::start().await;
     let api = cluster.node("api", "api-1", &[]);
     let mut workers = [
@@ -185,6 +188,7 @@ async fn one_kill(lease_seconds: u64) -> Resume {
         tokio::time::sleep(Duration::from_millis(25)).await;
     };
     let index = workers.iter().position(|w| w.name == owner).expect("the job's worker is one of ours");
+    tokio::time::sleep(phase).await;
     let killed_at = SystemTime::now();
     workers[index].kill9();
     let survivor = &workers[1 - index];
@@ -221,7 +225,10 @@ async fn one_kill(lease_seconds: u64) -> Resume {
 
     // The runs' times.
     let runs = sql
-        .query("SELECT attempt, worker_id, ended_at, claimed_at, outcome FROM job_runs WHERE job_id = $1 ORDER BY attempt", &[&id])
+        .query(
+            "SELECT attempt, worker_id, ended_at, claimed_at, outcome FROM job_runs WHERE job_id = $1 ORDER BY attempt",
+            &[&id],
+        )
         .await
         .unwrap();
     assert_eq!(runs.len(), 2);
@@ -248,7 +255,7 @@ const REPETITIONS: usize = 3;
 /// Min / median / max of `values`, in seconds.
 fn spread(mut values: Vec<f64>) -> String {
     values.sort_by(f64::total_cmp);
-    format!("{:.1} / {:.1} / {:.1} s", values[0], values[values.len() / 2], values[values.len() - 1])
+    format!("{:.2} / {:.2} / {:.2} s", values[0], values[values.len() / 2], values[values.len() - 1])
 }
 
 /// A worker's death to its job resuming elsewhere, with leases of 5 s and
@@ -260,8 +267,9 @@ async fn death_to_resume() {
     let mut table = Vec::new();
     for lease in [5, 10] {
         let mut kills = Vec::new();
-        for _ in 0..REPETITIONS {
-            kills.push(one_kill(lease).await);
+        for k in 0..REPETITIONS {
+            let phase = Duration::from_secs_f64(k as f64 / REPETITIONS as f64);
+            kills.push(one_kill(lease, phase).await);
         }
         table.push(format!(
             "| {lease} s | {REPETITIONS} | {} | {} | {} |",
@@ -272,8 +280,9 @@ async fn death_to_resume() {
     }
     println!(
         "Death to resume: one API node, two workers (`--threads 1`), a nerf-tiny job of {LONG_STEPS} steps \
-         with checkpoints every 0.2 s; its worker killed with SIGKILL once it has a checkpoint. Times after \
-         the kill, min / median / max; progress is what clients see (heartbeats write it, at most 1 s apart).\n"
+         with checkpoints every 0.2 s; its worker killed with SIGKILL once it has a checkpoint, the k-th kill \
+         k/{REPETITIONS} s after a heartbeat (k from 0). Times after the kill, min / median / max; progress \
+         is what clients see (heartbeats write it, at most 1 s apart).\n"
     );
     println!(
         "| lease | kills | → `queued` (reclaimed) | → `running` on the other worker | → first progress after \
