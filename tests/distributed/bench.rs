@@ -206,10 +206,11 @@ async fn one_kill(lease_seconds: u64, phase: Duration) -> Resume {
         let r = sql.query_one(state, &[&id]).await.unwrap();
         let (status, attempts, step): (String, i32, i64) = (r.get(0), r.get(3), r.get(4));
         let at = SystemTime::now();
-        if attempts == 2 && step != at_kill {
-            if let Some(from) = resumed_from(&survivor.log()).filter(|from| step as u64 > *from) {
-                break (from, Sample { at, step: step as u64 });
-            }
+        if attempts == 2
+            && step != at_kill
+            && let Some(from) = resumed_from(&survivor.log()).filter(|from| step as u64 > *from)
+        {
+            break (from, Sample { at, step: step as u64 });
         }
         assert!(status == "queued" || status == "running", "the job ended before it moved again: {status}");
         let waited = Instant::now() < deadline;
