@@ -95,15 +95,26 @@ impl Cluster {
     /// Starts a node with `role` (`api`, `worker`, `all`) named `name`,
     /// with `extra` arguments; returns once it listens.
     pub fn node(&self, role: &str, name: &str, extra: &[&str]) -> Node {
+        self.node_with_lease(role, name, LEASE_SECONDS, extra)
+    }
+
+    /// [`Cluster::node`] with a lease of `lease_seconds` instead of
+    /// [`LEASE_SECONDS`] (the measurements compare leases).
+    pub fn node_with_lease(&self, role: &str, name: &str, lease_seconds: u64, extra: &[&str]) -> Node {
         let dir = tempfile::Builder::new().prefix(&format!("radiance-{name}-")).tempdir().unwrap();
-        self.node_in(role, name, extra, dir)
+        self.start_node(role, name, lease_seconds, extra, dir)
     }
 
     /// [`Cluster::node`] on an existing data directory (e.g. a killed
     /// node's, from [`Node::into_dir`]); its log is appended to.
     pub fn node_in(&self, role: &str, name: &str, extra: &[&str], dir: tempfile::TempDir) -> Node {
+        self.start_node(role, name, LEASE_SECONDS, extra, dir)
+    }
+
+    /// Starts a node in `dir` with a lease of `lease_seconds`.
+    fn start_node(&self, role: &str, name: &str, lease_seconds: u64, extra: &[&str], dir: tempfile::TempDir) -> Node {
         let log = std::fs::OpenOptions::new().create(true).append(true).open(dir.path().join("node.log")).unwrap();
-        let lease = LEASE_SECONDS.to_string();
+        let lease = lease_seconds.to_string();
         let mut child = Command::new(env!("CARGO_BIN_EXE_radiance"))
             .args(["serve", "--addr", "127.0.0.1:0", "--threads", "1", "--role", role, "--node-id", name])
             .args(["--lease-seconds", &lease, "--checkpoint-every", "0.2", "--startup-wait-seconds", "20"])

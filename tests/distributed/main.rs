@@ -6,12 +6,14 @@
 //! mid-training (`failover`, on `file://` and on S3), what API nodes serve
 //! and a cancel reaching the worker (`api_nodes`, on `file://` and on S3),
 //! SIGTERM and a frozen worker's self-fence (`fencing`), readiness and
-//! start-up (`ready`), an API node killed mid-upload to S3 (`upload`).
+//! start-up (`ready`), an API node killed mid-upload to S3 (`upload`); and,
+//! run by hand, the measurements of the README's "Scaling out" (`bench`).
 
 #[path = "../common/mod.rs"]
 mod common;
 
 mod api_nodes;
+mod bench;
 mod cluster;
 mod failover;
 mod fencing;
