@@ -121,20 +121,27 @@ fn serve_refusal(args: &[&str], env: &[(&str, &str)]) -> String {
 }
 
 #[test]
-fn serve_refuses_the_distributed_roles_it_does_not_have_yet() {
-    // An API node without a database: refused, saying what it needs and
-    // that distributed mode is not built; by flag or by variable.
+fn serve_refuses_roles_without_the_stores_they_need() {
+    // An API node or a worker without the shared stores: refused, saying
+    // what it needs; by flag or by variable.
     for (args, env) in [(&["--role", "api"][..], &[][..]), (&[][..], &[("RADIANCE_ROLE", "worker")][..])] {
         let err = serve_refusal(args, env);
-        assert!(err.contains("needs the shared stores (--database-url and --object-store)"), "{err}");
-        assert!(err.contains("is not built yet") && err.contains("--role all"), "{err}");
+        assert!(
+            err.contains("needs the shared stores of distributed mode (--database-url and --object-store)"),
+            "{err}"
+        );
+        assert!(err.contains("--role all"), "{err}");
     }
-    // Both stores given: still not built, and the password is not echoed.
+    // One store without the other.
+    let err = serve_refusal(&["--role", "api", "--object-store", "s3://bucket/radiance"], &[]);
+    assert!(err.contains("--database-url and --object-store go together"), "{err}");
+    // Both, but no database answers: refused once the start-up wait is
+    // over, naming the server and not echoing the password.
     let err = serve_refusal(
-        &["--role", "api", "--object-store", "s3://bucket/radiance"],
-        &[("RADIANCE_DATABASE_URL", "postgres://radiance:s3cret@db.example/radiance")],
+        &["--role", "api", "--object-store", "s3://bucket/radiance", "--startup-wait-seconds", "1"],
+        &[("RADIANCE_DATABASE_URL", "postgres://radiance:s3cret@127.0.0.1:1/radiance")],
     );
-    assert!(err.contains("distributed mode") && err.contains("is not built yet"), "{err}");
+    assert!(err.contains("PostgreSQL (127.0.0.1:1") && err.contains("is not reachable"), "{err}");
     assert!(!err.contains("s3cret"), "{err}");
     // A role that does not exist is clap's error, listing the roles.
     let err = serve_refusal(&["--role", "leader"], &[]);
