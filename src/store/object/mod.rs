@@ -170,7 +170,12 @@ impl ObjectArtifacts {
     /// checkpoint replaced); a missing object is not an error.
     pub async fn delete_checkpoint(&self, model_id: &str, sha256: &str) -> io::Result<()> {
         check_id(model_id, "model")?;
-        match self.store.delete(&checkpoint_key(model_id, sha256)).await {
+        self.delete_if_present(&checkpoint_key(model_id, sha256)).await
+    }
+
+    /// Deletes object `key`; one already gone is no error.
+    async fn delete_if_present(&self, key: &Key) -> io::Result<()> {
+        match self.store.delete(key).await {
             Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
             Err(e) => Err(io_error(e)),
         }
@@ -370,14 +375,14 @@ impl ArtifactStore for ObjectArtifacts {
     fn remove<'a>(&'a self, what: Artifact<'a>) -> Fut<'a, io::Result<()>> {
         Box::pin(async move {
             let (id, kind, prefix) = match what {
-                Artifact::Scene(id) => (id, "scene", Some(format!("scenes/{id}/"))),
-                Artifact::Model(id) => (id, "model", Some(format!("models/{id}/"))),
+                Artifact::Scene(id) => (id, "scene", Some(format!("scenes/{id}"))),
+                Artifact::Model(id) => (id, "model", Some(format!("models/{id}"))),
                 Artifact::Video(id) => (id, "video", None),
             };
             check_id(id, kind)?;
             let keys: Vec<Key> = match prefix {
                 Some(p) => {
-                    let prefix = Key::from(p.trim_end_matches('/'));
+                    let prefix = Key::from(p);
                     let mut listing = self.store.list(Some(&prefix));
                     let mut keys = Vec::new();
                     while let Some(meta) = listing.next().await {
@@ -388,10 +393,7 @@ impl ArtifactStore for ObjectArtifacts {
                 None => vec![Key::from(format!("videos/{id}.bin"))],
             };
             for key in keys {
-                match self.store.delete(&key).await {
-                    Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
-                    Err(e) => return Err(io_error(e)),
-                }
+                self.delete_if_present(&key).await?;
             }
             tracing::info!(what = ?what, "object store: removed the bytes of a deleted record");
             Ok(())

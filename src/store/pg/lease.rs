@@ -123,6 +123,21 @@ pub struct Reclaimed {
     pub attempt: u32,
 }
 
+/// The spec of the job `lease` holds, its row locked until the end of
+/// `tx`: the fence every publish goes through. [`PgError::LeaseLost`] when
+/// the token no longer holds a running job.
+pub(super) async fn fenced_spec(tx: &tokio_postgres::Transaction<'_>, lease: &Lease) -> Result<JobSpec, PgError> {
+    let row = tx
+        .query_opt(
+            "SELECT spec FROM jobs WHERE id = $1 AND lease_token = $2 AND status = 'running' FOR UPDATE",
+            &[&lease.job_id, &lease.token],
+        )
+        .await?;
+    let Some(row) = row else { return Err(PgError::LeaseLost(lease.job_id.clone())) };
+    let Json(spec) = row.try_get::<_, Json<JobSpec>>(0)?;
+    Ok(spec)
+}
+
 /// Expired leases taken back per [`PgQueue::reclaim`] call.
 pub const RECLAIM_BATCH: i64 = 16;
 
@@ -353,14 +368,7 @@ impl PgQueue {
         let record = serde_json::to_value(info).map_err(|e| PgError::Invalid(format!("model record: {e}")))?;
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
-        let fenced = tx
-            .query_opt(
-                "SELECT spec FROM jobs WHERE id = $1 AND lease_token = $2 AND status = 'running' FOR UPDATE",
-                &[&lease.job_id, &lease.token],
-            )
-            .await?;
-        let Some(fenced) = fenced else { return Err(PgError::LeaseLost(lease.job_id.clone())) };
-        let Json(spec) = fenced.try_get::<_, Json<JobSpec>>(0)?;
+        let spec = fenced_spec(&tx, lease).await?;
         if !matches!(spec, JobSpec::Train(_)) || info.job_id != lease.job_id {
             return Err(PgError::Invalid(format!("job '{}' does not train model '{}'", lease.job_id, info.id)));
         }

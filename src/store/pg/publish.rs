@@ -7,12 +7,11 @@
 //! (`lease::publish_model`): a worker that lost its job writes nothing.
 
 use super::error::PgError;
-use super::lease::Lease;
+use super::lease::{Lease, fenced_spec};
 use super::queue::PgQueue;
 use super::rows::bigint;
 use crate::jobs::JobSpec;
 use crate::storage::VideoInfo;
-use tokio_postgres::types::Json;
 
 impl PgQueue {
     /// The sha256 of model `id`'s published checkpoint (the object
@@ -31,14 +30,7 @@ impl PgQueue {
         let record = serde_json::to_value(info).map_err(|e| PgError::Invalid(format!("video record: {e}")))?;
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
-        let fenced = tx
-            .query_opt(
-                "SELECT spec FROM jobs WHERE id = $1 AND lease_token = $2 AND status = 'running' FOR UPDATE",
-                &[&lease.job_id, &lease.token],
-            )
-            .await?;
-        let Some(fenced) = fenced else { return Err(PgError::LeaseLost(lease.job_id.clone())) };
-        let Json(spec) = fenced.try_get::<_, Json<JobSpec>>(0)?;
+        let spec = fenced_spec(&tx, lease).await?;
         if !matches!(spec, JobSpec::Video(_)) || info.job_id != lease.job_id {
             return Err(PgError::Invalid(format!("job '{}' does not make video '{}'", lease.job_id, info.id)));
         }
