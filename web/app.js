@@ -366,10 +366,19 @@ async function refreshPreview(force) {
     const blob = await (await api(`/v1/models/${id}/render?width=240&height=240`)).blob();
     const img = $('preview');
     const old = img.src;
-    img.src = URL.createObjectURL(blob);
+    const url = URL.createObjectURL(blob);
+    img.src = url;
     img.alt = `Preview of model ${id} from 30 degrees azimuth, 25 degrees up, as trained so far`;
-    img.dataset.count = String(Number(img.dataset.count || 0) + 1);
     if (old) URL.revokeObjectURL(old);
+    // Counted once it is decoded and shown, not when its request starts; a
+    // newer preview that replaced it before then counts instead.
+    try {
+      await img.decode();
+    } catch (e) {
+      if (img.src === url) throw e;
+      return;
+    }
+    if (img.src === url) img.dataset.count = String(Number(img.dataset.count || 0) + 1);
   } catch (e) {
     if (!(e instanceof ApiError && e.status === 404)) fail(e);
   } finally {

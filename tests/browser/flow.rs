@@ -74,13 +74,14 @@ fn upload_train_view_and_make_videos_in_the_browser() {
     }
     assert!(steps.len() >= 3 && steps.windows(2).all(|w| w[0] < w[1]), "steps seen: {steps:?}");
     page.wait_for("+document.getElementById('psnr-chart').dataset.points >= 2", 10.0);
+    // The preview shown is the 240x240 render the page asked for (the last
+    // one, once training has ended, may still be replacing an earlier one).
     page.wait_for(
-        "+document.getElementById('preview').dataset.count >= 1 && document.getElementById('preview').complete",
+        "(() => { const i = document.getElementById('preview'); return +i.dataset.count >= 1 && i.complete && i.naturalWidth === 240 && i.naturalHeight === 240; })()",
         20.0,
     );
     let line = text(&mut page, "#job-line");
     assert!(line.contains("held-out PSNR") && line.contains("ETA"), "{line}");
-    assert!(page.eval("document.getElementById('preview').naturalWidth") == 240);
     screenshot(&mut page, "training", false);
 
     // The viewer: a full image, then a drag changes it, first at reduced
