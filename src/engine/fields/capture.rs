@@ -19,7 +19,7 @@
 use super::space::SpaceMap;
 use super::{Field, Points};
 use crate::engine::nn::appearance::{Appearance, AppearanceBatch};
-use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
+use crate::engine::nn::hashgrid::{HalfTable, HashGrid, HashGridConfig};
 use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
 use crate::engine::nn::sh;
 use crate::engine::rng::Rng;
@@ -98,6 +98,10 @@ pub struct Ctx {
     /// The colour layer's bias for samples without an image (`[hidden]`;
     /// empty: none).
     view_bias: Vec<f32>,
+    /// The grid's table in half precision, read instead of the parameters'
+    /// while rendering ([`CaptureField::set_render_table`]); never set for
+    /// a pass that is differentiated.
+    half: Option<std::sync::Arc<HalfTable>>,
     // backward scratch
     draw: Vec<f32>,
     d_a: Vec<f32>,
@@ -168,6 +172,20 @@ impl CaptureField {
         }
     }
 
+    /// The main grid's table of `params` in half precision, for rendering
+    /// ([`HashGrid::half_table`]; `None` where the CPU cannot use one).
+    pub fn half_table(&self, params: &[f32]) -> Option<HalfTable> {
+        self.grid.half_table(params)
+    }
+
+    /// Makes the density passes of `ctx` read the grid from `table` (a
+    /// [`Self::half_table`] of the parameters they are given) instead of
+    /// the parameters, or from the parameters again (`None`). For rendering
+    /// only: the backward pass needs the f32 table's encoding.
+    pub fn set_render_table(&self, table: Option<std::sync::Arc<HalfTable>>, ctx: &mut Ctx) {
+        ctx.half = table;
+    }
+
     /// Densities (and geometry features) of the first `ctx.n` unit-cube
     /// points in `ctx.unit`.
     fn forward_density(&self, p: &[f32], ctx: &mut Ctx) {
@@ -180,7 +198,10 @@ impl CaptureField {
         if n == 0 {
             return;
         }
-        self.grid.forward(p, &ctx.unit[..n * 3], &mut ctx.enc);
+        match &ctx.half {
+            Some(table) => self.grid.forward_half(table, &ctx.unit[..n * 3], &mut ctx.enc),
+            None => self.grid.forward(p, &ctx.unit[..n * 3], &mut ctx.enc),
+        }
         self.d1.forward(p, &[(&ctx.enc, gw)], n, &mut ctx.h1);
         relu(&mut ctx.h1[..n * h]);
         self.d2.forward(p, &[(&ctx.h1, h)], n, &mut ctx.geo);
@@ -341,6 +362,7 @@ impl CaptureField {
         grads: &mut [f32],
         dirs: Option<&[f32]>,
     ) {
+        debug_assert!(ctx.half.is_none(), "a backward pass over a half-precision render pass");
         let n = ctx.n;
         if dirs.is_some() {
             ctx.d_dirs.clear();

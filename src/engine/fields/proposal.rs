@@ -12,7 +12,7 @@
 
 use super::capture::{density_activation, to_grid};
 use super::space::SpaceMap;
-use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
+use crate::engine::nn::hashgrid::{HalfTable, HashGrid, HashGridConfig};
 use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward};
 use crate::engine::rng::Rng;
 
@@ -40,6 +40,9 @@ pub struct ProposalCtx {
     d_raw: Vec<f32>,
     d_h: Vec<f32>,
     d_enc: Vec<f32>,
+    /// The grid's table in half precision, read instead of the parameters'
+    /// while rendering ([`ProposalField::set_render_table`]).
+    half: Option<std::sync::Arc<HalfTable>>,
 }
 
 /// Makes `v` hold at least `n` values (buffers never shrink; readers take
@@ -74,6 +77,19 @@ impl ProposalField {
         self.l2.init(params, rng);
     }
 
+    /// The grid's table of `params` in half precision, for rendering
+    /// ([`HashGrid::half_table`]; `None` where the CPU cannot use one).
+    pub fn half_table(&self, params: &[f32]) -> Option<HalfTable> {
+        self.grid.half_table(params)
+    }
+
+    /// Makes the density passes of `ctx` read the grid from `table` (a
+    /// [`Self::half_table`] of the parameters they are given), or from the
+    /// parameters again (`None`). For rendering only.
+    pub fn set_render_table(&self, table: Option<std::sync::Arc<HalfTable>>, ctx: &mut ProposalCtx) {
+        ctx.half = table;
+    }
+
     /// Densities of the model-space points `pos` (`[n x 3]`); read them
     /// with [`ProposalField::sigma`].
     pub fn density(&self, params: &[f32], pos: &[f32], ctx: &mut ProposalCtx) {
@@ -88,7 +104,10 @@ impl ProposalField {
         if n == 0 {
             return;
         }
-        self.grid.forward(params, &ctx.unit[..3 * n], &mut ctx.enc);
+        match &ctx.half {
+            Some(table) => self.grid.forward_half(table, &ctx.unit[..3 * n], &mut ctx.enc),
+            None => self.grid.forward(params, &ctx.unit[..3 * n], &mut ctx.enc),
+        }
         self.l1.forward(params, &[(&ctx.enc, gw)], n, &mut ctx.h);
         relu(&mut ctx.h[..n * h]);
         self.l2.forward_dots(params, &ctx.h, n, &mut ctx.raw);
@@ -105,6 +124,7 @@ impl ProposalField {
     /// Accumulates into `grads` the gradient of a loss given dL/dσ (`[n]`)
     /// of the last [`ProposalField::density`] pass.
     pub fn backward(&self, params: &[f32], ctx: &mut ProposalCtx, dsigma: &[f32], grads: &mut [f32]) {
+        debug_assert!(ctx.half.is_none(), "a backward pass over a half-precision render pass");
         let n = ctx.n;
         if n == 0 {
             return;

@@ -28,6 +28,7 @@
 //!
 
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::{Arc, OnceLock};
 
 pub use super::capture_config::{CaptureConfig, ProposalConfig, Space};
 use super::capture_space::{check_resolved, resolve, space_map};
@@ -38,6 +39,7 @@ use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::geometry::so3;
 use crate::engine::nn::adam::LrGroup;
+use crate::engine::nn::hashgrid::HalfTable;
 use crate::engine::nn::linear::ParamLayout;
 use crate::engine::nn::pose::PoseRefine;
 use crate::engine::nn::pose_report::{Gauge, PoseReport};
@@ -171,6 +173,19 @@ pub struct CaptureModel {
     centres: Vec<AtomicU32>,
     /// Steps done (the annealing of the proposals' weights when rendering).
     step: u64,
+    /// The grids' tables in half precision, built by the first render after
+    /// the parameters last changed (`params_mut` drops them).
+    render_tables: OnceLock<RenderTables>,
+}
+
+/// The tables renders read the hash grids from: each `None` when
+/// `half_render` is off or the CPU cannot use half tables (the parameters
+/// are read then).
+#[derive(Default)]
+struct RenderTables {
+    main: Option<Arc<HalfTable>>,
+    /// One per proposal network.
+    proposals: Vec<Option<Arc<HalfTable>>>,
 }
 
 impl CaptureModel {
@@ -200,7 +215,19 @@ impl CaptureModel {
             None => Vec::new(),
         };
         let intervals = config.intervals();
-        Self { config, scene, field, proposals, params, intervals, seen, pose, centres, step: 0 }
+        Self {
+            config,
+            scene,
+            field,
+            proposals,
+            params,
+            intervals,
+            seen,
+            pose,
+            centres,
+            step: 0,
+            render_tables: OnceLock::new(),
+        }
     }
 
     /// A model with saved parameters (its state comes back through
@@ -210,6 +237,20 @@ impl CaptureModel {
         let m = Self::init(config, scene, 0);
         ModelError::check_size("parameters", m.params.len(), params.len())?;
         Ok(Self { params, ..m })
+    }
+
+    /// The tables renders read the grids from (see `render_tables`).
+    fn render_tables(&self) -> &RenderTables {
+        self.render_tables.get_or_init(|| {
+            if !self.config.half_render {
+                return RenderTables::default();
+            }
+            let half = |t: Option<HalfTable>| t.map(Arc::new);
+            RenderTables {
+                main: half(self.field.half_table(&self.params)),
+                proposals: self.proposals.iter().map(|p| half(p.half_table(&self.params))).collect(),
+            }
+        })
     }
 
     /// The networks, for passes over them.
@@ -320,7 +361,7 @@ impl CaptureModel {
 }
 
 impl Model for CaptureModel {
-    super::model_accessors!();
+    super::model_accessors!(params_mut: render_tables);
 
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
         for r in rays {
@@ -341,6 +382,8 @@ impl Model for CaptureModel {
         };
         let settings = self.pass_settings(ctx.batch_rays);
         with_scratch(|s| {
+            self.field.set_render_table(None, &mut s.pass.ctx);
+            s.pass.levels.set_render_tables(&self.proposals, &[]);
             for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
                 let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);
                 let p = capture_pass(self.nets(), &settings, chunk, &mut placement, &mut s.pass, grads);
@@ -441,10 +484,15 @@ impl Model for CaptureModel {
         };
         with_scratch(|s| {
             self.field.set_view_appearance(&self.params, embedding.as_deref(), &mut s.pass.ctx);
+            let tables = self.render_tables();
+            self.field.set_render_table(tables.main.clone(), &mut s.pass.ctx);
+            s.pass.levels.set_render_tables(&self.proposals, &tables.proposals);
             let mut stats = BatchStats::default();
             for (chunk, o) in rays.chunks(RENDER_CHUNK_RAYS).zip(out.chunks_mut(RENDER_CHUNK_RAYS)) {
                 stats.add(&self.render_chunk(s, chunk, background, o));
             }
+            self.field.set_render_table(None, &mut s.pass.ctx);
+            s.pass.levels.set_render_tables(&self.proposals, &[]);
             stats
         })
     }

@@ -107,6 +107,8 @@ fn the_whole_pass_of_capture_tiny_matches_finite_differences_with_frozen_samples
 #[test]
 fn rendering_composites_as_training_does() {
     let mut m = perturbed(7);
+    // Exactly: the half-precision tables are for speed (tested below).
+    m.config.half_render = false;
     m.config.min_transmittance = 0.0;
     m.config.max_dropped_weight = 0.0;
     m.seen[1].store(true, Ordering::Relaxed);
@@ -136,12 +138,50 @@ fn rendering_composites_as_training_does() {
     assert!(q.sq_err > 1e-6, "{q:?}");
 }
 
+/// Rendering from the half-precision tables (`half_render`, the default)
+/// gives the colours of the f32 tables to within their rounding, and the
+/// tables follow the parameters: after `params_mut`, a render reads the new
+/// values, not the tables of the old ones.
+#[test]
+fn half_precision_renders_follow_the_parameters() {
+    let mut m = perturbed(7);
+    m.seen[1].store(true, Ordering::Relaxed);
+    m.step = 40;
+    let plain: Vec<Ray> = rays(&m, 64).iter().map(|r| r.ray).collect();
+    let render = |m: &mut CaptureModel, half: bool| {
+        m.params_mut();
+        m.config.half_render = half;
+        let mut out = vec![RayOutput::default(); plain.len()];
+        m.render_rays(&plain, [1.0; 3], &mut out);
+        out.iter().flat_map(|o| o.rgb).collect::<Vec<f32>>()
+    };
+    let largest = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    let full = render(&mut m, false);
+    let half = render(&mut m, true);
+    if !crate::engine::nn::hashgrid::half_tables_supported() {
+        assert_eq!(full, half, "no half tables on this CPU: the same f32 render");
+        return;
+    }
+    assert!(m.render_tables().main.is_some() && m.render_tables().proposals.iter().all(Option::is_some));
+    let d = largest(&full, &half);
+    assert!(d > 0.0 && d < 5e-3, "half against f32: largest difference {d}");
+    // New parameters: the next render rebuilds the tables.
+    let mut rng = Rng::new(77);
+    m.params_mut().iter_mut().for_each(|p| *p += 0.2 * rng.normal());
+    let half2 = render(&mut m, true);
+    let full2 = render(&mut m, false);
+    assert!(largest(&full2, &half2) < 5e-3, "stale tables: {}", largest(&full2, &half2));
+    assert!(largest(&full, &full2) > 0.05, "the new parameters change the render");
+}
+
 /// A view rendered with an image's appearance ([`RenderOptions::image`])
 /// composites as training on that image does; the default options are the
 /// mean appearance, and another image's appearance is another colour.
 #[test]
 fn rendering_with_an_images_appearance_is_that_images_colour() {
     let mut m = perturbed(9);
+    // Exactly: the half-precision tables are for speed (tested below).
+    m.config.half_render = false;
     m.config.min_transmittance = 0.0;
     m.config.max_dropped_weight = 0.0;
     m.seen[1].store(true, Ordering::Relaxed);

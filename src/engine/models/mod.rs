@@ -19,6 +19,11 @@ pub mod nerf;
 /// `params` fields.
 macro_rules! model_accessors {
     () => {
+        super::model_accessors!(params_mut:);
+    };
+    // `params_mut: field, ...`: `params_mut` also resets these `OnceLock`
+    // caches of values derived from the parameters.
+    (params_mut: $($cache:ident),*) => {
         fn kind(&self) -> &'static str {
             KIND
         }
@@ -29,6 +34,7 @@ macro_rules! model_accessors {
             &self.params
         }
         fn params_mut(&mut self) -> &mut [f32] {
+            $(self.$cache = std::sync::OnceLock::new();)*
             &mut self.params
         }
         fn as_any(&self) -> &dyn std::any::Any {

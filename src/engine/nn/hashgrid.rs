@@ -48,6 +48,36 @@ pub struct HashGrid {
     pub params: std::ops::Range<usize>,
 }
 
+/// A grid's table in half precision, for rendering: each entry's two
+/// features as IEEE binary16 in one 32-bit word (feature 0 in the low half),
+/// so one 8-wide gather reads the entries of 8 points (the f32 table needs
+/// two 4-wide gathers of 8-byte pairs) from a table half the size. Built
+/// from the parameters by [`HashGrid::half_table`], it does not follow them:
+/// whoever holds one drops it when the parameters change. Values round to
+/// the nearest binary16 (a relative error below 2^-11), beyond +-65504 to
+/// +-65504.
+#[derive(Debug)]
+pub struct HalfTable {
+    words: Vec<u32>,
+}
+
+impl HalfTable {
+    /// Bytes the table takes.
+    pub fn bytes(&self) -> usize {
+        self.words.len() * 4
+    }
+}
+
+/// Whether this CPU has what [`HalfTable`]s need (AVX2, FMA and F16C).
+pub fn half_tables_supported() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        crate::engine::nn::gemm::has_avx2_fma() && is_x86_feature_detected!("f16c")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
 impl HashGrid {
     pub fn new(layout: &mut crate::engine::nn::linear::ParamLayout, config: HashGridConfig) -> Self {
         Self::with_name(layout, "hashgrid", config)
@@ -174,6 +204,58 @@ impl HashGrid {
             } else {
                 self.forward_level::<false>(l, level, params, pts, out);
             }
+        }
+    }
+
+    /// This grid's table of `params` in half precision, for
+    /// [`Self::forward_half`]; `None` on a CPU without AVX2, FMA and F16C
+    /// (use [`Self::forward`] there).
+    pub fn half_table(&self, params: &[f32]) -> Option<HalfTable> {
+        if !half_tables_supported() {
+            return None;
+        }
+        // Every level's table is whole entries (pairs) from the range's
+        // start, so entry `i` of a level at `offset` is word `offset / 2 + i`.
+        let table = &params[self.params.clone()];
+        let mut words = vec![0u32; table.len() / FEATURES];
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `half_tables_supported` checked F16C and AVX; `words` holds
+        // one word per pair of `table`.
+        unsafe {
+            simd::pack_half(table, &mut words);
+        }
+        Some(HalfTable { words })
+    }
+
+    /// [`Self::forward`] from a [`HalfTable`] of this grid (the table's
+    /// features in half precision, the interpolation in f32).
+    pub fn forward_half(&self, table: &HalfTable, pts: &[f32], out: &mut [f32]) {
+        let n = pts.len() / 3;
+        let out = &mut out[..n * self.width()];
+        assert_eq!(table.words.len() * FEATURES, self.params.len(), "hash grid: a half table of another grid");
+        #[cfg(target_arch = "x86_64")]
+        {
+            // Padded to whole groups of 8 (the padding's rows are not written).
+            let mut padded: Vec<f32> = pts.iter().map(|&v| sanitize(v)).collect();
+            padded.resize(3 * n.div_ceil(8) * 8, 0.0);
+            let soa = simd::Soa::new(&padded);
+            for (l, level) in self.levels.iter().enumerate() {
+                let start = level.offset / FEATURES;
+                // SAFETY: a `HalfTable` exists only where AVX2, FMA and F16C
+                // do; it has this grid's size (asserted); `out` has `n` rows.
+                unsafe {
+                    if level.dense {
+                        simd::forward_level_half::<true>(level, start, l, &table.words, &soa, n, out, self.width());
+                    } else {
+                        simd::forward_level_half::<false>(level, start, l, &table.words, &soa, n, out, self.width());
+                    }
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (table, pts, out);
+            unreachable!("half tables are built on x86_64 only");
         }
     }
 
@@ -547,6 +629,83 @@ mod simd {
                     *out.get_unchecked_mut(o) = tmp[2 * j];
                     *out.get_unchecked_mut(o + 1) = tmp[2 * j + 1];
                 }
+            }
+        }
+    }
+
+    /// [`forward_level`] from a half table (`words`, the level's entries
+    /// from `start`), for the first `n` points of `soa` (whose length is a
+    /// multiple of 8 at least `n`).
+    ///
+    /// # Safety
+    /// AVX2, FMA and F16C must be available, `words` must hold the level's
+    /// table at `start`, and `out` must have `n` rows.
+    #[target_feature(enable = "avx2,fma,f16c")]
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn forward_level_half<const DENSE: bool>(
+        level: &Level,
+        start: usize,
+        l: usize,
+        words: &[u32],
+        soa: &Soa,
+        n: usize,
+        out: &mut [f32],
+        width: usize,
+    ) {
+        assert!(soa.x.len() >= n && soa.x.len().is_multiple_of(8));
+        assert!(out.len() >= n * width && words.len() >= start + level.size);
+        // SAFETY (whole body): indices are below `level.size` (as in
+        // `forward_level`), so every gathered word lies in the level's
+        // table; only rows below `n` are written.
+        unsafe {
+            let base = words.as_ptr().add(start) as *const i32;
+            let low = _mm256_set1_epi32(0xffff);
+            let mut tmp = [0f32; 16];
+            for g in (0..soa.x.len()).step_by(8) {
+                let (idx, wt) = corners8::<DENSE>(level, soa, g);
+                let (mut f0, mut f1) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+                for c in 0..8 {
+                    let v = _mm256_i32gather_epi32::<4>(base, idx[c]);
+                    // Per 128-bit lane: four feature-0 halves, then four
+                    // feature-1 halves; the permute puts the 8 of each together.
+                    let halves = _mm256_packus_epi32(_mm256_and_si256(v, low), _mm256_srli_epi32::<16>(v));
+                    let halves = _mm256_permute4x64_epi64::<0b11_01_10_00>(halves);
+                    f0 = _mm256_fmadd_ps(wt[c], _mm256_cvtph_ps(_mm256_castsi256_si128(halves)), f0);
+                    f1 = _mm256_fmadd_ps(wt[c], _mm256_cvtph_ps(_mm256_extracti128_si256::<1>(halves)), f1);
+                }
+                _mm256_storeu_ps(tmp.as_mut_ptr(), f0);
+                _mm256_storeu_ps(tmp.as_mut_ptr().add(8), f1);
+                for j in 0..8.min(n.saturating_sub(g)) {
+                    let o = (g + j) * width + FEATURES * l;
+                    *out.get_unchecked_mut(o) = tmp[j];
+                    *out.get_unchecked_mut(o + 1) = tmp[8 + j];
+                }
+            }
+        }
+    }
+
+    /// Packs `table` (`[2 x words.len()]` f32) into binary16 pairs, rounded
+    /// to nearest even, clamped to +-65504 (NaN stays NaN).
+    ///
+    /// # Safety
+    /// AVX and F16C must be available.
+    #[target_feature(enable = "avx2,f16c")]
+    pub unsafe fn pack_half(table: &[f32], words: &mut [u32]) {
+        assert_eq!(table.len(), 2 * words.len());
+        let (lo, hi) = (_mm256_set1_ps(-65504.0), _mm256_set1_ps(65504.0));
+        let mut chunk = [0f32; 8];
+        for (t, w) in table.chunks(8).zip(words.chunks_mut(4)) {
+            chunk[..t.len()].copy_from_slice(t);
+            chunk[t.len()..].fill(0.0);
+            // SAFETY: `chunk` holds 8 floats; `packed` 4 words.
+            unsafe {
+                // min/max return their second operand for NaN: the clamp
+                // keeps NaN as it is.
+                let v = _mm256_max_ps(lo, _mm256_min_ps(hi, _mm256_loadu_ps(chunk.as_ptr())));
+                let h = _mm256_cvtps_ph::<_MM_FROUND_TO_NEAREST_INT>(v);
+                let mut packed = [0u32; 4];
+                _mm_storeu_si128(packed.as_mut_ptr().cast(), h);
+                w.copy_from_slice(&packed[..w.len()]);
             }
         }
     }

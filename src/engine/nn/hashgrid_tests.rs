@@ -312,3 +312,106 @@ fn clamped_coordinates_get_no_gradient() {
     assert_eq!(d[6], d[9], "as at the clamped point (1, 0)");
     assert!(d[6] != 0.0);
 }
+
+/// `v` rounded to the nearest IEEE binary16 value (ties to even), in f64,
+/// by its quantum: the reference for the half tables' rounding.
+fn round_half(v: f32) -> f64 {
+    let v = f64::from(v).clamp(-65504.0, 65504.0);
+    if v == 0.0 {
+        return 0.0;
+    }
+    // Normal binary16 values have 10 fraction bits; below 2^-14 the quantum
+    // stays 2^-24 (subnormals).
+    let e = v.abs().log2().floor().max(-14.0);
+    let q = (e - 10.0).exp2();
+    let r = v / q;
+    let rounded = if (r - r.trunc()).abs() == 0.5 { 2.0 * (r / 2.0).round() } else { r.round() };
+    rounded * q
+}
+
+/// The half table's encoding is the f32 encoding of the table rounded to
+/// binary16 (checked against the per-point formula in f64 over the rounded
+/// values, for dense and hashed levels, a grid at an odd offset, a count
+/// that is not a multiple of 8, NaN and out-of-range points, and values
+/// beyond binary16's range), and within the rounding of the f32 one.
+#[test]
+fn half_table_forward_is_the_forward_of_the_rounded_table() {
+    let (g, n) = small();
+    assert_eq!(g.params.start % 2, 1, "the test grid starts at an odd offset");
+    let mut rng = Rng::new(21);
+    let mut params: Vec<f32> = (0..n).map(|_| rng.normal() * 0.5).collect();
+    // Subnormal and huge values, and an exact tie.
+    params[g.params.start] = 3e-6;
+    params[g.params.start + 1] = 1e6;
+    params[g.params.start + 2] = -7e4;
+    params[g.params.start + 3] = 1.0 + 2f32.powi(-11);
+    let Some(table) = g.half_table(&params) else {
+        assert!(!half_tables_supported(), "no half table on a CPU that supports them");
+        eprintln!("this CPU has no AVX2/FMA/F16C: half tables are not built, nothing to compare");
+        return;
+    };
+    assert_eq!(table.bytes(), 4 * g.params.len() / 2);
+    let count = 45;
+    let mut pts: Vec<f32> = (0..count * 3).map(|_| rng.f32() * 1.2 - 0.1).collect();
+    pts[4] = f32::NAN;
+    pts[9] = 1.0;
+    // A point at the origin reads entry 0 of the dense level 0 (the
+    // special values) with weight 1.
+    pts[12..15].fill(0.0);
+    let mut half = vec![0.0f32; count * g.width()];
+    g.forward_half(&table, &pts, &mut half);
+    let mut full = vec![0.0f32; count * g.width()];
+    g.forward(&params, &pts, &mut full);
+    let max_abs = params[g.params.clone()].iter().map(|v| v.abs()).filter(|&v| v <= 65504.0).fold(0.0f32, f32::max);
+    let mut hit_special = false;
+    for (i, q) in pts.chunks(3).enumerate() {
+        for (l, level) in g.levels.iter().enumerate() {
+            let (idx, w) = g.corners(level, [q[0], q[1], q[2]]);
+            hit_special |= idx.contains(&g.params.start);
+            for k in 0..2 {
+                let want: f64 = (0..8).map(|c| f64::from(w[c]) * round_half(params[idx[c] + k])).sum();
+                let got = f64::from(half[i * g.width() + 2 * l + k]);
+                assert!((got - want).abs() < 1e-5 * (1.0 + want.abs()), "point {i} level {l}: {got} vs {want}");
+                // Unless a corner holds a value beyond the range, within
+                // half a quantum of the largest value of the f32 encoding.
+                if idx.iter().all(|&c| params[c + k].abs() <= 65504.0) {
+                    let f = full[i * g.width() + 2 * l + k];
+                    assert!(
+                        (got as f32 - f).abs() <= max_abs * 2f32.powi(-11) + 1e-6,
+                        "point {i} level {l}: {got} vs {f}"
+                    );
+                }
+            }
+        }
+    }
+    // The rounding reference itself: ties to even, subnormals, the clamp.
+    assert_eq!(round_half(1.0 + 2f32.powi(-11)), 1.0);
+    assert_eq!(round_half(1.0 + 3.0 * 2f32.powi(-11)), 1.0 + 2f64.powi(-9));
+    assert_eq!(round_half(3e-6), (3e-6f64 / 2f64.powi(-24)).round() * 2f64.powi(-24));
+    assert_eq!(round_half(1e6), 65504.0);
+    assert!(hit_special, "no point read the special values");
+}
+
+/// Forward passes with the table of other parameters are refused, and a
+/// table does not follow its parameters (its owner drops it).
+#[test]
+fn half_table_of_another_grid_is_refused() {
+    let (g, n) = small();
+    let params = vec![0.25f32; n];
+    let mut layout = ParamLayout::default();
+    let other = HashGrid::new(
+        &mut layout,
+        HashGridConfig { levels: 2, log2_table: 8, base_resolution: 2, finest_resolution: 4 },
+    );
+    let Some(table) = other.half_table(&vec![0.0; layout.len]) else {
+        assert!(!half_tables_supported());
+        return;
+    };
+    let pts = [0.5f32; 3];
+    let mut out = vec![0.0; g.width()];
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| g.forward_half(&table, &pts, &mut out)));
+    assert!(r.is_err(), "a table of another grid was accepted");
+    let mine = g.half_table(&params).unwrap();
+    g.forward_half(&mine, &pts, &mut out);
+    assert!(out.iter().all(|&v| v == 0.25), "{out:?}");
+}

@@ -16,6 +16,7 @@
 
 use crate::engine::fields::proposal::{ProposalCtx, ProposalField};
 use crate::engine::geometry::math::Ray;
+use crate::engine::nn::hashgrid::HalfTable;
 use crate::engine::render::InputError;
 use crate::engine::render::composite::{CompositeOptions, RaySamples, composite_with};
 use crate::engine::rng::Rng;
@@ -217,6 +218,18 @@ impl Levels {
             }
         }
         Ok(evaluated)
+    }
+
+    /// Makes the proposal networks' passes of later [`Levels::place`] calls
+    /// read their grids from `tables` (one per network, as
+    /// [`ProposalField::half_table`] gives them; `None`: the parameters).
+    /// Rendering sets them and clears them (`&[]`) when done; training
+    /// never has them.
+    pub fn set_render_tables(&mut self, proposals: &[ProposalField], tables: &[Option<std::sync::Arc<HalfTable>>]) {
+        self.ctxs.resize_with(proposals.len(), ProposalCtx::default);
+        for (k, (net, ctx)) in proposals.iter().zip(&mut self.ctxs).enumerate() {
+            net.set_render_table(tables.get(k).cloned().flatten(), ctx);
+        }
     }
 
     /// The final level (after [`Levels::place`]).
