@@ -253,6 +253,13 @@ impl CaptureModel {
         })
     }
 
+    /// Makes the passes of `s` read the grids from `tables` (from the
+    /// parameters: `&RenderTables::default()`, as training must).
+    fn read_grids_from(&self, s: &mut Scratch, tables: &RenderTables) {
+        self.field.set_render_table(tables.main.clone(), &mut s.pass.ctx);
+        s.pass.levels.set_render_tables(&self.proposals, &tables.proposals);
+    }
+
     /// The networks, for passes over them.
     fn nets(&self) -> CaptureNets<'_> {
         CaptureNets { proposals: &self.proposals, field: &self.field, params: &self.params }
@@ -382,8 +389,7 @@ impl Model for CaptureModel {
         };
         let settings = self.pass_settings(ctx.batch_rays);
         with_scratch(|s| {
-            self.field.set_render_table(None, &mut s.pass.ctx);
-            s.pass.levels.set_render_tables(&self.proposals, &[]);
+            self.read_grids_from(s, &RenderTables::default());
             for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
                 let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);
                 let p = capture_pass(self.nets(), &settings, chunk, &mut placement, &mut s.pass, grads);
@@ -484,15 +490,14 @@ impl Model for CaptureModel {
         };
         with_scratch(|s| {
             self.field.set_view_appearance(&self.params, embedding.as_deref(), &mut s.pass.ctx);
-            let tables = self.render_tables();
-            self.field.set_render_table(tables.main.clone(), &mut s.pass.ctx);
-            s.pass.levels.set_render_tables(&self.proposals, &tables.proposals);
+            self.read_grids_from(s, self.render_tables());
             let mut stats = BatchStats::default();
             for (chunk, o) in rays.chunks(RENDER_CHUNK_RAYS).zip(out.chunks_mut(RENDER_CHUNK_RAYS)) {
                 stats.add(&self.render_chunk(s, chunk, background, o));
             }
-            self.field.set_render_table(None, &mut s.pass.ctx);
-            s.pass.levels.set_render_tables(&self.proposals, &[]);
+            // The thread's scratch keeps no reference to tables that the
+            // next `params_mut` makes stale.
+            self.read_grids_from(s, &RenderTables::default());
             stats
         })
     }

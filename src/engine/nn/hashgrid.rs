@@ -61,13 +61,6 @@ pub struct HalfTable {
     words: Vec<u32>,
 }
 
-impl HalfTable {
-    /// Bytes the table takes.
-    pub fn bytes(&self) -> usize {
-        self.words.len() * 4
-    }
-}
-
 /// Whether this CPU has what [`HalfTable`]s need (AVX2, FMA and F16C).
 pub fn half_tables_supported() -> bool {
     #[cfg(target_arch = "x86_64")]
