@@ -134,7 +134,7 @@ fn bench_resolves_auto_and_counts_proposal_samples() {
 }
 
 /// When `auto` chooses a capture model (opaque photographs all around: `capture-360`), the table has
-/// the mean appearance's column in its header and in its rows alike.
+/// the mean and fitted appearances' columns in its header and in its rows alike.
 #[test]
 fn bench_auto_capture_rows_have_the_mean_column() {
     let dir = tempfile::tempdir().unwrap();
@@ -148,9 +148,10 @@ fn bench_auto_capture_rows_have_the_mean_column() {
     assert!(stderr.contains("model 'capture-360' (auto)"), "{stderr}");
     let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let lines: Vec<&str> = stdout.lines().collect();
-    assert!(lines[0].contains("PSNR dB  mean dB"), "{stdout}");
+    assert!(lines[0].contains("PSNR dB  mean dB   fit dB"), "{stdout}");
     let mean = report.rows[0].psnr_mean.expect("a capture row has the mean appearance's PSNR");
+    let fit = report.rows[0].psnr_fit.expect("a capture row has the fitted appearance's PSNR");
     let cells: Vec<&str> = lines[1].split_whitespace().collect();
-    // model, budget, train s, steps, rays, samples, smp/ray, prop/ray, skip/ray, PSNR, mean.
-    assert_eq!(cells[10], format!("{mean:.2}"), "{stdout}");
+    // model, budget, train s, steps, rays, samples, smp/ray, prop/ray, skip/ray, PSNR, mean, fit.
+    assert_eq!((cells[10], cells[11]), (&*format!("{mean:.2}"), &*format!("{fit:.2}")), "{stdout}");
 }

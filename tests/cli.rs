@@ -222,11 +222,9 @@ fn masks_on_the_command_line() {
     // eval: `auto` scores inside the masks too, `off` does not.
     let out = ok(&radiance(&["eval", "--model", m, "--data", d]));
     // (A capture model, auto's choice for these opaque photos, first says
-    // which appearance scores the views.)
-    assert!(
-        out.lines().filter(|l| !l.starts_with("appearance: ")).all(|l| l.contains(" | inside mask PSNR ")),
-        "{out}"
-    );
+    // which appearance scores the views, and how they are fitted.)
+    let heading = |l: &str| l.starts_with("appearance: ") || l.starts_with("fitted: ");
+    assert!(out.lines().filter(|l| !heading(l)).all(|l| l.contains(" | inside mask PSNR ")), "{out}");
     assert!(out.lines().last().unwrap().starts_with("2 views"), "{out}");
     let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--masks", "off"]));
     assert!(!out.contains("inside mask"), "{out}");
@@ -288,8 +286,13 @@ fn appearance_on_the_command_line() {
     assert!(out.starts_with("appearance: the nearest training camera's"), "{out}");
     let last = out.lines().last().unwrap();
     assert!(last.starts_with("2 views  PSNR ") && last.contains(" dB (mean "), "{last}");
-    // With the mean asked for, both numbers are the same.
-    let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "1", "--appearance", "mean"]));
+    // Each view is also scored on its right half with an appearance fitted on its left half.
+    assert!(out.lines().nth(1).unwrap().starts_with("fitted: an appearance fitted on each view's left half"), "{out}");
+    assert!(last.contains(") (fitted right half "), "{last}");
+    // With the mean asked for, both numbers are the same; `--fit-steps 0` fits nothing.
+    let out =
+        ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "1", "--appearance", "mean", "--fit-steps", "0"]));
+    assert!(!out.contains("fitted"), "{out}");
     let line = out.lines().nth(1).unwrap();
     let words: Vec<&str> = line.split_whitespace().collect();
     assert_eq!((words[4], words[5]), ("(mean", &*format!("{})", words[2])), "{line}");

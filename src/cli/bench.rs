@@ -11,7 +11,7 @@ use anyhow::Context;
 use clap::Args;
 use serde::{Deserialize, Serialize};
 
-use super::eval::{Scored, render_and_score};
+use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{AppearanceArgs, Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
@@ -59,6 +59,8 @@ pub struct BenchArgs {
     #[command(flatten)]
     pub appearance: AppearanceArgs,
     #[command(flatten)]
+    pub fit: FitArgs,
+    #[command(flatten)]
     pub common: Common,
 }
 
@@ -94,6 +96,11 @@ pub struct BenchRow {
     /// the same views with the mean appearance.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub psnr_mean: Option<f64>,
+    /// With `--fit-steps` above 0, for a model with per-image appearance:
+    /// the mean PSNR of the views' right halves with an appearance fitted
+    /// on their left halves (NeRF in the Wild's protocol).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_fit: Option<f64>,
     /// The same inside the views' masks, when masks are in effect (means
     /// over the views with pixels inside).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -141,11 +148,13 @@ const HEADER: &str = "model    budget s  train s    steps          rays        s
 const MASKED_TAIL: (&str, &str) =
     ("PSNR dB    SSIM  ms/view  peak MiB", "PSNR dB    SSIM  mask dB  mask SSIM  ms/view  peak MiB");
 
-/// The PSNR column, and with the mean appearance's beside it.
-const MEAN_COLUMN: (&str, &str) = ("PSNR dB ", "PSNR dB  mean dB ");
+/// The PSNR column, and with the mean appearance's and the fitted one's
+/// beside it.
+const MEAN_COLUMN: (&str, &str) = ("PSNR dB ", "PSNR dB  mean dB   fit dB ");
 
 /// The table's header, with the columns inside the masks when `masked`,
-/// and the mean appearance's PSNR when `mean` (a capture model is benched).
+/// and the mean and fitted appearances' PSNR when `mean` (a capture model
+/// is benched).
 fn header(masked: bool, mean: bool) -> String {
     let h = if masked { HEADER.replace(MASKED_TAIL.0, MASKED_TAIL.1) } else { HEADER.to_string() };
     if mean { h.replacen(MEAN_COLUMN.0, MEAN_COLUMN.1, 1) } else { h }
@@ -153,7 +162,10 @@ fn header(masked: bool, mean: bool) -> String {
 
 fn format_row(r: &BenchRow, masked: bool, mean: bool) -> String {
     let psnr_mean = match mean {
-        true => format!(" {:>8}", r.psnr_mean.map_or("-".into(), |p| format!("{p:.2}"))),
+        true => {
+            let col = |v: Option<f64>| format!(" {:>8}", v.map_or("-".into(), |p| format!("{p:.2}")));
+            col(r.psnr_mean) + &col(r.psnr_fit)
+        }
         false => String::new(),
     };
     let mem = r.peak_memory_mib.map_or("n/a".to_string(), |m| format!("{m:.0}"));
@@ -190,16 +202,18 @@ fn measure(
     ds: &Dataset,
     views: &[usize],
     kind: &str,
-    appearance: &AppearanceArgs,
+    args: &BenchArgs,
     budget: f64,
 ) -> anyhow::Result<BenchRow> {
+    let (appearance, fit_steps) = (&args.appearance, args.fit.fit_steps);
     let (mut sum_p, mut sum_s, mut secs) = (0.0, 0.0, 0.0);
-    let (mut mask_p, mut mask_s, mut mean_p) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut mask_p, mut mask_s, mut mean_p, mut fit_p) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut fit = appearance_fit(&*t.model, p.step, fit_steps)?;
     let (mut rays, mut samples, mut proposal) = (0u64, 0u64, 0u64);
     for &i in views {
         let f = &ds.frames[i];
-        let Scored { view: v, secs: s, scores: sc, psnr_mean } =
-            render_and_score(&*t.model, f, ds.background, appearance)?;
+        let Scored { view: v, secs: s, scores: sc, psnr_mean, psnr_fit } =
+            render_and_score(&*t.model, f, ds.background, appearance, fit.as_mut())?;
         secs += s;
         rays += v.stats.rays;
         samples += v.stats.samples;
@@ -209,6 +223,7 @@ fn measure(
         mask_p.extend(sc.psnr_mask);
         mask_s.extend(sc.ssim_mask);
         mean_p.extend(psnr_mean);
+        fit_p.extend(psnr_fit);
     }
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
     let n = views.len() as f64;
@@ -227,6 +242,7 @@ fn measure(
         psnr: sum_p / n,
         ssim: sum_s / n,
         psnr_mean: mean(&mean_p),
+        psnr_fit: mean(&fit_p),
         psnr_mask: mean(&mask_p),
         ssim_mask: mean(&mask_s),
         render_ms: secs / n * 1000.0,
@@ -354,7 +370,7 @@ impl Run<'_> {
             if next >= budgets.len() || p.elapsed < budgets[next] {
                 return true;
             }
-            let row = match measure(t, p, ds, self.views, kind, &a.appearance, budgets[next]) {
+            let row = match measure(t, p, ds, self.views, kind, a, budgets[next]) {
                 Ok(r) => r,
                 Err(e) => {
                     error = Some(e);
@@ -524,6 +540,7 @@ mod tests {
             psnr: 27.104,
             ssim: 0.8123,
             psnr_mean,
+            psnr_fit: psnr_mean.map(|p| p + 1.0),
             psnr_mask: Some(29.5),
             ssim_mask: Some(0.9),
             render_ms: 1130.0,
@@ -546,10 +563,12 @@ mod tests {
             let (h, r) = (header(masked, true), format_row(&row(Some(26.5)), masked, true));
             assert_eq!(end(&h, "PSNR dB") - end(&r, "27.10"), offset, "{h}\n{r}");
             assert_eq!(end(&h, "mean dB") - end(&r, "26.50"), offset, "{h}\n{r}");
+            assert_eq!(end(&h, "fit dB") - end(&r, "27.50"), offset, "{h}\n{r}");
             assert_eq!(end(&h, "SSIM") - end(&r, "0.8123"), end(&plain_h, "SSIM") - end(&plain_r, "0.8123"));
             assert_eq!(h.len() - r.len(), plain_h.len() - plain_r.len(), "{h}\n{r}");
             let r = format_row(&row(None), masked, true);
             assert_eq!(end(&h, "mean dB") - end(&r, "27.10") - 9, offset, "{h}\n{r}");
+            assert_eq!(end(&h, "fit dB") - end(&r, "27.10") - 18, offset, "{h}\n{r}");
         }
         assert_eq!(header(false, false), HEADER);
     }

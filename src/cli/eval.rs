@@ -1,5 +1,6 @@
 //! `radiance render` and `radiance eval`.
 
+use std::ops::Range;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -8,10 +9,12 @@ use clap::Args;
 
 use super::{AppearanceArgs, Common, DataArgs};
 use crate::engine::dataset::{Dataset, Frame, LoadOptions, masks};
+use crate::engine::geometry::camera::Camera;
 use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
 use crate::engine::models::{Model, RenderOptions};
 use crate::engine::render::{View, render_heldout_view};
+use crate::engine::train::appearance_fit::{AppearanceFit, FitSettings};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -47,7 +50,21 @@ pub struct EvalArgs {
     #[command(flatten)]
     pub appearance: AppearanceArgs,
     #[command(flatten)]
+    pub fit: FitArgs,
+    #[command(flatten)]
     pub common: Common,
+}
+
+/// How `eval` and `bench` also score a capture model's held-out views with
+/// fitted appearances.
+#[derive(Args, Debug, Clone, Copy)]
+pub struct FitArgs {
+    /// For a model with per-image appearance, also score each held-out view
+    /// as NeRF in the Wild does: an appearance optimised for this many
+    /// steps on the left half of the photo (the network frozen), the right
+    /// half scored ("fitted right half"). 0: don't.
+    #[arg(long, default_value_t = FitSettings::default().steps)]
+    pub fit_steps: usize,
 }
 
 /// Loads the model and the split's frames.
@@ -79,6 +96,35 @@ pub(super) struct Scored {
     /// For a model with per-image appearance, the PSNR with the mean
     /// appearance (rendered again unless the view already had it).
     pub psnr_mean: Option<f64>,
+    /// With a fit, the PSNR of the view's right half with an appearance
+    /// fitted on its left half ([`fitted_psnr`]).
+    pub psnr_fit: Option<f64>,
+}
+
+/// The PSNR of frame `f`'s right half (columns from `width / 2`) rendered
+/// with an appearance fitted on its left half (`train::appearance_fit`),
+/// starting from the appearance `options` gives.
+pub(super) fn fitted_psnr(
+    fit: &mut AppearanceFit,
+    model: &dyn Model,
+    f: &Frame,
+    background: [f32; 3],
+    options: &RenderOptions,
+) -> anyhow::Result<f64> {
+    let camera = Camera { c2w: model.heldout_pose(f.camera.c2w), ..f.camera.clone() };
+    let e = fit.fit(model, f, &camera, background, options)?;
+    let v = fit.render(&camera, background, &e);
+    let (ours, gt) = cropped(&v, f, background, f.camera.width / 2..f.camera.width)?;
+    Ok(psnr(&ours, &gt))
+}
+
+/// What `--fit-steps` asks for: a fit of `model`'s held-out appearances
+/// (`None` for 0 steps, or a model without per-image appearance).
+pub(super) fn appearance_fit(model: &dyn Model, step: u64, steps: usize) -> anyhow::Result<Option<AppearanceFit>> {
+    if steps == 0 {
+        return Ok(None);
+    }
+    Ok(AppearanceFit::new(model, step, FitSettings { steps, ..FitSettings::default() })?)
 }
 
 /// Renders frame `f` with the appearance `appearance` gives it and scores
@@ -90,6 +136,7 @@ pub(super) fn render_and_score(
     f: &Frame,
     background: [f32; 3],
     appearance: &AppearanceArgs,
+    fit: Option<&mut AppearanceFit>,
 ) -> anyhow::Result<Scored> {
     let options = appearance.options(model, &f.camera)?;
     let (view, secs) = render_one(model, f, background, &options);
@@ -102,7 +149,11 @@ pub(super) fn render_and_score(
             Some(score(&mean, f, background)?.psnr)
         }
     };
-    Ok(Scored { view, secs, scores, psnr_mean })
+    let psnr_fit = match fit {
+        Some(fit) => Some(fitted_psnr(fit, model, f, background, &options)?),
+        None => None,
+    };
+    Ok(Scored { view, secs, scores, psnr_mean, psnr_fit })
 }
 
 /// A rendered view's scores against its ground truth.
@@ -122,16 +173,40 @@ pub(super) struct Scores {
 /// mask when it has one. Scores the 8-bit image that `render` writes, so
 /// the numbers match an independent check of the PNG files.
 pub(super) fn score(v: &View, f: &Frame, background: [f32; 3]) -> anyhow::Result<Scores> {
-    let ours: Vec<f32> = png::quantise_rgb(&v.rgb).iter().map(|&b| b as f32 / 255.0).collect();
-    let gt: Vec<f32> = (0..f.camera.height)
-        .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
-        .flat_map(|(i, j)| f.image.rgb_on(i, j, background))
-        .collect();
+    score_columns(v, f, background, 0..f.camera.width)
+}
+
+/// The view (8-bit, as `render` writes it) and the photo composited on
+/// `background`, both cropped to columns `cols`: interleaved RGB in [0, 1].
+fn cropped(v: &View, f: &Frame, background: [f32; 3], cols: Range<u32>) -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
+    let (w, h) = (f.camera.width as usize, f.camera.height as usize);
+    anyhow::ensure!(
+        v.width as usize == w && v.height as usize == h && cols.start < cols.end && cols.end as usize <= w,
+        "scoring {}: a {}x{} view against a {w}x{h} photo, columns {cols:?}",
+        f.name,
+        v.width,
+        v.height
+    );
+    let q = png::quantise_rgb(&v.rgb);
+    let pixels = || (0..h).flat_map(|j| cols.clone().map(move |i| j * w + i as usize));
+    let ours = pixels().flat_map(|p| &q[3 * p..3 * p + 3]).map(|&b| b as f32 / 255.0).collect();
+    let gt = pixels().flat_map(|p| f.image.rgb_on((p % w) as u32, (p / w) as u32, background)).collect();
+    Ok((ours, gt))
+}
+
+/// [`score`] over the view's columns `cols` only (as if the view and the
+/// photo were cropped to them).
+pub(super) fn score_columns(v: &View, f: &Frame, background: [f32; 3], cols: Range<u32>) -> anyhow::Result<Scores> {
+    let (w, h) = (f.camera.width as usize, f.camera.height as usize);
+    let (ours, gt) = cropped(v, f, background, cols.clone())?;
+    let pixels = || (0..h).flat_map(|j| cols.clone().map(move |i| (i as usize, j)));
+    let width = (cols.end - cols.start) as usize;
     let context = || format!("SSIM of {}", f.name);
-    let map = ssim_map(&ours, &gt, v.width as usize, v.height as usize, 3).with_context(context)?;
+    let map = ssim_map(&ours, &gt, width, h, 3).with_context(context)?;
     let (psnr_mask, ssim_mask) = match &f.mask {
         Some(m) => {
-            let inside = masks::inside(m);
+            let cropped: Vec<u8> = pixels().map(|(i, j)| m[j * w + i]).collect();
+            let inside = masks::inside(&cropped);
             let p = psnr_inside(&ours, &gt, 3, &inside).with_context(|| format!("PSNR of {}", f.name))?;
             (p, map.mean_inside(&inside).with_context(context)?)
         }
@@ -150,6 +225,11 @@ fn mask_text(psnr: Option<f64>, ssim: Option<f64>) -> String {
 /// ` (mean 26.50)` after a PSNR, for a model with per-image appearance.
 fn mean_text(psnr_mean: Option<f64>) -> String {
     psnr_mean.map_or(String::new(), |p| format!(" (mean {p:.2})"))
+}
+
+/// ` (fitted right half 26.50)` after a PSNR, when views were fitted.
+fn fit_text(psnr_fit: Option<f64>) -> String {
+    psnr_fit.map_or(String::new(), |p| format!(" (fitted right half {p:.2})"))
 }
 
 /// The mean of the values that exist, and how many there were.
@@ -189,18 +269,25 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
         let chosen = a.appearance.appearance.map_or("the nearest training camera's".into(), |c| c.to_string());
         println!("appearance: {chosen}; the mean appearance's PSNR in brackets");
     }
+    let mut fit = appearance_fit(&*r.model, r.state.step, a.fit.fit_steps)?;
+    if fit.is_some() {
+        println!(
+            "fitted: an appearance fitted on each view's left half, {} steps; its right half's PSNR",
+            a.fit.fit_steps
+        );
+    }
     let (mut sum_p, mut sum_s, mut sum_t) = (0.0, 0.0, 0.0);
-    let (mut mask_p, mut mask_s, mut mean_p) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut mask_p, mut mask_s, mut mean_p, mut fit_p) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for &i in &idx {
         let f = &ds.frames[i];
-        let Scored { view: v, secs, scores: sc, psnr_mean } =
-            render_and_score(&*r.model, f, ds.background, &a.appearance)?;
+        let Scored { view: v, secs, scores: sc, psnr_mean, psnr_fit } =
+            render_and_score(&*r.model, f, ds.background, &a.appearance, fit.as_mut())?;
         if let Some(o) = &a.out {
             let path = o.join(format!("{}.png", f.name));
             png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
         }
         let mask = if f.mask.is_some() { mask_text(sc.psnr_mask, sc.ssim_mask) } else { String::new() };
-        let mean = mean_text(psnr_mean);
+        let mean = mean_text(psnr_mean) + &fit_text(psnr_fit);
         println!("{:<12} PSNR {:6.2} dB{mean}  SSIM {:.4}  {:.0} ms{mask}", f.name, sc.psnr, sc.ssim, secs * 1000.0);
         sum_p += sc.psnr;
         sum_s += sc.ssim;
@@ -208,6 +295,7 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
         mask_p.push(sc.psnr_mask);
         mask_s.push(sc.ssim_mask);
         mean_p.push(psnr_mean);
+        fit_p.push(psnr_fit);
     }
     let n = idx.len() as f64;
     let mut mask = String::new();
@@ -219,7 +307,7 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
             mask += &format!(" ({counted} views with pixels inside)");
         }
     }
-    let mean = mean_text(mean_of(&mean_p).map(|m| m.0));
+    let mean = mean_text(mean_of(&mean_p).map(|m| m.0)) + &fit_text(mean_of(&fit_p).map(|m| m.0));
     println!(
         "{} views  PSNR {:.2} dB{mean}  SSIM {:.4}  {:.0} ms/view{mask}",
         idx.len(),
@@ -291,12 +379,53 @@ mod tests {
         assert_eq!((p.psnr, p.ssim, p.psnr_mask, p.ssim_mask), (s.psnr, s.ssim, None, None));
     }
 
+    /// Scoring columns is scoring the view and the photo cropped to them:
+    /// the render's left 13 columns are the ground truth (only the right
+    /// half was changed), the whole range is `score`'s, and a range that
+    /// does not fit the view is refused.
+    #[test]
+    fn column_scores_are_those_of_the_cropped_view() {
+        let (f, v) = frame_and_view();
+        let whole = score(&v, &f, [1.0; 3]).unwrap();
+        assert_eq!(score_columns(&v, &f, [1.0; 3], 0..24).unwrap(), whole);
+        let left = score_columns(&v, &f, [1.0; 3], 0..13).unwrap();
+        assert!(left.psnr.is_infinite() && left.psnr_mask.unwrap().is_infinite(), "{left:?}");
+        assert!((left.ssim - 1.0).abs() < 1e-9, "{left:?}");
+        let right = score_columns(&v, &f, [1.0; 3], 12..24).unwrap();
+        // By hand over columns 12..24; the mask's inside there is columns 12 and 13.
+        let ours: Vec<f32> = png::quantise_rgb(&v.rgb).iter().map(|&b| b as f32 / 255.0).collect();
+        let (mut sum, mut n, mut sum_in, mut n_in) = (0.0f64, 0, 0.0f64, 0);
+        for j in 0..24u32 {
+            for i in 12..24u32 {
+                let gt = f.image.rgb_on(i, j, [1.0; 3]);
+                for c in 0..3 {
+                    let d = (ours[3 * (j * 24 + i) as usize + c] as f64 - gt[c] as f64).powi(2);
+                    sum += d;
+                    n += 1;
+                    if i < 14 {
+                        sum_in += d;
+                        n_in += 1;
+                    }
+                }
+            }
+        }
+        assert!((right.psnr - -10.0 * (sum / n as f64).log10()).abs() < 1e-9, "{right:?}");
+        assert!((right.psnr_mask.unwrap() - -10.0 * (sum_in / n_in as f64).log10()).abs() < 1e-9, "{right:?}");
+        assert!(right.psnr < whole.psnr, "{right:?} {whole:?}");
+        for bad in [0..25, 5..5, 30..40] {
+            let e = score_columns(&v, &f, [1.0; 3], bad.clone()).unwrap_err().to_string();
+            assert!(e.contains("columns"), "{bad:?}: {e}");
+        }
+    }
+
     #[test]
     fn mask_text_and_means() {
         assert_eq!(mask_text(Some(27.104), Some(0.90123)), " | inside mask PSNR  27.10 dB  SSIM 0.9012");
         assert_eq!(mask_text(None, None), " | inside mask PSNR     - dB  SSIM      -");
         assert_eq!(mean_text(Some(26.504)), " (mean 26.50)");
         assert_eq!(mean_text(None), "");
+        assert_eq!(fit_text(Some(22.254)), " (fitted right half 22.25)");
+        assert_eq!(fit_text(None), "");
         assert_eq!(mean_of(&[Some(1.0), None, Some(3.0)]), Some((2.0, 2)));
         assert_eq!(mean_of(&[None]), None);
     }

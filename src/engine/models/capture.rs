@@ -418,6 +418,12 @@ impl Model for CaptureModel {
         Some(self.seen_images())
     }
 
+    fn appearance_row(&self, image: u32) -> Option<std::ops::Range<usize>> {
+        let a = self.field.appearance();
+        let start = a.embedding(&self.params, image).map(|_| a.table.start + image as usize * a.dim)?;
+        Some(start..start + a.dim)
+    }
+
     fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
         let seen = self.seen.iter().map(|f| f32::from(u8::from(f.load(Ordering::Relaxed)))).collect();
         let mut state = vec![(SEEN.to_string(), seen)];

@@ -211,4 +211,10 @@ pub trait Model: Send + Sync {
     fn appearance_images(&self) -> Option<Vec<u32>> {
         None
     }
+    /// Where image `image`'s appearance embedding lies in the parameters;
+    /// `None` for a model without per-image appearance, or an image beyond
+    /// its table.
+    fn appearance_row(&self, _image: u32) -> Option<std::ops::Range<usize>> {
+        None
+    }
 }

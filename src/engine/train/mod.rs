@@ -4,6 +4,7 @@
 //! optimisation loop, the session that resumes, saves and reports around
 //! it, held-out estimates and the memory and disk estimate of a run.
 
+pub mod appearance_fit;
 pub mod capture_levels;
 pub mod capture_pass;
 pub mod estimate;
