@@ -282,8 +282,17 @@ fn appearance_on_the_command_line() {
     let trained = t.model.appearance_images().unwrap();
     assert!(!trained.is_empty());
 
-    let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "2"]));
+    let views = dir.path().join("views");
+    let out = ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "2", "--out", views.to_str().unwrap()]));
     assert!(out.starts_with("appearance: the nearest training camera's"), "{out}");
+    // --out holds each view and, beside it, the view with its fitted appearance.
+    let mut names: Vec<String> =
+        std::fs::read_dir(&views).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    assert_eq!(names.len(), 4, "{names:?}");
+    for pair in names.chunks(2) {
+        assert_eq!(pair[1], pair[0].replace(".png", "_fitted.png"), "{names:?}");
+    }
     let last = out.lines().last().unwrap();
     assert!(last.starts_with("2 views  PSNR ") && last.contains(" dB (mean "), "{last}");
     // Each view is also scored on its right half with an appearance fitted on its left half.

@@ -212,7 +212,7 @@ fn measure(
     let (mut rays, mut samples, mut proposal) = (0u64, 0u64, 0u64);
     for &i in views {
         let f = &ds.frames[i];
-        let Scored { view: v, secs: s, scores: sc, psnr_mean, psnr_fit } =
+        let Scored { view: v, secs: s, scores: sc, psnr_mean, psnr_fit, .. } =
             render_and_score(&*t.model, f, ds.background, appearance, fit.as_mut())?;
         secs += s;
         rays += v.stats.rays;

@@ -44,7 +44,8 @@ pub struct EvalArgs {
     pub model: PathBuf,
     #[command(flatten)]
     pub data: DataArgs,
-    /// Also write the rendered views here.
+    /// Also write the rendered views here (NAME.png; with a fitted
+    /// appearance also NAME_fitted.png, the whole view rendered with it).
     #[arg(long)]
     pub out: Option<PathBuf>,
     #[command(flatten)]
@@ -99,23 +100,25 @@ pub(super) struct Scored {
     /// With a fit, the PSNR of the view's right half with an appearance
     /// fitted on its left half ([`fitted_psnr`]).
     pub psnr_fit: Option<f64>,
+    /// With a fit, the whole view rendered with the fitted appearance.
+    pub fitted: Option<View>,
 }
 
 /// The PSNR of frame `f`'s right half (columns from `width / 2`) rendered
 /// with an appearance fitted on its left half (`train::appearance_fit`),
-/// starting from the appearance `options` gives.
+/// starting from the appearance `options` gives; and the whole view with it.
 pub(super) fn fitted_psnr(
     fit: &mut AppearanceFit,
     model: &dyn Model,
     f: &Frame,
     background: [f32; 3],
     options: &RenderOptions,
-) -> anyhow::Result<f64> {
+) -> anyhow::Result<(f64, View)> {
     let camera = Camera { c2w: model.heldout_pose(f.camera.c2w), ..f.camera.clone() };
     let e = fit.fit(model, f, &camera, background, options)?;
     let v = fit.render(&camera, background, &e);
     let (ours, gt) = cropped(&v, f, background, f.camera.width / 2..f.camera.width)?;
-    Ok(psnr(&ours, &gt))
+    Ok((psnr(&ours, &gt), v))
 }
 
 /// What `--fit-steps` asks for: a fit of `model`'s held-out appearances
@@ -149,11 +152,11 @@ pub(super) fn render_and_score(
             Some(score(&mean, f, background)?.psnr)
         }
     };
-    let psnr_fit = match fit {
-        Some(fit) => Some(fitted_psnr(fit, model, f, background, &options)?),
-        None => None,
+    let (psnr_fit, fitted) = match fit {
+        Some(fit) => fitted_psnr(fit, model, f, background, &options).map(|(p, v)| (Some(p), Some(v)))?,
+        None => (None, None),
     };
-    Ok(Scored { view, secs, scores, psnr_mean, psnr_fit })
+    Ok(Scored { view, secs, scores, psnr_mean, psnr_fit, fitted })
 }
 
 /// A rendered view's scores against its ground truth.
@@ -280,11 +283,15 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
     let (mut mask_p, mut mask_s, mut mean_p, mut fit_p) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for &i in &idx {
         let f = &ds.frames[i];
-        let Scored { view: v, secs, scores: sc, psnr_mean, psnr_fit } =
+        let Scored { view: v, secs, scores: sc, psnr_mean, psnr_fit, fitted } =
             render_and_score(&*r.model, f, ds.background, &a.appearance, fit.as_mut())?;
         if let Some(o) = &a.out {
-            let path = o.join(format!("{}.png", f.name));
-            png::write_rgb(&path, v.width, v.height, &v.rgb).with_context(|| format!("writing {}", path.display()))?;
+            for (v, suffix) in [(Some(&v), ""), (fitted.as_ref(), "_fitted")] {
+                let Some(v) = v else { continue };
+                let path = o.join(format!("{}{suffix}.png", f.name));
+                png::write_rgb(&path, v.width, v.height, &v.rgb)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
         }
         let mask = if f.mask.is_some() { mask_text(sc.psnr_mask, sc.ssim_mask) } else { String::new() };
         let mean = mean_text(psnr_mean) + &fit_text(psnr_fit);
