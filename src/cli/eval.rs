@@ -14,7 +14,7 @@ use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
 use crate::engine::models::{Model, RenderOptions};
 use crate::engine::render::{View, render_heldout_view};
-use crate::engine::train::appearance_fit::{AppearanceFit, FitSettings};
+use crate::engine::train::appearance_fit::{AppearanceFit, FitError, FitSettings};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -122,12 +122,20 @@ pub(super) fn fitted_psnr(
 }
 
 /// What `--fit-steps` asks for: a fit of `model`'s held-out appearances
-/// (`None` for 0 steps, or a model without per-image appearance).
+/// (`None` for 0 steps, a model without per-image appearance, or, with a
+/// warning, one whose embedding table has no row left to fit in).
 pub(super) fn appearance_fit(model: &dyn Model, step: u64, steps: usize) -> anyhow::Result<Option<AppearanceFit>> {
     if steps == 0 {
         return Ok(None);
     }
-    Ok(AppearanceFit::new(model, step, FitSettings { steps, ..FitSettings::default() })?)
+    match AppearanceFit::new(model, step, FitSettings { steps, ..FitSettings::default() }) {
+        // Every row trained on: the views are scored without it.
+        Err(e @ FitError::NoSpareRow) => {
+            eprintln!("warning: {e}; held-out views are not scored with fitted appearances");
+            Ok(None)
+        }
+        r => Ok(r?),
+    }
 }
 
 /// Renders frame `f` with the appearance `appearance` gives it and scores
@@ -423,6 +431,22 @@ mod tests {
             let e = score_columns(&v, &f, [1.0; 3], bad.clone()).unwrap_err().to_string();
             assert!(e.contains("columns"), "{bad:?}: {e}");
         }
+    }
+
+    /// `--fit-steps`: 0 fits nothing; a model whose embedding table has no
+    /// row left to fit in is scored without a fit (a warning), not refused.
+    #[test]
+    fn a_fit_that_cannot_be_made_is_left_out() {
+        use crate::engine::geometry::scene::Scene;
+        use crate::engine::models::capture_config::CaptureConfig;
+        use crate::engine::models::config::ModelConfig;
+        let ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
+        let config = CaptureConfig { max_images: 4, ..CaptureConfig::tiny() };
+        let mut m = ModelConfig::Capture(config).build(Scene::from_dataset(&ds), 1).unwrap();
+        assert!(appearance_fit(&*m, 1, 64).unwrap().is_some());
+        assert!(appearance_fit(&*m, 1, 0).unwrap().is_none());
+        m.restore_state(&mut |_| Some(vec![1.0; 4]), 1).unwrap();
+        assert!(appearance_fit(&*m, 1, 64).unwrap().is_none());
     }
 
     #[test]
