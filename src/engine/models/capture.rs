@@ -418,6 +418,15 @@ impl Model for CaptureModel {
         Some(self.seen_images())
     }
 
+    /// An image's embedding (none beyond the table: a zero bias), or the
+    /// mean of the images trained on.
+    fn appearance_embedding(&self, options: &RenderOptions) -> Option<Vec<f32>> {
+        match options.image {
+            Some(i) => self.field.appearance().embedding(&self.params, i).map(<[f32]>::to_vec),
+            None => Some(self.mean_embedding()),
+        }
+    }
+
     fn appearance_row(&self, image: u32) -> Option<std::ops::Range<usize>> {
         let a = self.field.appearance();
         let start = a.embedding(&self.params, image).map(|_| a.table.start + image as usize * a.dim)?;
@@ -490,10 +499,7 @@ impl Model for CaptureModel {
         options: &RenderOptions,
         out: &mut [RayOutput],
     ) -> BatchStats {
-        let embedding = match options.image {
-            Some(i) => self.field.appearance().embedding(&self.params, i).map(<[f32]>::to_vec),
-            None => Some(self.mean_embedding()),
-        };
+        let embedding = self.appearance_embedding(options);
         with_scratch(|s| {
             self.field.set_view_appearance(&self.params, embedding.as_deref(), &mut s.pass.ctx);
             self.read_grids_from(s, self.render_tables());

@@ -217,4 +217,10 @@ pub trait Model: Send + Sync {
     fn appearance_row(&self, _image: u32) -> Option<std::ops::Range<usize>> {
         None
     }
+    /// The appearance embedding a view takes under `options` (as
+    /// [`Model::render_rays_with`] renders it); `None` where it has none:
+    /// a model without per-image appearance, or an image beyond its table.
+    fn appearance_embedding(&self, _options: &RenderOptions) -> Option<Vec<f32>> {
+        None
+    }
 }

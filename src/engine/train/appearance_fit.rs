@@ -21,6 +21,7 @@ use crate::engine::dataset::Frame;
 use crate::engine::geometry::camera::Camera;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::models::{Model, ModelError, RenderOptions, StepCtx, TrainRay};
+use crate::engine::nn::adam::{Adam, AdamConfig};
 use crate::engine::render::{View, render_view_with};
 use crate::engine::rng::Rng;
 
@@ -72,20 +73,6 @@ pub struct AppearanceFit {
     settings: FitSettings,
 }
 
-/// The embedding a view of `model` takes under `options` (an image's
-/// row, or the mean of the rows of the images trained on).
-fn embedding_of(model: &dyn Model, options: &RenderOptions) -> Option<Vec<f32>> {
-    let images = model.appearance_images()?;
-    let row = |i: u32| model.appearance_row(i).map(|r| &model.params()[r]);
-    if let Some(e) = options.image.and_then(row) {
-        return Some(e.to_vec());
-    }
-    let dim = model.appearance_row(0)?.len();
-    let rows: Vec<&[f32]> = images.iter().filter_map(|&i| row(i)).collect();
-    let n = rows.len().max(1) as f64;
-    Some((0..dim).map(|k| (rows.iter().map(|r| f64::from(r[k])).sum::<f64>() / n) as f32).collect())
-}
-
 impl AppearanceFit {
     /// A copy of `model` (trained for `step` steps: the copy samples as it
     /// does) to fit appearances with; `None` for a model without per-image
@@ -123,14 +110,16 @@ impl AppearanceFit {
         if half == 0 {
             return Err(FitError::TooNarrow(frame.name.clone()));
         }
-        let mut e = embedding_of(model, start).unwrap_or_else(|| vec![0.0; self.range.len()]);
-        let (mut m, mut v) = (vec![0.0f32; e.len()], vec![0.0f32; e.len()]);
-        let (b1, b2, eps) = (0.9f32, 0.99f32, 1e-15f32);
+        // A start without an embedding (an image beyond the table) renders
+        // as zeros do.
+        let mut e = model.appearance_embedding(start).unwrap_or_else(|| vec![0.0; self.range.len()]);
+        let s = self.settings;
+        let config = AdamConfig { lr: s.lr, lr_end: s.lr, beta1: 0.9, beta2: 0.99, eps: 1e-15 };
+        let mut adam = Adam::new(config, e.len());
         let nparams = self.model.params().len();
         let threads = rayon::current_num_threads().max(1);
         self.parts.resize_with(threads, || vec![0.0; nparams]);
         let scene = self.model.scene().clone();
-        let s = self.settings;
         for step in 0..s.steps {
             self.model.params_mut()[self.range.clone()].copy_from_slice(&e);
             let mut rng = Rng::stream(s.seed, step as u64, 0x6170_7066);
@@ -152,7 +141,7 @@ impl AppearanceFit {
             let seed = s.seed ^ (step as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
             let ctx = StepCtx { seed, step: self.step, batch_rays: rays.len() };
             let (model, range) = (&*self.model, self.range.clone());
-            let grad: Vec<f64> = self
+            let sum: Vec<f64> = self
                 .parts
                 .par_iter_mut()
                 .enumerate()
@@ -164,17 +153,11 @@ impl AppearanceFit {
                     g[range.clone()].iter().map(|&x| f64::from(x)).collect::<Vec<f64>>()
                 })
                 .reduce(|| vec![0.0; range.len()], |a, b| a.iter().zip(&b).map(|(x, y)| x + y).collect());
+            let mut grad: Vec<f32> = sum.iter().map(|&g| g as f32).collect();
             if grad.iter().any(|g| !g.is_finite()) {
                 break;
             }
-            let t = step as i32 + 1;
-            let (bc1, bc2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
-            for k in 0..e.len() {
-                let g = grad[k] as f32;
-                m[k] = b1 * m[k] + (1.0 - b1) * g;
-                v[k] = b2 * v[k] + (1.0 - b2) * g * g;
-                e[k] -= s.lr * (m[k] / bc1) / ((v[k] / bc2).sqrt() + eps);
-            }
+            adam.step(&mut e, &mut grad, s.lr);
         }
         Ok(e)
     }
