@@ -478,10 +478,62 @@ fn sum_and_check(grads: &mut [f32], rest: &mut [Vec<f32>], params: &[f32]) -> bo
                     *b = 0.0;
                 }
             }
-            // Sums of products with NaN/inf stay non-finite: one test per chunk.
-            let gs: f32 = g.iter().map(|v| v * 0.0).sum();
-            let ps: f32 = p.iter().map(|v| v * 0.0).sum();
-            gs == 0.0 && ps == 0.0
+            all_finite(g) && all_finite(p)
         })
         .reduce(|| true, |a, b| a && b)
+}
+
+/// Whether no value is NaN or infinite, in integer operations the compiler
+/// vectorises: a float is not finite exactly when its exponent bits are all
+/// ones, and adding one to that exponent carries into the top bit. (The
+/// float test it replaces, a sum of `v * 0.0`, was one serial chain of
+/// additions: 15% of a capture model's training step.)
+fn all_finite(values: &[f32]) -> bool {
+    const EXPONENT: u32 = 0x7f80_0000;
+    const ONE: u32 = 0x0080_0000;
+    values.iter().fold(0u32, |acc, v| acc | ((v.to_bits() & EXPONENT) + ONE)) & 0x8000_0000 == 0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn all_finite_finds_every_non_finite_value_anywhere() {
+        let finite = [0.0f32, -0.0, 1.0, -1.0, f32::MAX, f32::MIN, f32::MIN_POSITIVE, 1e-45, -1e-45, 3.0e38];
+        let bad = [f32::NAN, -f32::NAN, f32::INFINITY, f32::NEG_INFINITY, f32::from_bits(0x7fc0_0001)];
+        let base: Vec<f32> = (0..37).map(|i| finite[i % finite.len()]).collect();
+        assert!(all_finite(&base));
+        assert!(all_finite(&[]));
+        for at in 0..base.len() {
+            for b in bad {
+                let mut v = base.clone();
+                v[at] = b;
+                assert!(!all_finite(&v), "{b} at {at}");
+                assert_eq!(all_finite(&v), v.iter().all(|x| x.is_finite()));
+            }
+        }
+    }
+
+    #[test]
+    fn sum_and_check_sums_zeroes_and_flags() {
+        let n = 40_000;
+        let mut grads: Vec<f32> = (0..n).map(|i| i as f32).collect();
+        let mut rest = vec![vec![1.0f32; n], (0..n).map(|i| -(i as f32) * 0.5).collect()];
+        let params = vec![0.5f32; n];
+        assert!(sum_and_check(&mut grads, &mut rest, &params));
+        for (i, g) in grads.iter().enumerate() {
+            assert_eq!(*g, i as f32 + 1.0 - i as f32 * 0.5);
+        }
+        assert!(rest.iter().all(|r| r.iter().all(|v| *v == 0.0)), "the parts are left zeroed");
+        // A non-finite part in the last chunk, or a NaN parameter, fails the step; the parts still end zeroed.
+        rest[1][n - 1] = f32::INFINITY;
+        assert!(!sum_and_check(&mut grads, &mut rest, &params));
+        assert!(rest.iter().all(|r| r.iter().all(|v| *v == 0.0)));
+        grads.fill(0.0);
+        let mut nan_params = params.clone();
+        nan_params[17_000] = f32::NAN;
+        assert!(!sum_and_check(&mut grads, &mut rest, &nan_params));
+        assert!(sum_and_check(&mut grads, &mut rest, &params));
+    }
 }
