@@ -148,10 +148,12 @@ fn bench_auto_capture_rows_have_the_mean_column() {
     assert!(stderr.contains("model 'capture-360' (auto)"), "{stderr}");
     let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let lines: Vec<&str> = stdout.lines().collect();
-    assert!(lines[0].contains("PSNR dB  mean dB   fit dB"), "{stdout}");
+    assert!(lines[0].contains("PSNR dB  mean dB   fit dB cross dB"), "{stdout}");
     let mean = report.rows[0].psnr_mean.expect("a capture row has the mean appearance's PSNR");
     let fit = report.rows[0].psnr_fit.expect("a capture row has the fitted appearance's PSNR");
+    let cross = report.rows[0].psnr_fit_whole.expect("and the cross-fitted whole frame's");
     let cells: Vec<&str> = lines[1].split_whitespace().collect();
-    // model, budget, train s, steps, rays, samples, smp/ray, prop/ray, skip/ray, PSNR, mean, fit.
-    assert_eq!((cells[10], cells[11]), (&*format!("{mean:.2}"), &*format!("{fit:.2}")), "{stdout}");
+    // model, budget, train s, steps, rays, samples, smp/ray, prop/ray, skip/ray, PSNR, mean, fit, cross.
+    let want = (&*format!("{mean:.2}"), &*format!("{fit:.2}"), &*format!("{cross:.2}"));
+    assert_eq!((cells[10], cells[11], cells[12]), want, "{stdout}");
 }

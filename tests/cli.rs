@@ -295,9 +295,10 @@ fn appearance_on_the_command_line() {
     }
     let last = out.lines().last().unwrap();
     assert!(last.starts_with("2 views  PSNR ") && last.contains(" dB (mean "), "{last}");
-    // Each view is also scored on its right half with an appearance fitted on its left half.
-    assert!(out.lines().nth(1).unwrap().starts_with("fitted: an appearance fitted on each view's left half"), "{out}");
-    assert!(last.contains(") (fitted right half "), "{last}");
+    // Each view is also scored on its right half with an appearance fitted on its left half, and
+    // whole, each half with the other's fit.
+    assert!(out.lines().nth(1).unwrap().starts_with("fitted: appearances fitted on each view's halves"), "{out}");
+    assert!(last.contains(") (fitted right half ") && last.contains(", whole frame "), "{last}");
     // With the mean asked for, both numbers are the same; `--fit-steps 0` fits nothing.
     let out =
         ok(&radiance(&["eval", "--model", m, "--data", d, "--limit", "1", "--appearance", "mean", "--fit-steps", "0"]));

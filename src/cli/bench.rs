@@ -101,6 +101,10 @@ pub struct BenchRow {
     /// on their left halves (NeRF in the Wild's protocol).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub psnr_fit: Option<f64>,
+    /// With it, the mean PSNR of the whole views, each half rendered with
+    /// the appearance fitted on the other half (`cross dB`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_fit_whole: Option<f64>,
     /// The same inside the views' masks, when masks are in effect (means
     /// over the views with pixels inside).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -150,7 +154,7 @@ const MASKED_TAIL: (&str, &str) =
 
 /// The PSNR column, and with the mean appearance's and the fitted one's
 /// beside it.
-const MEAN_COLUMN: (&str, &str) = ("PSNR dB ", "PSNR dB  mean dB   fit dB ");
+const MEAN_COLUMN: (&str, &str) = ("PSNR dB ", "PSNR dB  mean dB   fit dB cross dB ");
 
 /// The table's header, with the columns inside the masks when `masked`,
 /// and the mean and fitted appearances' PSNR when `mean` (a capture model
@@ -164,7 +168,7 @@ fn format_row(r: &BenchRow, masked: bool, mean: bool) -> String {
     let psnr_mean = match mean {
         true => {
             let col = |v: Option<f64>| format!(" {:>8}", v.map_or("-".into(), |p| format!("{p:.2}")));
-            col(r.psnr_mean) + &col(r.psnr_fit)
+            col(r.psnr_mean) + &col(r.psnr_fit) + &col(r.psnr_fit_whole)
         }
         false => String::new(),
     };
@@ -208,11 +212,12 @@ fn measure(
     let (appearance, fit_steps) = (&args.appearance, args.fit.fit_steps);
     let (mut sum_p, mut sum_s, mut secs) = (0.0, 0.0, 0.0);
     let (mut mask_p, mut mask_s, mut mean_p, mut fit_p) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut fit_whole = Vec::new();
     let mut fit = appearance_fit(&*t.model, p.step, fit_steps)?;
     let (mut rays, mut samples, mut proposal) = (0u64, 0u64, 0u64);
     for &i in views {
         let f = &ds.frames[i];
-        let Scored { view: v, secs: s, scores: sc, psnr_mean, psnr_fit, .. } =
+        let Scored { view: v, secs: s, scores: sc, psnr_mean, fit: fitted } =
             render_and_score(&*t.model, f, ds.background, appearance, fit.as_mut())?;
         secs += s;
         rays += v.stats.rays;
@@ -223,7 +228,8 @@ fn measure(
         mask_p.extend(sc.psnr_mask);
         mask_s.extend(sc.ssim_mask);
         mean_p.extend(psnr_mean);
-        fit_p.extend(psnr_fit);
+        fit_p.extend(fitted.as_ref().map(|f| f.right_half));
+        fit_whole.extend(fitted.map(|f| f.whole));
     }
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
     let n = views.len() as f64;
@@ -243,6 +249,7 @@ fn measure(
         ssim: sum_s / n,
         psnr_mean: mean(&mean_p),
         psnr_fit: mean(&fit_p),
+        psnr_fit_whole: mean(&fit_whole),
         psnr_mask: mean(&mask_p),
         ssim_mask: mean(&mask_s),
         render_ms: secs / n * 1000.0,
@@ -541,6 +548,7 @@ mod tests {
             ssim: 0.8123,
             psnr_mean,
             psnr_fit: psnr_mean.map(|p| p + 1.0),
+            psnr_fit_whole: psnr_mean.map(|p| p + 0.5),
             psnr_mask: Some(29.5),
             ssim_mask: Some(0.9),
             render_ms: 1130.0,
@@ -564,11 +572,13 @@ mod tests {
             assert_eq!(end(&h, "PSNR dB") - end(&r, "27.10"), offset, "{h}\n{r}");
             assert_eq!(end(&h, "mean dB") - end(&r, "26.50"), offset, "{h}\n{r}");
             assert_eq!(end(&h, "fit dB") - end(&r, "27.50"), offset, "{h}\n{r}");
+            assert_eq!(end(&h, "cross dB") - end(&r, "27.00"), offset, "{h}\n{r}");
             assert_eq!(end(&h, "SSIM") - end(&r, "0.8123"), end(&plain_h, "SSIM") - end(&plain_r, "0.8123"));
             assert_eq!(h.len() - r.len(), plain_h.len() - plain_r.len(), "{h}\n{r}");
             let r = format_row(&row(None), masked, true);
             assert_eq!(end(&h, "mean dB") - end(&r, "27.10") - 9, offset, "{h}\n{r}");
             assert_eq!(end(&h, "fit dB") - end(&r, "27.10") - 18, offset, "{h}\n{r}");
+            assert_eq!(end(&h, "cross dB") - end(&r, "27.10") - 27, offset, "{h}\n{r}");
         }
         assert_eq!(header(false, false), HEADER);
     }

@@ -14,7 +14,7 @@ use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
 use crate::engine::models::{Model, RenderOptions};
 use crate::engine::render::{View, render_heldout_view};
-use crate::engine::train::appearance_fit::{AppearanceFit, FitError, FitSettings};
+use crate::engine::train::appearance_fit::{AppearanceFit, FitError, FitSettings, Half};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -44,8 +44,9 @@ pub struct EvalArgs {
     pub model: PathBuf,
     #[command(flatten)]
     pub data: DataArgs,
-    /// Also write the rendered views here (NAME.png; with a fitted
-    /// appearance also NAME_fitted.png, the whole view rendered with it).
+    /// Also write the rendered views here (NAME.png; with fitted
+    /// appearances also NAME_fitted.png, the view as the fitted score reads
+    /// it: each half rendered with the appearance fitted on the other).
     #[arg(long)]
     pub out: Option<PathBuf>,
     #[command(flatten)]
@@ -63,7 +64,9 @@ pub struct FitArgs {
     /// For a model with per-image appearance, also score each held-out view
     /// as NeRF in the Wild does: an appearance optimised for this many
     /// steps on the left half of the photo (the network frozen), the right
-    /// half scored ("fitted right half"). 0: don't.
+    /// half scored ("fitted right half"); and the whole frame, each half
+    /// rendered with the appearance fitted on the other ("fitted whole
+    /// frame"). 0: don't.
     #[arg(long, default_value_t = FitSettings::default().steps)]
     pub fit_steps: usize,
 }
@@ -97,28 +100,54 @@ pub(super) struct Scored {
     /// For a model with per-image appearance, the PSNR with the mean
     /// appearance (rendered again unless the view already had it).
     pub psnr_mean: Option<f64>,
-    /// With a fit, the PSNR of the view's right half with an appearance
-    /// fitted on its left half ([`fitted_psnr`]).
-    pub psnr_fit: Option<f64>,
-    /// With a fit, the whole view rendered with the fitted appearance.
-    pub fitted: Option<View>,
+    /// With a fit, its scores ([`fitted_scores`]).
+    pub fit: Option<Fitted>,
 }
 
-/// The PSNR of frame `f`'s right half (columns from `width / 2`) rendered
-/// with an appearance fitted on its left half (`train::appearance_fit`),
-/// starting from the appearance `options` gives; and the whole view with it.
-pub(super) fn fitted_psnr(
+/// A held-out view scored with fitted appearances.
+pub(super) struct Fitted {
+    /// PSNR of the right half, rendered with an appearance fitted on the
+    /// left half (NeRF in the Wild's rule).
+    pub right_half: f64,
+    /// PSNR of the whole frame: the right half as above, the left half
+    /// rendered with an appearance fitted on the right half.
+    pub whole: f64,
+    /// The view so scored: its halves from the two renders.
+    pub view: View,
+}
+
+/// Frame `f` scored with appearances fitted on its halves
+/// (`train::appearance_fit`), each fit starting from the appearance
+/// `options` gives: the right half rendered with the appearance fitted on
+/// the left half, and the left half with the one fitted on the right half.
+pub(super) fn fitted_scores(
     fit: &mut AppearanceFit,
     model: &dyn Model,
     f: &Frame,
     background: [f32; 3],
     options: &RenderOptions,
-) -> anyhow::Result<(f64, View)> {
+) -> anyhow::Result<Fitted> {
     let camera = Camera { c2w: model.heldout_pose(f.camera.c2w), ..f.camera.clone() };
-    let e = fit.fit(model, f, &camera, background, options)?;
-    let v = fit.render(&camera, background, &e);
-    let (ours, gt) = cropped(&v, f, background, f.camera.width / 2..f.camera.width)?;
-    Ok((psnr(&ours, &gt), v))
+    let mut render = |half: Half| -> anyhow::Result<View> {
+        let e = fit.fit(model, f, &camera, background, options, half)?;
+        Ok(fit.render(&camera, background, &e))
+    };
+    let mut view = render(Half::Left)?;
+    let other = render(Half::Right)?;
+    let w = f.camera.width as usize;
+    let left = Half::Left.columns(f.camera.width);
+    let (lo, hi) = (left.start as usize, left.end as usize);
+    for row in 0..view.height as usize {
+        let (a, b) = (row * w + lo, row * w + hi);
+        view.rgb[3 * a..3 * b].copy_from_slice(&other.rgb[3 * a..3 * b]);
+        view.depth[a..b].copy_from_slice(&other.depth[a..b]);
+        view.opacity[a..b].copy_from_slice(&other.opacity[a..b]);
+    }
+    view.stats.add(&other.stats);
+    let (ours, gt) = cropped(&view, f, background, Half::Right.columns(f.camera.width))?;
+    let right_half = psnr(&ours, &gt);
+    let (ours, gt) = cropped(&view, f, background, 0..f.camera.width)?;
+    Ok(Fitted { right_half, whole: psnr(&ours, &gt), view })
 }
 
 /// What `--fit-steps` asks for: a fit of `model`'s held-out appearances
@@ -160,11 +189,11 @@ pub(super) fn render_and_score(
             Some(score(&mean, f, background)?.psnr)
         }
     };
-    let (psnr_fit, fitted) = match fit {
-        Some(fit) => fitted_psnr(fit, model, f, background, &options).map(|(p, v)| (Some(p), Some(v)))?,
-        None => (None, None),
+    let fit = match fit {
+        Some(fit) => Some(fitted_scores(fit, model, f, background, &options)?),
+        None => None,
     };
-    Ok(Scored { view, secs, scores, psnr_mean, psnr_fit, fitted })
+    Ok(Scored { view, secs, scores, psnr_mean, fit })
 }
 
 /// A rendered view's scores against its ground truth.
@@ -238,9 +267,13 @@ fn mean_text(psnr_mean: Option<f64>) -> String {
     psnr_mean.map_or(String::new(), |p| format!(" (mean {p:.2})"))
 }
 
-/// ` (fitted right half 26.50)` after a PSNR, when views were fitted.
-fn fit_text(psnr_fit: Option<f64>) -> String {
-    psnr_fit.map_or(String::new(), |p| format!(" (fitted right half {p:.2})"))
+/// ` (fitted right half 26.50, whole frame 26.10)` after a PSNR, when
+/// views were fitted.
+fn fit_text(right_half: Option<f64>, whole: Option<f64>) -> String {
+    match (right_half, whole) {
+        (Some(r), Some(w)) => format!(" (fitted right half {r:.2}, whole frame {w:.2})"),
+        _ => String::new(),
+    }
 }
 
 /// The mean of the values that exist, and how many there were.
@@ -283,18 +316,20 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
     let mut fit = appearance_fit(&*r.model, r.state.step, a.fit.fit_steps)?;
     if fit.is_some() {
         println!(
-            "fitted: an appearance fitted on each view's left half, {} steps; its right half's PSNR",
+            "fitted: appearances fitted on each view's halves, {} steps each; the right half's PSNR with the left \
+             half's fit, and the whole frame's with each half rendered with the other half's fit",
             a.fit.fit_steps
         );
     }
     let (mut sum_p, mut sum_s, mut sum_t) = (0.0, 0.0, 0.0);
-    let (mut mask_p, mut mask_s, mut mean_p, mut fit_p) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut mask_p, mut mask_s, mut mean_p) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut fit_p, mut fit_whole) = (Vec::new(), Vec::new());
     for &i in &idx {
         let f = &ds.frames[i];
-        let Scored { view: v, secs, scores: sc, psnr_mean, psnr_fit, fitted } =
+        let Scored { view: v, secs, scores: sc, psnr_mean, fit: fitted } =
             render_and_score(&*r.model, f, ds.background, &a.appearance, fit.as_mut())?;
         if let Some(o) = &a.out {
-            for (v, suffix) in [(Some(&v), ""), (fitted.as_ref(), "_fitted")] {
+            for (v, suffix) in [(Some(&v), ""), (fitted.as_ref().map(|f| &f.view), "_fitted")] {
                 let Some(v) = v else { continue };
                 let path = o.join(format!("{}{suffix}.png", f.name));
                 png::write_rgb(&path, v.width, v.height, &v.rgb)
@@ -302,7 +337,8 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
             }
         }
         let mask = if f.mask.is_some() { mask_text(sc.psnr_mask, sc.ssim_mask) } else { String::new() };
-        let mean = mean_text(psnr_mean) + &fit_text(psnr_fit);
+        let (psnr_fit, psnr_whole) = (fitted.as_ref().map(|f| f.right_half), fitted.as_ref().map(|f| f.whole));
+        let mean = mean_text(psnr_mean) + &fit_text(psnr_fit, psnr_whole);
         println!("{:<12} PSNR {:6.2} dB{mean}  SSIM {:.4}  {:.0} ms{mask}", f.name, sc.psnr, sc.ssim, secs * 1000.0);
         sum_p += sc.psnr;
         sum_s += sc.ssim;
@@ -311,6 +347,7 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
         mask_s.push(sc.ssim_mask);
         mean_p.push(psnr_mean);
         fit_p.push(psnr_fit);
+        fit_whole.push(psnr_whole);
     }
     let n = idx.len() as f64;
     let mut mask = String::new();
@@ -322,7 +359,8 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
             mask += &format!(" ({counted} views with pixels inside)");
         }
     }
-    let mean = mean_text(mean_of(&mean_p).map(|m| m.0)) + &fit_text(mean_of(&fit_p).map(|m| m.0));
+    let mean = mean_text(mean_of(&mean_p).map(|m| m.0))
+        + &fit_text(mean_of(&fit_p).map(|m| m.0), mean_of(&fit_whole).map(|m| m.0));
     println!(
         "{} views  PSNR {:.2} dB{mean}  SSIM {:.4}  {:.0} ms/view{mask}",
         idx.len(),
@@ -449,14 +487,62 @@ mod tests {
         assert!(appearance_fit(&*m, 1, 64).unwrap().is_none());
     }
 
+    /// The fitted scores: the view's left half is the render with the
+    /// appearance fitted on the right half, its right half the one fitted
+    /// on the left half (the fits are repeatable: the same seed); the right
+    /// half's PSNR and the whole frame's are those of that view, by hand.
+    #[test]
+    fn fitted_scores_cross_the_halves() {
+        use crate::engine::geometry::scene::Scene;
+        use crate::engine::models::capture_config::CaptureConfig;
+        use crate::engine::models::config::ModelConfig;
+        let ds = BallScene { size: 9, views: 4, ..Default::default() }.dataset();
+        let config = CaptureConfig { max_images: 4, ..CaptureConfig::tiny() };
+        let mut m = ModelConfig::Capture(config).build(Scene::from_dataset(&ds), 1).unwrap();
+        m.restore_state(&mut |_| Some(vec![0.0, 1.0, 1.0, 0.0]), 1).unwrap();
+        let mut rng = crate::engine::rng::Rng::new(4);
+        m.params_mut().iter_mut().for_each(|p| *p += 0.3 * rng.normal());
+        let f = &ds.frames[0];
+        let (bg, opts) = (ds.background, RenderOptions::default());
+        let mut fit = appearance_fit(&*m, 1, 6).unwrap().unwrap();
+        let got = fitted_scores(&mut fit, &*m, f, bg, &opts).unwrap();
+        let camera = Camera { c2w: m.heldout_pose(f.camera.c2w), ..f.camera.clone() };
+        let mut alone = |half| {
+            let e = fit.fit(&*m, f, &camera, bg, &opts, half).unwrap();
+            fit.render(&camera, bg, &e)
+        };
+        let (from_left, from_right) = (alone(Half::Left), alone(Half::Right));
+        assert_ne!(from_left.rgb, from_right.rgb, "the two fits should differ on this model");
+        let w = 9;
+        for k in 0..w * 9 {
+            let src = if k % w < w / 2 { &from_right } else { &from_left };
+            assert_eq!(got.view.rgb[3 * k..3 * k + 3], src.rgb[3 * k..3 * k + 3], "pixel {k}");
+            assert_eq!(got.view.depth[k], src.depth[k], "pixel {k}");
+        }
+        let mse = |cols: Range<usize>| {
+            let q = png::quantise_rgb(&got.view.rgb);
+            let (mut sum, mut n) = (0.0f64, 0);
+            for k in (0..w * 9).filter(|k| cols.contains(&(k % w))) {
+                let gt = f.image.rgb_on((k % w) as u32, (k / w) as u32, bg);
+                for c in 0..3 {
+                    sum += (f64::from(q[3 * k + c]) / 255.0 - f64::from(gt[c])).powi(2);
+                    n += 1;
+                }
+            }
+            -10.0 * (sum / n as f64).log10()
+        };
+        assert!((got.right_half - mse(4..9)).abs() < 1e-4, "{} {}", got.right_half, mse(4..9));
+        assert!((got.whole - mse(0..9)).abs() < 1e-4, "{} {}", got.whole, mse(0..9));
+    }
+
     #[test]
     fn mask_text_and_means() {
         assert_eq!(mask_text(Some(27.104), Some(0.90123)), " | inside mask PSNR  27.10 dB  SSIM 0.9012");
         assert_eq!(mask_text(None, None), " | inside mask PSNR     - dB  SSIM      -");
         assert_eq!(mean_text(Some(26.504)), " (mean 26.50)");
         assert_eq!(mean_text(None), "");
-        assert_eq!(fit_text(Some(22.254)), " (fitted right half 22.25)");
-        assert_eq!(fit_text(None), "");
+        assert_eq!(fit_text(Some(22.254), Some(21.5)), " (fitted right half 22.25, whole frame 21.50)");
+        assert_eq!(fit_text(None, None), "");
         assert_eq!(mean_of(&[Some(1.0), None, Some(3.0)]), Some((2.0, 2)));
         assert_eq!(mean_of(&[None]), None);
     }
