@@ -252,6 +252,36 @@ impl HashGrid {
         }
     }
 
+    /// Levels of the encoding (its width is twice that).
+    pub fn levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// The encoding of 8 points (coordinates `x`, `y`, `z`, each already
+    /// in `[0, 1]`) from a [`HalfTable`] of this grid, into `out` (`2 l`
+    /// and `2 l + 1`: level `l`'s features, the layout of
+    /// [`Self::forward_half`]'s rows): for fused render kernels that go on
+    /// with the features in registers.
+    ///
+    /// # Safety
+    /// AVX2, FMA and F16C must be available (they are wherever a
+    /// `HalfTable` exists), enabled in the caller, into which this is
+    /// inlined.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub unsafe fn encode8_half(
+        &self,
+        table: &HalfTable,
+        x: std::arch::x86_64::__m256,
+        y: std::arch::x86_64::__m256,
+        z: std::arch::x86_64::__m256,
+        out: &mut [std::arch::x86_64::__m256],
+    ) {
+        assert_eq!(table.words.len() * FEATURES, self.params.len(), "hash grid: a half table of another grid");
+        // SAFETY: the caller's guarantee; the table is this grid's (asserted).
+        unsafe { simd::encode8_half(&self.levels, &table.words, x, y, z, out) }
+    }
+
     /// The AVX2 forward pass over the first `n / 8 * 8` points; returns how
     /// many points it encoded (0 without AVX2/FMA).
     fn forward_simd(&self, params: &[f32], pts: &[f32], out: &mut [f32]) -> usize {
@@ -499,7 +529,7 @@ fn prefetch(v: &[f32], k: usize) {
 
 /// A coordinate clamped to the unit interval, NaN mapped to 0.
 #[inline(always)]
-fn sanitize(v: f32) -> f32 {
+pub(crate) fn sanitize(v: f32) -> f32 {
     // `clamp` keeps NaN; the test first turns it into 0.
     if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) }
 }
@@ -539,17 +569,37 @@ mod simd {
     unsafe fn corners8<const DENSE: bool>(level: &Level, soa: &Soa, g: usize) -> ([__m256i; 8], [__m256; 8]) {
         // SAFETY: the caller guarantees AVX2 and `g + 8 <= n`.
         unsafe {
+            let (x, y, z) = (
+                _mm256_loadu_ps(soa.x.as_ptr().add(g)),
+                _mm256_loadu_ps(soa.y.as_ptr().add(g)),
+                _mm256_loadu_ps(soa.z.as_ptr().add(g)),
+            );
+            corners8_of::<DENSE>(level, x, y, z)
+        }
+    }
+
+    /// [`corners8`] of the points with coordinates `x`, `y`, `z` (each in
+    /// `[0, 1]`: sanitised).
+    #[inline(always)]
+    unsafe fn corners8_of<const DENSE: bool>(
+        level: &Level,
+        x: __m256,
+        y: __m256,
+        z: __m256,
+    ) -> ([__m256i; 8], [__m256; 8]) {
+        // SAFETY: the caller guarantees AVX2.
+        unsafe {
             let resf = _mm256_set1_ps(level.res as f32);
             let resm1 = _mm256_set1_epi32(level.res as i32 - 1);
             let one = _mm256_set1_epi32(1);
-            let axis = |p: *const f32| {
-                let v = _mm256_mul_ps(_mm256_loadu_ps(p), resf);
+            let axis = |p: __m256| {
+                let v = _mm256_mul_ps(p, resf);
                 let f = _mm256_min_epi32(_mm256_cvttps_epi32(v), resm1);
                 (f, _mm256_sub_ps(v, _mm256_cvtepi32_ps(f)))
             };
-            let (fx, rx) = axis(soa.x.as_ptr().add(g));
-            let (fy, ry) = axis(soa.y.as_ptr().add(g));
-            let (fz, rz) = axis(soa.z.as_ptr().add(g));
+            let (fx, rx) = axis(x);
+            let (fy, ry) = axis(y);
+            let (fz, rz) = axis(z);
             let t: [[__m256i; 2]; 3] = if DENSE {
                 let n = level.res as i32 + 1;
                 let (nn, n1) = (_mm256_set1_epi32(n * n), _mm256_set1_epi32(n));
@@ -652,20 +702,10 @@ mod simd {
         // table; only rows below `n` are written.
         unsafe {
             let base = words.as_ptr().add(start) as *const i32;
-            let low = _mm256_set1_epi32(0xffff);
             let mut tmp = [0f32; 16];
             for g in (0..soa.x.len()).step_by(8) {
                 let (idx, wt) = corners8::<DENSE>(level, soa, g);
-                let (mut f0, mut f1) = (_mm256_setzero_ps(), _mm256_setzero_ps());
-                for c in 0..8 {
-                    let v = _mm256_i32gather_epi32::<4>(base, idx[c]);
-                    // Per 128-bit lane: four feature-0 halves, then four
-                    // feature-1 halves; the permute puts the 8 of each together.
-                    let halves = _mm256_packus_epi32(_mm256_and_si256(v, low), _mm256_srli_epi32::<16>(v));
-                    let halves = _mm256_permute4x64_epi64::<0b11_01_10_00>(halves);
-                    f0 = _mm256_fmadd_ps(wt[c], _mm256_cvtph_ps(_mm256_castsi256_si128(halves)), f0);
-                    f1 = _mm256_fmadd_ps(wt[c], _mm256_cvtph_ps(_mm256_extracti128_si256::<1>(halves)), f1);
-                }
+                let (f0, f1) = interpolate8_half(base, &idx, &wt);
                 _mm256_storeu_ps(tmp.as_mut_ptr(), f0);
                 _mm256_storeu_ps(tmp.as_mut_ptr().add(8), f1);
                 for j in 0..8.min(n.saturating_sub(g)) {
@@ -673,6 +713,58 @@ mod simd {
                     *out.get_unchecked_mut(o) = tmp[j];
                     *out.get_unchecked_mut(o + 1) = tmp[8 + j];
                 }
+            }
+        }
+    }
+
+    /// The two features of 8 points at their corners `idx` (weights `wt`)
+    /// from a half table at `base`.
+    #[inline(always)]
+    unsafe fn interpolate8_half(base: *const i32, idx: &[__m256i; 8], wt: &[__m256; 8]) -> (__m256, __m256) {
+        // SAFETY: the caller guarantees AVX2, FMA and F16C and that every
+        // index lies in the table at `base`.
+        unsafe {
+            let low = _mm256_set1_epi32(0xffff);
+            let (mut f0, mut f1) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+            for c in 0..8 {
+                let v = _mm256_i32gather_epi32::<4>(base, idx[c]);
+                // Per 128-bit lane: four feature-0 halves, then four
+                // feature-1 halves; the permute puts the 8 of each together.
+                let halves = _mm256_packus_epi32(_mm256_and_si256(v, low), _mm256_srli_epi32::<16>(v));
+                let halves = _mm256_permute4x64_epi64::<0b11_01_10_00>(halves);
+                f0 = _mm256_fmadd_ps(wt[c], _mm256_cvtph_ps(_mm256_castsi256_si128(halves)), f0);
+                f1 = _mm256_fmadd_ps(wt[c], _mm256_cvtph_ps(_mm256_extracti128_si256::<1>(halves)), f1);
+            }
+            (f0, f1)
+        }
+    }
+
+    /// Every level's two features of the 8 points `x`, `y`, `z` (each in
+    /// `[0, 1]`) from the half table `words`, into `out[2 l]` and
+    /// `out[2 l + 1]`: [`forward_level_half`] for 8 points, for kernels that
+    /// go on with the features in registers.
+    ///
+    /// # Safety
+    /// AVX2, FMA and F16C must be available (the caller's target features:
+    /// this is inlined into it), and `words` must be `levels`' half table.
+    #[inline(always)]
+    pub unsafe fn encode8_half(levels: &[Level], words: &[u32], x: __m256, y: __m256, z: __m256, out: &mut [__m256]) {
+        assert!(out.len() >= FEATURES * levels.len());
+        for (l, level) in levels.iter().enumerate() {
+            let start = level.offset / FEATURES;
+            assert!(words.len() >= start + level.size);
+            // SAFETY: as in `forward_level_half`: indices lie in the level's
+            // table, which lies in `words` (asserted).
+            unsafe {
+                let base = words.as_ptr().add(start) as *const i32;
+                let (idx, wt) = if level.dense {
+                    corners8_of::<true>(level, x, y, z)
+                } else {
+                    corners8_of::<false>(level, x, y, z)
+                };
+                let (f0, f1) = interpolate8_half(base, &idx, &wt);
+                out[FEATURES * l] = f0;
+                out[FEATURES * l + 1] = f1;
             }
         }
     }
