@@ -254,10 +254,13 @@ impl CaptureModel {
     }
 
     /// Makes the passes of `s` read the grids from `tables` (from the
-    /// parameters: `&RenderTables::default()`, as training must).
-    fn read_grids_from(&self, s: &mut Scratch, tables: &RenderTables) {
+    /// parameters: `&RenderTables::default()`, as training must), and stop
+    /// a ray's proposal samples below transmittance `early_stop` (0: never,
+    /// as training must; `Levels::set_early_stop`).
+    fn read_grids_from(&self, s: &mut Scratch, tables: &RenderTables, early_stop: f32) {
         self.field.set_render_table(tables.main.clone(), &mut s.pass.ctx);
         s.pass.levels.set_render_tables(&self.proposals, &tables.proposals);
+        s.pass.levels.set_early_stop(early_stop);
     }
 
     /// The networks, for passes over them.
@@ -389,7 +392,7 @@ impl Model for CaptureModel {
         };
         let settings = self.pass_settings(ctx.batch_rays);
         with_scratch(|s| {
-            self.read_grids_from(s, &RenderTables::default());
+            self.read_grids_from(s, &RenderTables::default(), 0.0);
             for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
                 let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);
                 let p = capture_pass(self.nets(), &settings, chunk, &mut placement, &mut s.pass, grads);
@@ -502,14 +505,15 @@ impl Model for CaptureModel {
         let embedding = self.appearance_embedding(options);
         with_scratch(|s| {
             self.field.set_view_appearance(&self.params, embedding.as_deref(), &mut s.pass.ctx);
-            self.read_grids_from(s, self.render_tables());
+            // Proposal rays stop where rendering's do.
+            self.read_grids_from(s, self.render_tables(), self.config.min_transmittance);
             let mut stats = BatchStats::default();
             for (chunk, o) in rays.chunks(RENDER_CHUNK_RAYS).zip(out.chunks_mut(RENDER_CHUNK_RAYS)) {
                 stats.add(&self.render_chunk(s, chunk, background, o));
             }
             // The thread's scratch keeps no reference to tables that the
             // next `params_mut` makes stale.
-            self.read_grids_from(s, &RenderTables::default());
+            self.read_grids_from(s, &RenderTables::default(), 0.0);
             stats
         })
     }
