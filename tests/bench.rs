@@ -102,8 +102,10 @@ fn bench_rejects_bad_arguments() {
 
 /// `--model auto` benches the model `train` would choose (the ball's
 /// transparent pixels: `instant`) under its own name, and says why; the
-/// capture model's rows count its proposal samples: 64 + 32 per ray, in
-/// training and rendering alike (every ray of the scene can be sampled).
+/// capture model's rows count its proposal samples: 64 + 32 per ray in
+/// training (every ray of the scene can be sampled), at most that and at
+/// least each level's first round of 8 in rendering (which stops rays
+/// behind opaque matter).
 #[test]
 fn bench_resolves_auto_and_counts_proposal_samples() {
     let dir = tempfile::tempdir().unwrap();
@@ -125,7 +127,8 @@ fn bench_resolves_auto_and_counts_proposal_samples() {
     let (instant, capture) = (&report.rows[0], &report.rows[1]);
     assert_eq!((instant.proposal_samples, instant.render_proposal_samples_per_ray), (0, 0.0), "{instant:?}");
     assert!(capture.rays > 0 && capture.proposal_samples == 96 * capture.rays, "{capture:?}");
-    assert_eq!((capture.proposal_samples_per_ray, capture.render_proposal_samples_per_ray), (96.0, 96.0));
+    assert_eq!(capture.proposal_samples_per_ray, 96.0, "{capture:?}");
+    assert!((16.0..=96.0).contains(&capture.render_proposal_samples_per_ray), "{capture:?}");
     // The table shows the JSON's proposal samples per ray.
     for (l, r) in lines[1..].iter().zip(&report.rows) {
         let cells: Vec<&str> = l.split_whitespace().collect();

@@ -4,7 +4,7 @@
 //! appearance; the initial density and the NDC selector.
 
 use super::*;
-use crate::engine::fields::space::{NdcCamera, NdcFrame, Norm};
+use crate::engine::fields::space::{Norm, test_ndc};
 
 fn config(appearance_dim: usize) -> CaptureFieldConfig {
     CaptureFieldConfig {
@@ -15,20 +15,6 @@ fn config(appearance_dim: usize) -> CaptureFieldConfig {
         max_images: 5,
         appearance_dim,
     }
-}
-
-/// A forward-facing camera at the origin looking down -z.
-fn ndc() -> SpaceMap {
-    let camera = NdcCamera {
-        rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-        centre: [0.0, 0.0, 0.0],
-        near: 0.5,
-        fx: 40.0,
-        fy: 40.0,
-        width: 64,
-        height: 48,
-    };
-    SpaceMap::Ndc(NdcFrame::new(camera).unwrap())
 }
 
 /// Points at log-uniform distances (inside the unit cube and far out in
@@ -86,8 +72,9 @@ impl Pass<'_> {
 
 #[test]
 fn parameter_gradients_match_finite_differences_in_f64() {
-    for (k, space) in
-        [SpaceMap::Contract { norm: Norm::Linf }, SpaceMap::Contract { norm: Norm::L2 }, ndc()].into_iter().enumerate()
+    for (k, space) in [SpaceMap::Contract { norm: Norm::Linf }, SpaceMap::Contract { norm: Norm::L2 }, test_ndc()]
+        .into_iter()
+        .enumerate()
     {
         let (f, layout, params) = field(space.clone(), 3, 5 + k as u64);
         let mut rng = Rng::new(40 + k as u64);
@@ -197,7 +184,7 @@ fn the_view_appearance_is_the_images_appearance() {
 #[test]
 fn an_untrained_network_has_the_initial_density_and_ndc_selects_its_frustum() {
     let mut layout = ParamLayout::default();
-    let f = CaptureField::new(&mut layout, ndc(), &config(2));
+    let f = CaptureField::new(&mut layout, test_ndc(), &config(2));
     let params = vec![0.0f32; layout.len];
     let mut ctx = Ctx::default();
     // In front of the camera; behind it; beside the frustum.
@@ -205,7 +192,7 @@ fn an_untrained_network_has_the_initial_density_and_ndc_selects_its_frustum() {
     f.density(&params, Points { pos: &pos, dirs: &[0.0; 9], image: &[] }, &mut ctx);
     assert_eq!(f.sigma(&ctx), &[0.3, 0.0, 0.0]);
     // Outside points get no gradient either.
-    let (f, layout, params) = field(ndc(), 2, 4);
+    let (f, layout, params) = field(test_ndc(), 2, 4);
     let mut ctx = Ctx::default();
     f.density(&params, Points { pos: &pos[3..], dirs: &[0.0; 6], image: &[0, 1] }, &mut ctx);
     f.color(&params, &[0.0, 0.0, 1.0, 0.0, 1.0, 0.0], &mut ctx);

@@ -12,15 +12,16 @@
 
 use super::capture::{density_activation, to_grid};
 use super::space::SpaceMap;
-use crate::engine::nn::hashgrid::{FEATURES, HalfTable, HashGrid, HashGridConfig, sanitize};
+use crate::engine::nn::hashgrid::{HalfTable, HashGrid, HashGridConfig};
 use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward};
 use crate::engine::rng::Rng;
 
-/// A proposal network: hash grid, one hidden ReLU layer, one density.
 /// Most grid levels [`ProposalField::density`]'s fused render pass keeps in
 /// registers (more: the pass over all points, as training's).
+#[cfg(target_arch = "x86_64")]
 const FUSED_LEVELS: usize = 16;
 
+/// A proposal network: hash grid, one hidden ReLU layer, one density.
 pub struct ProposalField {
     space: SpaceMap,
     grid: HashGrid,
@@ -144,7 +145,6 @@ impl ProposalField {
         }
     }
 
-    /// Densities of the last pass, `[n]`.
     /// [`Self::density`] into `sigma` of the points whose grid coordinates
     /// are `unit` (`to_grid`'s, with its `mask`), from the half table
     /// `table`, eight at a time.
@@ -156,6 +156,8 @@ impl ProposalField {
     #[target_feature(enable = "avx2,fma,f16c")]
     unsafe fn density_fused(&self, params: &[f32], table: &HalfTable, unit: &[f32], mask: &[f32], sigma: &mut [f32]) {
         use std::arch::x86_64::*;
+
+        use crate::engine::nn::hashgrid::{FEATURES, sanitize};
         let n = sigma.len();
         let (inputs, hidden) = (self.l1.inputs, self.l1.outputs);
         assert!(unit.len() >= 3 * n && inputs == FEATURES * self.grid.levels() && inputs <= 2 * FUSED_LEVELS);
@@ -196,6 +198,7 @@ impl ProposalField {
         }
     }
 
+    /// Densities of the last pass, `[n]`.
     pub fn sigma<'c>(&self, ctx: &'c ProposalCtx) -> &'c [f32] {
         &ctx.sigma[..ctx.n]
     }
@@ -318,20 +321,10 @@ mod tests {
     /// counts that leave a partial group of 8, and nothing at 0 points.
     #[test]
     fn the_fused_render_pass_matches_the_staged_one() {
-        use crate::engine::fields::space::{NdcCamera, NdcFrame};
-        let ndc = NdcCamera {
-            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            centre: [0.0, 0.0, 0.0],
-            near: 0.5,
-            fx: 40.0,
-            fy: 40.0,
-            width: 64,
-            height: 48,
-        };
         let spaces = [
             SpaceMap::Contract { norm: Norm::Linf },
             SpaceMap::Contract { norm: Norm::L2 },
-            SpaceMap::Ndc(NdcFrame::new(ndc).unwrap()),
+            crate::engine::fields::space::test_ndc(),
         ];
         let grid = HashGridConfig { levels: 5, log2_table: 10, base_resolution: 4, finest_resolution: 64 };
         for space in spaces {

@@ -428,6 +428,22 @@ impl SpaceMap {
     }
 }
 
+/// For tests: NDC of a 64x48 forward-facing camera at the origin looking
+/// down -z (near 0.5, focal 40).
+#[cfg(test)]
+pub(crate) fn test_ndc() -> SpaceMap {
+    let camera = NdcCamera {
+        rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        centre: [0.0, 0.0, 0.0],
+        near: 0.5,
+        fx: 40.0,
+        fy: 40.0,
+        width: 64,
+        height: 48,
+    };
+    SpaceMap::Ndc(NdcFrame::new(camera).unwrap())
+}
+
 #[cfg(test)]
 #[path = "space_tests.rs"]
 mod tests;

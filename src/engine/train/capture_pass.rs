@@ -189,6 +189,8 @@ fn run(
         return Ok(stats);
     }
     let (proposals, params) = (nets.proposals, nets.params);
+    // The interlevel loss reads every proposal weight: none may be dropped.
+    debug_assert_eq!(buf.levels.early_stop(), 0.0, "a training pass with rendering's early stop");
     stats.proposal_samples =
         buf.levels.place(proposals, params, &buf.rays, &buf.warps, settings.intervals, placement, &buf.index)?;
     main_field(nets, settings, rays, buf, &mut stats, grads)?;
