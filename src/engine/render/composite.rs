@@ -28,6 +28,40 @@ pub fn optical_depth(sigma: f32, delta: f32) -> f32 {
     if delta <= 0.0 || sigma <= 0.0 || sigma.is_nan() { 0.0 } else { sigma * delta }
 }
 
+/// The transmittance along a ray, interval by interval: the weights of
+/// [`composite_with`], which rendering's proposal levels also take in
+/// rounds (`train::capture_levels`), resuming where a round ended.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Transmittance {
+    /// Optical depth so far.
+    tau: f32,
+    trans: f32,
+}
+
+impl Default for Transmittance {
+    fn default() -> Self {
+        Self { tau: 0.0, trans: 1.0 }
+    }
+}
+
+impl Transmittance {
+    /// The transmittance before the next interval.
+    pub fn value(&self) -> f32 {
+        self.trans
+    }
+
+    /// The weight of the next interval (density `sigma`, length `delta`);
+    /// an `opaque` one takes all the transmittance left.
+    #[inline]
+    pub fn step(&mut self, sigma: f32, delta: f32, opaque: bool) -> f32 {
+        self.tau += optical_depth(sigma, delta);
+        let next = if opaque { 0.0 } else { (-self.tau).exp() };
+        let w = self.trans - next;
+        self.trans = next;
+        w
+    }
+}
+
 /// What compositing one ray produced.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Composite {
@@ -201,24 +235,21 @@ pub fn composite_with(
     let n = s.len();
     InputError::check_len("weights", n, weights.len())?;
     let mut out = Composite { used: n, ..Default::default() };
-    let mut tau = 0.0f32; // optical depth so far
-    let mut trans = 1.0f32;
+    let mut along = Transmittance::default();
     for i in 0..n {
-        if trans < opts.min_transmittance {
+        if along.value() < opts.min_transmittance {
             out.used = i;
             weights[i..n].fill(0.0);
             break;
         }
-        tau += optical_depth(s.sigma[i], s.delta[i]);
-        let next = if opts.opaque_last && i + 1 == n { 0.0 } else { (-tau).exp() };
-        let w = trans - next;
+        let w = along.step(s.sigma[i], s.delta[i], opts.opaque_last && i + 1 == n);
         weights[i] = w;
         for c in 0..3 {
             out.rgb[c] += w * s.rgb[3 * i + c];
         }
         out.depth += w * s.t[i];
-        trans = next;
     }
+    let trans = along.value();
     out.opacity = 1.0 - trans;
     for c in 0..3 {
         out.rgb[c] += trans * opts.background[c];

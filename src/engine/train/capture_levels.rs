@@ -18,7 +18,7 @@ use crate::engine::fields::proposal::{ProposalCtx, ProposalField};
 use crate::engine::geometry::math::Ray;
 use crate::engine::nn::hashgrid::HalfTable;
 use crate::engine::render::InputError;
-use crate::engine::render::composite::{CompositeOptions, RaySamples, composite_with, optical_depth};
+use crate::engine::render::composite::{CompositeOptions, RaySamples, Transmittance, composite_with};
 use crate::engine::rng::Rng;
 use crate::engine::sampling::Samples;
 use crate::engine::sampling::proposal::{
@@ -145,11 +145,10 @@ pub struct Levels {
     /// Transmittance below which a ray's proposal samples further on are
     /// not evaluated (rendering; 0, training's: all are).
     stop_below: f32,
-    /// Rendering in rounds: the rays still going, their optical depth and
-    /// transmittance so far, and a round's sample positions.
+    /// Rendering in rounds: the rays still going, their transmittance so
+    /// far, and a round's sample positions.
     active: Vec<usize>,
-    tau: Vec<f32>,
-    trans: Vec<f32>,
+    along: Vec<Transmittance>,
     round_pos: Vec<f32>,
 }
 
@@ -210,14 +209,12 @@ impl Levels {
                 level.t.push(&self.edges)?;
             }
             pack(rays, &level.t, &mut level.samples)?;
-            if let Some(net) = proposals.get(k)
-                && self.stop_below > 0.0
-            {
-                let ctx = &mut self.ctxs[k];
-                let state = (&mut self.active, &mut self.tau, &mut self.trans);
+            let Some(net) = proposals.get(k) else { continue };
+            let ctx = &mut self.ctxs[k];
+            if self.stop_below > 0.0 {
+                let state = (&mut self.active, &mut self.along);
                 evaluated += in_rounds(net, params, level, ctx, state, &mut self.round_pos, self.stop_below)?;
-            } else if let Some(net) = proposals.get(k) {
-                let ctx = &mut self.ctxs[k];
+            } else {
                 net.density(params, &level.samples.pos, ctx);
                 evaluated += level.samples.len() as u64;
                 level.weights.clear();
@@ -282,7 +279,7 @@ fn in_rounds(
     params: &[f32],
     level: &mut Level,
     ctx: &mut ProposalCtx,
-    (active, tau, trans): (&mut Vec<usize>, &mut Vec<f32>, &mut Vec<f32>),
+    (active, along): (&mut Vec<usize>, &mut Vec<Transmittance>),
     pos: &mut Vec<f32>,
     stop_below: f32,
 ) -> Result<u64, LevelError> {
@@ -297,10 +294,8 @@ fn in_rounds(
     }
     active.clear();
     active.extend(0..rays);
-    tau.clear();
-    tau.resize(rays, 0.0);
-    trans.clear();
-    trans.resize(rays, 1.0);
+    along.clear();
+    along.resize(rays, Transmittance::default());
     let mut evaluated = 0u64;
     for start in (0..n).step_by(PROPOSAL_ROUND) {
         let end = (start + PROPOSAL_ROUND).min(n);
@@ -315,14 +310,11 @@ fn in_rounds(
         for (a, &r) in active.iter().enumerate() {
             let w = &mut level.weights[r * n..(r + 1) * n];
             for j in start..end {
-                tau[r] += optical_depth(sigma[a * k + j - start], m.delta[r * n + j]);
                 // `PROPOSAL_COMPOSITE`: the last interval is opaque.
-                let next = if j + 1 == n { 0.0 } else { (-tau[r]).exp() };
-                w[j] = trans[r] - next;
-                trans[r] = next;
+                w[j] = along[r].step(sigma[a * k + j - start], m.delta[r * n + j], j + 1 == n);
             }
         }
-        active.retain(|&r| trans[r] >= stop_below);
+        active.retain(|&r| along[r].value() >= stop_below);
         if active.is_empty() {
             break;
         }
