@@ -50,7 +50,7 @@ pub struct TrainArgs {
     /// rays to a constant sample budget).
     #[arg(long, default_value_t = DEFAULT_BATCH_RAYS)]
     pub batch_rays: usize,
-    /// Initial learning rate (decays exponentially to a tenth of it).
+    /// Initial learning rate (decays exponentially to a tenth of it; to 0.3 of it for the capture models).
     #[arg(long)]
     pub lr: Option<f32>,
     /// Save a checkpoint every this many seconds of training.
