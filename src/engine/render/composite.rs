@@ -29,8 +29,9 @@ pub fn optical_depth(sigma: f32, delta: f32) -> f32 {
 }
 
 /// The transmittance along a ray, interval by interval: the weights of
-/// [`composite_with`], which rendering's proposal levels also take in
-/// rounds (`train::capture_levels`), resuming where a round ended.
+/// [`composite`] and [`composite_with`], which rendering in rounds
+/// (`render::rounds`, and the proposal levels in `train::capture_levels`)
+/// also takes, resuming where a round ended.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Transmittance {
     /// Optical depth so far.
@@ -89,24 +90,21 @@ pub fn composite(
 ) -> Composite {
     let n = sigma.len();
     let mut out = Composite { used: n, ..Default::default() };
-    let mut tau = 0.0f32; // optical depth so far
-    let mut trans = 1.0f32;
+    let mut along = Transmittance::default();
     for i in 0..n {
-        if trans < min_transmittance {
+        if along.value() < min_transmittance {
             out.used = i;
             weights[i..n].fill(0.0);
             break;
         }
-        tau += optical_depth(sigma[i], delta[i]);
-        let next = (-tau).exp();
-        let w = trans - next;
+        let w = along.step(sigma[i], delta[i], false);
         weights[i] = w;
         for c in 0..3 {
             out.rgb[c] += w * rgb[3 * i + c];
         }
         out.depth += w * t[i];
-        trans = next;
     }
+    let trans = along.value();
     out.opacity = 1.0 - trans;
     for c in 0..3 {
         out.rgb[c] += trans * background[c];

@@ -7,7 +7,7 @@
 //! changes by at most that much); the rest are coloured in one pass at the
 //! end.
 
-use super::composite::optical_depth;
+use super::composite::Transmittance;
 use crate::engine::fields::{Field, Points};
 use crate::engine::models::{BatchStats, RayOutput};
 use crate::engine::sampling::{RaySampler, Samples};
@@ -27,8 +27,8 @@ pub struct RoundSettings {
 /// Where each ray is.
 #[derive(Clone, Copy)]
 struct RayState {
-    /// Optical depth so far.
-    tau: f32,
+    /// Transmittance so far.
+    along: Transmittance,
     /// Weight of the samples left uncoloured.
     dropped: f32,
     live: bool,
@@ -59,8 +59,9 @@ pub fn render_in_rounds<F: Field>(
     out: &mut [RayOutput],
 ) -> BatchStats {
     let mut stats = BatchStats { rays: out.len() as u64, ..Default::default() };
-    let mut state: Vec<RayState> =
-        (0..out.len()).map(|r| RayState { tau: 0.0, dropped: 0.0, live: sampler.has_samples(r) }).collect();
+    let mut state: Vec<RayState> = (0..out.len())
+        .map(|r| RayState { along: Transmittance::default(), dropped: 0.0, live: sampler.has_samples(r) })
+        .collect();
     let mut kept = Kept::default();
     let mut owners = Vec::new();
     loop {
@@ -118,14 +119,12 @@ fn composite_round<F: Field>(
     for (&r, &(o, n)) in owners.iter().zip(&samples.spans) {
         let st = &mut state[r];
         for i in o..o + n {
-            let trans = (-st.tau).exp();
-            if trans < settings.min_transmittance {
+            if st.along.value() < settings.min_transmittance {
                 st.live = false;
                 skipped += (o + n - i) as u64;
                 break;
             }
-            st.tau += optical_depth(sigma[i], samples.delta[i]);
-            let w = trans - (-st.tau).exp();
+            let w = st.along.step(sigma[i], samples.delta[i], false);
             if st.dropped + w <= settings.max_dropped_weight {
                 // Nearly empty space: its colour cannot matter.
                 st.dropped += w;
@@ -137,7 +136,7 @@ fn composite_round<F: Field>(
             field.save_row(ctx, i, &mut kept.rows);
             kept.dirs.extend_from_slice(&samples.dirs[3 * i..3 * i + 3]);
         }
-        if (-st.tau).exp() < settings.min_transmittance {
+        if st.along.value() < settings.min_transmittance {
             st.live = false;
         }
     }
@@ -168,7 +167,7 @@ fn finish<F: Field>(
         }
     }
     for (o, st) in out.iter_mut().zip(state) {
-        let trans = (-st.tau).exp();
+        let trans = st.along.value();
         o.opacity = 1.0 - trans;
         for ch in 0..3 {
             o.rgb[ch] += trans * background[ch];
