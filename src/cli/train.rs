@@ -32,7 +32,7 @@ pub struct TrainArgs {
     /// its reason are printed), `instant` (hash grid, fast), `nerf` (the
     /// classic model of the paper) or `capture` (real photographs); or a
     /// preset: `instant-tiny`, `nerf-tiny`, `capture-tiny` (small, for
-    /// previews), `capture-360` (capture with a larger hash table, auto's
+    /// previews), `capture-360` (capture with a larger, finer hash grid, auto's
     /// choice when the cameras go all around). With --resume, `auto`
     /// continues the checkpoint's model.
     #[arg(long, default_value = "auto")]
@@ -175,6 +175,9 @@ fn describe(a: &TrainArgs, session: &Session<'_>, ds: &Dataset, threads: usize) 
     );
     if let Some(m) = describe_masks(ds) {
         eprintln!("{m}");
+    }
+    if let Some(interval) = model.as_any().downcast_ref::<CaptureModel>().and_then(CaptureModel::ray_interval) {
+        eprintln!("{interval}");
     }
     if let Some(c) = ModelConfig::of_model(model) {
         let e = estimate::training(&c, DataSize::of(ds), threads);

@@ -8,7 +8,9 @@
 //! the pose is inverted and its y and z axes flipped. Photos COLMAP did not
 //! register are left out with a warning. The scene box holds the cameras
 //! and the sparse points between their 2nd and 98th percentiles on each
-//! axis (a few stray points far away do not blow it up).
+//! axis (a few stray points far away do not blow it up). The near bound is
+//! LLFF's: 0.9 times the nearest depth at which a camera sees the sparse
+//! points ([`near_bound`]).
 
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
@@ -32,6 +34,15 @@ const POINT_PERCENTILES: (f64, f64) = (0.02, 0.98);
 
 /// The box grows by this fraction of its size on every side.
 const BOX_MARGIN: f32 = 0.1;
+
+/// The percentile of each camera's sparse-point depths taken as its
+/// nearest (LLFF's `imgs2poses` takes 0.1% of the points each image sees;
+/// without the tracks, all the points in a camera's frustum count, and a
+/// few strays in front of it are passed over).
+const NEAR_PERCENTILE: f64 = 0.01;
+
+/// The near bound is this fraction of the nearest depth (LLFF's 0.9).
+const NEAR_FRACTION: f32 = 0.9;
 
 /// The folder holding the model, if `root` has one.
 pub fn model_dir(root: &Path) -> Option<PathBuf> {
@@ -76,7 +87,8 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let centre = aabb.centre();
     let cam_dist = frames.iter().map(|f| (f.camera.origin() - centre).norm()).fold(0.0f32, f32::max);
     let far = (aabb.max - aabb.min).norm() + cam_dist;
-    Ok(unsplit(DatasetFormat::Colmap, root, frames, (0.0, far, aabb), opts.background, extra_warnings))
+    let near = near_bound(&frames, &model.points).filter(|&n| n < far).unwrap_or(0.0);
+    Ok(unsplit(DatasetFormat::Colmap, root, frames, (near, far, aabb), opts.background, extra_warnings))
 }
 
 /// The file of each registered image (all must exist), and a warning
@@ -199,6 +211,43 @@ fn scene_box(frames: &[Frame], points: &[[f64; 3]]) -> Aabb {
     }
     let m = (hi - lo) * BOX_MARGIN;
     Aabb { min: lo - m, max: hi + m }
+}
+
+/// 0.9 times the smallest, over the cameras, of the [`NEAR_PERCENTILE`]
+/// of the depths (along the optical axis) of the sparse points in front
+/// of the camera and inside its image; `None` when no camera sees a point.
+fn near_bound(frames: &[Frame], points: &[[f64; 3]]) -> Option<f32> {
+    let mut nearest = f32::INFINITY;
+    let mut depths = Vec::new();
+    for f in frames {
+        let c = &f.camera;
+        let o = c.origin();
+        // The camera's axes in world space: right, up, and the optical axis.
+        let (right, up, axis) = (
+            c.rotate(Vec3::new(1.0, 0.0, 0.0)),
+            c.rotate(Vec3::new(0.0, 1.0, 0.0)),
+            c.rotate(Vec3::new(0.0, 0.0, -1.0)),
+        );
+        depths.clear();
+        for p in points {
+            let q = Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32) - o;
+            let z = q.dot(axis);
+            if !(z > 0.0 && z.is_finite()) {
+                continue;
+            }
+            let u = c.cx + c.fx * q.dot(right) / z;
+            let v = c.cy - c.fy * q.dot(up) / z;
+            if (0.0..c.width as f32).contains(&u) && (0.0..c.height as f32).contains(&v) {
+                depths.push(z);
+            }
+        }
+        if !depths.is_empty() {
+            depths.sort_by(f32::total_cmp);
+            let k = ((depths.len() - 1) as f64 * NEAR_PERCENTILE).round() as usize;
+            nearest = nearest.min(depths[k]);
+        }
+    }
+    (nearest.is_finite() && nearest > 0.0).then_some(NEAR_FRACTION * nearest)
 }
 
 #[cfg(test)]

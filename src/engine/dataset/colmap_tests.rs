@@ -150,3 +150,31 @@ fn corrupt_binary_models_are_errors_at_every_length_and_count() {
     std::fs::write(&p, &bad).unwrap();
     assert!(colmap_model::read(&dir).unwrap_err().to_string().contains("unknown camera model id 99"));
 }
+
+/// The near bound is 0.9 times the nearest depth at which a camera sees
+/// the sparse points: the ball's points lie within 0.65 of the centre, the
+/// nearest camera 3.13 from it, and each camera sees the ring of radius 0.5
+/// up to its nearest side. One stray point just in front of a camera is
+/// passed over; a model without points has no near bound (0, as before).
+#[test]
+fn the_near_bound_is_llffs_from_the_sparse_points_each_camera_sees() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (truth, mut model) = ball_model(root);
+    let near_cam = truth.frames.iter().map(|f| f.camera.origin().norm()).fold(f32::INFINITY, f32::min);
+    assert!((near_cam - 3.13).abs() < 0.01, "{near_cam}");
+    write(&model, &root.join("sparse/0"), true).unwrap();
+    let near = load_dir(root).unwrap().near;
+    assert!(near > 0.9 * (near_cam - 0.65) && near < 0.9 * (near_cam - 0.45), "near {near}");
+
+    // A stray 0.2 in front of the first camera.
+    let c = &truth.frames[0].camera;
+    let stray = c.origin() + c.rotate(Vec3::new(0.0, 0.0, -1.0)) * 0.2;
+    model.points.push([stray.x, stray.y, stray.z].map(f64::from));
+    write(&model, &root.join("sparse/0"), true).unwrap();
+    assert_eq!(load_dir(root).unwrap().near, near);
+
+    model.points.clear();
+    write(&model, &root.join("sparse/0"), true).unwrap();
+    assert_eq!(load_dir(root).unwrap().near, 0.0);
+}

@@ -123,7 +123,7 @@ impl SceneKind {
                     ALL_AROUND_PRESET,
                     format!(
                         "opaque photographs (cameras all around their focus, axes up to {s:.0} deg from their mean): \
-                         the capture model with a larger hash table"
+                         the capture model with a larger, finer hash grid"
                     ),
                 ),
                 (Some(false), Some(s), one_sided) => {
@@ -203,22 +203,24 @@ mod tests {
             c.reason,
             format!(
                 "opaque photographs (cameras all around their focus, axes up to {spread:.0} deg from their mean): \
-                 the capture model with a larger hash table"
+                 the capture model with a larger, finer hash grid"
             )
         );
         // An alpha channel that is opaque everywhere is a photograph.
         let mut ds = photos();
         ds.frames.iter_mut().for_each(|f| f.image.has_alpha = true);
         assert_eq!(choose(&ds).preset, "capture-360");
-        // The preset differs from `capture` in its table alone.
+        // The preset differs from `capture` in its table and finest level alone.
         let (Some(ModelConfig::Capture(wide)), Some(ModelConfig::Capture(plain))) =
             (ModelConfig::preset("capture-360"), ModelConfig::preset("capture"))
         else {
             panic!("both are capture presets")
         };
         assert_eq!((wide.grid.log2_table, plain.grid.log2_table), (18, 16));
+        assert_eq!((wide.grid.finest_resolution, plain.grid.finest_resolution), (4096, 2048));
         let mut same = wide.clone();
         same.grid.log2_table = 16;
+        same.grid.finest_resolution = 2048;
         assert_eq!(same, plain);
     }
 

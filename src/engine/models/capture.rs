@@ -268,6 +268,20 @@ impl CaptureModel {
         CaptureNets { proposals: &self.proposals, field: &self.field, params: &self.params }
     }
 
+    /// Where rays are sampled, for people: `[near, far]` in model units
+    /// (`near` raised to the dataset's near bound with `near_from_data`),
+    /// against the training cameras' distance from their focus.
+    /// `None` with `space: ndc` (its near plane is the NDC camera's).
+    pub fn ray_interval(&self) -> Option<String> {
+        let c = &self.config;
+        (c.space == Space::Contract).then(|| {
+            format!(
+                "rays sampled from {:.3} to {} model units (the training cameras are {} from their focus)",
+                c.near, c.far, c.camera_radius
+            )
+        })
+    }
+
     /// The training images seen so far.
     pub fn seen_images(&self) -> Vec<u32> {
         (0..self.seen.len() as u32).filter(|&i| self.seen[i as usize].load(Ordering::Relaxed)).collect()

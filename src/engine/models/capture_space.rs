@@ -29,13 +29,31 @@ pub fn space_map(config: &CaptureConfig) -> SpaceMap {
 /// `config` ready to build a model for `scene` (as a dataset gives it):
 /// with `space: ndc`, its NDC camera derived by [`ndc_frame`] (replacing
 /// any it had: the scene is the truth at build time); with `contract`, no
-/// camera.
+/// camera, and with `near_from_data` a `near` raised to the dataset's near
+/// bound ([`data_near`]) when that is further (and before `far`). Applying
+/// it to a model's own normalised scene changes nothing.
 pub fn resolve(mut config: CaptureConfig, scene: &Scene) -> Result<CaptureConfig, ModelError> {
     config.ndc_camera = match config.space {
         Space::Ndc => Some(ndc_frame(scene, &config)?),
         Space::Contract => None,
     };
+    if config.space == Space::Contract
+        && config.near_from_data
+        && let Some(near) = data_near(scene, &config)
+        && near > config.near
+        && near < config.far
+    {
+        config.near = near;
+    }
     Ok(config)
+}
+
+/// The dataset's near bound in the model's units (`None` when it has none:
+/// 0, as transforms.json's, or not finite). The scene holds it in its box
+/// normalisation; a scene the model has normalised holds the model's `near`.
+pub fn data_near(scene: &Scene, config: &CaptureConfig) -> Option<f32> {
+    let near = scene.near / scene.scale * capture_scene(scene, config).scale;
+    (near.is_finite() && near > 0.0).then_some(near)
 }
 
 /// Refuses a configuration a saved model cannot be rebuilt from: `space:

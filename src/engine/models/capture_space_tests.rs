@@ -184,3 +184,37 @@ fn the_space_and_its_camera_round_trip_through_json() {
     unknown["space"] = serde_json::json!("sphere");
     assert!(ModelConfig::parse("capture", unknown).unwrap_err().to_string().contains("sphere"));
 }
+
+/// With `near_from_data` (the default) a contraction's rays start at the
+/// dataset's near bound in model units when that is further than `near`:
+/// the ball scene's near of 1 world unit, with its cameras a median
+/// `rig.radius` from their focus, is `camera_radius / rig.radius` model
+/// units. A nearer bound, no bound (transforms.json's 0), the setting off or
+/// NDC leave `near` as set; the model's own normalised scene (what a
+/// checkpoint holds) resolves to the same `near` again.
+#[test]
+fn a_contractions_near_rises_to_the_datasets_near_bound() {
+    let ds = crate::engine::dataset::synthetic::BallScene::default().dataset();
+    let scene = Scene::from_dataset(&ds);
+    let rig = scene.rig.clone().unwrap();
+    let c = CaptureConfig { camera_radius: 0.8, ..CaptureConfig::tiny() };
+    assert!(c.near_from_data && c.near == 0.05);
+    let want = ds.near * c.camera_radius / rig.radius;
+    assert!(want > 0.2 && want < 0.3, "{want} (rig radius {})", rig.radius);
+    let got = resolve(c.clone(), &scene).unwrap();
+    assert!((got.near - want).abs() < 1e-6 * want, "{} vs {want}", got.near);
+    assert_eq!(resolve(got.clone(), &capture_scene(&scene, &got)).unwrap(), got);
+    let model = CaptureModel::new(c.clone(), scene.clone(), 0).unwrap();
+    assert_eq!(model.scene().near, got.near);
+
+    for (config, scene, why) in [
+        (CaptureConfig { near_from_data: false, ..c.clone() }, scene.clone(), "off"),
+        (c.clone(), Scene { near: 0.0, ..scene.clone() }, "no bound"),
+    ] {
+        assert_eq!(resolve(config, &scene).unwrap().near, 0.05, "{why}");
+    }
+    let further = CaptureConfig { near: 0.4, ..c.clone() };
+    assert_eq!(resolve(further, &scene).unwrap().near, 0.4);
+    let fwd = Scene::from_dataset(&forward());
+    assert_eq!(resolve(ndc_tiny(), &fwd).unwrap().near, ndc_tiny().near);
+}
