@@ -9,8 +9,8 @@
 //! register are left out with a warning. The scene box holds the cameras
 //! and the sparse points between their 2nd and 98th percentiles on each
 //! axis (a few stray points far away do not blow it up). The near bound is
-//! LLFF's: 0.9 times the nearest depth at which a camera sees the sparse
-//! points ([`near_bound`]).
+//! 0.9 times the nearest depth at which a camera sees the sparse points, as
+//! NeRF's LLFF loader takes it from `poses_bounds.npy` ([`near_bound`]).
 
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
@@ -36,9 +36,13 @@ const POINT_PERCENTILES: (f64, f64) = (0.02, 0.98);
 const BOX_MARGIN: f32 = 0.1;
 
 /// The percentile of each camera's sparse-point depths taken as its
-/// nearest (LLFF's `imgs2poses` takes 0.1% of the points each image sees;
-/// without the tracks, all the points in a camera's frustum count, and a
-/// few strays in front of it are passed over).
+/// nearest. LLFF's `imgs2poses` takes the 0.1th percentile of the points
+/// each image observes; the model's tracks are not read here, so all the
+/// points in a camera's frustum count, and the 1st percentile passes over
+/// a few more strays in front of it (with fewer than 51 points, the
+/// nearest counts). A small near object with fewer than 1% of a camera's
+/// points may fall in front of that camera's bound; the bound is the
+/// least over all cameras.
 const NEAR_PERCENTILE: f64 = 0.01;
 
 /// The near bound is this fraction of the nearest depth (LLFF's 0.9).
@@ -87,7 +91,7 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
     let centre = aabb.centre();
     let cam_dist = frames.iter().map(|f| (f.camera.origin() - centre).norm()).fold(0.0f32, f32::max);
     let far = (aabb.max - aabb.min).norm() + cam_dist;
-    let near = near_bound(&frames, &model.points).filter(|&n| n < far).unwrap_or(0.0);
+    let near = near_bound(frames.iter().map(|f| &f.camera), &model.points).filter(|&n| n < far).unwrap_or(0.0);
     Ok(unsplit(DatasetFormat::Colmap, root, frames, (near, far, aabb), opts.background, extra_warnings))
 }
 
@@ -216,11 +220,10 @@ fn scene_box(frames: &[Frame], points: &[[f64; 3]]) -> Aabb {
 /// 0.9 times the smallest, over the cameras, of the [`NEAR_PERCENTILE`]
 /// of the depths (along the optical axis) of the sparse points in front
 /// of the camera and inside its image; `None` when no camera sees a point.
-fn near_bound(frames: &[Frame], points: &[[f64; 3]]) -> Option<f32> {
+fn near_bound<'a>(cameras: impl IntoIterator<Item = &'a Camera>, points: &[[f64; 3]]) -> Option<f32> {
     let mut nearest = f32::INFINITY;
     let mut depths = Vec::new();
-    for f in frames {
-        let c = &f.camera;
+    for c in cameras {
         let o = c.origin();
         // The camera's axes in world space: right, up, and the optical axis.
         let (right, up, axis) = (

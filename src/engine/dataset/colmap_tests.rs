@@ -172,9 +172,36 @@ fn the_near_bound_is_llffs_from_the_sparse_points_each_camera_sees() {
     let stray = c.origin() + c.rotate(Vec3::new(0.0, 0.0, -1.0)) * 0.2;
     model.points.push([stray.x, stray.y, stray.z].map(f64::from));
     write(&model, &root.join("sparse/0"), true).unwrap();
-    assert_eq!(load_dir(root).unwrap().near, near);
+    let with_stray = load_dir(root).unwrap().near;
+    assert!(with_stray > 0.9 * (near_cam - 0.65) && with_stray <= near, "near {with_stray}");
 
     model.points.clear();
     write(&model, &root.join("sparse/0"), true).unwrap();
     assert_eq!(load_dir(root).unwrap().near, 0.0);
+}
+
+/// `near_bound` against one camera at the origin looking down -z whose
+/// principal point is on the image's top edge, so only points below its
+/// axis are in the image: points above it, outside the sides, behind the
+/// camera or not finite are passed over, whatever their depth; of the 101
+/// points in view (depths 2.00 to 3.00) the 1st percentile's depth is 2.01.
+#[test]
+fn the_near_bound_counts_only_points_in_a_cameras_image() {
+    let identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]];
+    let camera = Camera { cy: 0.0, ..Camera::from_fov(16, 16, 0.9, identity) };
+    let mut points: Vec<[f64; 3]> = (0..=100).map(|i| [0.0, -0.1, -(2.0 + 0.01 * i as f64)]).collect();
+    let decoys = [[0.0, 0.1, -0.5], [5.0, -0.1, -0.5], [0.0, -0.1, 0.5], [f64::NAN, 0.0, -0.5], [0.0, -5.0, -0.5]];
+    for with_decoys in [false, true] {
+        let mut all = points.clone();
+        if with_decoys {
+            all.extend(decoys);
+        }
+        let near = near_bound([&camera], &all).unwrap();
+        assert!((near - 0.9 * 2.01).abs() < 1e-5, "decoys {with_decoys}: {near}");
+    }
+    // Below the percentile's reach, the nearest point counts.
+    points.truncate(10);
+    assert!((near_bound([&camera], &points).unwrap() - 0.9 * 2.0).abs() < 1e-5);
+    assert_eq!(near_bound([&camera], &decoys), None);
+    assert_eq!(near_bound([&camera], &[]), None);
 }

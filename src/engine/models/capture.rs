@@ -48,7 +48,9 @@ use crate::engine::rng::Rng;
 use crate::engine::sampling::Samples;
 use crate::engine::sampling::proposal::{ProposalRays, Warp};
 use crate::engine::train::capture_levels::Drawn;
-use crate::engine::train::capture_pass::{CaptureBuffers, CaptureNets, PassSettings, capture_pass, samplable};
+use crate::engine::train::capture_pass::{
+    CaptureBuffers, CaptureNets, PassSettings, capture_pass, ray_near, samplable,
+};
 
 /// The kind's name in checkpoints, the API and `--model`.
 pub const KIND: &str = "capture";
@@ -263,6 +265,15 @@ impl CaptureModel {
         s.pass.levels.set_early_stop(early_stop);
     }
 
+    /// [`ray_near`]'s radius: the training cameras' distance from the focus
+    /// in a contraction (rays nearer the focus start nearer); 0 in NDC.
+    fn near_radius(&self) -> f32 {
+        match self.config.space {
+            Space::Contract => self.config.camera_radius,
+            Space::Ndc => 0.0,
+        }
+    }
+
     /// The networks, for passes over them.
     fn nets(&self) -> CaptureNets<'_> {
         CaptureNets { proposals: &self.proposals, field: &self.field, params: &self.params }
@@ -321,6 +332,7 @@ impl CaptureModel {
             intervals: &self.intervals,
             near: self.config.near,
             far: self.config.far,
+            near_radius: self.near_radius(),
             cull: Some(self.config.min_transmittance),
             batch_rays,
             interlevel: self.config.interlevel,
@@ -338,7 +350,7 @@ impl CaptureModel {
         s.valid.clear();
         s.index.clear();
         for (i, r) in rays.iter().enumerate() {
-            match Warp::for_ray(r, self.config.near, self.config.far) {
+            match Warp::for_ray(r, ray_near(r, self.config.near, self.near_radius()), self.config.far) {
                 Ok(w) if samplable(r) => {
                     s.valid.push(i);
                     s.rays.push(*r);

@@ -75,21 +75,26 @@ pub struct CaptureConfig {
     pub camera_radius: f32,
     /// The ray interval in model units (0.05 to 1000). With
     /// `near_from_data`, `near` rises to the dataset's near bound when the
-    /// model is built, and the checkpoint stores the result.
+    /// model is built, and the checkpoint stores the result. With `space:
+    /// contract`, a ray starting nearer the focus than `camera_radius`
+    /// starts nearer in proportion, no nearer than 0.05
+    /// (`capture_pass::ray_near`).
     pub near: f32,
     pub far: f32,
     /// Whether the ray interval starts no nearer than the dataset's near
-    /// bound where it has one (LLFF's `poses_bounds.npy` and a COLMAP
-    /// model's sparse points: 0.9 times the nearest depth a camera sees;
-    /// with `space: contract` only, NDC has its own near plane). On
-    /// (the default): measured on the 2-core VM, `train --steps 4000`,
-    /// gold_cape's held-out PSNR (nearest appearance) rose from 21.16 /
-    /// 21.25 dB (seeds 0 / 1, near 0.05) to 21.36 / 21.47 at near 0.4, and
-    /// fell to 20.85 at 0.6 (the bound is 0.38 there); space near a camera
-    /// that no photo shows anything in is where floaters grow. Off, `near`
-    /// is used as set. Checkpoints from before it read off (their `near`
-    /// is the one they were trained with).
-    #[serde(default)]
+    /// bound where it has one (LLFF's `poses_bounds.npy`, and for a COLMAP
+    /// model 0.9 times the nearest depth at which a camera sees its sparse
+    /// points; with `space: contract` only, NDC has its own near plane).
+    /// It acts when a model is built: `near` is raised then, and a
+    /// checkpoint (or a model's stored configuration) holds the raised
+    /// value. Close-ups keep their subject (`near` above). On by default (also when a configuration omits
+    /// it): measured on the 2-core VM, `train --steps 4000`, gold_cape's
+    /// held-out PSNR (nearest appearance) rose from 21.16 / 21.25 dB (seeds
+    /// 0 / 1, near 0.05) to 21.29 / 21.35 at its bound (0.38 model units);
+    /// near 0.2 gave 21.37 / 21.25, 0.4 21.36 / 21.47, and 0.6 20.85 (it
+    /// cuts into the scene). Space near a camera that no photo shows
+    /// anything in is where floaters grow. Off, `near` is used as set.
+    #[serde(default = "yes")]
     pub near_from_data: bool,
     /// The main hash grid (16 levels, 2^16, 16 to 2048: the contraction
     /// spends most of the cube on the background, so the finest level is

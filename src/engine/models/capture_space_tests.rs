@@ -194,7 +194,9 @@ fn the_space_and_its_camera_round_trip_through_json() {
 /// checkpoint holds) resolves to the same `near` again.
 #[test]
 fn a_contractions_near_rises_to_the_datasets_near_bound() {
-    let ds = crate::engine::dataset::synthetic::BallScene::default().dataset();
+    // A world scale other than 1: the scene's box normalisation differs
+    // from the world's units.
+    let ds = crate::engine::dataset::synthetic::BallScene { scale: 2.5, ..Default::default() }.dataset();
     let scene = Scene::from_dataset(&ds);
     let rig = scene.rig.clone().unwrap();
     let c = CaptureConfig { camera_radius: 0.8, ..CaptureConfig::tiny() };

@@ -261,7 +261,10 @@ mod tests {
     #[test]
     fn a_fit_finds_the_appearance_a_photo_was_taken_with() {
         let ds = dataset();
-        let model = capture(&ds, CaptureConfig::tiny());
+        // The model the figures above were seen on: its random parameters
+        // render other colours when the rays start at the scene's near
+        // bound (the fitted right half then reaches 35.7 dB).
+        let model = capture(&ds, CaptureConfig { near_from_data: false, ..CaptureConfig::tiny() });
         let before = model.params().to_vec();
         let mut frame = ds.frames[0].clone();
         let truth = render_heldout_view(&*model, &frame.camera, ds.background, &RenderOptions { image: Some(3) });

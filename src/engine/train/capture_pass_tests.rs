@@ -231,6 +231,7 @@ fn settings(intervals: &[usize], cull: Option<f32>) -> PassSettings<'_> {
         intervals,
         near: 0.05,
         far: 1000.0,
+        near_radius: 0.0,
         cull,
         batch_rays: 1,
         interlevel: 1.0,
@@ -421,4 +422,19 @@ fn buffers_serve_passes_of_any_shape() {
         assert_eq!(a, b, "{intervals:?}");
         assert!(ga == gb, "{intervals:?}");
     }
+}
+
+/// A ray's near end: `near` from `radius` on, in proportion nearer the
+/// focus, never below the floor; a radius of 0 keeps `near` everywhere.
+#[test]
+fn rays_nearer_the_focus_start_nearer() {
+    let at = |x: f32| Ray { origin: Vec3::new(x, 0.0, 0.0), dir: Vec3::new(-1.0, 0.0, 0.0) };
+    for (x, want) in [(2.0, 0.4), (1.0, 0.4), (0.5, 0.2), (0.25, 0.1), (0.1, NEAR_FLOOR), (0.0, NEAR_FLOOR)] {
+        let got = ray_near(&at(x), 0.4, 1.0);
+        assert!((got - want).abs() < 1e-6, "origin {x}: {got} vs {want}");
+    }
+    assert_eq!(ray_near(&at(0.1), 0.4, 0.0), 0.4);
+    // A near already below the floor is kept.
+    assert_eq!(ray_near(&at(0.0), 0.01, 1.0), 0.01);
+    assert_eq!(ray_near(&at(f32::NAN), 0.4, 1.0), 0.4);
 }
