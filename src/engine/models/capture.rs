@@ -49,7 +49,7 @@ use crate::engine::sampling::Samples;
 use crate::engine::sampling::proposal::{ProposalRays, Warp};
 use crate::engine::train::capture_levels::Drawn;
 use crate::engine::train::capture_pass::{
-    CaptureBuffers, CaptureNets, PassSettings, capture_pass, ray_near, samplable,
+    CaptureBuffers, CaptureNets, PassSettings, RayInterval, capture_pass, samplable,
 };
 
 /// The kind's name in checkpoints, the API and `--model`.
@@ -265,13 +265,15 @@ impl CaptureModel {
         s.pass.levels.set_early_stop(early_stop);
     }
 
-    /// [`ray_near`]'s radius: the training cameras' distance from the focus
-    /// in a contraction (rays nearer the focus start nearer); 0 in NDC.
-    fn near_radius(&self) -> f32 {
-        match self.config.space {
+    /// Where rays are sampled: `[near, far]`, and in a contraction rays
+    /// starting nearer the focus than the training cameras start nearer
+    /// ([`RayInterval::near_of`]); in NDC, `near` for every ray.
+    fn interval(&self) -> RayInterval {
+        let radius = match self.config.space {
             Space::Contract => self.config.camera_radius,
             Space::Ndc => 0.0,
-        }
+        };
+        RayInterval { near: self.config.near, far: self.config.far, radius }
     }
 
     /// The networks, for passes over them.
@@ -330,9 +332,7 @@ impl CaptureModel {
     fn pass_settings(&self, batch_rays: usize) -> PassSettings<'_> {
         PassSettings {
             intervals: &self.intervals,
-            near: self.config.near,
-            far: self.config.far,
-            near_radius: self.near_radius(),
+            interval: self.interval(),
             cull: Some(self.config.min_transmittance),
             batch_rays,
             interlevel: self.config.interlevel,
@@ -349,8 +349,9 @@ impl CaptureModel {
         s.warps.clear();
         s.valid.clear();
         s.index.clear();
+        let interval = self.interval();
         for (i, r) in rays.iter().enumerate() {
-            match Warp::for_ray(r, ray_near(r, self.config.near, self.near_radius()), self.config.far) {
+            match interval.warp(r) {
                 Ok(w) if samplable(r) => {
                     s.valid.push(i);
                     s.rays.push(*r);

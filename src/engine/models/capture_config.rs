@@ -78,7 +78,7 @@ pub struct CaptureConfig {
     /// model is built, and the checkpoint stores the result. With `space:
     /// contract`, a ray starting nearer the focus than `camera_radius`
     /// starts nearer in proportion, no nearer than 0.05
-    /// (`capture_pass::ray_near`).
+    /// (`capture_pass::RayInterval`).
     pub near: f32,
     pub far: f32,
     /// Whether the ray interval starts no nearer than the dataset's near
@@ -87,12 +87,12 @@ pub struct CaptureConfig {
     /// points; with `space: contract` only, NDC has its own near plane).
     /// It acts when a model is built: `near` is raised then, and a
     /// checkpoint (or a model's stored configuration) holds the raised
-    /// value. Close-ups keep their subject (`near` above). On by default (also when a configuration omits
-    /// it): measured on the 2-core VM, `train --steps 4000`, gold_cape's
-    /// held-out PSNR (nearest appearance) rose from 21.16 / 21.25 dB (seeds
-    /// 0 / 1, near 0.05) to 21.29 / 21.35 at its bound (0.38 model units);
-    /// near 0.2 gave 21.37 / 21.25, 0.4 21.36 / 21.47, and 0.6 20.85 (it
-    /// cuts into the scene). Space near a camera that no photo shows
+    /// value. Close-ups keep their subject (`near` above). On by default
+    /// (also when a configuration omits it): measured on the 2-core VM,
+    /// `train --steps 4000`, gold_cape's held-out PSNR (nearest appearance)
+    /// rose from 21.16 / 21.25 dB (seeds 0 / 1, near 0.05) to 21.29 / 21.35
+    /// at its bound (0.38 model units); near 0.2 gave 21.37 / 21.25, 0.4
+    /// 21.36 / 21.47, and 0.6 20.85 (it cuts into the scene). Space near a camera that no photo shows
     /// anything in is where floaters grow. Off, `near` is used as set.
     #[serde(default = "yes")]
     pub near_from_data: bool,

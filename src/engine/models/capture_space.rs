@@ -52,8 +52,14 @@ pub fn resolve(mut config: CaptureConfig, scene: &Scene) -> Result<CaptureConfig
 /// 0, as transforms.json's, or not finite). The scene holds it in its box
 /// normalisation; a scene the model has normalised holds the model's `near`.
 pub fn data_near(scene: &Scene, config: &CaptureConfig) -> Option<f32> {
-    let near = scene.near / scene.scale * capture_scene(scene, config).scale;
+    let near = near_in_model_units(scene, &capture_scene(scene, config));
     (near.is_finite() && near > 0.0).then_some(near)
+}
+
+/// `scene`'s near bound (in its box normalisation) in the units of `model`,
+/// the model's normalisation of it ([`capture_scene`]).
+fn near_in_model_units(scene: &Scene, model: &Scene) -> f32 {
+    scene.near / scene.scale * model.scale
 }
 
 /// Refuses a configuration a saved model cannot be rebuilt from: `space:
@@ -118,8 +124,7 @@ pub fn ndc_frame(scene: &Scene, config: &CaptureConfig) -> Result<NdcFrame, Mode
     let camera = NdcCamera {
         rotation: std::array::from_fn(|i| [s.right[i], s.up[i], back[i]]),
         centre: std::array::from_fn(|i| (s.centre[i] - model.centre[i]) * model.scale),
-        // Scene units: the scene's near is in its box normalisation.
-        near: scene.near / scene.scale * model.scale,
+        near: near_in_model_units(scene, &model),
         fx: focal,
         fy: focal,
         width,

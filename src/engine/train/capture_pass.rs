@@ -40,7 +40,7 @@ use crate::engine::render::composite::{
 };
 use crate::engine::render::loss::l2;
 use crate::engine::render::regularize::{Histogram, Interlevel, distortion};
-use crate::engine::sampling::proposal::Warp;
+use crate::engine::sampling::proposal::{ProposalError, Warp};
 #[cfg(test)]
 use crate::engine::train::capture_levels::Drawn;
 use crate::engine::train::capture_levels::{LevelError, Levels, PROPOSAL_COMPOSITE, Placement};
@@ -60,14 +60,8 @@ pub struct CaptureNets<'a> {
 pub struct PassSettings<'a> {
     /// Intervals per ray at each proposal level, then at the final level.
     pub intervals: &'a [usize],
-    /// The ray interval `[near, far]` in model units (`near` as
-    /// [`ray_near`] shrinks it for rays starting nearer than `near_radius`
-    /// to the focus).
-    pub near: f32,
-    pub far: f32,
-    /// [`ray_near`]'s `radius`: the training cameras' distance from the
-    /// focus (0: `near` for every ray).
-    pub near_radius: f32,
+    /// Where each ray is sampled.
+    pub interval: RayInterval,
     /// Transmittance below which the final samples are dropped after their
     /// densities (`None`: keep them all).
     pub cull: Option<f32>,
@@ -137,20 +131,43 @@ pub struct CaptureBuffers {
     interlevel: Interlevel,
 }
 
-/// The near end of model-space `ray`'s interval: `near` for a ray that
-/// starts at least `radius` from the focus (the origin), and in proportion
-/// to its distance for one nearer, never below `min(near, NEAR_FLOOR)`: a
-/// close-up keeps its subject when `near` was set for the training
-/// cameras' distance (the dataset's near bound). `radius` 0 (or not
-/// finite): `near` for every ray.
-pub fn ray_near(ray: &Ray, near: f32, radius: f32) -> f32 {
-    let d = ray.origin.norm();
-    if radius > 0.0 && radius.is_finite() && d < radius { (near * d / radius).max(near.min(NEAR_FLOOR)) } else { near }
+/// Where a model-space ray is sampled, training and rendering alike: from
+/// its near end ([`RayInterval::near_of`]) to `far`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayInterval {
+    /// `[near, far]` in model units.
+    pub near: f32,
+    pub far: f32,
+    /// The training cameras' distance from the focus (0: `near` for every
+    /// ray).
+    pub radius: f32,
 }
 
-/// The lowest near end [`ray_near`] gives (the capture model's default
-/// `near`).
+/// The lowest near end [`RayInterval::near_of`] gives (the capture
+/// model's default `near`).
 pub const NEAR_FLOOR: f32 = 0.05;
+
+impl RayInterval {
+    /// The near end of `ray`'s interval: `near` for a ray that starts at
+    /// least `radius` from the focus (the origin), and in proportion to its
+    /// distance for one nearer, never below `min(near, NEAR_FLOOR)`: a
+    /// close-up keeps its subject when `near` was set for the training
+    /// cameras' distance (the dataset's near bound). `radius` 0 (or not
+    /// finite): `near` for every ray.
+    pub fn near_of(&self, ray: &Ray) -> f32 {
+        let (near, radius, d) = (self.near, self.radius, ray.origin.norm());
+        if radius > 0.0 && radius.is_finite() && d < radius {
+            (near * d / radius).max(near.min(NEAR_FLOOR))
+        } else {
+            near
+        }
+    }
+
+    /// `ray`'s ray-distance warp over its interval.
+    pub fn warp(&self, ray: &Ray) -> Result<Warp, ProposalError> {
+        Warp::for_ray(ray, self.near_of(ray), self.far)
+    }
+}
 
 /// Whether a model-space ray can be sampled: a finite origin and a finite,
 /// non-zero direction. The others see only the background.
@@ -198,8 +215,7 @@ fn run(
             buf.corrections.push(correction);
             // The uncorrected ray's warp: sample distances do not depend
             // on the pose.
-            let near = ray_near(&r.ray, settings.near, settings.near_radius);
-            buf.warps.push(Warp::for_ray(&r.ray, near, settings.far)?);
+            buf.warps.push(settings.interval.warp(&r.ray)?);
             buf.index.push(r.index);
         } else {
             // The background alone: in the loss, without a gradient.

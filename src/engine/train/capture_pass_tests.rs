@@ -229,9 +229,7 @@ fn rays(count: usize) -> Vec<TrainRay> {
 fn settings(intervals: &[usize], cull: Option<f32>) -> PassSettings<'_> {
     PassSettings {
         intervals,
-        near: 0.05,
-        far: 1000.0,
-        near_radius: 0.0,
+        interval: RayInterval { near: 0.05, far: 1000.0, radius: 0.0 },
         cull,
         batch_rays: 1,
         interlevel: 1.0,
@@ -429,12 +427,17 @@ fn buffers_serve_passes_of_any_shape() {
 #[test]
 fn rays_nearer_the_focus_start_nearer() {
     let at = |x: f32| Ray { origin: Vec3::new(x, 0.0, 0.0), dir: Vec3::new(-1.0, 0.0, 0.0) };
+    let interval = |near: f32, radius: f32| RayInterval { near, far: 1000.0, radius };
     for (x, want) in [(2.0, 0.4), (1.0, 0.4), (0.5, 0.2), (0.25, 0.1), (0.1, NEAR_FLOOR), (0.0, NEAR_FLOOR)] {
-        let got = ray_near(&at(x), 0.4, 1.0);
+        let got = interval(0.4, 1.0).near_of(&at(x));
         assert!((got - want).abs() < 1e-6, "origin {x}: {got} vs {want}");
     }
-    assert_eq!(ray_near(&at(0.1), 0.4, 0.0), 0.4);
+    assert_eq!(interval(0.4, 0.0).near_of(&at(0.1)), 0.4);
     // A near already below the floor is kept.
-    assert_eq!(ray_near(&at(0.0), 0.01, 1.0), 0.01);
-    assert_eq!(ray_near(&at(f32::NAN), 0.4, 1.0), 0.4);
+    assert_eq!(interval(0.01, 1.0).near_of(&at(0.0)), 0.01);
+    assert_eq!(interval(0.4, 1.0).near_of(&at(f32::NAN)), 0.4);
+    // The warp spans the ray's own interval.
+    let w = interval(0.4, 1.0).warp(&at(0.5)).unwrap();
+    assert_eq!((w.to_s(0.2), w.to_s(1000.0)), (0.0, 1.0));
+    assert!(w.to_s(0.21) > 0.0);
 }
