@@ -92,8 +92,9 @@ pub struct CaptureConfig {
     /// `train --steps 4000`, gold_cape's held-out PSNR (nearest appearance)
     /// rose from 21.16 / 21.25 dB (seeds 0 / 1, near 0.05) to 21.29 / 21.35
     /// at its bound (0.38 model units); near 0.2 gave 21.37 / 21.25, 0.4
-    /// 21.36 / 21.47, and 0.6 20.85 (it cuts into the scene). Space near a camera that no photo shows
-    /// anything in is where floaters grow. Off, `near` is used as set.
+    /// 21.36 / 21.47, and 0.6 20.85 (it cuts into the scene). Space near a
+    /// camera that no photo shows anything in is where floaters grow. Off,
+    /// `near` is used as set.
     #[serde(default = "yes")]
     pub near_from_data: bool,
     /// The main hash grid (16 levels, 2^16, 16 to 2048: the contraction
