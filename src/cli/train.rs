@@ -32,9 +32,9 @@ pub struct TrainArgs {
     /// its reason are printed), `instant` (hash grid, fast), `nerf` (the
     /// classic model of the paper) or `capture` (real photographs); or a
     /// preset: `instant-tiny`, `nerf-tiny`, `capture-tiny` (small, for
-    /// previews), `capture-360` (capture with a larger, finer hash grid, auto's
-    /// choice when the cameras go all around). With --resume, `auto`
-    /// continues the checkpoint's model.
+    /// previews), `capture-360` (capture with a larger, finer hash grid and
+    /// a stronger distortion loss, auto's choice when the cameras go all
+    /// around). With --resume, `auto` continues the checkpoint's model.
     #[arg(long, default_value = "auto")]
     pub model: String,
     /// Training time budget in seconds (training only, not saving).

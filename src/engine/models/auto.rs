@@ -123,7 +123,7 @@ impl SceneKind {
                     ALL_AROUND_PRESET,
                     format!(
                         "opaque photographs (cameras all around their focus, axes up to {s:.0} deg from their mean): \
-                         the capture model with a larger, finer hash grid"
+                         the capture model with a larger, finer hash grid and a stronger distortion loss"
                     ),
                 ),
                 (Some(false), Some(s), one_sided) => {
@@ -203,14 +203,15 @@ mod tests {
             c.reason,
             format!(
                 "opaque photographs (cameras all around their focus, axes up to {spread:.0} deg from their mean): \
-                 the capture model with a larger, finer hash grid"
+                 the capture model with a larger, finer hash grid and a stronger distortion loss"
             )
         );
         // An alpha channel that is opaque everywhere is a photograph.
         let mut ds = photos();
         ds.frames.iter_mut().for_each(|f| f.image.has_alpha = true);
         assert_eq!(choose(&ds).preset, "capture-360");
-        // The preset differs from `capture` in its table and finest level alone.
+        // The preset differs from `capture` in its table, finest level and
+        // distortion weight alone.
         let (Some(ModelConfig::Capture(wide)), Some(ModelConfig::Capture(plain))) =
             (ModelConfig::preset("capture-360"), ModelConfig::preset("capture"))
         else {
@@ -218,9 +219,11 @@ mod tests {
         };
         assert_eq!((wide.grid.log2_table, plain.grid.log2_table), (18, 16));
         assert_eq!((wide.grid.finest_resolution, plain.grid.finest_resolution), (4096, 2048));
+        assert_eq!((wide.distortion, plain.distortion), (0.004, 0.002));
         let mut same = wide.clone();
         same.grid.log2_table = 16;
         same.grid.finest_resolution = 2048;
+        same.distortion = 0.002;
         assert_eq!(same, plain);
     }
 
