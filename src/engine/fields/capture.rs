@@ -19,7 +19,7 @@
 use super::space::SpaceMap;
 use super::{Field, Points};
 use crate::engine::nn::appearance::{Appearance, AppearanceBatch};
-use crate::engine::nn::hashgrid::{HalfTable, HashGrid, HashGridConfig};
+use crate::engine::nn::hashgrid::{GridRecord, HalfTable, HashGrid, HashGridConfig};
 use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
 use crate::engine::nn::sh;
 use crate::engine::rng::Rng;
@@ -108,6 +108,10 @@ pub struct Ctx {
     d_b: Vec<f32>,
     d_geo: Vec<f32>,
     d_enc: Vec<f32>,
+    /// Whether [`Field::backward`] records the grid's backward pass into
+    /// `record` instead of scattering it ([`CaptureField::begin_deferring`]).
+    defer: bool,
+    record: GridRecord,
     // input gradients (`CaptureField::backward_with_input_grads` only)
     d_shd: Vec<f32>,
     d_unit: Vec<f32>,
@@ -345,6 +349,36 @@ impl CaptureField {
         }
     }
 
+    /// From now on [`Field::backward`] with `ctx` records the hash grid's
+    /// part (its points and output gradients) instead of adding it to the
+    /// gradient, into `record`'s buffers (cleared; `record` gets `ctx`'s
+    /// idle ones), until [`CaptureField::end_deferring`]. Passes with input
+    /// gradients (pose refinement) still scatter at once.
+    pub fn begin_deferring(&self, ctx: &mut Ctx, record: &mut GridRecord) {
+        std::mem::swap(&mut ctx.record, record);
+        ctx.record.clear();
+        ctx.defer = true;
+    }
+
+    /// Ends [`CaptureField::begin_deferring`]: `record` gets what was
+    /// recorded, for [`CaptureField::scatter_grid`].
+    pub fn end_deferring(&self, ctx: &mut Ctx, record: &mut GridRecord) {
+        ctx.defer = false;
+        std::mem::swap(&mut ctx.record, record);
+    }
+
+    /// Adds the hash grid's gradient of the passes `records` hold into
+    /// `grads` ([`HashGrid::scatter`]).
+    pub fn scatter_grid(&self, records: &[GridRecord], grads: &mut [f32]) {
+        self.grid.scatter(records, grads);
+    }
+
+    /// The parameters of the hash grid (those whose gradient
+    /// [`CaptureField::begin_deferring`] defers).
+    pub fn grid_params(&self) -> std::ops::Range<usize> {
+        self.grid.params.clone()
+    }
+
     /// dL/d(position) (model space) and dL/d(direction), `[n x 3]` each, of
     /// the last [`CaptureField::backward_with_input_grads`].
     pub fn input_grads<'c>(&self, ctx: &'c Ctx) -> (&'c [f32], &'c [f32]) {
@@ -406,7 +440,11 @@ impl CaptureField {
         size(&mut ctx.d_enc, n * gw);
         self.d1.backward(p, &[(&ctx.enc, gw)], &ctx.d_a, n, grads, &mut [Some(&mut ctx.d_enc)]);
         let Some(dirs) = dirs else {
-            self.grid.backward(&ctx.unit[..n * 3], &ctx.d_enc, grads);
+            if ctx.defer {
+                self.grid.record(&ctx.unit[..n * 3], &ctx.d_enc, &mut ctx.record);
+            } else {
+                self.grid.backward(&ctx.unit[..n * 3], &ctx.d_enc, grads);
+            }
             return;
         };
         self.grid.backward_with_input_grad(p, &ctx.unit[..n * 3], &ctx.d_enc, grads, &mut ctx.d_unit);

@@ -39,7 +39,7 @@ use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::geometry::so3;
 use crate::engine::nn::adam::LrGroup;
-use crate::engine::nn::hashgrid::HalfTable;
+use crate::engine::nn::hashgrid::{GridRecord, HalfTable};
 use crate::engine::nn::linear::ParamLayout;
 use crate::engine::nn::pose::PoseRefine;
 use crate::engine::nn::pose_report::{Gauge, PoseReport};
@@ -395,12 +395,15 @@ impl CaptureModel {
         stats.skipped = r.skipped;
         stats
     }
-}
-
-impl Model for CaptureModel {
-    super::model_accessors!(params_mut: render_tables);
-
-    fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
+    /// [`Model::train_rays`]; with `record`, the main grid's gradient is
+    /// recorded there instead ([`Model::train_rays_deferred`]).
+    fn train(
+        &self,
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        mut record: Option<&mut GridRecord>,
+    ) -> BatchStats {
         for r in rays {
             if let Some(flag) = self.seen.get(r.image as usize) {
                 flag.store(true, Ordering::Relaxed);
@@ -420,6 +423,9 @@ impl Model for CaptureModel {
         let settings = self.pass_settings(ctx.batch_rays);
         with_scratch(|s| {
             self.read_grids_from(s, &RenderTables::default(), 0.0);
+            if let Some(r) = record.as_deref_mut() {
+                self.field.begin_deferring(&mut s.pass.ctx, r);
+            }
             for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
                 let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);
                 let p = capture_pass(self.nets(), &settings, chunk, &mut placement, &mut s.pass, grads);
@@ -432,8 +438,43 @@ impl Model for CaptureModel {
                     rays: p.rays,
                 });
             }
+            if let Some(r) = record {
+                self.field.end_deferring(&mut s.pass.ctx, r);
+            }
         });
         stats
+    }
+}
+
+impl Model for CaptureModel {
+    super::model_accessors!(params_mut: render_tables);
+
+    fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
+        self.train(rays, ctx, grads, None)
+    }
+
+    /// The main grid's table, without pose refinement (whose passes need
+    /// the grid's input gradient at once).
+    fn deferred_params(&self) -> Option<std::ops::Range<usize>> {
+        self.pose.is_none().then(|| self.field.grid_params())
+    }
+
+    fn train_rays_deferred(
+        &self,
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        record: &mut GridRecord,
+    ) -> BatchStats {
+        record.clear();
+        let record = self.deferred_params().map(|_| record);
+        self.train(rays, ctx, grads, record)
+    }
+
+    fn scatter_deferred(&self, records: &[GridRecord], grads: &mut [f32]) {
+        if self.deferred_params().is_some() {
+            self.field.scatter_grid(records, grads);
+        }
     }
 
     fn after_step(&mut self, step: u64, _seed: u64, _stats: &BatchStats) {

@@ -388,6 +388,12 @@ impl ModelSpec for CaptureConfig {
         // gradients, full weights and kept index.
         let main = sample + (3 + gw + h + g + 1 + sh::WIDTH as u64 + 2 * h + 3) + (3 + 2 * h + g + gw) + 2 + 8 + pose;
         per_ray += self.samples as u64 * main;
-        Footprint { params: ps.len as u64, occupancy_cells: 0, activations: rays * per_ray }
+        // The main grid's deferred backward (without pose refinement): the
+        // part's samples' positions and encoding gradients, in the record
+        // the trainer holds and the one the thread's context keeps, each up
+        // to twice what it was given.
+        let part_rays = (self.rays_per_step as u64).div_ceil(threads.max(1));
+        let record = if self.pose_refine { 0 } else { 2 * 2 * part_rays * self.samples as u64 * (3 + gw) };
+        Footprint { params: ps.len as u64, occupancy_cells: 0, activations: rays * per_ray + record }
     }
 }

@@ -376,3 +376,56 @@ fn centres_drift_and_heldout_poses() {
     let missing = fresh.restore_state(only_seen, 3).unwrap_err();
     assert!(missing.to_string().contains("pose.centres"), "{missing}");
 }
+
+/// A deferred part leaves the main grid's gradient out of its buffer and
+/// in its record; scattered, the record gives the grid what `train_rays`
+/// gives, bit for bit for one part (several chunks of rays), and within
+/// rounding for parts summed. The other parameters' gradients are the same
+/// bits, and the statistics are equal. With pose refinement nothing is
+/// deferred.
+#[test]
+fn deferred_grid_gradients_scatter_to_what_train_rays_gives() {
+    let m = CaptureModel::new(CaptureConfig { chunk_rays: 4, ..tiny() }, scene(), 0).unwrap();
+    let m = CaptureModel::from_parts(m.config.clone(), m.scene.clone(), perturbed(6).params).unwrap();
+    let grid = m.deferred_params().expect("the main grid is deferred");
+    assert_eq!(grid, m.field.grid_params());
+    let train = rays(&m, 11);
+    let ctx = StepCtx { seed: 2, step: 5, batch_rays: 11 };
+    let n = m.params.len();
+    let mut direct = vec![0.0f32; n];
+    let stats = m.train_rays(&train, &ctx, &mut direct);
+    let mut part = vec![0.0f32; n];
+    let mut record = GridRecord::default();
+    let deferred_stats = m.train_rays_deferred(&train, &ctx, &mut part, &mut record);
+    assert_eq!(stats, deferred_stats);
+    assert!(record.points() > 0);
+    assert!(part[grid.clone()].iter().all(|v| *v == 0.0), "the grid's gradient is not in the buffer");
+    assert!(direct[grid.clone()].iter().filter(|v| **v != 0.0).count() > 50);
+    m.scatter_deferred(std::slice::from_ref(&record), &mut part);
+    assert!(direct.iter().zip(&part).all(|(a, b)| a.to_bits() == b.to_bits()), "one part: the same bits");
+
+    // Two parts: their buffers summed against one buffer and both records.
+    let (a, b) = train.split_at(6);
+    let (mut ga, mut gb) = (vec![0.0f32; n], vec![0.0f32; n]);
+    m.train_rays(a, &ctx, &mut ga);
+    m.train_rays(b, &ctx, &mut gb);
+    let mut records = vec![GridRecord::default(); 2];
+    let (mut da, mut db) = (vec![0.0f32; n], vec![0.0f32; n]);
+    m.train_rays_deferred(a, &ctx, &mut da, &mut records[0]);
+    m.train_rays_deferred(b, &ctx, &mut db, &mut records[1]);
+    m.scatter_deferred(&records, &mut da);
+    let scale = ga.iter().chain(&gb).fold(0.0f32, |s, v| s.max(v.abs()));
+    for i in 0..n {
+        let (want, got) = (ga[i] + gb[i], da[i] + db[i]);
+        assert!((want - got).abs() <= 1e-6 * scale, "parameter {i}: {got} against {want}");
+    }
+
+    // Pose refinement: no deferral, the record stays empty.
+    let posed = CaptureModel::new(CaptureConfig { pose_refine: true, ..tiny() }, scene(), 1).unwrap();
+    assert_eq!(posed.deferred_params(), None);
+    let (mut g1, mut g2) = (vec![0.0f32; posed.params.len()], vec![0.0f32; posed.params.len()]);
+    posed.train_rays(&train, &ctx, &mut g1);
+    posed.train_rays_deferred(&train, &ctx, &mut g2, &mut record);
+    assert_eq!(record.points(), 0);
+    assert!(g1.iter().zip(&g2).all(|(a, b)| a.to_bits() == b.to_bits()));
+}

@@ -50,6 +50,7 @@ pub(crate) use model_accessors;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::nn::adam::LrGroup;
+use crate::engine::nn::hashgrid::GridRecord;
 
 /// A training ray in model space with its target colour.
 #[derive(Clone, Copy, Debug)]
@@ -102,7 +103,7 @@ pub struct StepCtx {
 }
 
 /// Sums over a part of a batch.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct BatchStats {
     /// Sum over rays of the mean squared colour error of the final pass.
     pub sq_err: f64,
@@ -162,6 +163,31 @@ pub trait Model: Send + Sync {
     /// Accumulates the gradient of the batch loss over `rays` (one part of a
     /// batch) into `grads` and returns the part's statistics.
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
+    /// The parameters whose gradient [`Model::train_rays_deferred`] leaves
+    /// to [`Model::scatter_deferred`] (`None`: it defers nothing, the
+    /// default).
+    fn deferred_params(&self) -> Option<std::ops::Range<usize>> {
+        None
+    }
+    /// [`Model::train_rays`], except that the gradient of
+    /// [`Model::deferred_params`] is not added to `grads` but kept in
+    /// `record` (cleared first): one thread's part of a step, whose table
+    /// gradients one [`Model::scatter_deferred`] then adds for all parts at
+    /// once. The default defers nothing.
+    fn train_rays_deferred(
+        &self,
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        record: &mut GridRecord,
+    ) -> BatchStats {
+        record.clear();
+        self.train_rays(rays, ctx, grads)
+    }
+    /// Adds the deferred gradients of `records` (one per part of a step)
+    /// into `grads`: the same sum as [`Model::train_rays`] would have given
+    /// each part's buffer, up to rounding.
+    fn scatter_deferred(&self, _records: &[GridRecord], _grads: &mut [f32]) {}
     /// Runs after each optimisation step (`step` is the number of steps
     /// done), e.g. to update an occupancy grid.
     fn after_step(&mut self, _step: u64, _seed: u64, _stats: &BatchStats) {}

@@ -2,7 +2,9 @@
 //! `F = 2` features, level `l` a grid of resolution `N_l = floor(N_min b^l)`,
 //! stored densely when `(N_l + 1)^3` fits the table and hashed otherwise;
 //! trilinear interpolation of the 8 corners. The backward pass scatters
-//! gradients into a (per-thread) gradient buffer; `input_grad` gives the
+//! gradients into a (per-thread) gradient buffer, or is recorded and
+//! scattered later for all threads at once, level by level
+//! (`hashgrid_scatter.rs`); `input_grad` gives the
 //! gradient with respect to the points, for position gradients (camera
 //! pose refinement) through the encoding.
 //!
@@ -352,9 +354,9 @@ impl HashGrid {
         let (pts, dout) = (&pts[3 * done..], &dout[done * self.width()..]);
         for (l, level) in self.levels.iter().enumerate() {
             if level.dense {
-                self.backward_level::<true>(l, level, pts, dout, grads);
+                self.backward_level::<true>(l, level, pts, dout, grads, 0);
             } else {
-                self.backward_level::<false>(l, level, pts, dout, grads);
+                self.backward_level::<false>(l, level, pts, dout, grads, 0);
             }
         }
     }
@@ -384,8 +386,18 @@ impl HashGrid {
         0
     }
 
+    /// Scatters level `l`'s gradients of `pts` into `grads`, which holds the
+    /// parameters from index `base` on (0: the whole buffer).
     #[inline(always)]
-    fn backward_level<const DENSE: bool>(&self, l: usize, level: &Level, pts: &[f32], dout: &[f32], grads: &mut [f32]) {
+    fn backward_level<const DENSE: bool>(
+        &self,
+        l: usize,
+        level: &Level,
+        pts: &[f32],
+        dout: &[f32],
+        grads: &mut [f32],
+        base: usize,
+    ) {
         // Grouped with prefetches, as the forward pass.
         let mut idx = [[0usize; 8]; GROUP];
         let mut wts = [[0f32; 8]; GROUP];
@@ -409,12 +421,13 @@ impl HashGrid {
             for j in 0..m {
                 let (i, w, [g0, g1]) = (&idx[j], &wts[j], gs[j]);
                 for c in 0..8 {
-                    debug_assert!(i[c] + 1 < self.params.end);
-                    // SAFETY: as in `forward_level`; `backward` asserted the
-                    // gradient buffer holds the table.
+                    let k = i[c] - base;
+                    debug_assert!(i[c] + 1 < self.params.end && k + 1 < grads.len());
+                    // SAFETY: as in `forward_level`; the callers assert that
+                    // the gradient buffer holds the level's table from `base`.
                     unsafe {
-                        *grads.get_unchecked_mut(i[c]) += w[c] * g0;
-                        *grads.get_unchecked_mut(i[c] + 1) += w[c] * g1;
+                        *grads.get_unchecked_mut(k) += w[c] * g0;
+                        *grads.get_unchecked_mut(k + 1) += w[c] * g1;
                     }
                 }
             }
@@ -848,6 +861,10 @@ mod simd {
         }
     }
 }
+
+#[path = "hashgrid_scatter.rs"]
+mod scatter;
+pub use scatter::GridRecord;
 
 #[cfg(test)]
 #[path = "hashgrid_tests.rs"]

@@ -9,7 +9,8 @@
 //!   the parameters and moments (`3P`);
 //! - the occupancy grid (a density and a few bits per cell);
 //! - each worker thread's activation buffers, sized for the largest chunk
-//!   of samples it processes (they never shrink);
+//!   of samples it processes (they never shrink), and for the capture
+//!   model its part's record of the main grid's deferred backward;
 //! - the dataset, every frame held as 8-bit RGBA, with a byte per pixel
 //!   for frames with a mask and 4 bytes per training pixel inside the
 //!   masks when training ignores the outside (`train::pixels`);

@@ -17,6 +17,7 @@
 //! [`DivergenceGuard::max_rollbacks`] rollbacks, [`Trainer::run`] restores the
 //! last snapshot once more and stops with [`StopReason::Diverged`].
 
+use std::ops::Range;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
@@ -26,6 +27,7 @@ use crate::engine::dataset::Dataset;
 use crate::engine::models::auto::ModelChoice;
 use crate::engine::models::{BatchStats, Model, StepCtx, TrainRay};
 use crate::engine::nn::adam::Adam;
+use crate::engine::nn::hashgrid::GridRecord;
 use crate::engine::rng::Rng;
 use crate::engine::train::pixels::PixelPool;
 
@@ -219,6 +221,8 @@ pub struct Trainer<'a> {
     /// The training pixels rays are drawn from.
     pixels: PixelPool,
     part_grads: Vec<Vec<f32>>,
+    /// Each part's deferred grid gradients ([`Model::train_rays_deferred`]).
+    part_records: Vec<GridRecord>,
     pub guard: DivergenceGuard,
     snapshot: Option<Snapshot>,
     /// Non-finite steps in a row, and good steps since the last snapshot.
@@ -244,6 +248,7 @@ impl<'a> Trainer<'a> {
             dataset,
             pixels: PixelPool::new(dataset),
             part_grads: Vec::new(),
+            part_records: Vec::new(),
             guard: DivergenceGuard::default(),
             snapshot: None,
             bad_streak: 0,
@@ -347,14 +352,16 @@ impl<'a> Trainer<'a> {
         let parts = rayon::current_num_threads().max(1);
         let nparams = self.model.params().len();
         self.part_grads.resize_with(parts, Vec::new);
+        self.part_records.resize_with(parts, GridRecord::default);
         let per = rays.len().div_ceil(parts).max(1);
         let ctx = StepCtx { seed: self.config.seed, step, batch_rays: rays.len() };
         let model = &*self.model;
         let stats: Vec<BatchStats> = self
             .part_grads
             .par_iter_mut()
+            .zip(self.part_records.par_iter_mut())
             .enumerate()
-            .map(|(p, g)| {
+            .map(|(p, (g, record))| {
                 // The buffers are left zeroed by the previous step.
                 if g.len() != nparams {
                     g.clear();
@@ -362,7 +369,7 @@ impl<'a> Trainer<'a> {
                 }
                 let lo = (p * per).min(rays.len());
                 let hi = ((p + 1) * per).min(rays.len());
-                model.train_rays(&rays[lo..hi], &ctx, g)
+                model.train_rays_deferred(&rays[lo..hi], &ctx, g, record)
             })
             .collect();
         let mut total = BatchStats::default();
@@ -371,6 +378,10 @@ impl<'a> Trainer<'a> {
         }
         let (first, rest) = self.part_grads.split_at_mut(1);
         let grads = &mut first[0];
+        // The deferred gradients go straight into the first buffer: the
+        // others hold zeros there, which the sum skips.
+        self.model.scatter_deferred(&self.part_records, grads);
+        let deferred = self.model.deferred_params();
         self.state.step += 1;
         self.state.rays += total.rays;
         self.state.samples += total.samples;
@@ -378,7 +389,7 @@ impl<'a> Trainer<'a> {
         self.state.skipped += total.skipped;
         // The parameters too: ReLU (`f32::max`) swallows a NaN weight, which
         // leaves the loss finite but would make the model unsaveable.
-        let sums_finite = sum_and_check(grads, rest, self.model.params());
+        let sums_finite = sum_and_check(grads, rest, self.model.params(), deferred);
         let finite = total.loss.is_finite() && sums_finite;
         if !finite {
             grads.fill(0.0);
@@ -457,8 +468,10 @@ impl<'a> Trainer<'a> {
 
 /// Adds the per-thread gradients `rest` into `grads`, zeroing them for the
 /// next step, and returns whether the sum and `params` are all finite: one
-/// pass over the buffers instead of three.
-fn sum_and_check(grads: &mut [f32], rest: &mut [Vec<f32>], params: &[f32]) -> bool {
+/// pass over the buffers instead of three. Inside `skip` the parts are not
+/// read (they hold zeros there: a deferred range, already in `grads`); it is
+/// still checked.
+fn sum_and_check(grads: &mut [f32], rest: &mut [Vec<f32>], params: &[f32], skip: Option<Range<usize>>) -> bool {
     const CHUNK: usize = 1 << 14;
     let mut parts: Vec<Vec<&mut [f32]>> = (0..grads.len().div_ceil(CHUNK)).map(|_| Vec::new()).collect();
     for g in rest.iter_mut() {
@@ -471,11 +484,20 @@ fn sum_and_check(grads: &mut [f32], rest: &mut [Vec<f32>], params: &[f32]) -> bo
         .par_chunks_mut(CHUNK)
         .zip(parts.par_iter_mut())
         .zip(params.par_chunks(CHUNK))
-        .map(|((g, others), p)| {
+        .enumerate()
+        .map(|(c, ((g, others), p))| {
+            // The chunk's part before `skip` and after it.
+            let start = c * CHUNK;
+            let (lo, hi) = match &skip {
+                Some(r) => (r.start.clamp(start, start + g.len()) - start, r.end.clamp(start, start + g.len()) - start),
+                None => (g.len(), g.len()),
+            };
             for o in others.iter_mut() {
-                for (a, b) in g.iter_mut().zip(o.iter_mut()) {
-                    *a += *b;
-                    *b = 0.0;
+                for r in [0..lo, hi.max(lo)..g.len()] {
+                    for (a, b) in g[r.clone()].iter_mut().zip(o[r].iter_mut()) {
+                        *a += *b;
+                        *b = 0.0;
+                    }
                 }
             }
             all_finite(g) && all_finite(p)
@@ -521,19 +543,45 @@ mod tests {
         let mut grads: Vec<f32> = (0..n).map(|i| i as f32).collect();
         let mut rest = vec![vec![1.0f32; n], (0..n).map(|i| -(i as f32) * 0.5).collect()];
         let params = vec![0.5f32; n];
-        assert!(sum_and_check(&mut grads, &mut rest, &params));
+        assert!(sum_and_check(&mut grads, &mut rest, &params, None));
         for (i, g) in grads.iter().enumerate() {
             assert_eq!(*g, i as f32 + 1.0 - i as f32 * 0.5);
         }
         assert!(rest.iter().all(|r| r.iter().all(|v| *v == 0.0)), "the parts are left zeroed");
         // A non-finite part in the last chunk, or a NaN parameter, fails the step; the parts still end zeroed.
         rest[1][n - 1] = f32::INFINITY;
-        assert!(!sum_and_check(&mut grads, &mut rest, &params));
+        assert!(!sum_and_check(&mut grads, &mut rest, &params, None));
         assert!(rest.iter().all(|r| r.iter().all(|v| *v == 0.0)));
         grads.fill(0.0);
         let mut nan_params = params.clone();
         nan_params[17_000] = f32::NAN;
-        assert!(!sum_and_check(&mut grads, &mut rest, &nan_params));
-        assert!(sum_and_check(&mut grads, &mut rest, &params));
+        assert!(!sum_and_check(&mut grads, &mut rest, &nan_params, None));
+        assert!(sum_and_check(&mut grads, &mut rest, &params, None));
+    }
+
+    /// A deferred range spanning chunk boundaries: the parts are summed and
+    /// zeroed outside it and not read inside it (their values there stay),
+    /// and it is still checked for non-finite values.
+    #[test]
+    fn sum_and_check_skips_the_deferred_range_but_checks_it() {
+        let n = 50_000;
+        let skip = 10_000..33_000;
+        let params = vec![0.5f32; n];
+        let mut grads: Vec<f32> = (0..n).map(|i| i as f32).collect();
+        let mut rest = vec![vec![2.0f32; n], vec![-0.5f32; n]];
+        assert!(sum_and_check(&mut grads, &mut rest, &params, Some(skip.clone())));
+        for (i, g) in grads.iter().enumerate() {
+            let want = if skip.contains(&i) { i as f32 } else { i as f32 + 1.5 };
+            assert_eq!(*g, want, "{i}");
+        }
+        for r in &rest {
+            assert!(r.iter().enumerate().all(|(i, v)| (*v != 0.0) == skip.contains(&i)));
+        }
+        grads[20_000] = f32::NAN;
+        assert!(!sum_and_check(&mut grads, &mut rest, &params, Some(skip.clone())));
+        grads[20_000] = 0.0;
+        let mut nan_params = params.clone();
+        nan_params[32_999] = f32::INFINITY;
+        assert!(!sum_and_check(&mut grads, &mut rest, &nan_params, Some(skip)));
     }
 }
