@@ -351,17 +351,19 @@ impl CaptureField {
 
     /// From now on [`Field::backward`] with `ctx` records the hash grid's
     /// part (its points and output gradients) instead of adding it to the
-    /// gradient, into `record`'s buffers (cleared; `record` gets `ctx`'s
-    /// idle ones), until [`CaptureField::end_deferring`]. Passes with input
-    /// gradients (pose refinement) still scatter at once.
+    /// gradient, into `record`'s buffers (cleared, and lent to `ctx`:
+    /// `record` is left empty meanwhile), until
+    /// [`CaptureField::end_deferring`]. Passes with input gradients (pose
+    /// refinement) still scatter at once.
     pub fn begin_deferring(&self, ctx: &mut Ctx, record: &mut GridRecord) {
         std::mem::swap(&mut ctx.record, record);
         ctx.record.clear();
         ctx.defer = true;
     }
 
-    /// Ends [`CaptureField::begin_deferring`]: `record` gets what was
-    /// recorded, for [`CaptureField::scatter_grid`].
+    /// Ends [`CaptureField::begin_deferring`]: `record` gets back its
+    /// buffers with what was recorded, for [`CaptureField::scatter_grid`]
+    /// (and `ctx` what `record` held: pass an empty one).
     pub fn end_deferring(&self, ctx: &mut Ctx, record: &mut GridRecord) {
         ctx.defer = false;
         std::mem::swap(&mut ctx.record, record);

@@ -423,8 +423,11 @@ impl CaptureModel {
         let settings = self.pass_settings(ctx.batch_rays);
         with_scratch(|s| {
             self.read_grids_from(s, &RenderTables::default(), 0.0);
-            if let Some(r) = record.as_deref_mut() {
-                self.field.begin_deferring(&mut s.pass.ctx, r);
+            match record.as_deref_mut() {
+                Some(r) => self.field.begin_deferring(&mut s.pass.ctx, r),
+                // Set every time: a pass that panicked while deferring left
+                // the thread's scratch so.
+                None => self.field.end_deferring(&mut s.pass.ctx, &mut GridRecord::default()),
             }
             for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
                 let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);

@@ -374,8 +374,9 @@ impl ModelSpec for CaptureConfig {
         // what it was given.
         let sample = 2 * (8 + 2);
         // Proposal: unit position, encoding and its gradient, hidden and its
-        // gradient, raw and density, weight, dL/dw, dL/dsigma, colours (zero).
-        let proposal = |g: &HashGridConfig| sample + 3 + 2 * width(g) + 2 * self.proposal.hidden as u64 + 2 + 3 + 3;
+        // gradient, raw and density, weight, dL/dw, dL/dsigma, colours (zero),
+        // and the backward pass's index of the row (8 bytes).
+        let proposal = |g: &HashGridConfig| sample + 3 + 2 * width(g) + 2 * self.proposal.hidden as u64 + 2 + 3 + 3 + 2;
         let p = &self.proposal;
         let mut per_ray = p.coarse_samples as u64 * proposal(&p.coarse_grid);
         if p.fine_samples > 0 {
@@ -389,11 +390,10 @@ impl ModelSpec for CaptureConfig {
         let main = sample + (3 + gw + h + g + 1 + sh::WIDTH as u64 + 2 * h + 3) + (3 + 2 * h + g + gw) + 2 + 8 + pose;
         per_ray += self.samples as u64 * main;
         // The main grid's deferred backward (without pose refinement): the
-        // part's samples' positions and encoding gradients, in the record
-        // the trainer holds and the one the thread's context keeps, each up
-        // to twice what it was given.
+        // part's samples' positions and encoding gradients, in the thread's
+        // record (up to twice what it was given: a growing vector).
         let part_rays = (self.rays_per_step as u64).div_ceil(threads.max(1));
-        let record = if self.pose_refine { 0 } else { 2 * 2 * part_rays * self.samples as u64 * (3 + gw) };
+        let record = if self.pose_refine { 0 } else { 2 * part_rays * self.samples as u64 * (3 + gw) };
         Footprint { params: ps.len as u64, occupancy_cells: 0, activations: rays * per_ray + record }
     }
 }

@@ -429,3 +429,20 @@ fn deferred_grid_gradients_scatter_to_what_train_rays_gives() {
     assert_eq!(record.points(), 0);
     assert!(g1.iter().zip(&g2).all(|(a, b)| a.to_bits() == b.to_bits()));
 }
+
+/// A thread whose scratch was left deferring (a pass that panicked between
+/// `begin_deferring` and `end_deferring`) still trains `train_rays` in
+/// full: the grid's gradient lands in the buffer, as on a fresh thread.
+#[test]
+fn a_scratch_left_deferring_does_not_keep_the_grid_gradient() {
+    let m = perturbed(7);
+    let train = rays(&m, 5);
+    let ctx = StepCtx { seed: 1, step: 2, batch_rays: 5 };
+    let mut want = vec![0.0f32; m.params.len()];
+    m.train_rays(&train, &ctx, &mut want);
+    assert!(want[m.field.grid_params()].iter().any(|v| *v != 0.0));
+    with_scratch(|s| m.field.begin_deferring(&mut s.pass.ctx, &mut GridRecord::default()));
+    let mut got = vec![0.0f32; m.params.len()];
+    m.train_rays(&train, &ctx, &mut got);
+    assert!(want.iter().zip(&got).all(|(a, b)| a.to_bits() == b.to_bits()));
+}

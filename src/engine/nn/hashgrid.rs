@@ -411,7 +411,7 @@ impl HashGrid {
                 }
                 let (i, w) = self.corners_of::<DENSE>(level, [p[3 * j], p[3 * j + 1], p[3 * j + 2]]);
                 for &k in &i {
-                    prefetch(grads, k);
+                    prefetch(grads, k - base);
                 }
                 idx[m] = i;
                 wts[m] = w;
