@@ -267,6 +267,18 @@ mod tests {
     use super::*;
     use crate::engine::fields::space::Norm;
 
+    /// A buffer of `len` parameters with `f`'s initialised and every value
+    /// then moved by `scale` times a normal draw, so every range has a
+    /// gradient.
+    fn perturbed_params(f: &ProposalField, len: usize, rng: &mut Rng, scale: f32) -> Vec<f32> {
+        let mut params = vec![0.0f32; len];
+        f.init(&mut params, rng);
+        for p in params.iter_mut() {
+            *p += scale * rng.normal();
+        }
+        params
+    }
+
     /// The samples without a gradient are dropped before the backward
     /// pass: it gives what a pass over the other samples alone gives (up to
     /// rounding: the matrix kernels group the rows in other blocks); with
@@ -277,11 +289,7 @@ mod tests {
         let mut layout = ParamLayout::default();
         let f = ProposalField::new(&mut layout, "p", SpaceMap::Contract { norm: Norm::Linf }, grid, 16, 1.0);
         let mut rng = Rng::new(9);
-        let mut params = vec![0.0f32; layout.len];
-        f.init(&mut params, &mut rng);
-        for p in params.iter_mut() {
-            *p += 0.3 * rng.normal();
-        }
+        let params = perturbed_params(&f, layout.len, &mut rng, 0.3);
         let n = 70;
         let pos = points(&mut rng, n);
         let g: Vec<f32> = (0..n).map(|i| if i % 5 == 0 || (i / 7) % 3 == 1 { rng.normal() } else { 0.0 }).collect();
@@ -335,11 +343,7 @@ mod tests {
             let _pad = layout.add("pad", 5);
             let f = ProposalField::new(&mut layout, "p", SpaceMap::Contract { norm }, grid, 6, 0.5);
             let mut rng = Rng::new(3);
-            let mut params = vec![0.0f32; layout.len];
-            f.init(&mut params, &mut rng);
-            for p in params.iter_mut() {
-                *p += 0.3 * rng.normal();
-            }
+            let params = perturbed_params(&f, layout.len, &mut rng, 0.3);
             let n = 15;
             let pos = points(&mut rng, n);
             // Some samples without a gradient (the backward pass drops their rows).
@@ -410,11 +414,7 @@ mod tests {
             let _pad = layout.add("pad", 3);
             let f = ProposalField::new(&mut layout, "p", space, grid.clone(), 16, 0.7);
             let mut rng = Rng::new(11);
-            let mut params = vec![0.0f32; layout.len];
-            f.init(&mut params, &mut rng);
-            for p in params.iter_mut() {
-                *p += 0.2 * rng.normal();
-            }
+            let params = perturbed_params(&f, layout.len, &mut rng, 0.2);
             let Some(table) = f.half_table(&params).map(std::sync::Arc::new) else {
                 eprintln!("no AVX2/FMA/F16C here: the fused pass does not exist on this CPU");
                 return;

@@ -41,11 +41,6 @@ impl GridRecord {
     pub fn points(&self) -> usize {
         self.passes.iter().sum()
     }
-
-    /// Bytes held (capacity), for memory estimates.
-    pub fn bytes(&self) -> usize {
-        (self.pts.capacity() + self.dout.capacity()) * 4 + self.passes.capacity() * 8
-    }
 }
 
 impl HashGrid {
