@@ -824,16 +824,20 @@ mod simd {
     ) {
         let n = soa.x.len();
         assert!(dout.len() >= n * width && grads.len() >= start + FEATURES * level.size);
-        let mut ix = [[0u32; 8]; 8];
-        let mut ws = [[0f32; 8]; 8];
-        for g in (0..n).step_by(8) {
+        // Software-pipelined: the corners of the next group of 8 points are
+        // computed and prefetched before the current group's adds, so that
+        // its cache misses overlap this group's work. The adds happen in
+        // the same order as without the pipeline.
+        let prep = |g: usize| -> Option<Group> {
             let gs: [[f32; 2]; 8] = std::array::from_fn(|j| {
                 let o = (g + j) * width + FEATURES * l;
                 [dout[o], dout[o + 1]]
             });
             if gs.iter().all(|v| v[0] == 0.0 && v[1] == 0.0) {
-                continue;
+                return None;
             }
+            let mut ix = [[0u32; 8]; 8];
+            let mut ws = [[0f32; 8]; 8];
             // SAFETY: AVX2 (caller); stores into local arrays of 8 lanes.
             unsafe {
                 let (idx, wt) = corners8::<DENSE>(level, soa, g);
@@ -842,23 +846,43 @@ mod simd {
                     _mm256_storeu_ps(ws[c].as_mut_ptr(), wt[c]);
                 }
             }
-            for row in &ix {
+            Some(Group { ix, ws, gs })
+        };
+        let fetch = |grads: &[f32], group: &Option<Group>| {
+            for row in group.iter().flat_map(|g| &g.ix) {
                 for &i in row {
                     prefetch(grads, start + FEATURES * i as usize);
                 }
             }
-            for c in 0..8 {
-                for j in 0..8 {
-                    let k = start + FEATURES * ix[c][j] as usize;
-                    // SAFETY: indices lie in the level's table, asserted to
-                    // be inside `grads`.
-                    unsafe {
-                        *grads.get_unchecked_mut(k) += ws[c][j] * gs[j][0];
-                        *grads.get_unchecked_mut(k + 1) += ws[c][j] * gs[j][1];
+        };
+        let mut cur = if n > 0 { prep(0) } else { None };
+        fetch(grads, &cur);
+        for g in (0..n).step_by(8) {
+            let next = if g + 8 < n { prep(g + 8) } else { None };
+            fetch(grads, &next);
+            if let Some(Group { ix, ws, gs }) = &cur {
+                for c in 0..8 {
+                    for j in 0..8 {
+                        let k = start + FEATURES * ix[c][j] as usize;
+                        // SAFETY: indices lie in the level's table, asserted to
+                        // be inside `grads`.
+                        unsafe {
+                            *grads.get_unchecked_mut(k) += ws[c][j] * gs[j][0];
+                            *grads.get_unchecked_mut(k + 1) += ws[c][j] * gs[j][1];
+                        }
                     }
                 }
             }
+            cur = next;
         }
+    }
+
+    /// One group of 8 points of [`backward_level`]: each corner's entry
+    /// indices and weights, and the points' two output gradients.
+    struct Group {
+        ix: [[u32; 8]; 8],
+        ws: [[f32; 8]; 8],
+        gs: [[f32; 2]; 8],
     }
 }
 
