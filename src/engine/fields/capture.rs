@@ -362,23 +362,17 @@ impl CaptureField {
     }
 
     /// Ends [`CaptureField::begin_deferring`]: `record` gets back its
-    /// buffers with what was recorded, for [`CaptureField::scatter_grid`]
+    /// buffers with what was recorded, for [`HashGrid::scatter`]
     /// (and `ctx` what `record` held: pass an empty one).
     pub fn end_deferring(&self, ctx: &mut Ctx, record: &mut GridRecord) {
         ctx.defer = false;
         std::mem::swap(&mut ctx.record, record);
     }
 
-    /// Adds the hash grid's gradient of the passes `records` hold into
-    /// `grads` ([`HashGrid::scatter`]).
-    pub fn scatter_grid(&self, records: &[GridRecord], grads: &mut [f32]) {
-        self.grid.scatter(records, grads);
-    }
-
-    /// The parameters of the hash grid (those whose gradient
+    /// The hash grid (its table's gradient is what
     /// [`CaptureField::begin_deferring`] defers).
-    pub fn grid_params(&self) -> std::ops::Range<usize> {
-        self.grid.params.clone()
+    pub fn grid(&self) -> &HashGrid {
+        &self.grid
     }
 
     /// dL/d(position) (model space) and dL/d(direction), `[n x 3]` each, of

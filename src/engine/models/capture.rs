@@ -39,7 +39,7 @@ use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::geometry::so3;
 use crate::engine::nn::adam::LrGroup;
-use crate::engine::nn::hashgrid::{GridRecord, HalfTable};
+use crate::engine::nn::hashgrid::{GridRecord, HalfTable, HashGrid};
 use crate::engine::nn::linear::ParamLayout;
 use crate::engine::nn::pose::PoseRefine;
 use crate::engine::nn::pose_report::{Gauge, PoseReport};
@@ -458,8 +458,8 @@ impl Model for CaptureModel {
 
     /// The main grid's table, without pose refinement (whose passes need
     /// the grid's input gradient at once).
-    fn deferred_params(&self) -> Option<std::ops::Range<usize>> {
-        self.pose.is_none().then(|| self.field.grid_params())
+    fn deferred_grid(&self) -> Option<HashGrid> {
+        self.pose.is_none().then(|| self.field.grid().clone())
     }
 
     fn train_rays_deferred(
@@ -472,12 +472,6 @@ impl Model for CaptureModel {
         record.clear();
         let record = self.deferred_params().map(|_| record);
         self.train(rays, ctx, grads, record)
-    }
-
-    fn scatter_deferred(&self, records: &[GridRecord], grads: &mut [f32]) {
-        if self.deferred_params().is_some() {
-            self.field.scatter_grid(records, grads);
-        }
     }
 
     fn after_step(&mut self, step: u64, _seed: u64, _stats: &BatchStats) {

@@ -391,9 +391,12 @@ impl ModelSpec for CaptureConfig {
         per_ray += self.samples as u64 * main;
         // The main grid's deferred backward (without pose refinement): the
         // part's samples' positions and encoding gradients, in the thread's
-        // record (up to twice what it was given: a growing vector).
+        // record (up to twice what it was given: a growing vector), and the
+        // thread's buffer for one level's gradient when it is scattered
+        // (two features per entry, a level at most `2^log2_table` entries).
         let part_rays = (self.rays_per_step as u64).div_ceil(threads.max(1));
-        let record = if self.pose_refine { 0 } else { 2 * part_rays * self.samples as u64 * (3 + gw) };
+        let level = 2u64 << self.grid.log2_table.min(40);
+        let record = if self.pose_refine { 0 } else { 2 * part_rays * self.samples as u64 * (3 + gw) + level };
         Footprint { params: ps.len as u64, occupancy_cells: 0, activations: rays * per_ray + record }
     }
 }

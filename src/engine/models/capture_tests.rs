@@ -388,7 +388,7 @@ fn deferred_grid_gradients_scatter_to_what_train_rays_gives() {
     let m = CaptureModel::new(CaptureConfig { chunk_rays: 4, ..tiny() }, scene(), 0).unwrap();
     let m = CaptureModel::from_parts(m.config.clone(), m.scene.clone(), perturbed(6).params).unwrap();
     let grid = m.deferred_params().expect("the main grid is deferred");
-    assert_eq!(grid, m.field.grid_params());
+    assert_eq!(grid, m.field.grid().params.clone());
     let train = rays(&m, 11);
     let ctx = StepCtx { seed: 2, step: 5, batch_rays: 11 };
     let n = m.params.len();
@@ -440,7 +440,7 @@ fn a_scratch_left_deferring_does_not_keep_the_grid_gradient() {
     let ctx = StepCtx { seed: 1, step: 2, batch_rays: 5 };
     let mut want = vec![0.0f32; m.params.len()];
     m.train_rays(&train, &ctx, &mut want);
-    assert!(want[m.field.grid_params()].iter().any(|v| *v != 0.0));
+    assert!(want[m.field.grid().params.clone()].iter().any(|v| *v != 0.0));
     with_scratch(|s| m.field.begin_deferring(&mut s.pass.ctx, &mut GridRecord::default()));
     let mut got = vec![0.0f32; m.params.len()];
     m.train_rays(&train, &ctx, &mut got);

@@ -50,7 +50,7 @@ pub(crate) use model_accessors;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::nn::adam::LrGroup;
-use crate::engine::nn::hashgrid::GridRecord;
+use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
 
 /// A training ray in model space with its target colour.
 #[derive(Clone, Copy, Debug)]
@@ -163,11 +163,18 @@ pub trait Model: Send + Sync {
     /// Accumulates the gradient of the batch loss over `rays` (one part of a
     /// batch) into `grads` and returns the part's statistics.
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
-    /// The parameters whose gradient [`Model::train_rays_deferred`] leaves
-    /// to [`Model::scatter_deferred`] (`None`: it defers nothing, the
-    /// default).
-    fn deferred_params(&self) -> Option<std::ops::Range<usize>> {
+    /// The hash grid whose table gradient [`Model::train_rays_deferred`]
+    /// records instead of adding it (`None`: it defers nothing, the
+    /// default): a copy of its layout, which borrows nothing from the
+    /// model, so that the trainer can scatter each level's gradient and
+    /// update the level's parameters in one pass.
+    fn deferred_grid(&self) -> Option<HashGrid> {
         None
+    }
+    /// The parameters whose gradient [`Model::train_rays_deferred`] leaves
+    /// to [`Model::scatter_deferred`]: [`Model::deferred_grid`]'s.
+    fn deferred_params(&self) -> Option<std::ops::Range<usize>> {
+        self.deferred_grid().map(|g| g.params)
     }
     /// [`Model::train_rays`], except that the gradient of
     /// [`Model::deferred_params`] is not added to `grads` but kept in
@@ -187,7 +194,11 @@ pub trait Model: Send + Sync {
     /// Adds the deferred gradients of `records` (one per part of a step)
     /// into `grads`: the same sum as [`Model::train_rays`] would have given
     /// each part's buffer, up to rounding.
-    fn scatter_deferred(&self, _records: &[GridRecord], _grads: &mut [f32]) {}
+    fn scatter_deferred(&self, records: &[GridRecord], grads: &mut [f32]) {
+        if let Some(grid) = self.deferred_grid() {
+            grid.scatter(records, grads);
+        }
+    }
     /// Runs after each optimisation step (`step` is the number of steps
     /// done), e.g. to update an occupancy grid.
     fn after_step(&mut self, _step: u64, _seed: u64, _stats: &BatchStats) {}

@@ -65,13 +65,36 @@ impl Adam {
     /// increasing order that do not overlap; cut at the buffer's end) scaled. Outside the groups, and inside a group of
     /// scale 1, the update is bit for bit [`Adam::step`]'s.
     pub fn step_groups(&mut self, params: &mut [f32], grads: &mut [f32], lr: f32, groups: &[LrGroup]) {
-        use rayon::prelude::*;
+        let update = self.begin(lr);
+        self.apply(&update, params, grads, groups, None);
+    }
+
+    /// Starts a step at learning rate `lr`: counts it and returns its
+    /// constants, for [`Adam::apply`] and [`AdamUpdate::update`]. Every
+    /// parameter must then be updated once with them.
+    pub fn begin(&mut self, lr: f32) -> AdamUpdate {
         self.t += 1;
         let (b1, b2, eps) = (self.config.beta1, self.config.beta2, self.config.eps);
         let bc1 = 1.0 - (b1 as f64).powi(self.t as i32);
         let bc2 = 1.0 - (b2 as f64).powi(self.t as i32);
         let step = (lr as f64 * bc2.sqrt() / bc1) as f32;
         let eps_hat = eps * bc2.sqrt() as f32;
+        AdamUpdate { b1, b2, step, eps_hat }
+    }
+
+    /// The update of a step begun with [`Adam::begin`], over the whole
+    /// buffer except `skip` (left to the caller, who updates it with
+    /// [`AdamUpdate::update`] and its own gradient; `groups` must not
+    /// overlap it).
+    pub fn apply(
+        &mut self,
+        update: &AdamUpdate,
+        params: &mut [f32],
+        grads: &mut [f32],
+        groups: &[LrGroup],
+        skip: Option<Range<usize>>,
+    ) {
+        use rayon::prelude::*;
         const CHUNK: usize = 1 << 14;
         params
             .par_chunks_mut(CHUNK)
@@ -82,13 +105,15 @@ impl Adam {
             .for_each(|(c, (((p, g), m), v))| {
                 let start = c * CHUNK;
                 let chunk = start..start + p.len();
-                let mut update = |r: Range<usize>, step: f32| {
-                    for i in r {
-                        let gi = g[i];
-                        g[i] = 0.0;
-                        m[i] = b1 * m[i] + (1.0 - b1) * gi;
-                        v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
-                        p[i] -= step * m[i] / (v[i].sqrt() + eps_hat);
+                let mut run = |r: Range<usize>, scale: f32| {
+                    // The chunk's part of `r` without `skip`'s.
+                    let (lo, hi) = match &skip {
+                        Some(s) => (s.start.clamp(r.start, r.end), s.end.clamp(r.start, r.end)),
+                        None => (r.end, r.end),
+                    };
+                    for r in [r.start..lo, hi.max(lo)..r.end] {
+                        let r = r.start - start..r.end - start;
+                        update.update(&mut p[r.clone()], &mut g[r.clone()], &mut m[r.clone()], &mut v[r], scale);
                     }
                 };
                 // The chunk in pieces: before each group, the group's part.
@@ -96,13 +121,41 @@ impl Adam {
                 for grp in groups {
                     let (lo, hi) = (grp.range.start.max(at), grp.range.end.min(chunk.end));
                     if lo < hi {
-                        update(at - start..lo - start, step);
-                        update(lo - start..hi - start, step * grp.scale);
+                        run(at..lo, 1.0);
+                        run(lo..hi, grp.scale);
                         at = hi;
                     }
                 }
-                update(at - start..chunk.end - start, step);
+                run(at..chunk.end, 1.0);
             });
+    }
+}
+
+/// The constants of one Adam step ([`Adam::begin`]).
+#[derive(Clone, Copy, Debug)]
+pub struct AdamUpdate {
+    b1: f32,
+    b2: f32,
+    step: f32,
+    eps_hat: f32,
+}
+
+impl AdamUpdate {
+    /// Updates `p` with gradient `g` and moments `m`, `v` (equal lengths),
+    /// at `scale` times the step's rate; leaves `g` zeroed.
+    #[inline]
+    pub fn update(&self, p: &mut [f32], g: &mut [f32], m: &mut [f32], v: &mut [f32], scale: f32) {
+        let Self { b1, b2, eps_hat, .. } = *self;
+        let step = if scale == 1.0 { self.step } else { self.step * scale };
+        let n = p.len();
+        let (g, m, v) = (&mut g[..n], &mut m[..n], &mut v[..n]);
+        for i in 0..n {
+            let gi = g[i];
+            g[i] = 0.0;
+            m[i] = b1 * m[i] + (1.0 - b1) * gi;
+            v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
+            p[i] -= step * m[i] / (v[i].sqrt() + eps_hat);
+        }
     }
 }
 
@@ -175,5 +228,40 @@ mod tests {
             a.step(&mut p, &mut g, 0.05);
         }
         assert!((p[0] - 1.0).abs() < 1e-2 && (p[1] + 0.5).abs() < 1e-2, "{p:?}");
+    }
+
+    /// A step begun with `begin`, applied outside a skipped range and by
+    /// the caller inside it, is `step_groups`' bit for bit; `apply` leaves
+    /// the skipped range (parameters, gradient, moments) alone.
+    #[test]
+    fn apply_leaves_the_skipped_range_to_the_caller() {
+        let n = 40_000;
+        let skip = 9_000..35_000;
+        let groups = [LrGroup { range: 100..200, scale: 0.1 }, LrGroup { range: 36_000..37_000, scale: 0.5 }];
+        let grads: Vec<f32> = (0..n).map(|i| ((i * 7919) % 13) as f32 - 6.0).collect();
+        let (mut whole, mut split) = (Adam::new(AdamConfig::default(), n), Adam::new(AdamConfig::default(), n));
+        let (mut p0, mut p1) = (vec![0.25f32; n], vec![0.25f32; n]);
+        for s in 0..3 {
+            let lr = 0.01 / (s + 1) as f32;
+            whole.step_groups(&mut p0, &mut grads.clone(), lr, &groups);
+            let update = split.begin(lr);
+            let mut g = grads.clone();
+            let before = (p1[skip.clone()].to_vec(), split.m[skip.clone()].to_vec(), split.v[skip.clone()].to_vec());
+            split.apply(&update, &mut p1, &mut g, &groups, Some(skip.clone()));
+            assert_eq!(g[skip.clone()], grads[skip.clone()], "the skipped gradient is not read");
+            assert!(g[..skip.start].iter().chain(&g[skip.end..]).all(|v| *v == 0.0), "the rest is consumed");
+            assert_eq!(
+                before,
+                (p1[skip.clone()].to_vec(), split.m[skip.clone()].to_vec(), split.v[skip.clone()].to_vec())
+            );
+            let r = skip.clone();
+            update.update(&mut p1[r.clone()], &mut g[r.clone()], &mut split.m[r.clone()], &mut split.v[r], 1.0);
+        }
+        assert_eq!(whole.t, split.t);
+        for i in 0..n {
+            assert_eq!(p0[i].to_bits(), p1[i].to_bits(), "parameter {i}");
+            assert_eq!(whole.m[i].to_bits(), split.m[i].to_bits(), "m {i}");
+            assert_eq!(whole.v[i].to_bits(), split.v[i].to_bits(), "v {i}");
+        }
     }
 }

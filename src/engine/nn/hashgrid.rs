@@ -888,7 +888,7 @@ mod simd {
 
 #[path = "hashgrid_scatter.rs"]
 mod scatter;
-pub use scatter::GridRecord;
+pub use scatter::{GridRecord, Scatter};
 
 #[cfg(test)]
 #[path = "hashgrid_tests.rs"]

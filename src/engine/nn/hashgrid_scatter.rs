@@ -6,7 +6,10 @@
 //! output gradients of its grid backward passes ([`HashGrid::record`]);
 //! after the threads are done, [`HashGrid::scatter`] adds every record into
 //! one buffer, one level per task (the levels' tables do not overlap), and
-//! the other threads' buffers stay zero over the table.
+//! the other threads' buffers stay zero over the table. The trainer goes
+//! one step further ([`HashGrid::prepare_scatter`], [`Scatter::level`]):
+//! each level's gradient goes into a buffer of the thread's, small enough
+//! to stay in cache, and into that level's Adam update at once.
 //!
 //! Each recorded pass is scattered exactly as [`HashGrid::backward`] would
 //! have (its whole groups of 8 points by the AVX2 path, the rest by the
@@ -41,6 +44,18 @@ impl GridRecord {
     pub fn points(&self) -> usize {
         self.passes.iter().sum()
     }
+
+    /// Whether every recorded output gradient is finite (the points are
+    /// clamped when recorded, so they are): the table gradients they
+    /// scatter into are then finite too, short of an overflow.
+    pub fn finite(&self) -> bool {
+        // As the trainer's check: a float is not finite exactly when its
+        // exponent bits are all ones, and adding one there carries into
+        // the top bit.
+        const EXPONENT: u32 = 0x7f80_0000;
+        const ONE: u32 = 0x0080_0000;
+        self.dout.iter().fold(0u32, |acc, v| acc | ((v.to_bits() & EXPONENT) + ONE)) & 0x8000_0000 == 0
+    }
 }
 
 impl HashGrid {
@@ -61,7 +76,6 @@ impl HashGrid {
     /// the same bits, with one record).
     pub fn scatter(&self, records: &[GridRecord], grads: &mut [f32]) {
         assert!(grads.len() >= self.params.end, "hash grid: gradient buffer too short");
-        let width = self.width();
         // Each level's slice of the table's gradient, in layout order.
         let mut rest = &mut grads[self.params.clone()];
         let mut tables = Vec::with_capacity(self.levels.len());
@@ -70,6 +84,15 @@ impl HashGrid {
             tables.push(table);
             rest = tail;
         }
+        let scatter = self.prepare_scatter(records);
+        tables.into_par_iter().enumerate().for_each(|(l, table)| scatter.level(l, table));
+    }
+
+    /// `records` ready to be scattered one level at a time
+    /// ([`Scatter::level`]), for a caller that uses each level's gradient
+    /// as soon as it is complete (the trainer's Adam update).
+    pub fn prepare_scatter<'a>(&'a self, records: &'a [GridRecord]) -> Scatter<'a> {
+        let width = self.width();
         // Every pass's slices, and its points in vector form once for all levels.
         let mut passes = Vec::new();
         for r in records {
@@ -81,19 +104,43 @@ impl HashGrid {
                 at += n;
             }
         }
-        tables.into_par_iter().enumerate().for_each(|(l, table)| {
-            let level = &self.levels[l];
-            let base = self.params.start + level.offset;
-            for p in &passes {
-                let done = p.scatter_simd(level, l, table, width);
-                let (pts, dout) = (&p.pts[3 * done..], &p.dout[done * width..]);
-                if level.dense {
-                    self.backward_level::<true>(l, level, pts, dout, table, base);
-                } else {
-                    self.backward_level::<false>(l, level, pts, dout, table, base);
-                }
+        Scatter { grid: self, passes }
+    }
+
+    /// Each level's range of the parameter buffer, in layout order (they
+    /// tile [`HashGrid::params`]).
+    pub fn level_ranges(&self) -> Vec<std::ops::Range<usize>> {
+        self.levels
+            .iter()
+            .map(|l| self.params.start + l.offset..self.params.start + l.offset + FEATURES * l.size)
+            .collect()
+    }
+}
+
+/// Records prepared by [`HashGrid::prepare_scatter`].
+pub struct Scatter<'a> {
+    grid: &'a HashGrid,
+    passes: Vec<Pass<'a>>,
+}
+
+impl Scatter<'_> {
+    /// Adds level `l`'s gradient from every recorded pass, in order, into
+    /// `table`: the level's slice of a gradient buffer
+    /// ([`HashGrid::level_ranges`]`[l]`'s length).
+    pub fn level(&self, l: usize, table: &mut [f32]) {
+        let grid = self.grid;
+        let (level, width) = (&grid.levels[l], grid.width());
+        assert_eq!(table.len(), FEATURES * level.size, "hash grid: a level's gradient of another size");
+        let base = grid.params.start + level.offset;
+        for p in &self.passes {
+            let done = p.scatter_simd(level, l, table, width);
+            let (pts, dout) = (&p.pts[3 * done..], &p.dout[done * width..]);
+            if level.dense {
+                grid.backward_level::<true>(l, level, pts, dout, table, base);
+            } else {
+                grid.backward_level::<false>(l, level, pts, dout, table, base);
             }
-        });
+        }
     }
 }
 
@@ -220,5 +267,58 @@ mod tests {
             let sum = start[i] + buffers[0][i] + buffers[1][i] + buffers[2][i];
             assert!((deferred[i] - sum).abs() <= 1e-5 * scale, "entry {i}: {} against {sum}", deferred[i]);
         }
+    }
+
+    #[test]
+    fn level_ranges_tile_the_table_and_each_level_scatters_its_slice() {
+        let (g, len) = grid();
+        let ranges = g.level_ranges();
+        assert_eq!(ranges.first().unwrap().start, g.params.start);
+        assert_eq!(ranges.last().unwrap().end, g.params.end);
+        assert!(ranges.windows(2).all(|w| w[0].end == w[1].start));
+        let mut rng = Rng::new(4);
+        let mut record = GridRecord::default();
+        for n in [37, 8, 21] {
+            let (pts, dout) = pass(&g, &mut rng, n);
+            g.record(&pts, &dout, &mut record);
+        }
+        let records = [record];
+        let mut whole = vec![0.0f32; len];
+        g.scatter(&records, &mut whole);
+        let scatter = g.prepare_scatter(&records);
+        for (l, r) in ranges.iter().enumerate() {
+            // Into a buffer of the level's own: the same bits; one holding
+            // values already: added to them.
+            let mut own = vec![0.0f32; r.len()];
+            scatter.level(l, &mut own);
+            let mut held = vec![0.5f32; r.len()];
+            scatter.level(l, &mut held);
+            for (i, ((a, h), b)) in own.iter().zip(&held).zip(&whole[r.clone()]).enumerate() {
+                assert_eq!(a.to_bits(), b.to_bits(), "level {l} entry {i}");
+                assert!((h - 0.5 - b).abs() <= 1e-6, "level {l} entry {i}: {h} against 0.5 + {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_record_is_finite_when_its_output_gradients_are() {
+        let (g, _) = grid();
+        let mut rng = Rng::new(6);
+        // `pass` puts a NaN among the points: clamped, it does not count.
+        let (pts, dout) = pass(&g, &mut rng, 19);
+        assert!(pts.iter().any(|v| v.is_nan()));
+        let mut record = GridRecord::default();
+        g.record(&pts, &dout, &mut record);
+        assert!(record.finite());
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            for at in [0, 7 * g.width() + 3, 19 * g.width() - 1] {
+                let mut d = dout.clone();
+                d[at] = bad;
+                let mut r = record.clone();
+                g.record(&pts, &d, &mut r);
+                assert!(!r.finite(), "{bad} at {at}");
+            }
+        }
+        assert!(GridRecord::default().finite());
     }
 }

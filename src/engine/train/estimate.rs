@@ -10,7 +10,8 @@
 //! - the occupancy grid (a density and a few bits per cell);
 //! - each worker thread's activation buffers, sized for the largest chunk
 //!   of samples it processes (they never shrink), and for the capture
-//!   model its part's record of the main grid's deferred backward;
+//!   model its part's record of the main grid's deferred backward and a
+//!   buffer for one level of its gradient;
 //! - the dataset, every frame held as 8-bit RGBA, with a byte per pixel
 //!   for frames with a mask and 4 bytes per training pixel inside the
 //!   masks when training ignores the outside (`train::pixels`);

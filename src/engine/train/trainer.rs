@@ -26,8 +26,8 @@ use rayon::prelude::*;
 use crate::engine::dataset::Dataset;
 use crate::engine::models::auto::ModelChoice;
 use crate::engine::models::{BatchStats, Model, StepCtx, TrainRay};
-use crate::engine::nn::adam::Adam;
-use crate::engine::nn::hashgrid::GridRecord;
+use crate::engine::nn::adam::{Adam, AdamUpdate};
+use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
 use crate::engine::rng::Rng;
 use crate::engine::train::pixels::PixelPool;
 
@@ -378,10 +378,10 @@ impl<'a> Trainer<'a> {
         }
         let (first, rest) = self.part_grads.split_at_mut(1);
         let grads = &mut first[0];
-        // The deferred gradients go straight into the first buffer: the
-        // others hold zeros there, which the sum skips.
-        self.model.scatter_deferred(&self.part_records, grads);
-        let deferred = self.model.deferred_params();
+        // The deferred grid's gradient is not in any buffer: it is scattered
+        // level by level below, each level's straight into its Adam update.
+        let grid = self.model.deferred_grid();
+        let deferred = grid.as_ref().map(|g| g.params.clone());
         self.state.step += 1;
         self.state.rays += total.rays;
         self.state.samples += total.samples;
@@ -389,8 +389,12 @@ impl<'a> Trainer<'a> {
         self.state.skipped += total.skipped;
         // The parameters too: ReLU (`f32::max`) swallows a NaN weight, which
         // leaves the loss finite but would make the model unsaveable.
-        let sums_finite = sum_and_check(grads, rest, self.model.params(), deferred);
-        let finite = total.loss.is_finite() && sums_finite;
+        let sums_finite = sum_and_check(grads, rest, self.model.params(), deferred.clone());
+        // Finite recorded gradients scatter into finite sums (short of an
+        // overflow: that leaves non-finite parameters, which the next
+        // step's check catches).
+        let records_finite = self.part_records.par_iter().all(|r| r.finite());
+        let finite = total.loss.is_finite() && sums_finite && records_finite;
         if !finite {
             grads.fill(0.0);
             self.on_divergence();
@@ -398,9 +402,14 @@ impl<'a> Trainer<'a> {
         }
         self.bad_streak = 0;
         let lr = self.adam.config.lr_at(self.config.budget.progress(step, self.state.elapsed)) * self.state.lr_scale;
-        // Adam leaves `grads` zeroed for the next step.
+        let update = self.adam.begin(lr);
         let groups = self.model.lr_groups();
-        self.adam.step_groups(self.model.params_mut(), grads, lr, &groups);
+        if let Some(grid) = &grid {
+            debug_assert!(groups.iter().all(|g| g.range.end <= grid.params.start || g.range.start >= grid.params.end));
+            update_grid(grid, &self.part_records, &update, self.model.params_mut(), &mut self.adam);
+        }
+        // Adam leaves `grads` zeroed for the next step.
+        self.adam.apply(&update, self.model.params_mut(), grads, &groups, deferred);
         self.model.after_step(self.state.step, self.config.seed, &total);
         let mse = total.sq_err / total.rays.max(1) as f64;
         self.state.smoothed_mse =
@@ -466,11 +475,60 @@ impl<'a> Trainer<'a> {
     }
 }
 
+thread_local! {
+    /// A thread's buffer for one level's gradient in [`update_grid`], and
+    /// whether it may hold values (zero otherwise: each use ends zeroing it).
+    static LEVEL_GRAD: std::cell::RefCell<(Vec<f32>, bool)> = const { std::cell::RefCell::new((Vec::new(), false)) };
+}
+
+/// Scatters the deferred grid's gradient from `records` and applies the
+/// step's Adam `update` to its parameters, level by level in parallel: each
+/// level's gradient is summed into a buffer of the thread's (the table's
+/// largest level fits in a core's L2 cache) and used at once, instead of
+/// going through the step's gradient buffer in memory and back. The same
+/// values as [`HashGrid::scatter`] into that buffer and then
+/// [`Adam::apply`], bit for bit.
+fn update_grid(grid: &HashGrid, records: &[GridRecord], update: &AdamUpdate, params: &mut [f32], adam: &mut Adam) {
+    let scatter = grid.prepare_scatter(records);
+    let ranges = grid.level_ranges();
+    // Each level's slices of the parameters and moments.
+    let start = grid.params.start;
+    let (mut p, mut m, mut v) =
+        (&mut params[grid.params.clone()], &mut adam.m[grid.params.clone()], &mut adam.v[grid.params.clone()]);
+    let mut levels = Vec::with_capacity(ranges.len());
+    for (l, r) in ranges.iter().enumerate() {
+        debug_assert_eq!(r.start, start + ranges[..l].iter().map(|r| r.len()).sum::<usize>());
+        let n = r.len();
+        let (p0, p1) = std::mem::take(&mut p).split_at_mut(n);
+        let (m0, m1) = std::mem::take(&mut m).split_at_mut(n);
+        let (v0, v1) = std::mem::take(&mut v).split_at_mut(n);
+        levels.push((l, p0, m0, v0));
+        (p, m, v) = (p1, m1, v1);
+    }
+    levels.into_par_iter().for_each(|(l, p, m, v)| {
+        LEVEL_GRAD.with(|cell| {
+            let (buf, dirty) = &mut *cell.borrow_mut();
+            if buf.len() < p.len() {
+                buf.resize(p.len(), 0.0);
+            }
+            if *dirty {
+                // A use that did not finish (a panic) may have left values.
+                buf.fill(0.0);
+            }
+            *dirty = true;
+            let g = &mut buf[..p.len()];
+            scatter.level(l, g);
+            update.update(p, g, m, v, 1.0);
+            *dirty = false;
+        })
+    });
+}
+
 /// Adds the per-thread gradients `rest` into `grads`, zeroing them for the
 /// next step, and returns whether the sum and `params` are all finite: one
-/// pass over the buffers instead of three. Inside `skip` the parts are not
-/// read (they hold zeros there: a deferred range, already in `grads`); it is
-/// still checked.
+/// pass over the buffers instead of three. Inside `skip` (a deferred range,
+/// whose gradient is in no buffer: they all hold zeros there) the
+/// gradients are neither read nor checked; the parameters are.
 fn sum_and_check(grads: &mut [f32], rest: &mut [Vec<f32>], params: &[f32], skip: Option<Range<usize>>) -> bool {
     const CHUNK: usize = 1 << 14;
     let mut parts: Vec<Vec<&mut [f32]>> = (0..grads.len().div_ceil(CHUNK)).map(|_| Vec::new()).collect();
@@ -500,7 +558,7 @@ fn sum_and_check(grads: &mut [f32], rest: &mut [Vec<f32>], params: &[f32], skip:
                     }
                 }
             }
-            all_finite(g) && all_finite(p)
+            all_finite(&g[..lo]) && all_finite(&g[hi.max(lo)..]) && all_finite(p)
         })
         .reduce(|| true, |a, b| a && b)
 }
@@ -563,7 +621,7 @@ mod tests {
     /// zeroed outside it and not read inside it (their values there stay),
     /// and it is still checked for non-finite values.
     #[test]
-    fn sum_and_check_skips_the_deferred_range_but_checks_it() {
+    fn sum_and_check_skips_the_deferred_range_but_checks_its_parameters() {
         let n = 50_000;
         let skip = 10_000..33_000;
         let params = vec![0.5f32; n];
@@ -577,11 +635,89 @@ mod tests {
         for r in &rest {
             assert!(r.iter().enumerate().all(|(i, v)| (*v != 0.0) == skip.contains(&i)));
         }
+        // The range's gradient is in no buffer: not checked there...
         grads[20_000] = f32::NAN;
-        assert!(!sum_and_check(&mut grads, &mut rest, &params, Some(skip.clone())));
+        assert!(sum_and_check(&mut grads, &mut rest, &params, Some(skip.clone())));
+        // ...but on either side of it.
+        for at in [9_999, 33_000] {
+            grads[at] = f32::NAN;
+            assert!(!sum_and_check(&mut grads, &mut rest, &params, Some(skip.clone())), "{at}");
+            grads[at] = 0.0;
+        }
         grads[20_000] = 0.0;
         let mut nan_params = params.clone();
         nan_params[32_999] = f32::INFINITY;
         assert!(!sum_and_check(&mut grads, &mut rest, &nan_params, Some(skip)));
+    }
+
+    /// `update_grid` gives what scattering the records into a zeroed
+    /// gradient buffer and an Adam step over it give, bit for bit, also
+    /// when a thread's level buffer was left holding values.
+    #[test]
+    fn update_grid_is_the_scatter_then_adam() {
+        use crate::engine::nn::adam::AdamConfig;
+        use crate::engine::nn::hashgrid::HashGridConfig;
+        use crate::engine::nn::linear::ParamLayout;
+        let mut layout = ParamLayout::default();
+        layout.add("before", 11);
+        let grid = HashGrid::new(
+            &mut layout,
+            HashGridConfig { levels: 6, log2_table: 9, base_resolution: 2, finest_resolution: 64 },
+        );
+        layout.add("after", 5);
+        let n = layout.len;
+        let mut rng = Rng::new(12);
+        let mut records = vec![GridRecord::default(); 2];
+        for record in &mut records {
+            for count in [45, 16, 3] {
+                let pts: Vec<f32> = (0..3 * count).map(|_| rng.f32() * 1.1 - 0.05).collect();
+                let dout: Vec<f32> = (0..count * grid.width()).map(|_| rng.f32() - 0.5).collect();
+                grid.record(&pts, &dout, record);
+            }
+        }
+        let params: Vec<f32> = (0..n).map(|_| rng.f32() - 0.5).collect();
+        let config = AdamConfig { lr: 1e-2, lr_end: 1e-3, beta1: 0.9, beta2: 0.99, eps: 1e-15 };
+        // A step done before, so that the moments are not zero.
+        let mut adam = Adam::new(config, n);
+        let mut first: Vec<f32> = (0..n).map(|_| rng.f32() - 0.5).collect();
+        let mut p0 = params.clone();
+        adam.step(&mut p0, &mut first, 0.01);
+
+        let (mut want_adam, mut want) = (adam.clone(), p0.clone());
+        let mut grads = vec![0.0f32; n];
+        grid.scatter(&records, &mut grads);
+        assert!(grads[grid.params.clone()].iter().filter(|v| **v != 0.0).count() > 100);
+        // The other parameters get a gradient too.
+        for (i, g) in grads.iter_mut().enumerate().filter(|(i, _)| !grid.params.contains(i)) {
+            *g = 0.01 * i as f32;
+        }
+        let mut other = grads.clone();
+        other[grid.params.clone()].fill(0.0);
+        want_adam.step(&mut want, &mut grads, 0.005);
+
+        for dirty in [false, true] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+            let (mut got_adam, mut got) = (adam.clone(), p0.clone());
+            let mut g = other.clone();
+            pool.install(|| {
+                if dirty {
+                    LEVEL_GRAD.with(|c| *c.borrow_mut() = (vec![3.0; 4096], true));
+                }
+                let update = got_adam.begin(0.005);
+                update_grid(&grid, &records, &update, &mut got, &mut got_adam);
+                got_adam.apply(&update, &mut got, &mut g, &[], Some(grid.params.clone()));
+                LEVEL_GRAD.with(|c| {
+                    let (buf, left) = &*c.borrow();
+                    assert!(!left && buf.iter().all(|v| *v == 0.0), "the level buffer is left zeroed");
+                });
+            });
+            assert!(g.iter().all(|v| *v == 0.0));
+            assert_eq!(got_adam.t, want_adam.t);
+            for i in 0..n {
+                assert_eq!(got[i].to_bits(), want[i].to_bits(), "parameter {i} (dirty: {dirty})");
+                assert_eq!(got_adam.m[i].to_bits(), want_adam.m[i].to_bits(), "m {i}");
+                assert_eq!(got_adam.v[i].to_bits(), want_adam.v[i].to_bits(), "v {i}");
+            }
+        }
     }
 }
