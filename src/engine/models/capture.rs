@@ -395,6 +395,13 @@ impl CaptureModel {
         stats.skipped = r.skipped;
         stats
     }
+    /// Whether training passes record the main grid's gradient
+    /// ([`Model::deferred_grid`]): not with pose refinement, whose passes
+    /// need the grid's input gradient at once.
+    fn defers_grid(&self) -> bool {
+        self.pose.is_none()
+    }
+
     /// [`Model::train_rays`]; with `record`, the main grid's gradient is
     /// recorded there instead ([`Model::train_rays_deferred`]).
     fn train(
@@ -459,7 +466,7 @@ impl Model for CaptureModel {
     /// The main grid's table, without pose refinement (whose passes need
     /// the grid's input gradient at once).
     fn deferred_grid(&self) -> Option<HashGrid> {
-        self.pose.is_none().then(|| self.field.grid().clone())
+        self.defers_grid().then(|| self.field.grid().clone())
     }
 
     fn train_rays_deferred(
@@ -470,7 +477,7 @@ impl Model for CaptureModel {
         record: &mut GridRecord,
     ) -> BatchStats {
         record.clear();
-        let record = self.deferred_params().map(|_| record);
+        let record = self.defers_grid().then_some(record);
         self.train(rays, ctx, grads, record)
     }
 

@@ -171,16 +171,12 @@ pub trait Model: Send + Sync {
     fn deferred_grid(&self) -> Option<HashGrid> {
         None
     }
-    /// The parameters whose gradient [`Model::train_rays_deferred`] leaves
-    /// to [`Model::scatter_deferred`]: [`Model::deferred_grid`]'s.
-    fn deferred_params(&self) -> Option<std::ops::Range<usize>> {
-        self.deferred_grid().map(|g| g.params)
-    }
-    /// [`Model::train_rays`], except that the gradient of
-    /// [`Model::deferred_params`] is not added to `grads` but kept in
+    /// [`Model::train_rays`], except that the table gradient of
+    /// [`Model::deferred_grid`] is not added to `grads` but kept in
     /// `record` (cleared first): one thread's part of a step, whose table
-    /// gradients one [`Model::scatter_deferred`] then adds for all parts at
-    /// once. The default defers nothing.
+    /// gradients the trainer then scatters for all parts at once
+    /// ([`HashGrid::scatter`] gives the same sum). The default defers
+    /// nothing.
     fn train_rays_deferred(
         &self,
         rays: &[TrainRay],
@@ -190,14 +186,6 @@ pub trait Model: Send + Sync {
     ) -> BatchStats {
         record.clear();
         self.train_rays(rays, ctx, grads)
-    }
-    /// Adds the deferred gradients of `records` (one per part of a step)
-    /// into `grads`: the same sum as [`Model::train_rays`] would have given
-    /// each part's buffer, up to rounding.
-    fn scatter_deferred(&self, records: &[GridRecord], grads: &mut [f32]) {
-        if let Some(grid) = self.deferred_grid() {
-            grid.scatter(records, grads);
-        }
     }
     /// Runs after each optimisation step (`step` is the number of steps
     /// done), e.g. to update an occupancy grid.

@@ -49,12 +49,7 @@ impl GridRecord {
     /// clamped when recorded, so they are): the table gradients they
     /// scatter into are then finite too, short of an overflow.
     pub fn finite(&self) -> bool {
-        // As the trainer's check: a float is not finite exactly when its
-        // exponent bits are all ones, and adding one there carries into
-        // the top bit.
-        const EXPONENT: u32 = 0x7f80_0000;
-        const ONE: u32 = 0x0080_0000;
-        self.dout.iter().fold(0u32, |acc, v| acc | ((v.to_bits() & EXPONENT) + ONE)) & 0x8000_0000 == 0
+        crate::engine::nn::all_finite(&self.dout)
     }
 }
 
