@@ -4,8 +4,10 @@
 //! renders; `cli` drives both from the command line; `api` serves them over
 //! HTTP through `store`'s job and artifact stores, whose embedded pair runs
 //! `jobs` (the training queue) over `storage` (the data directory);
-//! `store::pg` is the PostgreSQL queue for running beyond one machine (not
-//! used by the service yet).
+//! `serve --database-url` and `--object-store` put the queue and records in
+//! PostgreSQL (`store::pg`) and the files in an object store
+//! (`store::object`), whose `worker` nodes run the jobs
+//! (`docs/design/scale-out.md`).
 
 // Index loops over small fixed-size arrays read more clearly in numeric code.
 #![allow(clippy::needless_range_loop)]

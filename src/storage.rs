@@ -3,7 +3,7 @@
 //! ```text
 //! DATA/scenes/ID/scene.json   scene record (written before the folder appears)
 //! DATA/scenes/ID/data/...     the uploaded dataset as extracted
-//! DATA/models/ID.ckpt         checkpoint (engine::io::persist, atomic)
+//! DATA/models/ID.ckpt         checkpoint (engine::train::persist, atomic)
 //! DATA/models/ID.json         model record
 //! DATA/videos/ID.bin, ID.json video file and record
 //! DATA/jobs.redb              job records (redb; only enqueued, started and final states;
@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize, de::DeserializeOwned};
 use crate::engine::dataset::Dataset;
 use crate::engine::geometry::camera::Orbit;
 use crate::engine::geometry::math::Vec3;
-use crate::engine::geometry::rig::{CameraRig, Spiral};
+use crate::engine::geometry::rig::Spiral;
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::models::auto::SceneKind;
 
@@ -502,7 +502,7 @@ impl ViewDefaults {
     /// The defaults of a dataset's training cameras.
     pub fn from_dataset(ds: &Dataset) -> ViewDefaults {
         let cam = &ds.frames[ds.train[0]].camera;
-        let rig = CameraRig::from_dataset(ds);
+        let rig = ds.rig();
         ViewDefaults {
             width: cam.width,
             height: cam.height,

@@ -7,14 +7,13 @@ use std::sync::atomic::AtomicBool;
 use common::tiny::{self, NerfModel};
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::synthetic::BallScene;
-use radiance::engine::geometry::scene::Scene;
-use radiance::engine::io::persist;
 use radiance::engine::models::Model;
 use radiance::engine::nn::adam::{Adam, AdamConfig};
+use radiance::engine::train::persist;
 use radiance::engine::train::trainer::{TrainState, Trainer};
 
 fn trainer(ds: &Dataset, steps: u64) -> Trainer<'_> {
-    let model = NerfModel::new(tiny::nerf_micro(true), Scene::from_dataset(ds), 3);
+    let model = NerfModel::new(tiny::nerf_micro(true), ds.scene(), 3);
     let adam = Adam::new(AdamConfig { lr: 5e-3, lr_end: 5e-4, ..Default::default() }, model.params().len());
     let cfg = tiny::train_config(9, 64, steps);
     Trainer::new(Box::new(model), adam, cfg, TrainState::default(), ds)
@@ -94,7 +93,7 @@ fn non_finite_parameters_are_never_saved() {
 
 #[test]
 fn a_stripped_checkpoint_renders_the_same_and_cannot_resume() {
-    use radiance::engine::render::render_view;
+    use radiance::engine::view::render_view;
     let ds = BallScene { size: 12, views: 8, ..Default::default() }.dataset();
     let mut t = trainer(&ds, 12);
     t.run(&AtomicBool::new(false), |_, _| true);

@@ -36,7 +36,7 @@ fn train_render_eval() {
     // Resuming with `auto` continues the checkpoint's model (and its choice).
     let more = dir.path().join("more.ckpt");
     ok(&radiance(&["train", "--data", d, "--steps", "3", "--resume", m, "--out", more.to_str().unwrap()]));
-    let resumed = radiance::engine::io::persist::load(&more).unwrap();
+    let resumed = radiance::engine::train::persist::load(&more).unwrap();
     assert_eq!((resumed.model.kind(), resumed.state.step), ("instant", 3));
     assert_eq!(resumed.train.model_choice.map(|c| c.preset), Some("instant".to_string()));
 
@@ -260,11 +260,12 @@ fn masks_on_the_command_line() {
 #[test]
 fn appearance_on_the_command_line() {
     use radiance::engine::dataset::{Dataset, LoadOptions};
-    use radiance::engine::geometry::scene::Scene;
-    use radiance::engine::io::persist;
+
     use radiance::engine::models::config::ModelConfig;
-    use radiance::engine::render::appearance::index_ranges;
-    use radiance::engine::train::trainer::{Budget, TrainState, Trainer};
+    use radiance::engine::models::training::Budget;
+    use radiance::engine::train::persist;
+    use radiance::engine::train::trainer::{TrainState, Trainer};
+    use radiance::engine::view::appearance::index_ranges;
 
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("ball");
@@ -274,7 +275,7 @@ fn appearance_on_the_command_line() {
     // `capture-tiny` is a preset of the library's (the command line trains the full presets).
     let ds = Dataset::load(&data, &LoadOptions::default()).unwrap();
     let config = ModelConfig::preset("capture-tiny").unwrap();
-    let (net, adam) = config.build_with_adam(Scene::from_dataset(&ds), 1, None).unwrap();
+    let (net, adam) = config.build_with_adam(ds.scene(), 1, None).unwrap();
     let train = config.train_config(1, 256, Budget { steps: Some(3), seconds: None });
     let mut t = Trainer::new(net, adam, train, TrainState::default(), &ds);
     t.run(&std::sync::atomic::AtomicBool::new(false), |_, _| true);
@@ -328,4 +329,36 @@ fn appearance_on_the_command_line() {
     let out = radiance(&["render", "--model", m, "--data", d, "--appearance", "bright", "--out", r]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("expected mean, nearest or a training image's index"), "{err}");
+}
+
+/// `serve`'s log written to a file (or a pipe) is plain text: no terminal
+/// colour codes, which would litter a log file or a container's log.
+#[test]
+fn a_served_log_in_a_file_has_no_colour_codes() {
+    use std::io::BufRead;
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("serve.log");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_radiance"))
+        .args(["serve", "--addr", "127.0.0.1:0", "--threads", "1", "--data-dir"])
+        .arg(dir.path().join("data"))
+        .env_remove("RADIANCE_API_KEY")
+        .env_remove("NO_COLOR")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.starts_with("listening on "), "{line}");
+    // The start-up lines are logged before the address is printed; give
+    // the writer a moment, bounded.
+    let t0 = std::time::Instant::now();
+    while std::fs::read_to_string(&log).unwrap().is_empty() && t0.elapsed().as_secs() < 10 {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(text.contains("INFO") && text.contains("listening"), "the log has its lines: {text}");
+    assert!(!text.contains('\u{1b}'), "colour codes in a log file: {text:?}");
 }

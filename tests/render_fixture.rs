@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 
 use radiance::engine::geometry::camera::{Camera, look_at};
 use radiance::engine::geometry::math::Vec3;
-use radiance::engine::io::persist;
-use radiance::engine::render::{View, render_view};
+use radiance::engine::train::persist;
+use radiance::engine::view::{View, render_view};
 use radiance::media::png;
 
 fn fixture(name: &str) -> PathBuf {
@@ -116,19 +116,20 @@ fn write_fixtures() {
     // Kept as it ran, so the fixtures can be understood (and regenerated only
     // if the checkpoint format itself ever changes).
     use radiance::engine::dataset::synthetic::BallScene;
-    use radiance::engine::geometry::scene::Scene;
+
     use radiance::engine::models::Model;
     use radiance::engine::models::instant::{InstantConfig, InstantModel};
     use radiance::engine::models::nerf::{NerfConfig, NerfModel};
+    use radiance::engine::models::training::{Budget, TrainConfig};
     use radiance::engine::nn::adam::{Adam, AdamConfig};
     use radiance::engine::nn::hashgrid::HashGridConfig;
     use radiance::engine::nn::nerf_net::NetConfig;
     use radiance::engine::sampling::occupancy::OccupancyConfig;
-    use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
+    use radiance::engine::train::trainer::{TrainState, Trainer};
     use std::sync::atomic::AtomicBool;
 
     let ds = BallScene { size: 24, views: 12, ..Default::default() }.dataset();
-    let scene = Scene::from_dataset(&ds);
+    let scene = ds.scene();
     let instant = InstantConfig {
         grid: HashGridConfig { levels: 6, log2_table: 11, base_resolution: 4, finest_resolution: 64 },
         hidden: 16,

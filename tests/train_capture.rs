@@ -11,15 +11,15 @@ use common::psnr::{ground_truth, test_psnr};
 use common::tiny::in_pool;
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::textured::TexturedScene;
-use radiance::engine::geometry::scene::Scene;
-use radiance::engine::io::persist;
 use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
 use radiance::engine::models::config::ModelConfig;
-use radiance::engine::render::appearance::held_out_options;
-use radiance::engine::render::render_view_with;
+use radiance::engine::models::training::Budget;
 use radiance::engine::rng::Rng;
-use radiance::engine::train::trainer::{Budget, TrainState, Trainer};
+use radiance::engine::train::persist;
+use radiance::engine::train::trainer::{TrainState, Trainer};
+use radiance::engine::view::appearance::held_out_options;
+use radiance::engine::view::render_view_with;
 
 /// A textured ball on a textured ground plane that ends 2.2 units out,
 /// white beyond (the background at infinity), from a ring of 36 cameras at
@@ -91,8 +91,8 @@ fn resuming_from_a_checkpoint_continues_exactly() {
         assert_eq!(resumed.model.state_tensors(), straight.model.state_tensors());
         // And the two render the same bits.
         let cam = &ds.frames[ds.test[0]].camera;
-        let a = radiance::engine::render::render_view(&*resumed.model, cam, ds.background);
-        let b = radiance::engine::render::render_view(&*straight.model, cam, ds.background);
+        let a = radiance::engine::view::render_view(&*resumed.model, cam, ds.background);
+        let b = radiance::engine::view::render_view(&*straight.model, cam, ds.background);
         assert!(a.rgb == b.rgb && a.depth == b.depth);
     });
 }
@@ -167,7 +167,7 @@ fn appearance_embeddings_explain_exposure_changes() {
         let ModelConfig::Capture(mut c) = ModelConfig::preset("capture-tiny").unwrap() else { unreachable!() };
         c.appearance_dim = dim;
         let config = ModelConfig::Capture(c);
-        let (model, adam) = config.build_with_adam(Scene::from_dataset(ds), seed, None).unwrap();
+        let (model, adam) = config.build_with_adam(ds.scene(), seed, None).unwrap();
         let train = config.train_config(seed, 1024, Budget { steps: Some(600), seconds: None });
         let mut t = Trainer::new(model, adam, train, TrainState::default(), ds);
         t.run(&AtomicBool::new(false), |_, _| true);

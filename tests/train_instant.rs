@@ -10,16 +10,16 @@ use common::tiny::{self, InstantModel};
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::dataset::{Dataset, Split};
 use radiance::engine::geometry::math::Ray;
-use radiance::engine::geometry::scene::Scene;
 use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
+use radiance::engine::models::training::TrainConfig;
 use radiance::engine::nn::adam::{Adam, AdamConfig};
-use radiance::engine::render::{View, render_view};
-use radiance::engine::train::trainer::{TrainConfig, TrainState, Trainer};
+use radiance::engine::train::trainer::{TrainState, Trainer};
+use radiance::engine::view::{View, render_view};
 
 fn trained() -> (Dataset, Box<dyn Model>) {
     let ds = BallScene::default().dataset();
-    let model = InstantModel::new(tiny::instant_small(), Scene::from_dataset(&ds), 2);
+    let model = InstantModel::new(tiny::instant_small(), ds.scene(), 2);
     let adam =
         Adam::new(AdamConfig { lr: 1e-2, lr_end: 1e-3, beta1: 0.9, beta2: 0.99, eps: 1e-15 }, model.params().len());
     let cfg = TrainConfig { random_background: true, ..tiny::train_config(2, 0, 200) };
@@ -42,7 +42,7 @@ fn instant_model_learns_and_skipping_is_lossless() {
     assert!(mean > 25.0, "test PSNR {mean:.2} dB");
 
     // Rebuild the same model three ways from its parameters.
-    let ckpt = radiance::engine::io::persist::to_checkpoint(
+    let ckpt = radiance::engine::train::persist::to_checkpoint(
         &*model,
         &Adam::new(AdamConfig::default(), model.params().len()),
         &TrainConfig::default(),
@@ -51,7 +51,7 @@ fn instant_model_learns_and_skipping_is_lossless() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.ckpt");
     ckpt.save(&path).unwrap();
-    let restored = radiance::engine::io::persist::load(&path).unwrap().model;
+    let restored = radiance::engine::train::persist::load(&path).unwrap().model;
     let cam = &ds.frames[test[0]].camera;
     let marched = render_view(&*restored, cam, ds.background);
     assert_eq!(marched.rgb, render_view(&*model, cam, ds.background).rgb, "checkpoint round trip");

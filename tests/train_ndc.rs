@@ -12,11 +12,11 @@ use common::psnr::test_psnr;
 use common::tiny::{in_pool, trainer};
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::textured::TexturedScene;
-use radiance::engine::io::persist;
 use radiance::engine::models::capture::{CaptureConfig, Space};
 use radiance::engine::models::config::ModelConfig;
-use radiance::engine::render::render_view;
+use radiance::engine::train::persist;
 use radiance::engine::train::trainer::Trainer;
+use radiance::engine::view::render_view;
 
 /// The textured ball and ground of `tests/train_capture.rs` from 20 cameras
 /// on a 5x4 grid facing it from one side (axes within 2 degrees of their

@@ -7,16 +7,15 @@ use std::sync::atomic::AtomicBool;
 use common::psnr::test_psnr;
 use common::tiny::{self, NerfConfig, NerfModel};
 use radiance::engine::dataset::synthetic::BallScene;
-use radiance::engine::geometry::scene::Scene;
 use radiance::engine::models::Model;
 use radiance::engine::nn::adam::{Adam, AdamConfig};
-use radiance::engine::render::render_view;
 use radiance::engine::train::trainer::{TrainState, Trainer};
+use radiance::engine::view::render_view;
 
 #[test]
 fn classic_nerf_learns_a_tiny_scene() {
     let ds = BallScene::default().dataset();
-    let model = NerfModel::new(tiny::nerf_small(), Scene::from_dataset(&ds), 1);
+    let model = NerfModel::new(tiny::nerf_small(), ds.scene(), 1);
     let before = test_psnr(&model, &ds);
     let adam = Adam::new(AdamConfig { lr: 5e-3, lr_end: 5e-4, ..Default::default() }, model.params().len());
     let cfg = tiny::train_config(1, 256, 300);

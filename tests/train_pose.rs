@@ -10,15 +10,15 @@ use std::sync::atomic::AtomicBool;
 use common::psnr::ground_truth;
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::textured::TexturedScene;
-use radiance::engine::geometry::scene::Scene;
 use radiance::engine::geometry::so3;
 use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
 use radiance::engine::models::capture::{CaptureConfig, CaptureModel};
 use radiance::engine::models::config::ModelConfig;
-use radiance::engine::render::render_view;
+use radiance::engine::models::training::Budget;
 use radiance::engine::rng::Rng;
-use radiance::engine::train::trainer::{Budget, TrainState, Trainer};
+use radiance::engine::train::trainer::{TrainState, Trainer};
+use radiance::engine::view::render_view;
 
 /// Degrees each training camera is turned by (about a random axis
 /// through its centre).
@@ -43,7 +43,7 @@ fn perturbed() -> (Dataset, Vec<PoseError>) {
     ds.test = (0..n).filter(|k| k % 6 == 3).collect();
     ds.val = ds.test.clone();
     ds.train = (0..n).filter(|k| k % 6 != 3).collect();
-    let radius = f64::from(Scene::from_dataset(&ds).rig.unwrap().radius);
+    let radius = f64::from(ds.scene().rig.unwrap().radius);
     let mut rng = Rng::new(11);
     let mut unit = || {
         let v: [f64; 3] = std::array::from_fn(|_| f64::from(rng.normal()));
@@ -71,7 +71,7 @@ fn perturbed() -> (Dataset, Vec<PoseError>) {
 /// `capture-tiny` with or without pose refinement, trained `steps` steps.
 fn train(ds: &Dataset, pose_refine: bool, steps: u64) -> Box<dyn Model> {
     let config = ModelConfig::Capture(CaptureConfig { pose_refine, ..CaptureConfig::tiny() });
-    let (model, adam) = config.build_with_adam(Scene::from_dataset(ds), 1, None).unwrap();
+    let (model, adam) = config.build_with_adam(ds.scene(), 1, None).unwrap();
     let train = config.train_config(1, 1024, Budget { steps: Some(steps), seconds: None });
     let mut t = Trainer::new(model, adam, train, TrainState::default(), ds);
     t.run(&AtomicBool::new(false), |_, _| true);

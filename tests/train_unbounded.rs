@@ -14,9 +14,9 @@ use common::psnr::test_psnr;
 use radiance::engine::dataset::{Dataset, DatasetFormat, Frame, Image, MaskUse};
 use radiance::engine::geometry::camera::{Camera, look_at};
 use radiance::engine::geometry::math::{Aabb, Ray, Vec3};
-use radiance::engine::geometry::scene::Scene;
 use radiance::engine::models::config::ModelConfig;
-use radiance::engine::train::trainer::{Budget, TrainState, Trainer};
+use radiance::engine::models::training::Budget;
+use radiance::engine::train::trainer::{TrainState, Trainer};
 
 /// Radius of the ball at the origin.
 const BALL: f32 = 0.5;
@@ -106,7 +106,7 @@ fn dataset(views: usize, width: u32, height: u32) -> Dataset {
 /// trainer and the held-out PSNR before and after.
 fn train<'a>(ds: &'a Dataset, preset: &str, seed: u64, steps: u64) -> (Trainer<'a>, f64, f64) {
     let config = ModelConfig::preset(preset).unwrap();
-    let (model, adam) = config.build_with_adam(Scene::from_dataset(ds), seed, None).unwrap();
+    let (model, adam) = config.build_with_adam(ds.scene(), seed, None).unwrap();
     let budget = Budget { steps: Some(steps), seconds: None };
     let mut t = Trainer::new(model, adam, config.train_config(seed, 1024, budget), TrainState::default(), ds);
     let before = test_psnr(&*t.model, ds);

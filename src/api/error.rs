@@ -26,7 +26,7 @@ use serde_json::{Value, json};
 use super::archive::{ArchiveError, Limit};
 use crate::engine::dataset::DatasetError;
 use crate::engine::io::checkpoint::CheckpointError;
-use crate::engine::render::appearance::AppearanceError;
+use crate::engine::view::appearance::AppearanceError;
 use crate::jobs::SchedError;
 use crate::media::video::VideoError;
 

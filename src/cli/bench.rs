@@ -15,10 +15,10 @@ use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{AppearanceArgs, Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
-use crate::engine::geometry::scene::Scene;
 use crate::engine::io::fsio;
 use crate::engine::models::auto::ModelChoice;
-use crate::engine::train::trainer::{Budget, Progress, StopReason, TrainState, Trainer};
+use crate::engine::models::training::Budget;
+use crate::engine::train::trainer::{Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
 
 #[derive(Args, Debug)]
@@ -358,7 +358,7 @@ impl Run<'_> {
     fn model(&self, kind: &str, report: &mut BenchReport) -> anyhow::Result<()> {
         let (a, ds, budgets) = (self.args, self.ds, self.budgets);
         reset_peak_memory();
-        let (cfg, model, adam) = new_model_and_adam(kind, Scene::from_dataset(ds), a.seed, true, a.lr, &a.set)?;
+        let (cfg, model, adam) = new_model_and_adam(kind, ds.scene(), a.seed, true, a.lr, &a.set)?;
         let budget = Budget { steps: None, seconds: Some(*budgets.last().unwrap_or(&0.0)) };
         let config = cfg.train_config(a.seed, DEFAULT_BATCH_RAYS, budget);
         eprintln!(

@@ -10,11 +10,11 @@ use clap::Args;
 use super::{AppearanceArgs, Common, DataArgs};
 use crate::engine::dataset::{Dataset, Frame, LoadOptions, masks};
 use crate::engine::geometry::camera::Camera;
-use crate::engine::io::persist;
 use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
 use crate::engine::models::{Model, RenderOptions};
-use crate::engine::render::{View, render_heldout_view};
 use crate::engine::train::appearance_fit::{AppearanceFit, FitError, FitSettings, Half};
+use crate::engine::train::persist;
+use crate::engine::view::{View, render_heldout_view};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -475,12 +475,11 @@ mod tests {
     /// row left to fit in is scored without a fit (a warning), not refused.
     #[test]
     fn a_fit_that_cannot_be_made_is_left_out() {
-        use crate::engine::geometry::scene::Scene;
-        use crate::engine::models::capture_config::CaptureConfig;
+        use crate::engine::models::capture::config::CaptureConfig;
         use crate::engine::models::config::ModelConfig;
         let ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
         let config = CaptureConfig { max_images: 4, ..CaptureConfig::tiny() };
-        let mut m = ModelConfig::Capture(config).build(Scene::from_dataset(&ds), 1).unwrap();
+        let mut m = ModelConfig::Capture(config).build(ds.scene(), 1).unwrap();
         assert!(appearance_fit(&*m, 1, 64).unwrap().is_some());
         assert!(appearance_fit(&*m, 1, 0).unwrap().is_none());
         m.restore_state(&mut |_| Some(vec![1.0; 4]), 1).unwrap();
@@ -493,12 +492,11 @@ mod tests {
     /// half's PSNR and the whole frame's are those of that view, by hand.
     #[test]
     fn fitted_scores_cross_the_halves() {
-        use crate::engine::geometry::scene::Scene;
-        use crate::engine::models::capture_config::CaptureConfig;
+        use crate::engine::models::capture::config::CaptureConfig;
         use crate::engine::models::config::ModelConfig;
         let ds = BallScene { size: 9, views: 4, ..Default::default() }.dataset();
         let config = CaptureConfig { max_images: 4, ..CaptureConfig::tiny() };
-        let mut m = ModelConfig::Capture(config).build(Scene::from_dataset(&ds), 1).unwrap();
+        let mut m = ModelConfig::Capture(config).build(ds.scene(), 1).unwrap();
         m.restore_state(&mut |_| Some(vec![0.0, 1.0, 1.0, 0.0]), 1).unwrap();
         let mut rng = crate::engine::rng::Rng::new(4);
         m.params_mut().iter_mut().for_each(|p| *p += 0.3 * rng.normal());

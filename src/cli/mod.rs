@@ -109,7 +109,7 @@ pub struct AppearanceArgs {
     /// mean for a checkpoint that kept no training cameras). Other models
     /// ignore it.
     #[arg(long, value_name = "mean|N|nearest")]
-    pub appearance: Option<crate::engine::render::appearance::Appearance>,
+    pub appearance: Option<crate::engine::view::appearance::Appearance>,
 }
 
 impl AppearanceArgs {
@@ -129,7 +129,7 @@ impl AppearanceArgs {
     ) -> anyhow::Result<crate::engine::models::RenderOptions> {
         match self.appearance {
             Some(a) => a.resolve(model, camera).map_err(|e| anyhow::anyhow!("--appearance {a}: {e}")),
-            None => Ok(crate::engine::render::appearance::held_out_options(model, camera)),
+            None => Ok(crate::engine::view::appearance::held_out_options(model, camera)),
         }
     }
 }

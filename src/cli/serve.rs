@@ -117,6 +117,8 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,tower_http=warn".into()),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only for a terminal: a log file or a pipe gets plain text.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
     let shared = deployment(a.role, a.database_url.as_deref(), a.object_store.as_deref())?;
     let distributed = shared.map(|(db, store)| distributed_settings(&a, db, store)).transpose()?;

@@ -12,14 +12,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam, resolve_model};
 use super::{Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split, masks};
-use crate::engine::geometry::scene::Scene;
 use crate::engine::io::checkpoint::Checkpoint;
 use crate::engine::models::auto::{AUTO, ModelChoice};
 use crate::engine::models::capture::CaptureModel;
 use crate::engine::models::config::ModelConfig;
+use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::train::estimate::{self, DataSize, mib};
 use crate::engine::train::session::{Event, Session, SessionConfig, Start, Stop};
-use crate::engine::train::trainer::{Budget, TrainConfig};
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
@@ -152,7 +151,7 @@ fn open_session<'a>(
     let start = match &a.resume {
         Some(p) => Start::Resume { from: p.clone(), kind: Some(config.kind().to_string()) },
         None => {
-            let (_, model, adam) = new_model_and_adam(kind, Scene::from_dataset(ds), a.seed, !a.no_skip, a.lr, &a.set)?;
+            let (_, model, adam) = new_model_and_adam(kind, ds.scene(), a.seed, !a.no_skip, a.lr, &a.set)?;
             Start::Fresh { model, adam }
         }
     };

@@ -15,9 +15,9 @@ use clap::Args;
 use super::Common;
 use crate::engine::geometry::camera::Camera;
 use crate::engine::io::fsio::write_atomic;
-use crate::engine::io::persist;
-use crate::engine::render::appearance::Appearance;
-use crate::engine::render::render_view_with;
+use crate::engine::train::persist;
+use crate::engine::view::appearance::Appearance;
+use crate::engine::view::render_view_with;
 use crate::media::png;
 use crate::media::video::{self, VideoFormat};
 

@@ -4,6 +4,7 @@
 //! No async, no HTTP, no global state: progress is reported through callbacks
 //! and long work stops when a cancel flag is set.
 
+pub mod batch;
 pub mod dataset;
 pub mod fields;
 pub mod geometry;
@@ -15,3 +16,4 @@ pub mod render;
 pub mod rng;
 pub mod sampling;
 pub mod train;
+pub mod view;

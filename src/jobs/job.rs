@@ -5,8 +5,8 @@ use serde::{Deserialize, Serialize};
 use crate::engine::dataset::MaskUse;
 use crate::engine::geometry::path::CameraPath;
 use crate::engine::models::config::ModelConfig;
-use crate::engine::render::appearance::Appearance;
-use crate::engine::train::trainer::Budget;
+use crate::engine::models::training::Budget;
+use crate::engine::view::appearance::Appearance;
 use crate::media::video::VideoFormat;
 
 /// A job's state.

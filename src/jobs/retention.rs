@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use super::lifecycle::writes_model;
 use super::{Job, JobSpec, Shared};
-use crate::engine::io::persist;
+use crate::engine::train::persist;
 use crate::storage::{ModelInfo, Storage, now_ms, remove_file_if_exists, valid_id, write_json};
 
 /// Longest pause between two sweeps.

@@ -10,16 +10,16 @@ use std::time::Instant;
 use super::host::JobHost;
 use super::{Job, Outcome, TrainSpec};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
-use crate::engine::geometry::scene::Scene;
 use crate::engine::metrics::psnr;
 use crate::engine::models::Model;
 use crate::engine::models::auto::ModelChoice;
 use crate::engine::models::capture::CaptureModel;
+use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::pose_report::PoseReport;
-use crate::engine::render::appearance::held_out_options;
-use crate::engine::render::render_heldout_view;
 use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
-use crate::engine::train::trainer::{Progress, TrainConfig, TrainState};
+use crate::engine::train::trainer::{Progress, TrainState};
+use crate::engine::view::appearance::held_out_options;
+use crate::engine::view::render_heldout_view;
 use crate::storage::{ModelInfo, SceneInfo, ScenePart, now_ms};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.
@@ -96,8 +96,7 @@ fn open_session<'a>(
     let start = if resume {
         Start::Resume { from: ckpt.clone(), kind: None }
     } else {
-        let (model, adam) =
-            spec.config.build_with_adam(Scene::from_dataset(ds), spec.seed, None).map_err(|e| e.to_string())?;
+        let (model, adam) = spec.config.build_with_adam(ds.scene(), spec.seed, None).map_err(|e| e.to_string())?;
         Start::Fresh { model, adam }
     };
     let choice =

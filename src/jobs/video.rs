@@ -9,8 +9,8 @@ use std::time::Instant;
 use super::host::JobHost;
 use super::{Job, Outcome, VideoSpec};
 use crate::engine::geometry::camera::Camera;
-use crate::engine::io::persist;
-use crate::engine::render::render_view_with;
+use crate::engine::train::persist;
+use crate::engine::view::render_view_with;
 use crate::media::{png, video};
 use crate::storage::{VideoInfo, now_ms};
 

@@ -6,7 +6,7 @@ use std::path::Path;
 use image::{ImageBuffer, ImageEncoder, Luma, Rgb, RgbImage, codecs::png::PngEncoder};
 
 use crate::engine::io::fsio::write_atomic;
-use crate::engine::render::View;
+use crate::engine::view::View;
 
 /// Quantises a value in [0, 1] to 8 bits (NaN becomes 0).
 pub fn to_u8(v: f32) -> u8 {
@@ -132,7 +132,7 @@ pub fn decode_rgb(bytes: &[u8]) -> Result<ImageBuffer<Rgb<u8>, Vec<u8>>, image::
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::models::BatchStats;
+    use crate::engine::batch::BatchStats;
 
     /// A 3x1 view: nothing hit, a surface at 2 of a far plane at 8, and a
     /// half-transparent surface at 2 (half its weight, half the far plane).

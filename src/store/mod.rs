@@ -9,9 +9,9 @@
 //! `embedded` implements both over one data directory with the scheduler,
 //! its redb job database and the files beside it: the default, one node.
 //! `pg` is the PostgreSQL job queue, and `pg::PgJobStore` the [`JobStore`]
-//! over it for many nodes; nothing in the service uses it yet. `object` is
-//! the [`ArtifactStore`] over an object store (an S3 bucket or a folder)
-//! with a local cache, for many nodes too; not used yet either.
+//! over it for many nodes (`serve --database-url`). `object` is the
+//! [`ArtifactStore`] over an object store (an S3 bucket or a folder) with a
+//! local cache, for many nodes too (`serve --object-store`).
 //!
 //! Both interfaces are async (the API is tokio) and dyn-compatible: every
 //! method returns a boxed future ([`Fut`]), so the API holds them as

@@ -5,7 +5,7 @@ use image::RgbImage;
 use radiance::engine::dataset::{Dataset, Split};
 use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
-use radiance::engine::render::render_view;
+use radiance::engine::view::render_view;
 
 /// Frame `k`'s pixels on the dataset's background, row by row, three floats
 /// each (the layout of a rendered view's `rgb`).

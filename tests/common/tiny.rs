@@ -10,10 +10,11 @@ use radiance::engine::geometry::scene::Scene;
 use radiance::engine::models::config::ModelConfig;
 pub use radiance::engine::models::instant::{InstantConfig, InstantModel};
 pub use radiance::engine::models::nerf::{NerfConfig, NerfModel};
+use radiance::engine::models::training::{Budget, TrainConfig};
 pub use radiance::engine::nn::hashgrid::HashGridConfig;
 pub use radiance::engine::nn::nerf_net::NetConfig;
 pub use radiance::engine::sampling::occupancy::OccupancyConfig;
-use radiance::engine::train::trainer::{Budget, TrainConfig, TrainState, Trainer};
+use radiance::engine::train::trainer::{TrainState, Trainer};
 
 /// The smallest classic model that still learns something: for long runs.
 pub fn nerf_nano() -> NerfConfig {
@@ -79,7 +80,7 @@ pub fn train_config(seed: u64, batch_rays: usize, steps: u64) -> TrainConfig {
 /// A fresh trainer of `config` on `ds`, seeded `seed`, for `steps` steps of
 /// 1024 rays (models that choose their own batch keep theirs).
 pub fn trainer<'a>(config: &ModelConfig, ds: &'a Dataset, seed: u64, steps: u64) -> Trainer<'a> {
-    let (model, adam) = config.build_with_adam(Scene::from_dataset(ds), seed, None).unwrap();
+    let (model, adam) = config.build_with_adam(ds.scene(), seed, None).unwrap();
     let train = config.train_config(seed, 1024, Budget { steps: Some(steps), seconds: None });
     Trainer::new(model, adam, train, TrainState::default(), ds)
 }

@@ -5,13 +5,14 @@ use std::sync::atomic::AtomicBool;
 
 use crate::common::psnr::test_psnr;
 use crate::common::tiny::{self, NerfModel, OccupancyConfig};
+use radiance::engine::batch::{RayOutput, StepCtx, TrainRay};
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::geometry::math::{Ray, Vec3};
 use radiance::engine::geometry::scene::Scene;
-use radiance::engine::io::persist;
-use radiance::engine::models::{Model, RayOutput, StepCtx, TrainRay};
+use radiance::engine::models::Model;
 use radiance::engine::nn::adam::{Adam, AdamConfig};
+use radiance::engine::train::persist;
 use radiance::engine::train::trainer::{DivergenceGuard, StopReason, TrainState, Trainer};
 
 fn trainer_for<'a>(model: Box<dyn Model>, ds: &'a Dataset, steps: u64, batch: usize, lr: f32) -> Trainer<'a> {
@@ -94,7 +95,7 @@ fn odd_world_rays_render_finite_pixels() {
 /// blown-up model does. (Fault injection through the trainer's public API;
 /// a `Model` wrapper would tie these tests to the trait's exact shape.)
 fn guarded_trainer(ds: &Dataset, steps: u64) -> Trainer<'_> {
-    let model = NerfModel::new(tiny::nerf_micro(false), Scene::from_dataset(ds), 3);
+    let model = NerfModel::new(tiny::nerf_micro(false), ds.scene(), 3);
     let mut t = trainer_for(Box::new(model), ds, steps, 32, 5e-3);
     t.guard = DivergenceGuard { patience: 5, snapshot_every: 10, max_rollbacks: 3 };
     t
@@ -205,7 +206,7 @@ fn old_train_states_default_to_full_learning_rate() {
 fn train_checkpoint(ds: &Dataset, steps: u64) -> radiance::engine::io::checkpoint::Checkpoint {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
     pool.install(|| {
-        let model = NerfModel::new(tiny::nerf_micro(true), Scene::from_dataset(ds), 5);
+        let model = NerfModel::new(tiny::nerf_micro(true), ds.scene(), 5);
         let mut t = trainer_for(Box::new(model), ds, steps, 64, 5e-3);
         assert_eq!(t.run(&AtomicBool::new(false), |_, _| true), StopReason::Budget);
         persist::to_checkpoint(&*t.model, &t.adam, &t.config, &t.state)
@@ -251,7 +252,7 @@ fn scaled_scenes_train_to_the_same_psnr() {
     let mut results = Vec::new();
     for scale in [1.0f32, 1e-3, 1e3] {
         let ds = BallScene { size: 16, views: 12, scale, ..Default::default() }.dataset();
-        let model = NerfModel::new(config.clone(), Scene::from_dataset(&ds), 1);
+        let model = NerfModel::new(config.clone(), ds.scene(), 1);
         let mut t = trainer_for(Box::new(model), &ds, 200, 192, 5e-3);
         assert_eq!(t.run(&AtomicBool::new(false), |_, _| true), StopReason::Budget);
         results.push((scale, test_psnr(&*t.model, &ds)));
@@ -267,7 +268,7 @@ fn scaled_scenes_train_to_the_same_psnr() {
 /// Trains a few steps on a degenerate dataset: the run ends with a clear
 /// outcome and the model is finite and saveable.
 fn train_briefly(name: &str, ds: &Dataset) {
-    let model = NerfModel::new(tiny::nerf_micro(true), Scene::from_dataset(ds), 2);
+    let model = NerfModel::new(tiny::nerf_micro(true), ds.scene(), 2);
     let mut t = trainer_for(Box::new(model), ds, 30, 64, 1e-2);
     let mut losses = Vec::new();
     let reason = t.run(&AtomicBool::new(false), |_, p| {
@@ -345,7 +346,7 @@ fn degenerate_datasets_train_to_a_clear_outcome() {
 #[test]
 fn a_long_run_keeps_finite_loss_and_parameters() {
     let ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
-    let model = NerfModel::new(tiny::nerf_nano(), Scene::from_dataset(&ds), 4);
+    let model = NerfModel::new(tiny::nerf_nano(), ds.scene(), 4);
     // An aggressive learning rate that stays high for the whole run.
     let mut t = trainer_for(Box::new(model), &ds, 3000, 16, 2e-2);
     t.adam.config.lr_end = 1e-2;

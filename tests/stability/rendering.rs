@@ -1,7 +1,9 @@
 //! Volume rendering with extreme inputs.
 
 use proptest::prelude::*;
-use radiance::engine::render::composite::{composite, composite_backward};
+use radiance::engine::render::composite::{
+    Composite, CompositeOptions, RaySamples, Upstream, composite as composite_with, composite_backward as backward_with,
+};
 use radiance::engine::rng::Rng;
 
 /// Densities from 0 to 1e30, and infinity.
@@ -48,6 +50,41 @@ fn ray_inputs(sigma: BoxedStrategy<f32>) -> impl Strategy<Value = RayInputs> {
                 (sigma, rgb, t, delta)
             })
     })
+}
+
+/// The compositor with a background and an early stop only.
+fn composite(
+    sigma: &[f32],
+    rgb: &[f32],
+    t: &[f32],
+    delta: &[f32],
+    bg: [f32; 3],
+    min_t: f32,
+    w: &mut [f32],
+) -> Composite {
+    let s = RaySamples::new(sigma, rgb, t, delta).unwrap();
+    let opts = CompositeOptions { background: bg, min_transmittance: min_t, opaque_last: false };
+    composite_with(s, &opts, w).unwrap()
+}
+
+/// Its backward for colour and depth gradients.
+#[allow(clippy::too_many_arguments)]
+fn composite_backward(
+    sigma: &[f32],
+    rgb: &[f32],
+    t: &[f32],
+    delta: &[f32],
+    w: &[f32],
+    bg: [f32; 3],
+    used: usize,
+    g: [f32; 3],
+    gd: f32,
+    ds: &mut [f32],
+    dc: &mut [f32],
+) {
+    let s = RaySamples::new(sigma, rgb, t, delta).unwrap();
+    let opts = CompositeOptions { background: bg, min_transmittance: 0.0, opaque_last: false };
+    backward_with(s, w, &opts, used, Upstream { rgb: g, depth: gd, weights: None }, ds, dc).unwrap();
 }
 
 /// Checks every invariant of one composite and its backward pass.

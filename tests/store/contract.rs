@@ -20,8 +20,8 @@ use std::time::{Duration, Instant};
 
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::dataset::{Dataset, LoadOptions};
-use radiance::engine::io::persist;
 use radiance::engine::models::config::ModelConfig;
+use radiance::engine::train::persist;
 use radiance::jobs::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, SchedError, Status, TrainSpec, VideoSpec};
 use radiance::media::video::VideoFormat;
 use radiance::storage::{

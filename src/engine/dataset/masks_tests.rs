@@ -2,7 +2,6 @@ use super::super::synthetic::BallScene;
 use super::super::testutil::write_mask;
 use super::super::{LoadOptions, Split};
 use super::*;
-use crate::engine::geometry::scene::Scene;
 
 const SIZE: u32 = 16;
 
@@ -168,11 +167,11 @@ fn composite_makes_the_frames_transparent_and_score_does_not() {
         let want = p.image.rgb_on(8, 3, [1.0; 3]).map(|v| v * a + (1.0 - a));
         assert!(c.iter().zip(want).all(|(x, y)| (x - y).abs() < 1e-6), "{c:?} {want:?}");
     }
-    assert!(Scene::from_dataset(&ds).transparent);
+    assert!(ds.scene().transparent);
 
     let ds = load(root, MaskUse::Score).unwrap();
     assert!(ds.frames.iter().all(|f| !f.image.has_alpha && f.mask.is_some()));
-    assert!(!Scene::from_dataset(&ds).transparent);
+    assert!(!ds.scene().transparent);
     // Auto: the folder scores, and a warning says how to train with it.
     let auto = load(root, MaskUse::Auto).unwrap();
     assert_eq!(auto.masks, MaskUse::Score);
@@ -199,7 +198,7 @@ fn the_alpha_channel_is_the_mask_when_asked_for() {
     write_masks(root, "masks", 12);
     let auto = load(root, MaskUse::Auto).unwrap();
     assert!(auto.masks == MaskUse::Off && auto.frames.iter().all(|f| f.mask.is_none()));
-    assert!(Scene::from_dataset(&auto).transparent, "RGBA images composite as always");
+    assert!(auto.scene().transparent, "RGBA images composite as always");
     for masks in [MaskUse::Score, MaskUse::Ignore, MaskUse::Composite] {
         let ds = load(root, masks).unwrap();
         assert_eq!((ds.masks, ds.mask_folder.clone()), (masks, None));

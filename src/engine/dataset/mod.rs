@@ -18,6 +18,7 @@ mod llff;
 pub mod masks;
 mod ngp;
 pub mod npy;
+mod scene;
 pub mod synthetic;
 #[cfg(test)]
 mod testutil;

@@ -21,9 +21,9 @@ use super::{Field, Points};
 use crate::engine::nn::appearance::{Appearance, AppearanceBatch};
 use crate::engine::nn::hashgrid::{GridRecord, HalfTable, HashGrid, HashGridConfig};
 use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
+use crate::engine::nn::move_rows;
 use crate::engine::nn::sh;
 use crate::engine::rng::Rng;
-use crate::engine::sampling::move_rows;
 
 /// Density activation of the capture and proposal fields:
 /// `init · exp(clamp(raw, -15, 15))`. Its derivative is taken as the

@@ -7,9 +7,9 @@ use super::{Field, Points};
 use crate::engine::geometry::math::Vec3;
 use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
 use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
+use crate::engine::nn::move_rows;
 use crate::engine::nn::sh;
 use crate::engine::rng::Rng;
-use crate::engine::sampling::move_rows;
 
 /// Density activation: `exp` of the clamped input (its derivative is the
 /// density itself, which stays finite).

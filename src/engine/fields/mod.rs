@@ -95,8 +95,8 @@ pub fn densities<F: Field>(field: &F, params: &[f32], pos: &[f32], chunk: usize)
 #[cfg(test)]
 pub mod toy {
     use super::{Field, Points};
+    use crate::engine::nn::gather_rows;
     use crate::engine::nn::linear::{sigmoid, softplus, softplus_grad};
-    use crate::engine::sampling::gather_rows;
 
     pub struct Toy;
 

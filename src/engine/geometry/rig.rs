@@ -9,7 +9,6 @@
 //! nearly parallel) that point is ill-defined, and the focus is placed on
 //! the mean axis at the depth the NeRF paper's spiral path focuses on.
 
-use crate::engine::dataset::{Dataset, Split};
 use crate::engine::geometry::align::jacobi_eigen;
 use crate::engine::geometry::camera::Orbit;
 use crate::engine::geometry::math::Vec3;
@@ -401,18 +400,6 @@ impl CameraRig {
             elevation_deg,
             radius,
         }
-    }
-
-    /// The rig of a dataset's training cameras.
-    pub fn from_dataset(ds: &Dataset) -> Option<Self> {
-        let poses: Vec<_> = ds.split_frames(Split::Train).map(|f| f.camera.c2w).collect();
-        let cam = &ds.split_frames(Split::Train).next()?.camera;
-        let mut rig = Self::from_poses(&poses, ds.near, ds.far, ds.centre())?;
-        for (fr, &i) in rig.frames.iter_mut().zip(&ds.train) {
-            fr.image = i as u32;
-        }
-        let fov_deg = (2.0 * (0.5 * cam.width as f32 / cam.fx).atan()).to_degrees();
-        Some(Self { image: [cam.width, cam.height], fov_deg, ..rig })
     }
 }
 

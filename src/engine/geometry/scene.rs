@@ -2,7 +2,6 @@
 //! centred at the origin with its largest half-extent 1, whatever the units
 //! of the capture. Distances along rays scale by the same factor.
 
-use crate::engine::dataset::Dataset;
 use crate::engine::geometry::math::{Aabb, Ray, Vec3};
 use crate::engine::geometry::rig::CameraRig;
 
@@ -40,11 +39,6 @@ pub struct Scene {
 }
 
 impl Scene {
-    pub fn from_dataset(ds: &Dataset) -> Self {
-        let transparent = ds.train.iter().any(|&i| ds.frames[i].image.has_transparent_pixels());
-        Self { transparent, rig: CameraRig::from_dataset(ds), ..Self::from_bounds(ds.aabb, ds.near, ds.far) }
-    }
-
     pub fn from_bounds(aabb: Aabb, near: f32, far: f32) -> Self {
         let c = aabb.centre();
         let h = aabb.half_extent();

@@ -1,6 +1,5 @@
-//! Files: the checkpoint container, saving and loading models in it, and
-//! atomic writes.
+//! Files: the checkpoint container and atomic writes. Saving a model with
+//! its optimiser in a checkpoint is `train::persist`'s.
 
 pub mod checkpoint;
 pub mod fsio;
-pub mod persist;

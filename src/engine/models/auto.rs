@@ -19,7 +19,6 @@
 //! which `radiance train` prints and records keep.
 
 use crate::engine::dataset::{Dataset, MaskUse};
-use crate::engine::geometry::rig::CameraRig;
 
 /// The name that asks for the automatic choice.
 pub const AUTO: &str = "auto";
@@ -73,7 +72,7 @@ impl SceneKind {
     pub fn of_dataset(ds: &Dataset) -> Self {
         let transparent_images = ds.train.iter().filter(|&&i| ds.frames[i].image.has_transparent_pixels()).count();
         let composited = ds.masks == MaskUse::Composite && ds.mask_folder.is_some();
-        let rig = CameraRig::from_dataset(ds);
+        let rig = ds.rig();
         SceneKind {
             train_images: ds.train.len(),
             transparent_images,
@@ -155,7 +154,7 @@ mod tests {
     use crate::engine::dataset::textured::TexturedScene;
     use crate::engine::geometry::camera::{Camera, look_at};
     use crate::engine::geometry::math::Vec3;
-    use crate::engine::geometry::scene::Scene;
+
     use crate::engine::models::config::ModelConfig;
 
     fn ball() -> Dataset {
@@ -306,7 +305,7 @@ mod tests {
         held_out_only.frames[t].image.rgba[3] = 0;
         for ds in [ball(), photos(), half, held_out_only] {
             let kind = SceneKind::of_dataset(&ds);
-            let transparent = Scene::from_dataset(&ds).transparent;
+            let transparent = ds.scene().transparent;
             assert_eq!(kind.transparent(), transparent);
             assert_eq!(kind.choose().preset, if transparent { "instant" } else { "capture-360" });
             assert!(ModelConfig::preset(&kind.choose().preset).is_some());

@@ -10,12 +10,12 @@ use crate::engine::geometry::scene::Scene;
 use crate::engine::models::capture::CaptureConfig;
 use crate::engine::models::instant::InstantConfig;
 use crate::engine::models::nerf::NerfConfig;
+use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::{Adam, AdamConfig};
 use crate::engine::nn::hashgrid::HashGridConfig;
 use crate::engine::nn::nerf_net::NetConfig;
 use crate::engine::sampling::occupancy::OccupancyConfig;
-use crate::engine::train::trainer::{Budget, TrainConfig};
 
 /// What a model kind's configuration provides: the one interface through
 /// which a kind plugs into checks, building, loading and estimates. Each
@@ -317,7 +317,7 @@ mod tests {
         for name in PRESETS {
             let c = ModelConfig::preset(name).unwrap();
             c.check().unwrap_or_else(|e| panic!("{name}: {e}"));
-            let (m, adam) = c.build_with_adam(Scene::from_dataset(&ds), 1, None).unwrap();
+            let (m, adam) = c.build_with_adam(ds.scene(), 1, None).unwrap();
             assert_eq!(m.kind(), c.kind());
             assert_eq!(adam.m.len(), m.params().len());
         }
@@ -366,7 +366,7 @@ mod tests {
         }
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
         let c = ModelConfig::preset("nerf-tiny").unwrap();
-        assert!(c.build_with_adam(Scene::from_dataset(&ds), 0, Some(f32::NAN)).is_err());
+        assert!(c.build_with_adam(ds.scene(), 0, Some(f32::NAN)).is_err());
     }
 
     type Instant = fn(&mut InstantConfig);

@@ -8,11 +8,11 @@
 
 pub mod auto;
 pub mod capture;
-pub mod capture_config;
-pub mod capture_space;
 pub mod config;
 pub mod instant;
 pub mod nerf;
+pub mod pass;
+pub mod training;
 
 /// The accessors every model implements alike, inside its `impl Model`:
 /// from the `KIND` constant of its file and its `config`, `scene` and
@@ -47,23 +47,11 @@ macro_rules! model_accessors {
 }
 pub(crate) use model_accessors;
 
+use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::nn::adam::LrGroup;
 use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
-
-/// A training ray in model space with its target colour.
-#[derive(Clone, Copy, Debug)]
-pub struct TrainRay {
-    pub ray: Ray,
-    pub target: [f32; 3],
-    pub background: [f32; 3],
-    /// Position in the batch: seeds this ray's random stream.
-    pub index: u64,
-    /// The dataset frame the ray comes from (fields with per-image
-    /// appearance read it).
-    pub image: u32,
-}
 
 /// Why a model could not be rebuilt from saved parts.
 #[derive(Debug, thiserror::Error)]
@@ -92,53 +80,6 @@ impl ModelError {
 
 /// A model's saved state, taken back by name ([`Model::restore_state`]).
 pub type StateSource<'a> = &'a mut dyn FnMut(&str) -> Option<Vec<f32>>;
-
-/// Per-step context for a batch.
-#[derive(Clone, Copy, Debug)]
-pub struct StepCtx {
-    pub seed: u64,
-    pub step: u64,
-    /// Rays in the whole batch (losses are means over it).
-    pub batch_rays: usize,
-}
-
-/// Sums over a part of a batch.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct BatchStats {
-    /// Sum over rays of the mean squared colour error of the final pass.
-    pub sq_err: f64,
-    /// The loss summed over passes (coarse + fine for NeRF).
-    pub loss: f64,
-    /// Network evaluations (of the main field, for a model with proposal
-    /// networks).
-    pub samples: u64,
-    /// Evaluations of the proposal networks, which only place the main
-    /// field's samples (the capture model's; 0 for the others).
-    pub proposal_samples: u64,
-    /// Samples a dense marcher would have taken but that were skipped.
-    pub skipped: u64,
-    pub rays: u64,
-}
-
-impl BatchStats {
-    pub fn add(&mut self, o: &BatchStats) {
-        self.sq_err += o.sq_err;
-        self.loss += o.loss;
-        self.samples += o.samples;
-        self.proposal_samples += o.proposal_samples;
-        self.skipped += o.skipped;
-        self.rays += o.rays;
-    }
-}
-
-/// What rendering one ray gives.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct RayOutput {
-    pub rgb: [f32; 3],
-    /// Expected distance along the ray in model units.
-    pub depth: f32,
-    pub opacity: f32,
-}
 
 /// Options of one render that some models read; a model without them
 /// ignores them and renders exactly as [`Model::render_rays`] does.

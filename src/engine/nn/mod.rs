@@ -26,6 +26,22 @@ pub fn all_finite(values: &[f32]) -> bool {
     values.iter().fold(0u32, |acc, v| acc | ((v.to_bits() & EXPONENT) + ONE)) & 0x8000_0000 == 0
 }
 
+/// Moves rows `keep` (sorted) of a row-major buffer with `width` columns to
+/// its front (the rows after them are stale).
+pub fn move_rows(v: &mut [f32], width: usize, keep: &[usize]) {
+    for (dst, &src) in keep.iter().enumerate() {
+        if dst != src {
+            v.copy_within(src * width..(src + 1) * width, dst * width);
+        }
+    }
+}
+
+/// Keeps rows `keep` (sorted) of a row-major buffer with `width` columns.
+pub fn gather_rows(v: &mut Vec<f32>, width: usize, keep: &[usize]) {
+    move_rows(v, width, keep);
+    v.truncate(keep.len() * width);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

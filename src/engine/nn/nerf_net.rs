@@ -71,7 +71,7 @@ impl NetCtx {
         let n = self.n;
         let rows = |v: &mut Vec<f32>| {
             if let Some(width) = v.len().checked_div(n) {
-                crate::engine::sampling::gather_rows(v, width, keep);
+                crate::engine::nn::gather_rows(v, width, keep);
             }
         };
         for v in [&mut self.xenc, &mut self.denc, &mut self.feat, &mut self.hd, &mut self.sigma_raw] {

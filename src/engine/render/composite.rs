@@ -12,13 +12,11 @@
 //! (even for infinite density), and every quantity stays finite for finite or
 //! infinite densities.
 //!
-//! [`composite`] and [`composite_backward`] are what the `instant` and `nerf`
-//! models call. [`composite_with`] and [`composite_backward_with`] add what a
-//! model of real photographs needs (design `real-captures.md` 2.5): an opaque
-//! last interval, and a gradient on the weights themselves from a regulariser
-//! (`regularize`). With their options off they compute the same bits as the
-//! first two (a test checks it); the first two are left as they were so the
-//! existing models keep their exact code path.
+//! [`composite`] and [the forward] serve every model: with
+//! [`CompositeOptions`] off they are the plain quadrature above; a model of
+//! real photographs turns on an opaque last interval, and a regulariser
+//! (`regularize`) adds a gradient on the weights themselves
+//! (design `real-captures.md` 2.5).
 
 use super::InputError;
 
@@ -29,7 +27,7 @@ pub fn optical_depth(sigma: f32, delta: f32) -> f32 {
 }
 
 /// The transmittance along a ray, interval by interval: the weights of
-/// [`composite`] and [`composite_with`], which rendering in rounds
+/// [`composite`] and [`composite`], which rendering in rounds
 /// (`render::rounds`, and the proposal levels in `train::capture_levels`)
 /// also takes, resuming where a round ended.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -75,93 +73,7 @@ pub struct Composite {
     pub used: usize,
 }
 
-/// Composites `sigma.len()` samples; `rgb` is `[n x 3]`. Writes the weights
-/// into `weights` (needed by the backward pass and by hierarchical sampling).
-/// Stops early once transmittance drops below `min_transmittance` (pass 0 to
-/// composite every sample); the weights of skipped samples are set to zero.
-pub fn composite(
-    sigma: &[f32],
-    rgb: &[f32],
-    t: &[f32],
-    delta: &[f32],
-    background: [f32; 3],
-    min_transmittance: f32,
-    weights: &mut [f32],
-) -> Composite {
-    let n = sigma.len();
-    let mut out = Composite { used: n, ..Default::default() };
-    let mut along = Transmittance::default();
-    for i in 0..n {
-        if along.value() < min_transmittance {
-            out.used = i;
-            weights[i..n].fill(0.0);
-            break;
-        }
-        let w = along.step(sigma[i], delta[i], false);
-        weights[i] = w;
-        for c in 0..3 {
-            out.rgb[c] += w * rgb[3 * i + c];
-        }
-        out.depth += w * t[i];
-    }
-    let trans = along.value();
-    out.opacity = 1.0 - trans;
-    for c in 0..3 {
-        out.rgb[c] += trans * background[c];
-    }
-    out
-}
-
-/// Backward of [`composite`] (over the samples it used): given `dl_drgb`
-/// (dL/dC) and `dl_ddepth`, writes dL/dsigma_i and dL/dc_i.
-///
-/// `dC/dsigma_i = delta_i (T_{i+1} c_i - sum_{j>i} w_j c_j - T_n bg)`, and
-/// likewise for depth with `t_i` in place of `c_i` and no background.
-#[allow(clippy::too_many_arguments)]
-pub fn composite_backward(
-    sigma: &[f32],
-    rgb: &[f32],
-    t: &[f32],
-    delta: &[f32],
-    weights: &[f32],
-    background: [f32; 3],
-    used: usize,
-    dl_drgb: [f32; 3],
-    dl_ddepth: f32,
-    dsigma: &mut [f32],
-    drgb: &mut [f32],
-) {
-    let n = sigma.len();
-    let used = used.min(n);
-    // Recompute T_{i+1} exactly from optical depths rather than from the
-    // differences above (which lose precision when T is tiny).
-    let mut tau = 0.0f32;
-    for i in 0..used {
-        tau += optical_depth(sigma[i], delta[i]);
-        dsigma[i] = (-tau).exp(); // T_{i+1}, temporarily
-    }
-    let trans_end = if used > 0 { dsigma[used - 1] } else { 1.0 };
-    // suffix = sum_{j>i} w_j (g.c_j + gd t_j) + T_n g.bg
-    let gbg = dl_drgb[0] * background[0] + dl_drgb[1] * background[1] + dl_drgb[2] * background[2];
-    let mut suffix = trans_end * gbg;
-    for i in (0..used).rev() {
-        let c = &rgb[3 * i..3 * i + 3];
-        let gc = dl_drgb[0] * c[0] + dl_drgb[1] * c[1] + dl_drgb[2] * c[2] + dl_ddepth * t[i];
-        let t_next = dsigma[i];
-        let d = if delta[i] > 0.0 { delta[i] } else { 0.0 };
-        dsigma[i] = d * (t_next * gc - suffix);
-        suffix += weights[i] * gc;
-        for k in 0..3 {
-            drgb[3 * i + k] = weights[i] * dl_drgb[k];
-        }
-    }
-    for i in used..n {
-        dsigma[i] = 0.0;
-        drgb[3 * i..3 * i + 3].fill(0.0);
-    }
-}
-
-/// How [`composite_with`] composites one ray.
+/// How [`composite`] composites one ray.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CompositeOptions {
     /// Colour seen through whatever the ray leaves transparent.
@@ -222,14 +134,10 @@ pub struct Upstream<'a> {
     pub weights: Option<&'a [f32]>,
 }
 
-/// [`composite`] with [`CompositeOptions`]: composites `s`, writing the
+/// Composites `s` as `opts` say, writing the
 /// weights `[n]` into `weights`. Fails only when `weights` does not hold
 /// one value per sample.
-pub fn composite_with(
-    s: RaySamples<'_>,
-    opts: &CompositeOptions,
-    weights: &mut [f32],
-) -> Result<Composite, InputError> {
+pub fn composite(s: RaySamples<'_>, opts: &CompositeOptions, weights: &mut [f32]) -> Result<Composite, InputError> {
     let n = s.len();
     InputError::check_len("weights", n, weights.len())?;
     let mut out = Composite { used: n, ..Default::default() };
@@ -255,7 +163,7 @@ pub fn composite_with(
     Ok(out)
 }
 
-/// Backward of [`composite_with`] over the `used` samples it composited:
+/// Backward of [`composite`] over the `used` samples it composited:
 /// given the [`Upstream`] gradient, writes dL/dsigma_i into `dsigma` (`[n]`)
 /// and dL/dc_i into `drgb` (`[n x 3]`); samples after `used` get zeros.
 ///
@@ -263,7 +171,7 @@ pub fn composite_with(
 /// `upstream.weights`), `dL/dsigma_i = delta_i (T_{i+1} g_i - sum_{j>i} w_j
 /// g_j - T_n g.bg)`. An opaque last interval has `T_n = 0` and its density
 /// no gradient: `w_{n-1} = T_{n-1}` does not depend on it.
-pub fn composite_backward_with(
+pub fn composite_backward(
     s: RaySamples<'_>,
     weights: &[f32],
     opts: &CompositeOptions,
@@ -281,7 +189,8 @@ pub fn composite_backward_with(
     }
     let used = used.min(n);
     let opaque = opts.opaque_last && used == n && n > 0;
-    // T_{i+1} from optical depths, as in `composite_backward`.
+    // T_{i+1} exactly from optical depths rather than from the weights'
+    // differences (which lose precision when T is tiny).
     let mut tau = 0.0f32;
     for i in 0..used {
         tau += optical_depth(s.sigma[i], s.delta[i]);
@@ -321,6 +230,39 @@ pub fn composite_backward_with(
 mod tests {
     use super::*;
 
+    /// [`composite`] with a background and an early stop only.
+    fn plain(
+        sigma: &[f32],
+        rgb: &[f32],
+        t: &[f32],
+        delta: &[f32],
+        bg: [f32; 3],
+        min_t: f32,
+        w: &mut [f32],
+    ) -> Composite {
+        let s = RaySamples::new(sigma, rgb, t, delta).unwrap();
+        let opts = CompositeOptions { background: bg, min_transmittance: min_t, opaque_last: false };
+        composite(s, &opts, w).unwrap()
+    }
+
+    /// [`composite_backward`] of [`plain`], for colour and depth gradients.
+    #[allow(clippy::too_many_arguments)]
+    fn plain_backward(
+        (sigma, rgb, t, delta): (&[f32], &[f32], &[f32], &[f32]),
+        w: &[f32],
+        bg: [f32; 3],
+        used: usize,
+        g: [f32; 3],
+        gd: f32,
+        ds: &mut [f32],
+        dc: &mut [f32],
+    ) {
+        let s = RaySamples::new(sigma, rgb, t, delta).unwrap();
+        let opts = CompositeOptions { background: bg, min_transmittance: 0.0, opaque_last: false };
+        let up = Upstream { rgb: g, depth: gd, weights: None };
+        composite_backward(s, w, &opts, used, up, ds, dc).unwrap();
+    }
+
     fn reference(sigma: &[f64], rgb: &[f64], t: &[f64], delta: &[f64], bg: [f64; 3]) -> ([f64; 3], f64) {
         let mut trans = 1.0;
         let mut c = [0.0; 3];
@@ -349,7 +291,7 @@ mod tests {
         let rgb = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
         let t = [1.0, 2.0];
         let mut w = [0.0; 2];
-        let c = composite(&sigma, &rgb, &t, &delta, [0.0, 0.0, 1.0], 0.0, &mut w);
+        let c = plain(&sigma, &rgb, &t, &delta, [0.0, 0.0, 1.0], 0.0, &mut w);
         assert!((w[0] - 0.5).abs() < 1e-6 && (w[1] - 0.25).abs() < 1e-6);
         assert!((c.rgb[0] - 0.5).abs() < 1e-6);
         assert!((c.rgb[1] - 0.25).abs() < 1e-6);
@@ -361,10 +303,10 @@ mod tests {
     #[test]
     fn empty_ray_shows_background_and_opaque_ray_hides_it() {
         let mut w = [0.0; 3];
-        let c = composite(&[0.0; 3], &[0.5; 9], &[1.0, 2.0, 3.0], &[1.0; 3], [0.2, 0.3, 0.4], 0.0, &mut w);
+        let c = plain(&[0.0; 3], &[0.5; 9], &[1.0, 2.0, 3.0], &[1.0; 3], [0.2, 0.3, 0.4], 0.0, &mut w);
         assert_eq!(c.rgb, [0.2, 0.3, 0.4]);
         assert_eq!(c.opacity, 0.0);
-        let c = composite(&[f32::INFINITY; 3], &[0.5; 9], &[1.0, 2.0, 3.0], &[1.0; 3], [0.2, 0.3, 0.4], 0.0, &mut w);
+        let c = plain(&[f32::INFINITY; 3], &[0.5; 9], &[1.0, 2.0, 3.0], &[1.0; 3], [0.2, 0.3, 0.4], 0.0, &mut w);
         assert_eq!(c.rgb, [0.5; 3]);
         assert_eq!(w, [1.0, 0.0, 0.0]);
         assert_eq!(c.opacity, 1.0);
@@ -380,10 +322,10 @@ mod tests {
         let g = [0.7f32, -1.1, 0.4];
         let gd = 0.3f32;
         let mut w = [0.0; 5];
-        let c = composite(&sigma, &rgb, &t, &delta, bg, 0.0, &mut w);
+        let c = plain(&sigma, &rgb, &t, &delta, bg, 0.0, &mut w);
         let mut ds = [0.0; 5];
         let mut dc = [0.0; 15];
-        composite_backward(&sigma, &rgb, &t, &delta, &w, bg, c.used, g, gd, &mut ds, &mut dc);
+        plain_backward((&sigma, &rgb, &t, &delta), &w, bg, c.used, g, gd, &mut ds, &mut dc);
         let f64v = |v: &[f32]| v.iter().map(|&x| x as f64).collect::<Vec<_>>();
         let (s64, c64, t64, d64) = (f64v(&sigma), f64v(&rgb), f64v(&t), f64v(&delta));
         let bg64 = [bg[0] as f64, bg[1] as f64, bg[2] as f64];
@@ -424,16 +366,16 @@ mod tests {
         let t: Vec<f32> = (0..n).map(|i| 2.0 + i as f32 * 0.05).collect();
         let delta = vec![0.05f32; n];
         let mut w = vec![0.0; n];
-        let full = composite(&sigma, &rgb, &t, &delta, [1.0; 3], 0.0, &mut w);
+        let full = plain(&sigma, &rgb, &t, &delta, [1.0; 3], 0.0, &mut w);
         let eps = 1e-4;
-        let cut = composite(&sigma, &rgb, &t, &delta, [1.0; 3], eps, &mut w);
+        let cut = plain(&sigma, &rgb, &t, &delta, [1.0; 3], eps, &mut w);
         assert!(cut.used < n, "terminated early");
         for k in 0..3 {
             assert!((full.rgb[k] - cut.rgb[k]).abs() <= eps, "{:?} {:?}", full.rgb, cut.rgb);
         }
     }
 
-    /// f64 reference of [`composite_with`] (no early stop): colour, depth and
+    /// f64 reference of [`composite`] (no early stop): colour, depth and
     /// weights; with `opaque_last` the last interval has `alpha = 1`.
     fn reference_with(
         sigma: &[f64],
@@ -465,7 +407,7 @@ mod tests {
         v.iter().map(|&x| x as f64).collect()
     }
 
-    /// Checks [`composite_backward_with`] against central differences of the
+    /// Checks [the forward] against central differences of the
     /// f64 reference for `L = g.C + gd D + sum_i e_i w_i`.
     fn check_backward_with(opaque_last: bool, extra: Option<&[f32]>) {
         let sigma = [0.3f32, 1.7, 0.05, 2.5, 0.9, 0.6];
@@ -476,9 +418,9 @@ mod tests {
         let up = Upstream { rgb: [0.7, -1.1, 0.4], depth: 0.3, weights: extra };
         let s = RaySamples::new(&sigma, &rgb, &t, &delta).unwrap();
         let mut w = [0.0; 6];
-        let c = composite_with(s, &opts, &mut w).unwrap();
+        let c = composite(s, &opts, &mut w).unwrap();
         let (mut ds, mut dc) = ([0.0; 6], [0.0; 18]);
-        composite_backward_with(s, &w, &opts, c.used, up, &mut ds, &mut dc).unwrap();
+        composite_backward(s, &w, &opts, c.used, up, &mut ds, &mut dc).unwrap();
         let (s64, c64, t64, d64) = (f64v(&sigma), f64v(&rgb), f64v(&t), f64v(&delta));
         let bg64 = opts.background.map(|v| v as f64);
         let e64 = extra.map_or(vec![0.0; 6], f64v);
@@ -535,59 +477,9 @@ mod tests {
         let s = RaySamples::new(&sigma, &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0], &[1.0, 2.0], &[1.0, 0.5]).unwrap();
         let opts = CompositeOptions { background: [0.0, 0.0, 1.0], min_transmittance: 0.0, opaque_last: true };
         let mut w = [0.0; 2];
-        let c = composite_with(s, &opts, &mut w).unwrap();
+        let c = composite(s, &opts, &mut w).unwrap();
         assert_eq!(w, [0.5, 0.5]);
         assert_eq!((c.rgb, c.depth, c.opacity), ([0.5, 0.5, 0.0], 1.5, 1.0));
-    }
-
-    /// Random rays: densities with zeros and infinities, zero-length
-    /// intervals, and lengths from 0 to 40.
-    fn random_ray(rng: &mut crate::engine::rng::Rng) -> [Vec<f32>; 4] {
-        let n = rng.below(41) as usize;
-        let sigma = (0..n)
-            .map(|_| match rng.below(10) {
-                0 => 0.0,
-                1 => f32::INFINITY,
-                _ => 20.0 * rng.f32() * rng.f32(),
-            })
-            .collect();
-        let rgb = (0..3 * n).map(|_| rng.f32()).collect();
-        let t = (0..n).map(|i| 2.0 + 0.1 * i as f32).collect();
-        let delta = (0..n).map(|_| if rng.below(8) == 0 { 0.0 } else { 0.2 * rng.f32() }).collect();
-        [sigma, rgb, t, delta]
-    }
-
-    #[test]
-    fn new_entry_points_without_options_are_bit_identical_to_the_old_ones() {
-        let mut rng = crate::engine::rng::Rng::new(12);
-        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-        for case in 0..500 {
-            let [sigma, rgb, t, delta] = random_ray(&mut rng);
-            let n = sigma.len();
-            let bg = [rng.f32(), rng.f32(), rng.f32()];
-            let min_t = [0.0, 1e-4, 0.3][case % 3];
-            let (g, gd) = ([rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5], rng.f32() - 0.5);
-            let mut w_old = vec![0.0; n];
-            let old = composite(&sigma, &rgb, &t, &delta, bg, min_t, &mut w_old);
-            let (mut ds_old, mut dc_old) = (vec![0.0; n], vec![0.0; 3 * n]);
-            composite_backward(&sigma, &rgb, &t, &delta, &w_old, bg, old.used, g, gd, &mut ds_old, &mut dc_old);
-
-            let s = RaySamples::new(&sigma, &rgb, &t, &delta).unwrap();
-            let opts = CompositeOptions { background: bg, min_transmittance: min_t, opaque_last: false };
-            let mut w_new = vec![0.0; n];
-            let new = composite_with(s, &opts, &mut w_new).unwrap();
-            let (mut ds_new, mut dc_new) = (vec![0.0; n], vec![0.0; 3 * n]);
-            let up = Upstream { rgb: g, depth: gd, weights: None };
-            composite_backward_with(s, &w_new, &opts, new.used, up, &mut ds_new, &mut dc_new).unwrap();
-
-            assert_eq!(new.used, old.used, "case {case}");
-            assert_eq!(bits(&new.rgb), bits(&old.rgb), "case {case}");
-            assert_eq!(new.depth.to_bits(), old.depth.to_bits(), "case {case}");
-            assert_eq!(new.opacity.to_bits(), old.opacity.to_bits(), "case {case}");
-            assert_eq!(bits(&w_new), bits(&w_old), "case {case}");
-            assert_eq!(bits(&ds_new), bits(&ds_old), "case {case}");
-            assert_eq!(bits(&dc_new), bits(&dc_old), "case {case}");
-        }
     }
 
     #[test]
@@ -598,13 +490,13 @@ mod tests {
         assert_eq!(err, InputError::Length { what: "delta", expected: 3, got: 2 });
         let s = RaySamples::new(&[1.0; 3], &[0.5; 9], &[1.0, 2.0, 3.0], &[0.1; 3]).unwrap();
         let opts = CompositeOptions::default();
-        let err = composite_with(s, &opts, &mut [0.0; 2]).unwrap_err();
+        let err = composite(s, &opts, &mut [0.0; 2]).unwrap_err();
         assert_eq!(err, InputError::Length { what: "weights", expected: 3, got: 2 });
         let w = [0.1; 3];
         let up = Upstream { weights: Some(&[1.0; 4]), ..Default::default() };
-        let err = composite_backward_with(s, &w, &opts, 3, up, &mut [0.0; 3], &mut [0.0; 9]).unwrap_err();
+        let err = composite_backward(s, &w, &opts, 3, up, &mut [0.0; 3], &mut [0.0; 9]).unwrap_err();
         assert_eq!(err, InputError::Length { what: "upstream weights", expected: 3, got: 4 });
-        let err = composite_backward_with(s, &w, &opts, 3, Upstream::default(), &mut [0.0; 3], &mut [0.0; 6]);
+        let err = composite_backward(s, &w, &opts, 3, Upstream::default(), &mut [0.0; 3], &mut [0.0; 6]);
         assert_eq!(err.unwrap_err(), InputError::Length { what: "drgb", expected: 9, got: 6 });
     }
 }

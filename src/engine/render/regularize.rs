@@ -10,7 +10,7 @@
 //!   of a proposal density network: a proposal's histogram must bound the
 //!   final one from above, interval by interval; O(n + m).
 //!
-//! Their gradients dL/dw go into `composite::composite_backward_with` as
+//! Their gradients dL/dw go into `composite::composite_backward` as
 //! `Upstream::weights`, which turns them into dL/dsigma.
 
 use super::InputError;
@@ -177,9 +177,7 @@ impl Interlevel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::render::composite::{
-        CompositeOptions, RaySamples, Upstream, composite_backward_with, composite_with,
-    };
+    use crate::engine::render::composite::{CompositeOptions, RaySamples, Upstream, composite, composite_backward};
     use crate::engine::rng::Rng;
     use proptest::prelude::*;
 
@@ -307,17 +305,17 @@ mod tests {
             .collect()
     }
 
-    /// dL/dsigma of a loss on the weights, through `composite_backward_with`.
+    /// dL/dsigma of a loss on the weights, through `composite_backward`.
     fn dsigma_through_composite(sigma: &[f32], delta: &[f32], dw: &[f32]) -> Vec<f32> {
         let n = sigma.len();
         let (rgb, t) = (vec![0.0; 3 * n], vec![0.0; n]);
         let s = RaySamples::new(sigma, &rgb, &t, delta).unwrap();
         let opts = CompositeOptions::default();
         let mut w = vec![0.0; n];
-        let c = composite_with(s, &opts, &mut w).unwrap();
+        let c = composite(s, &opts, &mut w).unwrap();
         let (mut ds, mut dc) = (vec![0.0; n], vec![0.0; 3 * n]);
         let up = Upstream { weights: Some(dw), ..Default::default() };
-        composite_backward_with(s, &w, &opts, c.used, up, &mut ds, &mut dc).unwrap();
+        composite_backward(s, &w, &opts, c.used, up, &mut ds, &mut dc).unwrap();
         ds
     }
 

@@ -8,8 +8,8 @@
 //! end.
 
 use super::composite::Transmittance;
+use crate::engine::batch::{BatchStats, RayOutput};
 use crate::engine::fields::{Field, Points};
-use crate::engine::models::{BatchStats, RayOutput};
 use crate::engine::sampling::{RaySampler, Samples};
 
 /// How the loop runs.
@@ -180,7 +180,7 @@ mod tests {
     use super::*;
     use crate::engine::fields::toy::{Toy, ToyCtx};
     use crate::engine::geometry::math::{Ray, Vec3};
-    use crate::engine::render::composite::composite;
+    use crate::engine::render::composite::{CompositeOptions, RaySamples, composite};
 
     const W: [f32; 8] = [1.5, -0.5, 0.8, 0.4, -1.0, 0.7, 0.3, -0.2];
     const BG: [f32; 3] = [0.9, 0.2, 0.6];
@@ -230,7 +230,9 @@ mod tests {
                 Toy.density(&W, Points { pos: &m.pos, dirs: &m.dirs, image: &[] }, &mut ctx);
                 Toy.color(&W, &m.dirs, &mut ctx);
                 let mut w = vec![0.0; m.len()];
-                let c = composite(Toy.sigma(&ctx), Toy.rgb(&ctx), &m.t, &m.delta, BG, 0.0, &mut w);
+                let s = RaySamples::new(Toy.sigma(&ctx), Toy.rgb(&ctx), &m.t, &m.delta).unwrap();
+                let opts = CompositeOptions { background: BG, ..Default::default() };
+                let c = composite(s, &opts, &mut w).unwrap();
                 RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity }
             })
             .collect()

@@ -18,6 +18,7 @@ pub mod proposal;
 pub mod stratified;
 
 use crate::engine::geometry::math::Ray;
+use crate::engine::nn::gather_rows;
 
 /// Samples of a batch of rays, packed flat: `n` samples in all.
 #[derive(Default, Debug)]
@@ -96,22 +97,6 @@ pub trait RaySampler {
     /// Appends up to `limit` further samples of ray `r` to `out`; returns
     /// whether the ray may have more after them.
     fn next(&mut self, r: usize, limit: usize, out: &mut Samples) -> bool;
-}
-
-/// Moves rows `keep` (sorted) of a row-major buffer with `width` columns to
-/// its front (the rows after them are stale).
-pub fn move_rows(v: &mut [f32], width: usize, keep: &[usize]) {
-    for (dst, &src) in keep.iter().enumerate() {
-        if dst != src {
-            v.copy_within(src * width..(src + 1) * width, dst * width);
-        }
-    }
-}
-
-/// Keeps rows `keep` (sorted) of a row-major buffer with `width` columns.
-pub fn gather_rows(v: &mut Vec<f32>, width: usize, keep: &[usize]) {
-    move_rows(v, width, keep);
-    v.truncate(keep.len() * width);
 }
 
 #[cfg(test)]

@@ -335,7 +335,7 @@ impl<'a> ProposalRays<'a> {
     /// Samples of `rays` (model space) over their `edges` (one run per
     /// ray). With `opaque_last`, each ray's last interval stands for an
     /// infinite length, so any density there makes it opaque exactly as
-    /// `composite_with` with `opaque_last` composites it (the render loop
+    /// `composite` with `opaque_last` composites it (the render loop
     /// knows no options; a zero density there stays transparent).
     pub fn new(rays: &'a [Ray], edges: &'a RayEdges, opaque_last: bool) -> Result<Self, ProposalError> {
         check_rays(rays, edges)?;

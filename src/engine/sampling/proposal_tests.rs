@@ -301,10 +301,10 @@ fn anneal_rises_from_zero_to_one() {
 
 mod render {
     use super::*;
+    use crate::engine::batch::RayOutput;
     use crate::engine::fields::toy::{Toy, ToyCtx};
     use crate::engine::fields::{Field, Points};
-    use crate::engine::models::RayOutput;
-    use crate::engine::render::composite::{CompositeOptions, RaySamples, composite_with};
+    use crate::engine::render::composite::{CompositeOptions, RaySamples, composite};
     use crate::engine::render::rounds::{RoundSettings, render_in_rounds};
 
     const W: [f32; 8] = [1.5, -0.5, 0.8, 0.4, -1.0, 0.7, 0.3, -0.2];
@@ -336,7 +336,7 @@ mod render {
         (rays, edges)
     }
 
-    /// Each ray composited whole by `composite_with` over the packed samples.
+    /// Each ray composited whole by `composite` over the packed samples.
     fn reference(opaque_last: bool) -> Vec<RayOutput> {
         let (rays, edges) = batch();
         let mut m = Samples::default();
@@ -351,7 +351,7 @@ mod render {
             .map(|&(o, k)| {
                 let s = RaySamples::new(&sigma[o..o + k], &rgb[3 * o..3 * (o + k)], &m.t[o..o + k], &m.delta[o..o + k]);
                 let mut w = vec![0.0; k];
-                let c = composite_with(s.unwrap(), &opts, &mut w).unwrap();
+                let c = composite(s.unwrap(), &opts, &mut w).unwrap();
                 RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity }
             })
             .collect()

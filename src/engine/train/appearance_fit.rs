@@ -20,13 +20,14 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
+use crate::engine::batch::{StepCtx, TrainRay};
 use crate::engine::dataset::Frame;
 use crate::engine::geometry::camera::Camera;
 use crate::engine::models::config::ModelConfig;
-use crate::engine::models::{Model, ModelError, RenderOptions, StepCtx, TrainRay};
+use crate::engine::models::{Model, ModelError, RenderOptions};
 use crate::engine::nn::adam::{Adam, AdamConfig};
-use crate::engine::render::{View, render_view_with};
 use crate::engine::rng::Rng;
+use crate::engine::view::{View, render_view_with};
 
 /// How an appearance is fitted.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -206,9 +207,9 @@ mod tests {
     use super::*;
     use crate::engine::dataset::textured::TexturedScene;
     use crate::engine::dataset::{Dataset, Image};
-    use crate::engine::geometry::scene::Scene;
-    use crate::engine::models::capture_config::CaptureConfig;
-    use crate::engine::render::render_heldout_view;
+
+    use crate::engine::models::capture::config::CaptureConfig;
+    use crate::engine::view::render_heldout_view;
     use crate::media::png;
 
     /// The textured scene's 8 views (24x16), 0 and 4 held out.
@@ -224,7 +225,7 @@ mod tests {
     /// embeddings differ and change the colours.
     fn capture(ds: &Dataset, config: CaptureConfig) -> Box<dyn Model> {
         let mut flags = vec![0.0; config.max_images];
-        let mut m = ModelConfig::Capture(config).build(Scene::from_dataset(ds), 1).unwrap();
+        let mut m = ModelConfig::Capture(config).build(ds.scene(), 1).unwrap();
         for &i in &ds.train {
             flags[i] = 1.0;
         }
@@ -355,7 +356,7 @@ mod tests {
         let e = e.unwrap_err();
         assert!(e.to_string().contains("narrower than 2 pixels"), "{e}");
 
-        let instant = ModelConfig::preset("instant-tiny").unwrap().build(Scene::from_dataset(&ds), 1).unwrap();
+        let instant = ModelConfig::preset("instant-tiny").unwrap().build(ds.scene(), 1).unwrap();
         assert!(AppearanceFit::new(&*instant, 1, FitSettings::default()).unwrap().is_none());
         let no_dims = capture(&ds, CaptureConfig { appearance_dim: 0, ..CaptureConfig::tiny() });
         assert!(AppearanceFit::new(&*no_dims, 1, FitSettings::default()).unwrap().is_none());

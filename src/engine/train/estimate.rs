@@ -156,14 +156,13 @@ pub fn video(config: &ModelConfig, frames: u32, width: u32, height: u32, threads
 mod tests {
     use super::*;
     use crate::engine::dataset::synthetic::BallScene;
-    use crate::engine::geometry::scene::Scene;
 
     #[test]
     fn parameter_counts_match_the_built_models() {
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
         for name in crate::engine::models::config::PRESETS {
             let c = ModelConfig::preset(name).unwrap();
-            let m = c.build(Scene::from_dataset(&ds), 1).unwrap();
+            let m = c.build(ds.scene(), 1).unwrap();
             let e = training(&c, DataSize::uniform(2, 8, 8), 2);
             assert_eq!(e.params, m.params().len() as u64, "{name}");
         }

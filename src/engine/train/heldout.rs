@@ -19,9 +19,9 @@ use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::math::Ray;
 use crate::engine::metrics::mse_to_psnr;
 use crate::engine::models::Model;
-use crate::engine::render::appearance::held_out_options;
-use crate::engine::render::render_rays_with;
 use crate::engine::rng::Rng;
+use crate::engine::view::appearance::held_out_options;
+use crate::engine::view::render_rays_with;
 
 /// A fixed sample of held-out pixels: their rays and true colours, grouped
 /// by view.
@@ -95,9 +95,9 @@ impl HeldOutPixels {
 mod tests {
     use super::*;
     use crate::engine::dataset::synthetic::BallScene;
-    use crate::engine::geometry::scene::Scene;
+
     use crate::engine::models::config::ModelConfig;
-    use crate::engine::render::render_view_with;
+    use crate::engine::view::render_view_with;
 
     /// With every pixel of the held-out views sampled many times, the
     /// estimate agrees with the exact per-view mean squared error, each
@@ -107,7 +107,7 @@ mod tests {
     fn estimate_matches_the_full_views() {
         let ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
         for preset in ["instant-tiny", "capture-tiny"] {
-            let mut model = ModelConfig::preset(preset).unwrap().build(Scene::from_dataset(&ds), 3).unwrap();
+            let mut model = ModelConfig::preset(preset).unwrap().build(ds.scene(), 3).unwrap();
             if model.appearance_images().is_some() {
                 let mut seen = vec![0.0; 2000];
                 ds.train.iter().for_each(|&i| seen[i] = 1.0);

@@ -5,11 +5,9 @@
 //! it, held-out estimates and the memory and disk estimate of a run.
 
 pub mod appearance_fit;
-pub mod capture_levels;
-pub mod capture_pass;
 pub mod estimate;
 pub mod heldout;
-pub mod pass;
+pub mod persist;
 pub mod pixels;
 pub mod session;
 pub mod trainer;

@@ -85,10 +85,11 @@ impl PixelPool {
 mod tests {
     use super::*;
     use crate::engine::dataset::synthetic::BallScene;
-    use crate::engine::geometry::scene::Scene;
-    use crate::engine::models::TrainRay;
+
+    use crate::engine::batch::TrainRay;
     use crate::engine::models::config::ModelConfig;
-    use crate::engine::train::trainer::{Budget, TrainState, Trainer};
+    use crate::engine::models::training::Budget;
+    use crate::engine::train::trainer::{TrainState, Trainer};
 
     #[test]
     fn without_masks_the_pool_is_every_training_pixel_in_order() {
@@ -148,7 +149,7 @@ mod tests {
             for masks in [MaskUse::Ignore, MaskUse::Score] {
                 ds.masks = masks;
                 let cfg = ModelConfig::preset(preset).unwrap();
-                let (model, adam) = cfg.build_with_adam(Scene::from_dataset(&ds), 0, None).unwrap();
+                let (model, adam) = cfg.build_with_adam(ds.scene(), 0, None).unwrap();
                 let budget = Budget { steps: Some(10), seconds: None };
                 let t = Trainer::new(model, adam, cfg.train_config(3, 128, budget), TrainState::default(), &ds);
                 let drawn: Vec<(usize, u32, u32)> =

@@ -15,11 +15,12 @@ use std::time::Instant;
 
 use crate::engine::dataset::Dataset;
 use crate::engine::io::checkpoint::CheckpointError;
-use crate::engine::io::persist;
 use crate::engine::models::Model;
+use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::adam::Adam;
 use crate::engine::train::heldout::HeldOutPixels;
-use crate::engine::train::trainer::{Progress, StopReason, TrainConfig, TrainState, Trainer};
+use crate::engine::train::persist;
+use crate::engine::train::trainer::{Progress, StopReason, TrainState, Trainer};
 
 /// Where a session's model and optimiser come from.
 pub enum Start {
@@ -257,10 +258,10 @@ fn save(out: &Path, t: &Trainer<'_>) -> Result<(), SessionError> {
 mod tests {
     use super::*;
     use crate::engine::dataset::synthetic::BallScene;
-    use crate::engine::geometry::scene::Scene;
+
     use crate::engine::io::checkpoint::Checkpoint;
     use crate::engine::models::config::ModelConfig;
-    use crate::engine::train::trainer::Budget;
+    use crate::engine::models::training::Budget;
 
     fn ball() -> Dataset {
         BallScene { size: 8, views: 4, ..Default::default() }.dataset()
@@ -268,7 +269,7 @@ mod tests {
 
     fn fresh(ds: &Dataset) -> Start {
         let c = ModelConfig::preset("nerf-tiny").unwrap();
-        let (model, adam) = c.build_with_adam(Scene::from_dataset(ds), 5, None).unwrap();
+        let (model, adam) = c.build_with_adam(ds.scene(), 5, None).unwrap();
         Start::Fresh { model, adam }
     }
 

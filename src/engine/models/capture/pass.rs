@@ -29,22 +29,20 @@
 //! pose at all. The proposal networks give the poses no gradient (their
 //! interlevel loss only shapes sampling).
 
+use crate::engine::batch::TrainRay;
 use crate::engine::fields::capture::{CaptureField, Ctx};
 use crate::engine::fields::proposal::ProposalField;
 use crate::engine::fields::{Field, Points};
 use crate::engine::geometry::math::Ray;
-use crate::engine::models::TrainRay;
+#[cfg(test)]
+use crate::engine::models::capture::levels::Drawn;
+use crate::engine::models::capture::levels::{LevelError, Levels, PROPOSAL_COMPOSITE, Placement};
+use crate::engine::models::pass::visible;
 use crate::engine::nn::pose::{Correction, PoseRefine};
-use crate::engine::render::composite::{
-    CompositeOptions, RaySamples, Upstream, composite_backward_with, composite_with,
-};
+use crate::engine::render::composite::{CompositeOptions, RaySamples, Upstream, composite, composite_backward};
 use crate::engine::render::loss::l2;
 use crate::engine::render::regularize::{Histogram, Interlevel, distortion};
 use crate::engine::sampling::proposal::{ProposalError, Warp};
-#[cfg(test)]
-use crate::engine::train::capture_levels::Drawn;
-use crate::engine::train::capture_levels::{LevelError, Levels, PROPOSAL_COMPOSITE, Placement};
-use crate::engine::train::pass::visible;
 
 /// The networks a pass trains, over one flat parameter buffer.
 #[derive(Clone, Copy)]
@@ -290,7 +288,7 @@ fn main_field(
         let s = RaySamples::new(&sigma[o..o + k], &rgb[3 * o..3 * (o + k)], &m.t[o..o + k], &m.delta[o..o + k])?;
         // A culled ray never reaches its last interval.
         let opts = CompositeOptions { background: ray.background, min_transmittance: 0.0, opaque_last: k == n };
-        let comp = composite_with(s, &opts, &mut buf.weights[o..o + k])?;
+        let comp = composite(s, &opts, &mut buf.weights[o..o + k])?;
         let (sq, g) = l2(comp.rgb, ray.target, scale);
         stats.sq_err += sq;
         let full = &mut buf.full[r * n..(r + 1) * n];
@@ -301,7 +299,7 @@ fn main_field(
         stats.distortion += settings.distortion as f64 * d;
         let upstream = Upstream { rgb: g, depth: 0.0, weights: Some(&buf.dfull[..k]) };
         let (ds, dc) = (&mut buf.dsigma[o..o + k], &mut buf.drgb[3 * o..3 * (o + k)]);
-        composite_backward_with(s, &buf.weights[o..o + k], &opts, comp.used, upstream, ds, dc)?;
+        composite_backward(s, &buf.weights[o..o + k], &opts, comp.used, upstream, ds, dc)?;
     }
     if kept == 0 {
         return Ok(());
@@ -378,12 +376,12 @@ fn proposal_backward(
         let upstream = Upstream { rgb: [0.0; 3], depth: 0.0, weights: Some(dw) };
         let ds = &mut buf.dsig_prop[o..o + len];
         let dc = &mut buf.drgb_prop[..3 * len];
-        composite_backward_with(s, level.weights_of(r), &PROPOSAL_COMPOSITE, len, upstream, ds, dc)?;
+        composite_backward(s, level.weights_of(r), &PROPOSAL_COMPOSITE, len, upstream, ds, dc)?;
     }
     net.backward(nets.params, ctx, &buf.dsig_prop, grads);
     Ok(settings.interlevel as f64 / n.max(1) as f64 * loss)
 }
 
 #[cfg(test)]
-#[path = "capture_pass_tests.rs"]
+#[path = "pass_tests.rs"]
 pub(crate) mod tests;

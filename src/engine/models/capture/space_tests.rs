@@ -58,7 +58,7 @@ fn mean_pose(ds: &Dataset) -> [[f32; 4]; 3] {
 #[test]
 fn the_ndc_camera_is_the_mean_training_camera_in_model_units() {
     let ds = forward();
-    let scene = Scene::from_dataset(&ds);
+    let scene = ds.scene();
     let rig = scene.rig.clone().unwrap();
     assert!(rig.forward_facing && rig.spread_deg < 2.0, "{}", rig.spread_deg);
     let config = ndc_tiny();
@@ -100,9 +100,9 @@ fn the_ndc_camera_is_the_mean_training_camera_in_model_units() {
 /// rig without an image size; contraction builds on each of them.
 #[test]
 fn ndc_is_refused_where_it_cannot_map_the_capture() {
-    let ring = Scene::from_dataset(&TexturedScene { width: 16, height: 12, views: 8, fov: 0.9 }.dataset());
+    let ring = (TexturedScene { width: 16, height: 12, views: 8, fov: 0.9 }.dataset()).scene();
     let no_rig = Scene { rig: None, ..ring.clone() };
-    let mut no_image = Scene::from_dataset(&forward());
+    let mut no_image = (forward()).scene();
     no_image.rig.as_mut().unwrap().image = [0, 0];
     for (scene, want) in [(&ring, "forward-facing"), (&no_rig, "has none"), (&no_image, "image size")] {
         let err = ModelConfig::Capture(ndc_tiny()).build(scene.clone(), 1).err().expect("refused");
@@ -120,7 +120,7 @@ fn ndc_is_refused_where_it_cannot_map_the_capture() {
 /// clears it for contraction; rebuilding from saved parts needs it.
 #[test]
 fn the_camera_is_derived_at_build_and_required_at_rebuild() {
-    let scene = Scene::from_dataset(&forward());
+    let scene = (forward()).scene();
     let want = ndc_frame(&scene, &ndc_tiny()).unwrap();
     let m = CaptureModel::new(ndc_tiny(), scene.clone(), 1).unwrap();
     assert_eq!(m.config.ndc_camera.as_ref(), Some(&want));
@@ -128,7 +128,8 @@ fn the_camera_is_derived_at_build_and_required_at_rebuild() {
     // proposals give no density in front of the near plane (nor behind the
     // camera), and some beyond it.
     let mut ps = crate::engine::nn::linear::ParamLayout::default();
-    let super::super::capture::Parts { field, proposals, .. } = super::super::capture::layout(&mut ps, &m.config);
+    let crate::engine::models::capture::Parts { field, proposals, .. } =
+        crate::engine::models::capture::layout(&mut ps, &m.config);
     assert_eq!(field.space(), &SpaceMap::Ndc(want.clone()));
     let c = want.camera();
     let on_axis = |depth: f32| -> [f32; 3] { std::array::from_fn(|i| c.centre[i] - depth * c.rotation[i][2]) };
@@ -162,7 +163,7 @@ fn the_camera_is_derived_at_build_and_required_at_rebuild() {
 /// valid one is refused by name.
 #[test]
 fn the_space_and_its_camera_round_trip_through_json() {
-    let m = CaptureModel::new(ndc_tiny(), Scene::from_dataset(&forward()), 1).unwrap();
+    let m = CaptureModel::new(ndc_tiny(), (forward()).scene(), 1).unwrap();
     let json = serde_json::to_value(&m.config).unwrap();
     assert_eq!(json["space"], "ndc");
     assert_eq!(json["ndc_camera"]["width"], 16);
@@ -197,7 +198,7 @@ fn a_contractions_near_rises_to_the_datasets_near_bound() {
     // A world scale other than 1: the scene's box normalisation differs
     // from the world's units.
     let ds = crate::engine::dataset::synthetic::BallScene { scale: 2.5, ..Default::default() }.dataset();
-    let scene = Scene::from_dataset(&ds);
+    let scene = ds.scene();
     let rig = scene.rig.clone().unwrap();
     let c = CaptureConfig { camera_radius: 0.8, ..CaptureConfig::tiny() };
     assert!(c.near_from_data && c.near == 0.05);
@@ -217,6 +218,6 @@ fn a_contractions_near_rises_to_the_datasets_near_bound() {
     }
     let further = CaptureConfig { near: 0.4, ..c.clone() };
     assert_eq!(resolve(further, &scene).unwrap().near, 0.4);
-    let fwd = Scene::from_dataset(&forward());
+    let fwd = (forward()).scene();
     assert_eq!(resolve(ndc_tiny(), &fwd).unwrap().near, ndc_tiny().near);
 }

@@ -18,7 +18,7 @@ use crate::engine::fields::proposal::{ProposalCtx, ProposalField};
 use crate::engine::geometry::math::Ray;
 use crate::engine::nn::hashgrid::HalfTable;
 use crate::engine::render::InputError;
-use crate::engine::render::composite::{CompositeOptions, RaySamples, Transmittance, composite_with};
+use crate::engine::render::composite::{CompositeOptions, RaySamples, Transmittance, composite};
 use crate::engine::rng::Rng;
 use crate::engine::sampling::Samples;
 use crate::engine::sampling::proposal::{
@@ -229,7 +229,7 @@ impl Levels {
                         &m.t[o..o + len],
                         &m.delta[o..o + len],
                     )?;
-                    composite_with(s, &PROPOSAL_COMPOSITE, w)?;
+                    composite(s, &PROPOSAL_COMPOSITE, w)?;
                 }
             }
         }
@@ -272,7 +272,7 @@ impl Levels {
 /// A proposal level's densities and weights evaluated in rounds of
 /// [`PROPOSAL_ROUND`] samples per ray, each round for the rays whose
 /// transmittance is still at least `stop_below`; the weights are those of
-/// `composite_with` with [`PROPOSAL_COMPOSITE`] (the same sums in the same
+/// `composite` with [`PROPOSAL_COMPOSITE`] (the same sums in the same
 /// order) where evaluated, 0 beyond. Returns the samples evaluated.
 fn in_rounds(
     net: &ProposalField,

@@ -23,8 +23,9 @@ use crate::engine::geometry::scene::Scene;
 use crate::engine::io::checkpoint::{Checkpoint, CheckpointError, Tensor};
 use crate::engine::models::Model;
 use crate::engine::models::config::ModelConfig;
+use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::adam::{Adam, AdamConfig};
-use crate::engine::train::trainer::{TrainConfig, TrainState};
+use crate::engine::train::trainer::TrainState;
 
 /// A model restored from a checkpoint, ready to render or to train on.
 pub struct Restored {

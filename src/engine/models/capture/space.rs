@@ -9,12 +9,12 @@
 //! since a checkpoint's scene is already normalised and has lost the
 //! dataset's near bound.
 
-use super::ModelError;
-use super::capture::{KIND, capture_scene};
-use super::capture_config::{CaptureConfig, Space};
+use super::config::{CaptureConfig, Space};
+use super::{KIND, capture_scene};
 use crate::engine::fields::space::{NdcCamera, NdcFrame, SpaceMap};
 use crate::engine::geometry::rig::FORWARD_FACING_SPREAD_DEG;
 use crate::engine::geometry::scene::Scene;
+use crate::engine::models::ModelError;
 
 /// The map `config` describes. A configuration whose NDC camera is not
 /// known yet (the memory estimate lays out parameters without a scene) is
@@ -138,5 +138,5 @@ fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
 }
 
 #[cfg(test)]
-#[path = "capture_space_tests.rs"]
+#[path = "space_tests.rs"]
 mod tests;

@@ -5,12 +5,12 @@
 use super::*;
 use crate::engine::dataset::textured::TexturedScene;
 use crate::engine::geometry::math::Vec3;
+use crate::engine::models::capture::pass::tests::check_pass_gradients;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::nn::adam::LrGroup;
-use crate::engine::train::capture_pass::tests::check_pass_gradients;
 
 fn scene() -> Scene {
-    Scene::from_dataset(&TexturedScene { width: 16, height: 12, views: 8, fov: 0.9 }.dataset())
+    (TexturedScene { width: 16, height: 12, views: 8, fov: 0.9 }.dataset()).scene()
 }
 
 fn tiny() -> CaptureConfig {

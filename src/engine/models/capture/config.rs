@@ -3,11 +3,11 @@
 //! name each field out of range; presets; and what the kind provides the
 //! engine through [`ModelSpec`] (building, Adam, the memory footprint).
 
-use super::capture::{CaptureModel, KIND, layout};
-use super::config::{Checks, FieldValue, Footprint, ModelSpec};
-use super::{Model, ModelError};
+use super::{CaptureModel, KIND, layout};
 use crate::engine::fields::space::{NdcFrame, Norm};
 use crate::engine::geometry::scene::Scene;
+use crate::engine::models::config::{Checks, FieldValue, Footprint, ModelSpec};
+use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::AdamConfig;
 use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
 use crate::engine::nn::linear::ParamLayout;

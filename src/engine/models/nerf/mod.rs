@@ -5,127 +5,28 @@
 //! (`train::pass`); views are rendered by the shared loop
 //! (`render::rounds`) over the fine samples.
 
-use super::config::{self, Checks, FieldValue, Footprint, ModelSpec};
-use super::{BatchStats, Model, ModelError, RayOutput, StateSource, StepCtx, TrainRay};
+pub mod config;
+
+pub use config::NerfConfig;
+
+use super::{Model, ModelError, StateSource};
+use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::fields::mlp::MlpField;
 use crate::engine::fields::{Field, Points, densities};
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
-use crate::engine::nn::adam::AdamConfig;
+use crate::engine::models::pass::{PassBuffers, train_pass};
 use crate::engine::nn::linear::ParamLayout;
-use crate::engine::nn::nerf_net::{NetConfig, NetCtx};
-use crate::engine::render::composite::composite;
+use crate::engine::nn::nerf_net::NetCtx;
+use crate::engine::render::composite::{CompositeOptions, RaySamples, composite};
 use crate::engine::render::rounds::{RoundSettings, render_in_rounds};
 use crate::engine::rng::Rng;
 use crate::engine::sampling::Samples;
 use crate::engine::sampling::hierarchical::{self, Drawn, SegmentRay};
-use crate::engine::sampling::occupancy::{OccupancyConfig, OccupancyGrid};
-use crate::engine::train::pass::{PassBuffers, train_pass};
+use crate::engine::sampling::occupancy::OccupancyGrid;
 
 /// The kind's name in checkpoints, the API and `--model`.
 pub const KIND: &str = "nerf";
-
-/// The classic model's configuration. `Default` is the paper's.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct NerfConfig {
-    pub net: NetConfig,
-    /// Stratified samples per ray for the coarse network (64).
-    pub coarse_samples: usize,
-    /// Extra samples per ray from the coarse weights (128); the fine network
-    /// sees these and the coarse ones.
-    pub fine_samples: usize,
-    /// Rays processed together through the networks by one thread.
-    pub chunk_rays: usize,
-    /// Transmittance below which rendering stops marching a ray (1e-4).
-    pub min_transmittance: f32,
-    /// Skip empty space with an occupancy grid (`None`: sample the whole
-    /// clipped ray, as the paper does).
-    pub occupancy: Option<OccupancyConfig>,
-}
-
-impl Default for NerfConfig {
-    fn default() -> Self {
-        Self {
-            net: NetConfig::default(),
-            coarse_samples: 64,
-            fine_samples: 128,
-            chunk_rays: 8,
-            min_transmittance: 1e-4,
-            occupancy: Some(OccupancyConfig::default()),
-        }
-    }
-}
-
-impl ModelSpec for NerfConfig {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-
-    fn check(&self, c: &mut Checks) {
-        let n = self;
-        let net = &n.net;
-        c.int("net.width", net.width, 1..=1024);
-        c.int("net.depth", net.depth, 1..=32);
-        if net.skip >= net.depth {
-            // The skip connection feeds a later layer: it must exist.
-            c.fail("net.skip", FieldValue::Int(net.skip as u64), format!("0..{}", net.depth));
-        }
-        c.int("net.pos_freqs", net.pos_freqs, 0..=24);
-        c.int("net.dir_freqs", net.dir_freqs, 0..=24);
-        c.int("net.dir_width", net.dir_width, 1..=1024);
-        c.int("coarse_samples", n.coarse_samples, 1..=1024);
-        c.int("fine_samples", n.fine_samples, 0..=1024);
-        c.int("chunk_rays", n.chunk_rays, 1..=4096);
-        c.unit_open("min_transmittance", n.min_transmittance);
-        if let Some(o) = &n.occupancy {
-            config::check_occupancy(o, c);
-            if o.dilate == Some(false) {
-                // The classic sampler steps half a cell: undilated bits would
-                // skip the edges of occupied cells.
-                c.fail(
-                    "occupancy.dilate",
-                    FieldValue::Bool(false),
-                    "true or null (the sampler steps half a cell)".into(),
-                );
-            }
-        }
-    }
-
-    fn build(&self, scene: Scene, seed: u64) -> Result<Box<dyn Model>, ModelError> {
-        Ok(Box::new(NerfModel::new(self.clone(), scene, seed)))
-    }
-
-    fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError> {
-        Ok(Box::new(NerfModel::from_parts(self.clone(), scene, params)?))
-    }
-
-    /// The paper's 5e-4 -> 5e-5.
-    fn adam(&self) -> AdamConfig {
-        AdamConfig::default()
-    }
-
-    /// The classic model trains on the dataset's background, as in the paper.
-    fn random_background(&self) -> bool {
-        false
-    }
-
-    /// One worker thread's chunk: the coarse field on the coarse samples,
-    /// the fine one on all of them, with each trunk layer's output kept for
-    /// backward and the same again as gradients.
-    fn footprint(&self, _threads: u64) -> Footprint {
-        let mut ps = ParamLayout::default();
-        layout(&mut ps, self);
-        let n = &self.net;
-        let (xw, dw) = (3 + 6 * n.pos_freqs as u64, 3 + 6 * n.dir_freqs as u64);
-        let per_sample = 2 * (xw + dw + (n.depth as u64 + 1) * n.width as u64 + n.dir_width as u64 + 8);
-        let samples = self.chunk_rays as u64 * (2 * self.coarse_samples as u64 + self.fine_samples as u64);
-        Footprint {
-            params: ps.len as u64,
-            occupancy_cells: self.occupancy.as_ref().map_or(0, |o| (o.resolution as u64).pow(3)),
-            activations: samples * per_sample,
-        }
-    }
-}
 
 /// The classic NeRF.
 pub struct NerfModel {
@@ -275,7 +176,10 @@ impl NerfModel {
         w.pass.weights.resize(m.len(), 0.0);
         for &(o, k) in &m.spans {
             let (t, d, wt) = (&m.t[o..o + k], &m.delta[o..o + k], &mut w.pass.weights[o..o + k]);
-            composite(&sigma[o..o + k], &rgb[3 * o..3 * (o + k)], t, d, background, min_t, wt);
+            let s =
+                RaySamples::new(&sigma[o..o + k], &rgb[3 * o..3 * (o + k)], t, d).expect("one span of packed samples");
+            let opts = CompositeOptions { background, min_transmittance: min_t, opaque_last: false };
+            composite(s, &opts, wt).expect("one weight per sample");
         }
         stats.samples += m.len() as u64;
         let fine = hierarchical::fine(&segs, &coarse, &m.spans, &w.pass.weights, self.config.fine_samples, &mut rngs);

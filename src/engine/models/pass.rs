@@ -2,9 +2,11 @@
 //! densities, optional culling of what early termination would not see,
 //! colours, compositing, the L2 loss and the backward pass.
 
+use crate::engine::batch::TrainRay;
 use crate::engine::fields::{Field, Points};
-use crate::engine::models::TrainRay;
-use crate::engine::render::composite::{composite, composite_backward, optical_depth};
+use crate::engine::render::composite::{
+    CompositeOptions, RaySamples, Upstream, composite, composite_backward, optical_depth,
+};
 use crate::engine::render::loss::l2;
 use crate::engine::sampling::Samples;
 
@@ -77,12 +79,16 @@ pub fn train_pass<F: Field>(
     for (r, &(o, k)) in rays.iter().zip(&samples.spans) {
         let (sig, col) = (&sigma[o..o + k], &rgb[3 * o..3 * (o + k)]);
         let (t, d) = (&samples.t[o..o + k], &samples.delta[o..o + k]);
-        let comp = composite(sig, col, t, d, r.background, 0.0, &mut buf.weights[o..o + k]);
+        let s = RaySamples::new(sig, col, t, d).expect("one span of packed samples");
+        let opts = CompositeOptions { background: r.background, ..Default::default() };
+        let comp = composite(s, &opts, &mut buf.weights[o..o + k]).expect("one weight per sample");
         let (sq, g) = l2(comp.rgb, r.target, scale);
         stats.sq_err += sq;
         if k > 0 {
             let (ds, dc) = (&mut buf.dsigma[o..o + k], &mut buf.drgb[3 * o..3 * (o + k)]);
-            composite_backward(sig, col, t, d, &buf.weights[o..o + k], r.background, comp.used, g, 0.0, ds, dc);
+            let up = Upstream { rgb: g, depth: 0.0, weights: None };
+            composite_backward(s, &buf.weights[o..o + k], &opts, comp.used, up, ds, dc)
+                .expect("one gradient per sample");
         }
     }
     if n > 0 {

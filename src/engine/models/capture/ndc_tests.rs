@@ -6,8 +6,8 @@ use super::*;
 use crate::engine::dataset::Dataset;
 use crate::engine::dataset::textured::TexturedScene;
 use crate::engine::fields::space::SpaceMap;
+use crate::engine::models::capture::pass::tests::check_pass_gradients;
 use crate::engine::models::config::ModelConfig;
-use crate::engine::train::capture_pass::tests::check_pass_gradients;
 
 fn forward() -> Dataset {
     TexturedScene { width: 16, height: 12, views: 9, fov: 0.9 }.forward_facing()
@@ -19,7 +19,7 @@ fn forward() -> Dataset {
 fn perturbed(seed: u64) -> CaptureModel {
     let ModelConfig::Capture(c) = ModelConfig::preset("capture-tiny").unwrap() else { unreachable!() };
     let config = CaptureConfig { space: Space::Ndc, ..c };
-    let mut m = CaptureModel::new(config, Scene::from_dataset(&forward()), seed).unwrap();
+    let mut m = CaptureModel::new(config, (forward()).scene(), seed).unwrap();
     let mut rng = Rng::new(seed + 1);
     for p in m.params.iter_mut() {
         *p += 0.2 * rng.normal();

@@ -5,7 +5,6 @@
 use super::*;
 use crate::engine::dataset::Dataset;
 use crate::engine::dataset::textured::TexturedScene;
-use crate::engine::geometry::scene::Scene;
 use crate::engine::models::config::ModelConfig;
 
 /// The textured scene's 8 views with every 4th (0 and 4) held out.
@@ -18,7 +17,7 @@ fn dataset() -> Dataset {
 
 /// A `capture-tiny` model of `ds` that has trained on `seen`.
 fn capture(ds: &Dataset, seen: &[u32]) -> Box<dyn Model> {
-    let mut m = ModelConfig::preset("capture-tiny").unwrap().build(Scene::from_dataset(ds), 1).unwrap();
+    let mut m = ModelConfig::preset("capture-tiny").unwrap().build(ds.scene(), 1).unwrap();
     let mut flags = vec![0.0; 2000];
     for &i in seen {
         flags[i as usize] = 1.0;
@@ -115,7 +114,7 @@ fn nearest_picks_the_closest_training_camera() {
 #[test]
 fn nearest_needs_the_training_cameras() {
     let ds = dataset();
-    let mut scene = Scene::from_dataset(&ds);
+    let mut scene = ds.scene();
     scene.rig.as_mut().unwrap().frames.clear();
     let mut m = ModelConfig::preset("capture-tiny").unwrap().build(scene, 1).unwrap();
     m.restore_state(&mut |_| Some(vec![1.0; 2000]), 1).unwrap();
@@ -131,7 +130,7 @@ fn nearest_needs_the_training_cameras() {
 fn other_models_ignore_the_choice() {
     let ds = dataset();
     for preset in ["instant-tiny", "nerf-tiny"] {
-        let m = ModelConfig::preset(preset).unwrap().build(Scene::from_dataset(&ds), 1).unwrap();
+        let m = ModelConfig::preset(preset).unwrap().build(ds.scene(), 1).unwrap();
         assert_eq!(m.appearance_images(), None);
         for a in [Appearance::Mean, Appearance::Image(99_999), Appearance::Nearest] {
             assert_eq!(a.resolve(&*m, &ds.frames[0].camera), Ok(RenderOptions::default()), "{preset} {a}");

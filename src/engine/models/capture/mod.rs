@@ -27,17 +27,25 @@
 //! The configuration and its checks are in `capture_config`.
 //!
 
+pub mod config;
+pub mod levels;
+pub mod pass;
+pub mod space;
+
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, OnceLock};
 
-pub use super::capture_config::{CaptureConfig, ProposalConfig, Space};
-use super::capture_space::{check_resolved, resolve, space_map};
-use super::{BatchStats, Model, ModelError, RayOutput, RenderOptions, StateSource, StepCtx, TrainRay};
+use super::{Model, ModelError, RenderOptions, StateSource};
+use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::fields::capture::{CaptureField, CaptureFieldConfig};
 use crate::engine::fields::proposal::ProposalField;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::geometry::so3;
+use crate::engine::models::capture::levels::Drawn;
+use crate::engine::models::capture::pass::{
+    CaptureBuffers, CaptureNets, PassSettings, RayInterval, capture_pass, samplable,
+};
 use crate::engine::nn::adam::LrGroup;
 use crate::engine::nn::hashgrid::{GridRecord, HalfTable, HashGrid};
 use crate::engine::nn::linear::ParamLayout;
@@ -47,10 +55,8 @@ use crate::engine::render::rounds::{RoundSettings, render_in_rounds};
 use crate::engine::rng::Rng;
 use crate::engine::sampling::Samples;
 use crate::engine::sampling::proposal::{ProposalRays, Warp};
-use crate::engine::train::capture_levels::Drawn;
-use crate::engine::train::capture_pass::{
-    CaptureBuffers, CaptureNets, PassSettings, RayInterval, capture_pass, samplable,
-};
+pub use config::{CaptureConfig, ProposalConfig, Space};
+use space::{check_resolved, resolve, space_map};
 
 /// The kind's name in checkpoints, the API and `--model`.
 pub const KIND: &str = "capture";
@@ -592,9 +598,9 @@ impl Model for CaptureModel {
 }
 
 #[cfg(test)]
-#[path = "capture_tests.rs"]
+#[path = "model_tests.rs"]
 mod tests;
 
 #[cfg(test)]
-#[path = "capture_ndc_tests.rs"]
+#[path = "ndc_tests.rs"]
 mod ndc_tests;

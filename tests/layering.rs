@@ -1,0 +1,375 @@
+//! The engine's folders depend on each other in one direction
+//! (`docs/architecture.md`, "The engine"): this test reads every source file
+//! under `src/engine/`, finds which engine folders its code uses, and fails
+//! on a use that points up the layers (e.g. a model or a field using
+//! `train/`), on a cycle between folders, and on a use of the service
+//! outside the engine (`api`, `jobs`, ...). Test code (`#[cfg(test)]` items
+//! and `*_tests.rs` files) may use anything and is not read.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+
+/// The engine's folders (and top-level files) from the bottom up: each may
+/// use those on the lines before its own, never those after. Folders on one
+/// line must not use each other.
+const LAYERS: &[&[&str]] = &[
+    // Base: random numbers, image metrics, the checkpoint container and atomic writes.
+    &["rng", "metrics", "io"],
+    // Vectors, rays, cameras, rigs and paths.
+    &["geometry"],
+    // Datasets on disk, the scene a dataset makes.
+    &["dataset"],
+    // Parameters, layers, encodings, Adam.
+    &["nn"],
+    // The packed samples every sampler writes, and the samplers.
+    &["sampling"],
+    // Training rays and what a batch or a ray gives.
+    &["batch"],
+    // Fields: densities and colours at points.
+    &["fields"],
+    // Volume rendering: compositing, the render loop, losses on rays.
+    &["render"],
+    // A model is a folder: a field, a sampler and its training pass.
+    &["models"],
+    // Views of a model: tiles of rays, the appearance a view takes.
+    &["view"],
+    // Training: the trainer, sessions, held-out estimates, checkpoints of a run.
+    &["train"],
+];
+
+/// Modules of the crate the engine must never use.
+const SERVICE: &[&str] = &["api", "jobs", "cli", "store", "storage", "worker", "media", "poses"];
+
+/// A use of another part: the file and line it is on.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+struct Use {
+    from: String,
+    to: String,
+    file: String,
+    line: usize,
+}
+
+/// The folder (or top-level module) a file under `src/engine/` belongs to.
+fn part_of(rel: &str) -> String {
+    let first = rel.split('/').next().unwrap_or(rel);
+    first.trim_end_matches(".rs").to_string()
+}
+
+/// `text` without comments, string literals and `#[cfg(test)]` items (their
+/// lines kept, blanked, so that line numbers stay right).
+fn code_only(text: &str) -> String {
+    // Blank comments and string contents first.
+    let mut out = String::with_capacity(text.len());
+    let b = text.as_bytes();
+    let mut i = 0;
+    while i < b.len() {
+        let c = b[i];
+        if c == b'/' && b.get(i + 1) == Some(&b'/') {
+            while i < b.len() && b[i] != b'\n' {
+                i += 1;
+            }
+        } else if c == b'/' && b.get(i + 1) == Some(&b'*') {
+            i += 2;
+            while i < b.len() && !(b[i] == b'*' && b.get(i + 1) == Some(&b'/')) {
+                if b[i] == b'\n' {
+                    out.push('\n');
+                }
+                i += 1;
+            }
+            i += 2;
+        } else if c == b'"' {
+            out.push('"');
+            i += 1;
+            while i < b.len() && b[i] != b'"' {
+                if b[i] == b'\\' {
+                    i += 1;
+                }
+                if i < b.len() && b[i] == b'\n' {
+                    out.push('\n');
+                }
+                i += 1;
+            }
+            out.push('"');
+            i += 1;
+        } else if c == b'\'' && b.get(i + 2) == Some(&b'\'') {
+            // A character literal such as '{' (lifetimes have no closing quote).
+            out.push_str("' '");
+            i += 3;
+        } else {
+            out.push(c as char);
+            i += 1;
+        }
+    }
+    // Then blank each `#[cfg(test)]` item: up to its `;`, or its braces' end.
+    let lines: Vec<&str> = out.lines().collect();
+    let mut keep: Vec<String> = Vec::with_capacity(lines.len());
+    let mut n = 0;
+    while n < lines.len() {
+        if lines[n].trim() == "#[cfg(test)]" {
+            let mut depth = 0i64;
+            let mut opened = false;
+            while n < lines.len() {
+                let l = lines[n];
+                keep.push(String::new());
+                n += 1;
+                for ch in l.chars() {
+                    match ch {
+                        '{' => {
+                            depth += 1;
+                            opened = true;
+                        }
+                        '}' => depth -= 1,
+                        _ => {}
+                    }
+                }
+                let attr = l.trim_start().starts_with("#[");
+                if !attr && ((opened && depth <= 0) || (!opened && l.trim_end().ends_with(';'))) {
+                    break;
+                }
+            }
+        } else {
+            keep.push(lines[n].to_string());
+            n += 1;
+        }
+    }
+    keep.join("\n")
+}
+
+fn ident_at(s: &str) -> &str {
+    let end = s.find(|c: char| !(c.is_ascii_alphanumeric() || c == '_')).unwrap_or(s.len());
+    &s[..end]
+}
+
+/// The first path segment of each item in a `{...}` group starting at `s`
+/// (just after the `{`), nested groups skipped.
+fn group_heads(s: &str) -> Vec<&str> {
+    let mut heads = Vec::new();
+    let mut depth = 0;
+    let mut expect = true;
+    let mut i = 0;
+    let b = s.as_bytes();
+    while i < b.len() {
+        match b[i] {
+            b'{' => depth += 1,
+            b'}' if depth == 0 => break,
+            b'}' => depth -= 1,
+            b',' if depth == 0 => expect = true,
+            c if expect && depth == 0 && (c.is_ascii_alphabetic() || c == b'_') => {
+                let id = ident_at(&s[i..]);
+                heads.push(id);
+                i += id.len();
+                expect = false;
+                continue;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    heads
+}
+
+/// Every use of another part in one file (`rel`: its path under `src/engine/`).
+fn uses_in(rel: &str, text: &str) -> Vec<Use> {
+    let from = part_of(rel);
+    let top_level = !rel.contains('/');
+    let mut found = Vec::new();
+    for (n, line) in code_only(text).lines().enumerate() {
+        let mut add = |to: &str| {
+            if !to.is_empty() && to != "self" && to != from {
+                found.push(Use { from: from.clone(), to: to.to_string(), file: rel.to_string(), line: n + 1 });
+            }
+        };
+        for (at, _) in line.match_indices("crate::engine::") {
+            let rest = &line[at + "crate::engine::".len()..];
+            if let Some(group) = rest.strip_prefix('{') {
+                group_heads(group).into_iter().for_each(&mut add);
+            } else {
+                add(ident_at(rest));
+            }
+        }
+        for (at, _) in line.match_indices("crate::") {
+            let rest = &line[at + "crate::".len()..];
+            let head = ident_at(rest);
+            if SERVICE.contains(&head) {
+                add(head);
+            }
+        }
+        // `super::x` in a file directly under `engine/` names engine's `x`.
+        if top_level {
+            for (at, _) in line.match_indices("super::") {
+                let before = &line[..at];
+                if before.ends_with("super::") {
+                    continue;
+                }
+                add(ident_at(&line[at + "super::".len()..]));
+            }
+        }
+    }
+    found
+}
+
+fn layer_of(part: &str) -> Option<usize> {
+    LAYERS.iter().position(|l| l.contains(&part))
+}
+
+/// What is wrong with these uses: uses up the layers, of the service or of
+/// an unknown part, and cycles between parts.
+fn problems(uses: &[Use]) -> Vec<String> {
+    let mut out = Vec::new();
+    for u in uses {
+        if SERVICE.contains(&u.to.as_str()) {
+            out.push(format!("{}:{}: the engine uses the service's `{}`", u.file, u.line, u.to));
+            continue;
+        }
+        match (layer_of(&u.from), layer_of(&u.to)) {
+            (None, _) => out.push(format!("{}:{}: `{}` is in no layer of LAYERS", u.file, u.line, u.from)),
+            (_, None) => out.push(format!("{}:{}: `{}` is in no layer of LAYERS", u.file, u.line, u.to)),
+            (Some(a), Some(b)) if b >= a => out.push(format!(
+                "{}:{}: `{}` uses `{}`, which is {} it in LAYERS",
+                u.file,
+                u.line,
+                u.from,
+                u.to,
+                if a == b { "beside" } else { "above" }
+            )),
+            _ => {}
+        }
+    }
+    // Cycles, found on their own: a depth-first search over the parts.
+    let mut graph: BTreeMap<&str, BTreeSet<&str>> = BTreeMap::new();
+    for u in uses.iter().filter(|u| !SERVICE.contains(&u.to.as_str())) {
+        graph.entry(&u.from).or_default().insert(&u.to);
+    }
+    let mut done: BTreeSet<&str> = BTreeSet::new();
+    let nodes: Vec<&str> = graph.keys().copied().collect();
+    for start in nodes {
+        let mut path = Vec::new();
+        find_cycle(&graph, start, &mut path, &mut done, &mut out);
+    }
+    out
+}
+
+fn find_cycle<'a>(
+    graph: &BTreeMap<&'a str, BTreeSet<&'a str>>,
+    node: &'a str,
+    path: &mut Vec<&'a str>,
+    done: &mut BTreeSet<&'a str>,
+    out: &mut Vec<String>,
+) {
+    if let Some(at) = path.iter().position(|&p| p == node) {
+        let mut cycle: Vec<&str> = path[at..].to_vec();
+        cycle.push(node);
+        out.push(format!("cycle between engine folders: {}", cycle.join(" -> ")));
+        return;
+    }
+    if done.contains(node) {
+        return;
+    }
+    path.push(node);
+    for &next in graph.get(node).into_iter().flatten() {
+        find_cycle(graph, next, path, done, out);
+    }
+    path.pop();
+    done.insert(node);
+}
+
+fn read_engine(dir: &Path, root: &Path, files: &mut Vec<(String, String)>) {
+    let mut entries: Vec<_> = std::fs::read_dir(dir).expect("read src/engine").map(|e| e.unwrap().path()).collect();
+    entries.sort();
+    for p in entries {
+        if p.is_dir() {
+            read_engine(&p, root, files);
+        } else if p.extension().is_some_and(|e| e == "rs") {
+            let name = p.file_name().unwrap().to_string_lossy().to_string();
+            if name.ends_with("_tests.rs") {
+                continue;
+            }
+            let rel = p.strip_prefix(root).unwrap().to_string_lossy().replace('\\', "/");
+            files.push((rel, std::fs::read_to_string(&p).unwrap()));
+        }
+    }
+}
+
+#[test]
+fn engine_folders_depend_in_one_direction() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/engine");
+    let mut files = Vec::new();
+    read_engine(&root, &root, &mut files);
+    assert!(files.len() > 50, "found only {} files under src/engine", files.len());
+    let uses: Vec<Use> = files.iter().flat_map(|(rel, text)| uses_in(rel, text)).collect();
+    // The scanner sees the engine's real wiring (a sanity check of the
+    // scanner itself: these uses exist and are allowed).
+    for (from, to) in [("models", "fields"), ("train", "models"), ("fields", "nn"), ("dataset", "geometry")] {
+        assert!(uses.iter().any(|u| u.from == from && u.to == to), "the scanner found no use of {to} in {from}");
+    }
+    // Every part under src/engine is in a layer.
+    let parts: BTreeSet<String> = files.iter().map(|(rel, _)| part_of(rel)).filter(|p| p != "mod").collect();
+    for p in &parts {
+        assert!(layer_of(p).is_some(), "src/engine/{p} is in no layer of LAYERS: add it where it belongs");
+    }
+    let found = problems(&uses);
+    assert!(found.is_empty(), "the engine's folders depend on each other the wrong way:\n{}", found.join("\n"));
+}
+
+#[test]
+fn a_use_up_the_layers_fails() {
+    let text = "use crate::engine::train::trainer::TrainConfig;\n";
+    let p = problems(&uses_in("models/config.rs", text));
+    assert_eq!(p.len(), 1, "{p:?}");
+    assert!(p[0].contains("models/config.rs:1: `models` uses `train`, which is above it"), "{p:?}");
+    // The same in a group, and in a path inside code.
+    let text = "use crate::engine::{geometry::math::Ray, train::pass};\nfn f() { crate::engine::train::x(); }\n";
+    let p = problems(&uses_in("fields/mlp.rs", text));
+    assert_eq!(p.len(), 2, "{p:?}");
+    assert!(p[0].contains("fields/mlp.rs:1:") && p[1].contains("fields/mlp.rs:2:"), "{p:?}");
+    // Folders on one line must not use each other.
+    let p = problems(&uses_in("io/persist.rs", "use crate::engine::rng::Rng;\n"));
+    assert_eq!(p.len(), 1, "{p:?}");
+    assert!(p[0].contains("beside"), "{p:?}");
+}
+
+#[test]
+fn a_use_of_the_service_fails() {
+    let p = problems(&uses_in("render/mod.rs", "use crate::jobs::JobHost;\n"));
+    assert_eq!(p.len(), 1, "{p:?}");
+    assert!(p[0].contains("the engine uses the service's `jobs`"), "{p:?}");
+}
+
+#[test]
+fn a_cycle_fails() {
+    let mut uses = uses_in("geometry/rig.rs", "use crate::engine::dataset::Dataset;\n");
+    uses.extend(uses_in("dataset/mod.rs", "use crate::engine::geometry::camera::Camera;\n"));
+    let p = problems(&uses);
+    assert!(p.iter().any(|m| m.contains("cycle between engine folders: ")), "{p:?}");
+    assert!(p.iter().any(|m| m.contains("geometry/rig.rs:1: `geometry` uses `dataset`, which is above it")), "{p:?}");
+}
+
+#[test]
+fn tests_comments_and_strings_are_not_uses() {
+    let text = "\
+//! Trained by `crate::engine::train::pass`.
+use crate::engine::geometry::math::Ray;
+const S: &str = \"crate::engine::train\";
+/* crate::engine::train::x */
+#[cfg(test)]
+mod tests {
+    use crate::engine::train::trainer::Trainer;
+    fn f() { let c = '{'; }
+}
+#[cfg(test)]
+#[path = \"x_tests.rs\"]
+mod more;
+fn g() { crate::engine::train::late(); }
+";
+    let uses = uses_in("models/x.rs", text);
+    let tos: Vec<(&str, usize)> = uses.iter().map(|u| (u.to.as_str(), u.line)).collect();
+    assert_eq!(tos, vec![("geometry", 2), ("train", 13)]);
+}
+
+#[test]
+fn top_level_files_use_engine_parts_through_super() {
+    let uses = uses_in("batch.rs", "use super::geometry::math::Ray;\nuse super::train::x;\n");
+    let p = problems(&uses);
+    assert_eq!(p.len(), 1, "{p:?}");
+    assert!(p[0].contains("batch.rs:2: `batch` uses `train`"), "{p:?}");
+}
