@@ -625,7 +625,7 @@ pub struct ModelInfo {
     pub id: String,
     pub scene_id: String,
     pub job_id: String,
-    /// Preset name (one of `engine::models::config::PRESETS`: `instant`, `instant-tiny`, `nerf`, `nerf-tiny`,
+    /// Preset name (one of `engine::models::config::presets()`: `instant`, `instant-tiny`, `nerf`, `nerf-tiny`,
     /// `capture`, `capture-tiny`); for a job that asked for `auto`, the one chosen.
     pub model: String,
     /// Why `auto` chose `model` (the evidence, as a sentence); `None` when

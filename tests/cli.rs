@@ -280,7 +280,7 @@ fn appearance_on_the_command_line() {
     let mut t = Trainer::new(net, adam, train, TrainState::default(), &ds);
     t.run(&std::sync::atomic::AtomicBool::new(false), |_, _| true);
     persist::save(&model, &*t.model, &t.adam, &t.config, &t.state).unwrap();
-    let trained = t.model.appearance_images().unwrap();
+    let trained = t.model.appearance().map(|a| a.images()).unwrap();
     assert!(!trained.is_empty());
 
     let views = dir.path().join("views");

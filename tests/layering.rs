@@ -373,3 +373,30 @@ fn top_level_files_use_engine_parts_through_super() {
     assert_eq!(p.len(), 1, "{p:?}");
     assert!(p[0].contains("batch.rs:2: `batch` uses `train`"), "{p:?}");
 }
+
+/// The names users pick a model by, outside the engine, are the registry's
+/// presets exactly (`models::config::presets`): openapi.yaml's enum and the
+/// web app's picker, each after `auto`.
+#[test]
+fn user_facing_model_lists_are_the_registrys_presets() {
+    let presets: Vec<String> = radiance::engine::models::config::presets().into_iter().map(String::from).collect();
+    let mut want = vec!["auto".to_string()];
+    want.extend(presets.iter().cloned());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let spec = std::fs::read_to_string(root.join("openapi.yaml")).unwrap();
+    let line = spec.lines().find(|l| l.trim_start().starts_with("enum: [auto,")).expect("openapi.yaml's model enum");
+    let listed: Vec<String> = line
+        .trim()
+        .trim_start_matches("enum: [")
+        .trim_end_matches(']')
+        .split(',')
+        .map(|s| s.trim().to_string())
+        .collect();
+    assert_eq!(listed, want, "openapi.yaml's model enum");
+    let page = std::fs::read_to_string(root.join("web/index.html")).unwrap();
+    let start = page.find("<option value=\"auto\"").expect("the web app's model picker");
+    let end = start + page[start..].find("</select>").expect("the picker's end");
+    let options: Vec<String> =
+        page[start..end].split("<option value=\"").skip(1).map(|s| s[..s.find('"').unwrap()].to_string()).collect();
+    assert_eq!(options, want, "web/index.html's model picker");
+}

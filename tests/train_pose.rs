@@ -78,14 +78,14 @@ fn train(ds: &Dataset, pose_refine: bool, steps: u64) -> Box<dyn Model> {
     t.model
 }
 
-/// Mean PSNR of the held-out views rendered from `Model::heldout_pose`.
+/// Mean PSNR of the held-out views rendered from `models::heldout_pose`.
 fn heldout_psnr(model: &dyn Model, ds: &Dataset) -> f64 {
     let test = &ds.test;
     let total: f64 = test
         .iter()
         .map(|&k| {
             let mut cam = ds.frames[k].camera.clone();
-            cam.c2w = model.heldout_pose(cam.c2w);
+            cam.c2w = radiance::engine::models::heldout_pose(model, cam.c2w);
             psnr(&render_view(model, &cam, ds.background).rgb, &ground_truth(ds, k))
         })
         .sum();

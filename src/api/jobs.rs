@@ -14,7 +14,7 @@ use serde::Deserialize;
 use super::{ApiError, ApiResult, AppState, limits};
 use crate::engine::dataset::MaskUse;
 use crate::engine::models::auto::{self, AUTO, ModelChoice};
-use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, PRESETS};
+use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, presets};
 use crate::engine::train::estimate;
 use crate::jobs::train::load_dataset;
 use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, check_trainable};
@@ -62,7 +62,7 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
         (AUTO, None, None) => return Err(ApiError::internal("the model for 'auto' was not chosen")),
         (name, _, _) => (name.to_string(), None),
     };
-    let allowed = || format!("{AUTO}, {}", PRESETS.join(", "));
+    let allowed = || format!("{AUTO}, {}", presets().join(", "));
     let mut config = ModelConfig::preset(&model).ok_or_else(|| {
         let message = format!("unknown model '{}' (available: {})", r.model, allowed());
         ApiError::bad_field(message, "model", &r.model, &allowed())

@@ -127,7 +127,7 @@ pub(super) fn fitted_scores(
     background: [f32; 3],
     options: &RenderOptions,
 ) -> anyhow::Result<Fitted> {
-    let camera = Camera { c2w: model.heldout_pose(f.camera.c2w), ..f.camera.clone() };
+    let camera = Camera { c2w: crate::engine::models::heldout_pose(model, f.camera.c2w), ..f.camera.clone() };
     let mut render = |half: Half| -> anyhow::Result<View> {
         let e = fit.fit(model, f, &camera, background, options, half)?;
         Ok(fit.render(&camera, background, &e))
@@ -181,7 +181,7 @@ pub(super) fn render_and_score(
     let options = appearance.options(model, &f.camera)?;
     let (view, secs) = render_one(model, f, background, &options);
     let scores = score(&view, f, background)?;
-    let psnr_mean = match model.appearance_images() {
+    let psnr_mean = match model.appearance().map(|a| a.images()) {
         None => None,
         Some(_) if options == RenderOptions::default() => Some(scores.psnr),
         Some(_) => {
@@ -309,7 +309,7 @@ pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
     if let Some(o) = &a.out {
         std::fs::create_dir_all(o).with_context(|| format!("creating {}", o.display()))?;
     }
-    if r.model.appearance_images().is_some() {
+    if r.model.appearance().map(|a| a.images()).is_some() {
         let chosen = a.appearance.appearance.map_or("the nearest training camera's".into(), |c| c.to_string());
         println!("appearance: {chosen}; the mean appearance's PSNR in brackets");
     }
@@ -504,7 +504,7 @@ mod tests {
         let (bg, opts) = (ds.background, RenderOptions::default());
         let mut fit = appearance_fit(&*m, 1, 6).unwrap().unwrap();
         let got = fitted_scores(&mut fit, &*m, f, bg, &opts).unwrap();
-        let camera = Camera { c2w: m.heldout_pose(f.camera.c2w), ..f.camera.clone() };
+        let camera = Camera { c2w: crate::engine::models::heldout_pose(&*m, f.camera.c2w), ..f.camera.clone() };
         let mut alone = |half| {
             let e = fit.fit(&*m, f, &camera, bg, &opts, half).unwrap();
             fit.render(&camera, bg, &e)

@@ -13,14 +13,14 @@ pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
 
 /// The names `--model` accepts besides `auto`: the presets (each model
 /// kind is one, and `auto` may choose `capture-360`).
-pub use crate::engine::models::config::PRESETS as MODEL_NAMES;
+use crate::engine::models::config::presets;
 
 /// Refuses a `--model` that is neither `auto` nor a preset.
 pub fn check_model_name(name: &str) -> anyhow::Result<()> {
     anyhow::ensure!(
-        name == AUTO || MODEL_NAMES.contains(&name),
+        name == AUTO || presets().contains(&name),
         "unknown model '{name}' (available: {AUTO}, {})",
-        MODEL_NAMES.join(", ")
+        presets().join(", ")
     );
     Ok(())
 }

@@ -14,7 +14,6 @@ use super::{Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split, masks};
 use crate::engine::io::checkpoint::Checkpoint;
 use crate::engine::models::auto::{AUTO, ModelChoice};
-use crate::engine::models::capture::CaptureModel;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::train::estimate::{self, DataSize, mib};
@@ -175,8 +174,8 @@ fn describe(a: &TrainArgs, session: &Session<'_>, ds: &Dataset, threads: usize) 
     if let Some(m) = describe_masks(ds) {
         eprintln!("{m}");
     }
-    if let Some(interval) = model.as_any().downcast_ref::<CaptureModel>().and_then(CaptureModel::ray_interval) {
-        eprintln!("{interval}");
+    if let Some(note) = model.log_note() {
+        eprintln!("{note}");
     }
     if let Some(c) = ModelConfig::of_model(model) {
         let e = estimate::training(&c, DataSize::of(ds), threads);
@@ -251,8 +250,7 @@ fn summary(session: &Session<'_>, wall: Instant, out: &Path) {
     if let Some(peak) = peak_memory() {
         println!("peak memory    {}", mib(peak));
     }
-    let model = session.trainer().model.as_any().downcast_ref::<CaptureModel>();
-    if let Some(report) = model.and_then(CaptureModel::pose_report) {
+    if let Some(report) = session.trainer().model.poses().and_then(|p| p.report()) {
         println!("poses          {report}");
     }
     println!("model          {}", out.display());

@@ -13,7 +13,6 @@ use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::metrics::psnr;
 use crate::engine::models::Model;
 use crate::engine::models::auto::ModelChoice;
-use crate::engine::models::capture::CaptureModel;
 use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::pose_report::PoseReport;
 use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
@@ -143,7 +142,7 @@ fn finish(
         Stop::Budget | Stop::Cancelled | Stop::Aborted => {}
     }
     let p = session.trainer().progress(f64::NAN);
-    let poses = session.trainer().model.as_any().downcast_ref::<CaptureModel>().and_then(CaptureModel::pose_report);
+    let poses = session.trainer().model.poses().and_then(|p| p.report());
     host.set_progress(&job.id, &mut |j| {
         j.progress.step = p.step;
         j.progress.elapsed = p.elapsed;

@@ -66,7 +66,7 @@ fn odd_world_rays_render_finite_pixels() {
     let (tx, rx) = std::sync::mpsc::channel();
     let job = std::thread::spawn(move || {
         let mut out = vec![RayOutput::default(); rays.len()];
-        model.render_rays(&rays, [1.0, 0.5, 0.0], &mut out);
+        model.render_rays(&rays, [1.0, 0.5, 0.0], &radiance::engine::models::RenderOptions::default(), &mut out);
         let train: Vec<TrainRay> = rays
             .iter()
             .enumerate()

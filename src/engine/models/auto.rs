@@ -33,7 +33,7 @@ pub const ALL_AROUND_PRESET: &str = "capture-360";
 /// What the automatic choice picked, and why.
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct ModelChoice {
-    /// The preset (one of `config::PRESETS`).
+    /// The preset (one of `config::presets()`).
     pub preset: String,
     /// The evidence, as a sentence: "37 of 100 training images have
     /// transparent pixels: an object on an empty background, the fast

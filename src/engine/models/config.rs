@@ -13,8 +13,6 @@ use crate::engine::models::nerf::NerfConfig;
 use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::{Adam, AdamConfig};
-use crate::engine::nn::hashgrid::HashGridConfig;
-use crate::engine::nn::nerf_net::NetConfig;
 use crate::engine::sampling::occupancy::OccupancyConfig;
 
 /// What a model kind's configuration provides: the one interface through
@@ -51,98 +49,68 @@ pub struct Footprint {
     pub activations: u64,
 }
 
-/// A model configuration of any kind, tagged by `kind` in JSON.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(tag = "kind", rename_all = "lowercase")]
-pub enum ModelConfig {
-    /// The fast model: hash grid, tiny MLPs, occupancy-grid marching.
-    Instant(InstantConfig),
-    /// The classic NeRF of the paper.
-    Nerf(NerfConfig),
-    /// Real captures: contracted unbounded space, proposal sampling,
-    /// per-image appearance.
-    Capture(CaptureConfig),
+/// The model kinds: one line each, `Variant(ConfigType) = module`. The
+/// module (`models/<module>/`) provides `KIND`, its config type with
+/// `impl ModelSpec`, and `config::PRESETS` / `config::preset` (its named
+/// configurations, the default first). From this list come the tagged
+/// [`ModelConfig`] enum, [`ModelConfig::spec`], [`KINDS`], [`presets`] and
+/// [`ModelConfig::preset`].
+macro_rules! registry {
+    ($($(#[$doc:meta])* $variant:ident($config:ty) = $module:ident,)+) => {
+        /// A model configuration of any kind, tagged by `kind` in JSON.
+        #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+        #[serde(tag = "kind", rename_all = "lowercase")]
+        pub enum ModelConfig {
+            $($(#[$doc])* $variant($config),)+
+        }
+
+        /// The kinds, as [`ModelConfig`] tags them.
+        pub const KINDS: &[&str] = &[$(super::$module::KIND,)+];
+
+        /// The names [`ModelConfig::preset`] knows, kind by kind, each
+        /// kind's default first (the first is the default of all).
+        pub fn presets() -> Vec<&'static str> {
+            let mut all = Vec::new();
+            $(all.extend_from_slice(super::$module::config::PRESETS);)+
+            all
+        }
+
+        impl ModelConfig {
+            /// The kind's own configuration.
+            pub fn spec(&self) -> &dyn ModelSpec {
+                match self {
+                    $(ModelConfig::$variant(c) => c,)+
+                }
+            }
+
+            /// A named configuration (one of [`presets`]); `None` for an
+            /// unknown name. Each kind's presets are documented in its
+            /// `config::preset`.
+            pub fn preset(name: &str) -> Option<Self> {
+                $(if let Some(c) = super::$module::config::preset(name) {
+                    return Some(ModelConfig::$variant(c));
+                })+
+                None
+            }
+        }
+    };
 }
 
-/// The kinds, as [`ModelConfig`] tags them.
-pub const KINDS: [&str; 3] = [super::instant::KIND, super::nerf::KIND, super::capture::KIND];
-
-/// The names [`ModelConfig::preset`] knows, the default first.
-pub const PRESETS: [&str; 7] =
-    ["instant", "instant-tiny", "nerf", "nerf-tiny", "capture", "capture-360", "capture-tiny"];
+registry! {
+    /// The fast model: hash grid, tiny MLPs, occupancy-grid marching.
+    Instant(InstantConfig) = instant,
+    /// The classic NeRF of the paper.
+    Nerf(NerfConfig) = nerf,
+    /// Real captures: contracted unbounded space, proposal sampling,
+    /// per-image appearance.
+    Capture(CaptureConfig) = capture,
+}
 
 /// Rays per optimisation step for `nerf` (the fast model adapts its number of
 /// rays to a constant sample budget and ignores this).
 pub const DEFAULT_BATCH_RAYS: usize = 1024;
 
 impl ModelConfig {
-    /// The kind's own configuration.
-    pub fn spec(&self) -> &dyn ModelSpec {
-        match self {
-            ModelConfig::Instant(c) => c,
-            ModelConfig::Nerf(c) => c,
-            ModelConfig::Capture(c) => c,
-        }
-    }
-
-    /// A named configuration:
-    /// - `instant`: the fast model (the default);
-    /// - `instant-tiny`: a small hash grid and narrow MLPs, for previews and tests;
-    /// - `nerf`: the paper's model, with occupancy-grid skipping;
-    /// - `nerf-tiny`: a small network and few samples, for previews and tests;
-    /// - `capture`: the real-capture model (photographs of unbounded scenes);
-    /// - `capture-360`: the same with 4x the hash table (2^18 entries per
-    ///   level) and a finest level twice as fine (4096), for captures whose
-    ///   cameras go all around the subject: they see more of the scene in
-    ///   detail than a one-sided or forward-facing capture, and a 2^16 table
-    ///   collides (gold_cape: +0.2 dB at equal CPU time; fox, one-sided,
-    ///   loses 0.4 dB with it). The finest level, measured on the 2-core VM
-    ///   with `train --steps 4000` (about the same time): gold_cape's
-    ///   held-out PSNR 21.29 / 21.35 dB (seeds 0 / 1) at 2048, 21.40 / 21.48
-    ///   at 4096 (SSIM 0.687 / 0.686 to 0.709 / 0.714, inside the masks
-    ///   20.38 / 20.45 to 20.76 / 20.89 dB), 21.27 at 8192 (seed 0); on fox
-    ///   4096 scored 30.22 against 30.39, on fern 24.94 against 24.92, so
-    ///   `capture` keeps 2048. Its distortion weight is 0.004, twice
-    ///   `capture`'s: gold_cape at `--steps 4000`, seeds 0-4, held-out PSNR
-    ///   21.52 / 21.61 / 21.55 / 21.52 / 21.57 dB at 0.002 and 21.62 /
-    ///   21.85 / 21.51 / 21.89 / 21.70 at 0.004 (mean +0.16; with the mean
-    ///   appearance +0.28, higher on every seed; SSIM higher on every seed),
-    ///   21.18 at 0.001, 21.44 at 0.008, 19.62 at 0.016 (seed 0); fox lost
-    ///   0.07 and fern 0.11 with 0.004, so `capture` keeps 0.002;
-    /// - `capture-tiny`: a small one, for previews and tests.
-    pub fn preset(name: &str) -> Option<Self> {
-        Some(match name {
-            "instant" => ModelConfig::Instant(InstantConfig::default()),
-            "instant-tiny" => {
-                let mut c = InstantConfig {
-                    grid: HashGridConfig { levels: 8, log2_table: 12, base_resolution: 8, finest_resolution: 128 },
-                    hidden: 32,
-                    geo_features: 8,
-                    steps_per_diagonal: 128,
-                    samples_per_step: 1 << 12,
-                    ..InstantConfig::default()
-                };
-                c.occupancy.resolution = 32;
-                ModelConfig::Instant(c)
-            }
-            "nerf" => ModelConfig::Nerf(NerfConfig::default()),
-            "nerf-tiny" => ModelConfig::Nerf(NerfConfig {
-                net: NetConfig { pos_freqs: 4, dir_freqs: 2, width: 32, depth: 4, skip: 2, dir_width: 16 },
-                coarse_samples: 16,
-                fine_samples: 16,
-                ..NerfConfig::default()
-            }),
-            "capture" => ModelConfig::Capture(CaptureConfig::default()),
-            "capture-360" => {
-                let d = CaptureConfig::default();
-                let grid = HashGridConfig { log2_table: 18, finest_resolution: 4096, ..d.grid };
-                ModelConfig::Capture(CaptureConfig { grid, distortion: 0.004, ..d })
-            }
-            "capture-tiny" => ModelConfig::Capture(CaptureConfig::tiny()),
-            _ => return None,
-        })
-    }
-
     /// The configuration a built model runs with (as its checkpoint stores it).
     pub fn of_model(model: &dyn Model) -> Option<Self> {
         Self::from_kind_json(model.kind(), model.config_json())
@@ -156,7 +124,7 @@ impl ModelConfig {
 
     /// Like [`ModelConfig::from_kind_json`], saying what was wrong.
     pub fn parse(kind: &str, mut json: serde_json::Value) -> Result<Self, ModelError> {
-        let Some(kind) = KINDS.into_iter().find(|k| *k == kind) else {
+        let Some(kind) = KINDS.iter().copied().find(|k| *k == kind) else {
             return Err(ModelError::UnknownKind(kind.to_string()));
         };
         let Some(fields) = json.as_object_mut() else {
@@ -314,7 +282,7 @@ mod tests {
     #[test]
     fn presets_are_valid_and_build() {
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
-        for name in PRESETS {
+        for name in presets() {
             let c = ModelConfig::preset(name).unwrap();
             c.check().unwrap_or_else(|e| panic!("{name}: {e}"));
             let (m, adam) = c.build_with_adam(ds.scene(), 1, None).unwrap();

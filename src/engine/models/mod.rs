@@ -52,6 +52,7 @@ use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::nn::adam::LrGroup;
 use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
+use crate::engine::nn::pose_report::PoseReport;
 
 /// Why a model could not be rebuilt from saved parts.
 #[derive(Debug, thiserror::Error)]
@@ -104,29 +105,11 @@ pub trait Model: Send + Sync {
     /// Accumulates the gradient of the batch loss over `rays` (one part of a
     /// batch) into `grads` and returns the part's statistics.
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
-    /// The hash grid whose table gradient [`Model::train_rays_deferred`]
-    /// records instead of adding it (`None`: it defers nothing, the
-    /// default): a copy of its layout, which borrows nothing from the
-    /// model, so that the trainer can scatter each level's gradient and
-    /// update the level's parameters in one pass.
-    fn deferred_grid(&self) -> Option<HashGrid> {
+    /// Training with the main grid's table gradient deferred to the
+    /// trainer ([`DeferredGrid`]); `None` (the default): every gradient
+    /// goes into `grads`.
+    fn deferred(&self) -> Option<&dyn DeferredGrid> {
         None
-    }
-    /// [`Model::train_rays`], except that the table gradient of
-    /// [`Model::deferred_grid`] is not added to `grads` but kept in
-    /// `record` (cleared first): one thread's part of a step, whose table
-    /// gradients the trainer then scatters for all parts at once
-    /// ([`HashGrid::scatter`] gives the same sum). The default defers
-    /// nothing.
-    fn train_rays_deferred(
-        &self,
-        rays: &[TrainRay],
-        ctx: &StepCtx,
-        grads: &mut [f32],
-        record: &mut GridRecord,
-    ) -> BatchStats {
-        record.clear();
-        self.train_rays(rays, ctx, grads)
     }
     /// Runs after each optimisation step (`step` is the number of steps
     /// done), e.g. to update an occupancy grid.
@@ -149,44 +132,84 @@ pub trait Model: Send + Sync {
     fn lr_groups(&self) -> Vec<LrGroup> {
         Vec::new()
     }
-    /// The camera-to-world pose (world units, 3x4 rows) a held-out view
-    /// is rendered from: a model that refines the training cameras moves it
-    /// with their common drift, which the photographs cannot see. The pose
-    /// itself for the others.
-    fn heldout_pose(&self, c2w: [[f32; 4]; 3]) -> [[f32; 4]; 3] {
-        c2w
+    /// The training cameras' refined poses ([`PoseRefinement`]); `None`
+    /// (the default) for a model that takes the cameras as given.
+    fn poses(&self) -> Option<&dyn PoseRefinement> {
+        None
+    }
+    /// A line about the model's set-up for a training log (e.g. where its
+    /// rays start and end); `None` when there is nothing to say.
+    fn log_note(&self) -> Option<String> {
+        None
     }
     /// The concrete model, for callers that need its own API.
     fn as_any(&self) -> &dyn std::any::Any;
-    /// Renders model-space rays.
-    fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats;
-    /// [`Model::render_rays`] with `options`; models that read none keep
-    /// this default, which ignores them.
-    fn render_rays_with(
+    /// Renders model-space rays with `options` (a model without per-image
+    /// appearance reads none of them).
+    fn render_rays(
         &self,
         rays: &[Ray],
         background: [f32; 3],
-        _options: &RenderOptions,
+        options: &RenderOptions,
         out: &mut [RayOutput],
-    ) -> BatchStats {
-        self.render_rays(rays, background, out)
+    ) -> BatchStats;
+    /// Per-image appearance ([`Appearance`]); `None` (the default) for a
+    /// model whose every view looks alike.
+    fn appearance(&self) -> Option<&dyn Appearance> {
+        None
     }
+}
+
+/// What a model with a per-image appearance embedding offers
+/// ([`Model::appearance`]).
+pub trait Appearance {
     /// The training images whose appearance a view can take
-    /// ([`RenderOptions::image`]), ascending; `None` for a model without
-    /// per-image appearance (every view of it looks alike).
-    fn appearance_images(&self) -> Option<Vec<u32>> {
-        None
-    }
-    /// Where image `image`'s appearance embedding lies in the parameters;
-    /// `None` for a model without per-image appearance, or an image beyond
-    /// its table.
-    fn appearance_row(&self, _image: u32) -> Option<std::ops::Range<usize>> {
-        None
-    }
-    /// The appearance embedding a view takes under `options` (as
-    /// [`Model::render_rays_with`] renders it); `None` where it has none:
-    /// a model without per-image appearance, or an image beyond its table.
-    fn appearance_embedding(&self, _options: &RenderOptions) -> Option<Vec<f32>> {
-        None
-    }
+    /// ([`RenderOptions::image`]), ascending.
+    fn images(&self) -> Vec<u32>;
+    /// Where image `image`'s embedding lies in the parameters; `None` for an
+    /// image beyond its table.
+    fn row(&self, image: u32) -> Option<std::ops::Range<usize>>;
+    /// The embedding a view takes under `options` (as
+    /// [`Model::render_rays`] renders it); `None` for an image beyond its
+    /// table.
+    fn embedding(&self, options: &RenderOptions) -> Option<Vec<f32>>;
+}
+
+/// What a model that refines its training cameras' poses offers
+/// ([`Model::poses`]).
+pub trait PoseRefinement {
+    /// The camera-to-world pose (world units, 3x4 rows) a held-out view is
+    /// rendered from: moved with the training cameras' common drift, which
+    /// the photographs cannot see.
+    fn heldout_pose(&self, c2w: [[f32; 4]; 3]) -> [[f32; 4]; 3];
+    /// What the refinement did so far (`None` before it has a report).
+    fn report(&self) -> Option<PoseReport>;
+}
+
+/// Training with one hash grid's table gradient deferred
+/// ([`Model::deferred`]): the trainer scatters each level's gradient for
+/// all threads' parts at once and updates that level's parameters in the
+/// same pass.
+pub trait DeferredGrid {
+    /// The deferred grid: a copy of its layout, which borrows nothing from
+    /// the model.
+    fn grid(&self) -> HashGrid;
+    /// [`Model::train_rays`], except that the deferred grid's table
+    /// gradient is not added to `grads` but kept in `record` (cleared
+    /// first): one thread's part of a step ([`HashGrid::scatter`] of every
+    /// part's record gives the same sum).
+    fn train_rays_deferred(
+        &self,
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        record: &mut GridRecord,
+    ) -> BatchStats;
+}
+
+/// The pose a held-out view of `model` is rendered from
+/// ([`PoseRefinement::heldout_pose`]; the pose itself for a model that
+/// refines no cameras).
+pub fn heldout_pose(model: &dyn Model, c2w: [[f32; 4]; 3]) -> [[f32; 4]; 3] {
+    model.poses().map_or(c2w, |p| p.heldout_pose(c2w))
 }

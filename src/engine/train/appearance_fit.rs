@@ -109,12 +109,12 @@ impl AppearanceFit {
     /// does) to fit appearances with; `None` for a model without per-image
     /// appearance (or with an embedding of no values).
     pub fn new(model: &dyn Model, step: u64, settings: FitSettings) -> Result<Option<Self>, FitError> {
-        let Some(images) = model.appearance_images() else { return Ok(None) };
-        if model.appearance_row(0).is_none_or(|r| r.is_empty()) {
+        let Some(images) = model.appearance().map(|a| a.images()) else { return Ok(None) };
+        if model.appearance().and_then(|a| a.row(0)).is_none_or(|r| r.is_empty()) {
             return Ok(None);
         }
         let row = (0u32..)
-            .map_while(|i| model.appearance_row(i).map(|r| (i, r)))
+            .map_while(|i| model.appearance().and_then(|a| a.row(i)).map(|r| (i, r)))
             .find(|(i, _)| images.binary_search(i).is_err());
         let (row, range) = row.ok_or(FitError::NoSpareRow)?;
         let config = ModelConfig::of_model(model).ok_or(FitError::Config)?;
@@ -126,7 +126,7 @@ impl AppearanceFit {
 
     /// Fits the appearance of `frame`'s photo on one half of its pixels
     /// (`half`'s columns), seen from `camera` (the frame's,
-    /// as the held-out view is rendered: `Model::heldout_pose` applied),
+    /// as the held-out view is rendered: `models::heldout_pose` applied),
     /// starting from the embedding `start` gives in `model` (the model the
     /// fit was made from). Returns the fitted embedding.
     pub fn fit(
@@ -144,7 +144,7 @@ impl AppearanceFit {
         let cols = half.columns(camera.width);
         // A start without an embedding (an image beyond the table) renders
         // as zeros do.
-        let mut e = model.appearance_embedding(start).unwrap_or_else(|| vec![0.0; self.range.len()]);
+        let mut e = model.appearance().and_then(|a| a.embedding(start)).unwrap_or_else(|| vec![0.0; self.range.len()]);
         let s = self.settings;
         let config = AdamConfig { lr: s.lr, lr_end: s.lr, beta1: 0.9, beta2: 0.99, eps: 1e-15 };
         let mut adam = Adam::new(config, e.len());
@@ -293,10 +293,14 @@ mod tests {
             }
         }
         assert_eq!(model.params(), &before[..], "the model given was changed");
-        assert_eq!(model.appearance_images(), Some(vec![1, 2, 3, 5, 6, 7]));
+        assert_eq!(model.appearance().map(|a| a.images()), Some(vec![1, 2, 3, 5, 6, 7]));
         // The spare row is the first image without an appearance, 0; the
         // copy renders image 3's appearance as the model does.
-        let own = fit.render(&frame.camera, ds.background, &model.params()[model.appearance_row(3).unwrap()]);
+        let own = fit.render(
+            &frame.camera,
+            ds.background,
+            &model.params()[model.appearance().and_then(|a| a.row(3)).unwrap()],
+        );
         assert_eq!(own.rgb, truth.rgb);
     }
 
@@ -360,7 +364,7 @@ mod tests {
         assert!(AppearanceFit::new(&*instant, 1, FitSettings::default()).unwrap().is_none());
         let no_dims = capture(&ds, CaptureConfig { appearance_dim: 0, ..CaptureConfig::tiny() });
         assert!(AppearanceFit::new(&*no_dims, 1, FitSettings::default()).unwrap().is_none());
-        assert_eq!(instant.appearance_row(0), None);
+        assert_eq!(instant.appearance().and_then(|a| a.row(0)), None);
     }
 
     /// A capture model's rows follow each other, `appearance_dim` values
@@ -372,22 +376,22 @@ mod tests {
         let ds = dataset();
         let mut m = capture(&ds, CaptureConfig::tiny());
         let dim = CaptureConfig::tiny().appearance_dim;
-        let first = m.appearance_row(0).unwrap();
+        let first = m.appearance().and_then(|a| a.row(0)).unwrap();
         for image in [0, 3, 1999] {
-            let r = m.appearance_row(image).unwrap();
+            let r = m.appearance().and_then(|a| a.row(image)).unwrap();
             assert_eq!(r, first.start + image as usize * dim..first.start + (image as usize + 1) * dim);
         }
-        assert_eq!(m.appearance_row(2000), None);
-        assert_eq!(m.appearance_row(u32::MAX), None);
+        assert_eq!(m.appearance().and_then(|a| a.row(2000)), None);
+        assert_eq!(m.appearance().and_then(|a| a.row(u32::MAX)), None);
         let cam = &ds.frames[0].camera;
         let view =
             |m: &dyn Model, i: u32| render_heldout_view(m, cam, ds.background, &RenderOptions { image: Some(i) }).rgb;
         let (three, five) = (view(&*m, 3), view(&*m, 5));
-        let r = m.appearance_row(3).unwrap();
+        let r = m.appearance().and_then(|a| a.row(3)).unwrap();
         m.params_mut()[r].iter_mut().for_each(|v| *v += 1.0);
         assert_ne!(view(&*m, 3), three);
         assert_eq!(view(&*m, 5), five);
         let none = capture(&ds, CaptureConfig { appearance_dim: 0, ..CaptureConfig::tiny() });
-        assert_eq!(none.appearance_row(0), None);
+        assert_eq!(none.appearance().and_then(|a| a.row(0)), None);
     }
 }

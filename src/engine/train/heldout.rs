@@ -108,7 +108,7 @@ mod tests {
         let ds = BallScene { size: 8, views: 4, ..Default::default() }.dataset();
         for preset in ["instant-tiny", "capture-tiny"] {
             let mut model = ModelConfig::preset(preset).unwrap().build(ds.scene(), 3).unwrap();
-            if model.appearance_images().is_some() {
+            if model.appearance().map(|a| a.images()).is_some() {
                 let mut seen = vec![0.0; 2000];
                 ds.train.iter().for_each(|&i| seen[i] = 1.0);
                 model.restore_state(&mut |_| Some(seen.clone()), 1).unwrap();

@@ -175,7 +175,7 @@ pub struct Trainer<'a> {
     /// The training pixels rays are drawn from.
     pixels: PixelPool,
     part_grads: Vec<Vec<f32>>,
-    /// Each part's deferred grid gradients ([`Model::train_rays_deferred`]).
+    /// Each part's deferred grid gradients ([`DeferredGrid::train_rays_deferred`](crate::engine::models::DeferredGrid::train_rays_deferred)).
     part_records: Vec<GridRecord>,
     pub guard: DivergenceGuard,
     snapshot: Option<Snapshot>,
@@ -323,7 +323,13 @@ impl<'a> Trainer<'a> {
                 }
                 let lo = (p * per).min(rays.len());
                 let hi = ((p + 1) * per).min(rays.len());
-                model.train_rays_deferred(&rays[lo..hi], &ctx, g, record)
+                match model.deferred() {
+                    Some(d) => d.train_rays_deferred(&rays[lo..hi], &ctx, g, record),
+                    None => {
+                        record.clear();
+                        model.train_rays(&rays[lo..hi], &ctx, g)
+                    }
+                }
             })
             .collect();
         let mut total = BatchStats::default();
@@ -334,7 +340,7 @@ impl<'a> Trainer<'a> {
         let grads = &mut first[0];
         // The deferred grid's gradient is not in any buffer: it is scattered
         // level by level below, each level's straight into its Adam update.
-        let grid = self.model.deferred_grid();
+        let grid = self.model.deferred().map(|d| d.grid());
         let deferred = grid.as_ref().map(|g| g.params.clone());
         self.state.step += 1;
         self.state.rays += total.rays;

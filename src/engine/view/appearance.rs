@@ -59,11 +59,11 @@ impl Appearance {
     }
 
     /// The options a view from `camera` renders with under this choice, for
-    /// `model`: an index must be one of [`Model::appearance_images`];
+    /// `model`: an index must be one of [`Appearance::images`](crate::engine::models::Appearance::images);
     /// `Nearest` picks among them (the mean when there are none yet, as an
     /// untrained model has).
     pub fn resolve(self, model: &dyn Model, camera: &Camera) -> Result<RenderOptions, AppearanceError> {
-        let Some(images) = model.appearance_images() else {
+        let Some(images) = model.appearance().map(|a| a.images()) else {
             return Ok(RenderOptions::default());
         };
         match self {
@@ -86,7 +86,7 @@ impl Appearance {
     /// request, before its views): `Nearest` is checked for the training
     /// cameras it needs, an index as [`Appearance::resolve`] does.
     pub fn check(self, model: &dyn Model) -> Result<(), AppearanceError> {
-        let Some(images) = model.appearance_images() else { return Ok(()) };
+        let Some(images) = model.appearance().map(|a| a.images()) else { return Ok(()) };
         match self {
             Appearance::Mean => Ok(()),
             Appearance::Image(image) => match images.binary_search(&image) {

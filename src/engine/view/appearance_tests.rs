@@ -131,7 +131,7 @@ fn other_models_ignore_the_choice() {
     let ds = dataset();
     for preset in ["instant-tiny", "nerf-tiny"] {
         let m = ModelConfig::preset(preset).unwrap().build(ds.scene(), 1).unwrap();
-        assert_eq!(m.appearance_images(), None);
+        assert_eq!(m.appearance().map(|a| a.images()), None);
         for a in [Appearance::Mean, Appearance::Image(99_999), Appearance::Nearest] {
             assert_eq!(a.resolve(&*m, &ds.frames[0].camera), Ok(RenderOptions::default()), "{preset} {a}");
             assert_eq!(a.check(&*m), Ok(()));

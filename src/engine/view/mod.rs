@@ -65,11 +65,11 @@ pub fn render_view_with(model: &dyn Model, camera: &Camera, background: [f32; 3]
 
 /// Renders a held-out view of the dataset the model was trained on: from
 /// `camera` moved as the model says held-out cameras move
-/// ([`Model::heldout_pose`]: a model that refined its training cameras
+/// ([`models::heldout_pose`](crate::engine::models::heldout_pose): a model that refined its training cameras
 /// applies their common drift; the camera itself for the others), with
 /// render `options` (`appearance::held_out_options` for the held-out rule).
 pub fn render_heldout_view(model: &dyn Model, camera: &Camera, background: [f32; 3], options: &RenderOptions) -> View {
-    let moved = Camera { c2w: model.heldout_pose(camera.c2w), ..camera.clone() };
+    let moved = Camera { c2w: crate::engine::models::heldout_pose(model, camera.c2w), ..camera.clone() };
     render_view_with(model, &moved, background, options)
 }
 
@@ -136,7 +136,7 @@ fn render_rays_until(
             if cancel.load(Ordering::Relaxed) {
                 BatchStats::default()
             } else {
-                model.render_rays_with(r, background, options, o)
+                model.render_rays(r, background, options, o)
             }
         })
         .reduce(BatchStats::default, |mut a, b| {

@@ -21,7 +21,7 @@
 //! - **Poses** (`pose_refine`): each training image's camera is corrected
 //!   by six parameters (`nn::pose`) learning at `pose_lr_scale` times the
 //!   networks' rate; held-out views are rendered from their cameras moved
-//!   by the training cameras' common drift ([`Model::heldout_pose`]), and
+//!   by the training cameras' common drift ([`PoseRefinement::heldout_pose`]), and
 //!   [`CaptureModel::pose_report`] says how far the cameras moved.
 //!
 //! The configuration and its checks are in `capture_config`.
@@ -35,7 +35,7 @@ pub mod space;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, OnceLock};
 
-use super::{Model, ModelError, RenderOptions, StateSource};
+use super::{Appearance, DeferredGrid, Model, ModelError, PoseRefinement, RenderOptions, StateSource};
 use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::fields::capture::{CaptureField, CaptureFieldConfig};
 use crate::engine::fields::proposal::ProposalField;
@@ -402,14 +402,14 @@ impl CaptureModel {
         stats
     }
     /// Whether training passes record the main grid's gradient
-    /// ([`Model::deferred_grid`]): not with pose refinement, whose passes
+    /// ([`Model::deferred`]): not with pose refinement, whose passes
     /// need the grid's input gradient at once.
     fn defers_grid(&self) -> bool {
         self.pose.is_none()
     }
 
     /// [`Model::train_rays`]; with `record`, the main grid's gradient is
-    /// recorded there instead ([`Model::train_rays_deferred`]).
+    /// recorded there instead ([`DeferredGrid::train_rays_deferred`]).
     fn train(
         &self,
         rays: &[TrainRay],
@@ -469,22 +469,10 @@ impl Model for CaptureModel {
         self.train(rays, ctx, grads, None)
     }
 
-    /// The main grid's table, without pose refinement (whose passes need
-    /// the grid's input gradient at once).
-    fn deferred_grid(&self) -> Option<HashGrid> {
-        self.defers_grid().then(|| self.field.grid().clone())
-    }
-
-    fn train_rays_deferred(
-        &self,
-        rays: &[TrainRay],
-        ctx: &StepCtx,
-        grads: &mut [f32],
-        record: &mut GridRecord,
-    ) -> BatchStats {
-        record.clear();
-        let record = self.defers_grid().then_some(record);
-        self.train(rays, ctx, grads, record)
+    /// The main grid, without pose refinement (whose passes need the
+    /// grid's input gradient at once).
+    fn deferred(&self) -> Option<&dyn DeferredGrid> {
+        self.defers_grid().then_some(self as &dyn DeferredGrid)
     }
 
     fn after_step(&mut self, step: u64, _seed: u64, _stats: &BatchStats) {
@@ -495,23 +483,16 @@ impl Model for CaptureModel {
         Some(self.config.rays_per_step)
     }
 
-    fn appearance_images(&self) -> Option<Vec<u32>> {
-        Some(self.seen_images())
+    fn appearance(&self) -> Option<&dyn Appearance> {
+        Some(self)
     }
 
-    /// An image's embedding (none beyond the table: a zero bias), or the
-    /// mean of the images trained on.
-    fn appearance_embedding(&self, options: &RenderOptions) -> Option<Vec<f32>> {
-        match options.image {
-            Some(i) => self.field.appearance().embedding(&self.params, i).map(<[f32]>::to_vec),
-            None => Some(self.mean_embedding()),
-        }
+    fn poses(&self) -> Option<&dyn PoseRefinement> {
+        self.pose.is_some().then_some(self as &dyn PoseRefinement)
     }
 
-    fn appearance_row(&self, image: u32) -> Option<std::ops::Range<usize>> {
-        let a = self.field.appearance();
-        let start = a.embedding(&self.params, image).map(|_| a.table.start + image as usize * a.dim)?;
-        Some(start..start + a.dim)
+    fn log_note(&self) -> Option<String> {
+        self.ray_interval()
     }
 
     fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
@@ -546,6 +527,56 @@ impl Model for CaptureModel {
         self.pose.iter().map(|p| LrGroup { range: p.range.clone(), scale }).collect()
     }
 
+    /// Renders with the appearance `options` names: an image's embedding
+    /// (zero for an image beyond the table, or one never trained on:
+    /// `render::appearance` refuses those before they get here), or the
+    /// mean of the images trained on.
+    fn render_rays(
+        &self,
+        rays: &[Ray],
+        background: [f32; 3],
+        options: &RenderOptions,
+        out: &mut [RayOutput],
+    ) -> BatchStats {
+        let embedding = Appearance::embedding(self, options);
+        with_scratch(|s| {
+            self.field.set_view_appearance(&self.params, embedding.as_deref(), &mut s.pass.ctx);
+            // Proposal rays stop where rendering's do.
+            self.read_grids_from(s, self.render_tables(), self.config.min_transmittance);
+            let mut stats = BatchStats::default();
+            for (chunk, o) in rays.chunks(RENDER_CHUNK_RAYS).zip(out.chunks_mut(RENDER_CHUNK_RAYS)) {
+                stats.add(&self.render_chunk(s, chunk, background, o));
+            }
+            // The thread's scratch keeps no reference to tables that the
+            // next `params_mut` makes stale.
+            self.read_grids_from(s, &RenderTables::default(), 0.0);
+            stats
+        })
+    }
+}
+
+impl Appearance for CaptureModel {
+    fn images(&self) -> Vec<u32> {
+        self.seen_images()
+    }
+
+    fn row(&self, image: u32) -> Option<std::ops::Range<usize>> {
+        let a = self.field.appearance();
+        let start = a.embedding(&self.params, image).map(|_| a.table.start + image as usize * a.dim)?;
+        Some(start..start + a.dim)
+    }
+
+    /// An image's embedding (none beyond the table: a zero bias), or the
+    /// mean of the images trained on.
+    fn embedding(&self, options: &RenderOptions) -> Option<Vec<f32>> {
+        match options.image {
+            Some(i) => self.field.appearance().embedding(&self.params, i).map(<[f32]>::to_vec),
+            None => Some(self.mean_embedding()),
+        }
+    }
+}
+
+impl PoseRefinement for CaptureModel {
     /// The camera moved by the training cameras' common drift (design 2.7):
     /// its centre `c` (model space) by `ω_g × c + t_g`, its axes turned by
     /// `exp(ω_g)`. The pose itself without pose refinement.
@@ -565,35 +596,29 @@ impl Model for CaptureModel {
         })
     }
 
-    fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
-        self.render_rays_with(rays, background, &RenderOptions::default(), out)
+    fn report(&self) -> Option<PoseReport> {
+        self.pose_report()
+    }
+}
+
+impl DeferredGrid for CaptureModel {
+    fn grid(&self) -> HashGrid {
+        self.field.grid().clone()
     }
 
-    /// Renders with the appearance `options` names: an image's embedding
-    /// (zero for an image beyond the table, or one never trained on:
-    /// `render::appearance` refuses those before they get here), or the
-    /// mean of the images trained on.
-    fn render_rays_with(
+    fn train_rays_deferred(
         &self,
-        rays: &[Ray],
-        background: [f32; 3],
-        options: &RenderOptions,
-        out: &mut [RayOutput],
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        record: &mut GridRecord,
     ) -> BatchStats {
-        let embedding = self.appearance_embedding(options);
-        with_scratch(|s| {
-            self.field.set_view_appearance(&self.params, embedding.as_deref(), &mut s.pass.ctx);
-            // Proposal rays stop where rendering's do.
-            self.read_grids_from(s, self.render_tables(), self.config.min_transmittance);
-            let mut stats = BatchStats::default();
-            for (chunk, o) in rays.chunks(RENDER_CHUNK_RAYS).zip(out.chunks_mut(RENDER_CHUNK_RAYS)) {
-                stats.add(&self.render_chunk(s, chunk, background, o));
-            }
-            // The thread's scratch keeps no reference to tables that the
-            // next `params_mut` makes stale.
-            self.read_grids_from(s, &RenderTables::default(), 0.0);
-            stats
-        })
+        record.clear();
+        // A posed model records nothing (its passes need the grid's input
+        // gradient at once): it is not offered as deferring, but stays
+        // right when called all the same.
+        let record = self.defers_grid().then_some(record);
+        self.train(rays, ctx, grads, record)
     }
 }
 

@@ -119,7 +119,7 @@ fn rendering_composites_as_training_does() {
     }
     let plain: Vec<Ray> = train.iter().map(|r| r.ray).collect();
     let mut out = vec![RayOutput::default(); plain.len()];
-    let stats = m.render_rays(&plain, [1.0; 3], &mut out);
+    let stats = m.render_rays(&plain, [1.0; 3], &RenderOptions::default(), &mut out);
     assert_eq!((stats.rays, stats.samples), (9, 9 * 8));
     for (r, o) in train.iter_mut().zip(&out) {
         assert!(o.opacity == 1.0, "the last interval is opaque: {o:?}");
@@ -152,7 +152,7 @@ fn half_precision_renders_follow_the_parameters() {
         m.params_mut();
         m.config.half_render = half;
         let mut out = vec![RayOutput::default(); plain.len()];
-        m.render_rays(&plain, [1.0; 3], &mut out);
+        m.render_rays(&plain, [1.0; 3], &RenderOptions::default(), &mut out);
         out.iter().flat_map(|o| o.rgb).collect::<Vec<f32>>()
     };
     let largest = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
@@ -191,7 +191,7 @@ fn rendering_with_an_images_appearance_is_that_images_colour() {
     let plain: Vec<Ray> = train.iter().map(|r| r.ray).collect();
     let render = |options: &RenderOptions| {
         let mut out = vec![RayOutput::default(); plain.len()];
-        m.render_rays_with(&plain, [1.0; 3], options, &mut out);
+        m.render_rays(&plain, [1.0; 3], options, &mut out);
         out
     };
     let two = render(&RenderOptions { image: Some(2) });
@@ -214,7 +214,7 @@ fn rendering_with_an_images_appearance_is_that_images_colour() {
     // The default options: the mean of images 1 and 2, as `render_rays`.
     let mean = render(&RenderOptions::default());
     let mut plain_out = vec![RayOutput::default(); plain.len()];
-    m.render_rays(&plain, [1.0; 3], &mut plain_out);
+    m.render_rays(&plain, [1.0; 3], &RenderOptions::default(), &mut plain_out);
     assert_eq!(mean, plain_out);
     assert!(differs(&mean, &one) > 1e-4 && differs(&mean, &two) > 1e-4);
 }
@@ -230,7 +230,7 @@ fn unsamplable_rays_render_the_background() {
         Ray { origin: Vec3::new(0.0, 0.0, 0.0), dir: Vec3::new(0.0, f32::INFINITY, 0.0) },
     ];
     let mut out = vec![RayOutput::default(); 3];
-    let stats = m.render_rays(&rays, [0.2, 0.4, 0.6], &mut out);
+    let stats = m.render_rays(&rays, [0.2, 0.4, 0.6], &RenderOptions::default(), &mut out);
     let miss = RayOutput { rgb: [0.2, 0.4, 0.6], depth: 0.0, opacity: 0.0 };
     assert_eq!((out[0], out[2]), (miss, miss));
     assert!(out[1].opacity > 0.99 && out[1].rgb.iter().all(|c| c.is_finite()), "{:?}", out[1]);
@@ -291,7 +291,7 @@ fn proposal_samples_are_counted_as_the_config_implies() {
     let mut plain: Vec<Ray> = train.iter().map(|r| r.ray).collect();
     plain.push(Ray { origin: Vec3::new(f32::NAN, 0.0, 0.0), dir: Vec3::new(1.0, 0.0, 0.0) });
     let mut out = vec![RayOutput::default(); plain.len()];
-    let rendered = m.render_rays(&plain, [1.0; 3], &mut out);
+    let rendered = m.render_rays(&plain, [1.0; 3], &RenderOptions::default(), &mut out);
     assert_eq!(rendered.rays, 8, "{rendered:?}");
     assert!((7 * (8 + 8)..=7 * per_ray).contains(&rendered.proposal_samples), "{rendered:?}");
 
@@ -387,7 +387,7 @@ fn centres_drift_and_heldout_poses() {
 fn deferred_grid_gradients_scatter_to_what_train_rays_gives() {
     let m = CaptureModel::new(CaptureConfig { chunk_rays: 4, ..tiny() }, scene(), 0).unwrap();
     let m = CaptureModel::from_parts(m.config.clone(), m.scene.clone(), perturbed(6).params).unwrap();
-    let deferred = m.deferred_grid().expect("the main grid is deferred");
+    let deferred = m.deferred().map(|d| d.grid()).expect("the main grid is deferred");
     let grid = deferred.params.clone();
     assert_eq!(grid, m.field.grid().params.clone());
     let train = rays(&m, 11);
@@ -397,7 +397,7 @@ fn deferred_grid_gradients_scatter_to_what_train_rays_gives() {
     let stats = m.train_rays(&train, &ctx, &mut direct);
     let mut part = vec![0.0f32; n];
     let mut record = GridRecord::default();
-    let deferred_stats = m.train_rays_deferred(&train, &ctx, &mut part, &mut record);
+    let deferred_stats = DeferredGrid::train_rays_deferred(&m, &train, &ctx, &mut part, &mut record);
     assert_eq!(stats, deferred_stats);
     assert!(record.points() > 0);
     assert!(part[grid.clone()].iter().all(|v| *v == 0.0), "the grid's gradient is not in the buffer");
@@ -412,8 +412,8 @@ fn deferred_grid_gradients_scatter_to_what_train_rays_gives() {
     m.train_rays(b, &ctx, &mut gb);
     let mut records = vec![GridRecord::default(); 2];
     let (mut da, mut db) = (vec![0.0f32; n], vec![0.0f32; n]);
-    m.train_rays_deferred(a, &ctx, &mut da, &mut records[0]);
-    m.train_rays_deferred(b, &ctx, &mut db, &mut records[1]);
+    DeferredGrid::train_rays_deferred(&m, a, &ctx, &mut da, &mut records[0]);
+    DeferredGrid::train_rays_deferred(&m, b, &ctx, &mut db, &mut records[1]);
     deferred.scatter(&records, &mut da);
     let scale = ga.iter().chain(&gb).fold(0.0f32, |s, v| s.max(v.abs()));
     for i in 0..n {
@@ -423,10 +423,10 @@ fn deferred_grid_gradients_scatter_to_what_train_rays_gives() {
 
     // Pose refinement: no deferral, the record stays empty.
     let posed = CaptureModel::new(CaptureConfig { pose_refine: true, ..tiny() }, scene(), 1).unwrap();
-    assert!(posed.deferred_grid().is_none());
+    assert!(posed.deferred().map(|d| d.grid()).is_none());
     let (mut g1, mut g2) = (vec![0.0f32; posed.params.len()], vec![0.0f32; posed.params.len()]);
     posed.train_rays(&train, &ctx, &mut g1);
-    posed.train_rays_deferred(&train, &ctx, &mut g2, &mut record);
+    DeferredGrid::train_rays_deferred(&posed, &train, &ctx, &mut g2, &mut record);
     assert_eq!(record.points(), 0);
     assert!(g1.iter().zip(&g2).all(|(a, b)| a.to_bits() == b.to_bits()));
 }

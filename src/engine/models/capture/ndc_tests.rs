@@ -86,7 +86,7 @@ fn an_ndc_model_trains_and_renders_finite_values() {
     plain.push(Ray { origin: o - plain[0].dir * -50.0, dir: plain[0].dir * -1.0 });
     plain.push(Ray { origin: o - plain[0].dir * 50.0, dir: plain[0].dir });
     let mut out = vec![RayOutput::default(); plain.len()];
-    let r = m.render_rays(&plain, [1.0; 3], &mut out);
+    let r = m.render_rays(&plain, [1.0; 3], &RenderOptions::default(), &mut out);
     assert_eq!(r.rays, 14);
     for o in &out {
         assert!(o.rgb.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v)), "{o:?}");

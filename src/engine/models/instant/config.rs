@@ -138,3 +138,28 @@ impl ModelSpec for InstantConfig {
         }
     }
 }
+
+/// This kind's presets, the default first.
+pub const PRESETS: &[&str] = &["instant", "instant-tiny"];
+
+/// A named configuration:
+/// - `instant`: the fast model (the default of all kinds);
+/// - `instant-tiny`: a small hash grid and narrow MLPs, for previews and tests.
+pub fn preset(name: &str) -> Option<InstantConfig> {
+    match name {
+        "instant" => Some(InstantConfig::default()),
+        "instant-tiny" => {
+            let mut c = InstantConfig {
+                grid: HashGridConfig { levels: 8, log2_table: 12, base_resolution: 8, finest_resolution: 128 },
+                hidden: 32,
+                geo_features: 8,
+                steps_per_diagonal: 128,
+                samples_per_step: 1 << 12,
+                ..InstantConfig::default()
+            };
+            c.occupancy.resolution = 32;
+            Some(c)
+        }
+        _ => None,
+    }
+}

@@ -14,7 +14,7 @@ pub use config::InstantConfig;
 
 use rayon::prelude::*;
 
-use super::{Model, ModelError, StateSource};
+use super::{Model, ModelError, RenderOptions, StateSource};
 use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::fields::hash_grid::{Ctx, HashGridField};
 use crate::engine::fields::{Field, Points, densities};
@@ -202,7 +202,13 @@ impl Model for InstantModel {
         self.set_state(density, spr.first().copied().unwrap_or(0.0) as f64, step)
     }
 
-    fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
+    fn render_rays(
+        &self,
+        rays: &[Ray],
+        background: [f32; 3],
+        _options: &RenderOptions,
+        out: &mut [RayOutput],
+    ) -> BatchStats {
         let settings = RoundSettings {
             round: RENDER_ROUND,
             min_transmittance: self.config.min_transmittance,

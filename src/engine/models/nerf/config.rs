@@ -111,3 +111,22 @@ impl ModelSpec for NerfConfig {
         }
     }
 }
+
+/// This kind's presets, the default first.
+pub const PRESETS: &[&str] = &["nerf", "nerf-tiny"];
+
+/// A named configuration:
+/// - `nerf`: the paper's model, with occupancy-grid skipping;
+/// - `nerf-tiny`: a small network and few samples, for previews and tests.
+pub fn preset(name: &str) -> Option<NerfConfig> {
+    match name {
+        "nerf" => Some(NerfConfig::default()),
+        "nerf-tiny" => Some(NerfConfig {
+            net: NetConfig { pos_freqs: 4, dir_freqs: 2, width: 32, depth: 4, skip: 2, dir_width: 16 },
+            coarse_samples: 16,
+            fine_samples: 16,
+            ..NerfConfig::default()
+        }),
+        _ => None,
+    }
+}

@@ -9,7 +9,7 @@ pub mod config;
 
 pub use config::NerfConfig;
 
-use super::{Model, ModelError, StateSource};
+use super::{Model, ModelError, RenderOptions, StateSource};
 use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::fields::mlp::MlpField;
 use crate::engine::fields::{Field, Points, densities};
@@ -237,7 +237,13 @@ impl Model for NerfModel {
         self.set_grid_state(density, step)
     }
 
-    fn render_rays(&self, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
+    fn render_rays(
+        &self,
+        rays: &[Ray],
+        background: [f32; 3],
+        _options: &RenderOptions,
+        out: &mut [RayOutput],
+    ) -> BatchStats {
         let mut w = Work::default();
         let mut stats = BatchStats::default();
         let per_chunk = self.config.chunk_rays.max(1) * 8;
