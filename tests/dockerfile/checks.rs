@@ -127,11 +127,18 @@ pub fn build_inputs() -> BTreeSet<String> {
                 continue;
             }
             let text = std::fs::read_to_string(&path).unwrap_or_default();
-            for piece in text.split("include_str!(\"").chain(text.split("include_bytes!(\"")).skip(1) {
+            let after = |m: &'static str| text.split(m).skip(1);
+            for piece in after("include_str!(\"").chain(after("include_bytes!(\"")) {
                 let Some(rel) = piece.split('"').next() else { continue };
                 // Resolve `..` by hand: the file need not exist for the check to say where it points.
-                let mut parts: Vec<String> = path.parent().unwrap().strip_prefix(root).unwrap().iter()
-                    .map(|c| c.to_string_lossy().into_owned()).collect();
+                let mut parts: Vec<String> = path
+                    .parent()
+                    .unwrap()
+                    .strip_prefix(root)
+                    .unwrap()
+                    .iter()
+                    .map(|c| c.to_string_lossy().into_owned())
+                    .collect();
                 for c in rel.split('/') {
                     match c {
                         ".." => {
