@@ -1,9 +1,20 @@
 # Multi-stage build of `radiance serve`: a Rust builder, then a slim runtime
 # that runs as a non-root user with the data directory on a volume.
 FROM rust:1.95-slim-bookworm AS build
+# openh264-sys2 (the default `mp4` feature) compiles OpenH264's C++ source;
+# the slim image has only gcc.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends g++=4:12.* \
+    && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 COPY Cargo.toml Cargo.lock ./
 COPY src ./src
+# The web app is compiled into the binary (include_str! in src/api/web.rs).
+COPY web ./web
+# The release profile keeps line tables for profiling; the image's binary
+# needs none of them (132 MB with them).
+ENV CARGO_PROFILE_RELEASE_DEBUG=0 \
+    CARGO_PROFILE_RELEASE_STRIP=debuginfo
 RUN cargo build --release --locked --bin radiance
 
 FROM debian:bookworm-slim

@@ -52,7 +52,7 @@ impl Browser {
             .unwrap_or_else(|e| {
                 panic!(
                     "cannot start '{bin}' ({e}): the browser tests need headless Chromium \
-                     (apt-get install chromium, as .ci/run does, or set CHROMIUM_BIN)"
+                     (apt-get install chromium, as scripts/setup does, or set CHROMIUM_BIN)"
                 )
             });
         // Chromium prints `DevTools listening on ws://127.0.0.1:PORT/...`.

@@ -234,7 +234,7 @@ pub fn bin_dir(env: Option<&OsStr>, path: Option<&OsStr>, lib_root: &Path) -> Re
     versions.pop().map(|(_, d)| d).ok_or_else(|| {
         format!(
             "these tests need PostgreSQL (initdb and postgres), found neither on PATH nor in {}/*/bin: install it \
-             as .ci/run does (Debian: echo 'create_main_cluster = false' >> \
+             as scripts/setup does (Debian: echo 'create_main_cluster = false' >> \
              /etc/postgresql-common/createcluster.conf; apt-get install -y --no-install-recommends postgresql), \
              or set RADIANCE_PG_BIN to their folder, or RADIANCE_TEST_DATABASE_URL to a server",
             lib_root.display()

@@ -4,7 +4,7 @@
 //! folder, with one bucket; or an existing server named by the
 //! `RADIANCE_TEST_S3_*` variables. Each test keeps its objects under a
 //! prefix of its own, so both behave alike. A test that needs it fails when
-//! `s3s-fs` is missing, it does not skip; `.ci/run` installs it.
+//! `s3s-fs` is missing, it does not skip; `scripts/setup` installs it.
 //!
 //! The server gets SIGKILL when the test's thread ends, even if the test
 //! process is killed (`PR_SET_PDEATHSIG`), and from `Drop`, which then
@@ -27,7 +27,7 @@ use futures_util::StreamExt;
 use object_store::{ObjectStore, ObjectStoreExt};
 use radiance::store::object::{S3Keys, S3Options, open_url};
 
-/// The s3s-fs release `.ci/run` installs.
+/// The s3s-fs release `scripts/setup` installs.
 pub const S3S_FS_VERSION: &str = "0.14.1";
 /// How to install it.
 pub const INSTALL: &str = "cargo install --locked s3s-fs@0.14.1 --features binary";
@@ -354,7 +354,7 @@ pub fn find_s3s_fs(env: Option<&OsStr>, path: Option<&OsStr>, cargo_home: Option
     on_path.into_iter().chain(cargo_bin).map(|d| d.join("s3s-fs")).find(|p| p.is_file()).ok_or_else(|| {
         format!(
             "these tests need a real S3 server: s3s-fs {S3S_FS_VERSION}, found neither on PATH nor in cargo's bin \
-             folder. Install it as .ci/run does ({INSTALL}), or set RADIANCE_S3S_FS to the binary, or \
+             folder. Install it as scripts/setup does ({INSTALL}), or set RADIANCE_S3S_FS to the binary, or \
              RADIANCE_TEST_S3_ENDPOINT (and _ACCESS_KEY_ID, _SECRET_ACCESS_KEY, _BUCKET) to a server"
         )
     })

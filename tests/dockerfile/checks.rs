@@ -85,9 +85,14 @@ fn check_build(stages: &[Stage], run: &Stage, readme: &str, p: &mut Vec<String>)
     }
     let workdir = b.last("WORKDIR").map(|w| w.args.trim_end_matches('/').to_string()).unwrap_or_default();
     let artifact = format!("{workdir}/target/release/{BIN}");
-    let copied = b.all("COPY").flat_map(|c| shell_words(&c.args)).collect::<Vec<_>>();
-    for input in ["Cargo.toml", "Cargo.lock", "src"] {
-        if !copied.iter().any(|w| w == input) {
+    // What the builder's COPYs take from the context: every word but the last (the destination) and flags.
+    let copied = (b.all("COPY").map(|c| shell_words(&c.args)))
+        .flat_map(|w| w[..w.len().saturating_sub(1)].to_vec())
+        .filter(|w| !w.starts_with("--"))
+        .map(|w| w.trim_start_matches("./").trim_end_matches('/').to_string())
+        .collect::<Vec<_>>();
+    for input in build_inputs() {
+        if !copied.contains(&input) {
             p.push(format!("the builder does not COPY {input}"));
         }
     }
@@ -102,6 +107,54 @@ fn check_build(stages: &[Stage], run: &Stage, readme: &str, p: &mut Vec<String>)
         Some(w) => return Some(w[2].clone()),
     }
     None
+}
+
+/// What `cargo build` reads: the manifest, the lock file, `src/`, and every
+/// top-level folder a file under `src/` compiles in with `include_str!` or
+/// `include_bytes!` (the web app, `web/`), found by reading the sources.
+pub fn build_inputs() -> BTreeSet<String> {
+    let mut inputs: BTreeSet<String> = ["Cargo.toml", "Cargo.lock", "src"].map(String::from).into();
+    let root = std::path::Path::new(ROOT);
+    let mut dirs = vec![root.join("src")];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap_or_else(|e| panic!("reading {}: {e}", dir.display())) {
+            let path = entry.expect("a directory entry").path();
+            if path.is_dir() {
+                dirs.push(path);
+                continue;
+            }
+            if path.extension().is_none_or(|e| e != "rs") {
+                continue;
+            }
+            let text = std::fs::read_to_string(&path).unwrap_or_default();
+            let after = |m: &'static str| text.split(m).skip(1);
+            for piece in after("include_str!(\"").chain(after("include_bytes!(\"")) {
+                let Some(rel) = piece.split('"').next() else { continue };
+                // Resolve `..` by hand: the file need not exist for the check to say where it points.
+                let mut parts: Vec<String> = path
+                    .parent()
+                    .unwrap()
+                    .strip_prefix(root)
+                    .unwrap()
+                    .iter()
+                    .map(|c| c.to_string_lossy().into_owned())
+                    .collect();
+                for c in rel.split('/') {
+                    match c {
+                        ".." => {
+                            parts.pop();
+                        }
+                        "." | "" => {}
+                        c => parts.push(c.to_string()),
+                    }
+                }
+                if parts.len() > 1 {
+                    inputs.insert(parts[0].clone());
+                }
+            }
+        }
+    }
+    inputs
 }
 
 /// Image tag `rust:1.95-...` against the README's minimum Rust.
@@ -275,7 +328,7 @@ fn check_user(run: &Stage, p: &mut Vec<String>) {
 fn check_dockerignore(dockerignore: &str, p: &mut Vec<String>) {
     for line in dockerignore.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')) {
         let pat = line.trim_start_matches('/').trim_end_matches('/');
-        if ["src", "Cargo.toml", "Cargo.lock", "*", "**"].contains(&pat) {
+        if build_inputs().contains(pat) || ["*", "**"].contains(&pat) {
             p.push(format!(".dockerignore excludes {line}, which the build needs"));
         }
     }

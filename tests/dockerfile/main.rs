@@ -74,3 +74,11 @@ fn help_is_parsed() {
     assert_eq!(h.defaults.get("--addr").map(String::as_str), Some("127.0.0.1:8080"), "{:?}", h.defaults);
     assert!(subcommands().contains("train") && !subcommands().contains("help"), "{:?}", subcommands());
 }
+
+#[test]
+fn build_inputs_are_read_from_the_sources() {
+    // Guards the reader of include_str!/include_bytes!: src/api/web.rs compiles in web/.
+    let inputs = checks::build_inputs();
+    assert!(inputs.contains("web") && inputs.contains("src"), "{inputs:?}");
+    assert!(!inputs.contains("tests") && !inputs.contains("target"), "{inputs:?}");
+}

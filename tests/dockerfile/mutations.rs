@@ -30,6 +30,9 @@ fn mutation_build_steps() {
     assert_caught("Dockerfile", "/target/release/radiance", "/target/debug/radiance", "the build produces");
     assert_caught("Dockerfile", "--from=build", "--from=builder", "does not COPY --from=build");
     assert_caught("Dockerfile", "COPY src ./src", "COPY srcs ./src", "does not COPY src");
+    // The web app is compiled in: a build without it fails (issue 34).
+    assert_caught("Dockerfile", "COPY web ./web\n", "", "does not COPY web");
+    assert_caught(".dockerignore", "/target", "/web", ".dockerignore excludes /web");
     assert_caught("Dockerfile", "FROM rust:1.", "FROM rust:0.", "older than the README's minimum Rust");
     assert_caught("README.md", "Rust 1.88 or newer", "Rust 1.88", "does not state a minimum Rust");
     assert_caught(".dockerignore", "/target", "/src", ".dockerignore excludes /src");
