@@ -769,7 +769,7 @@ fn the_harness_fails_with_what_to_install_when_postgresql_is_missing() {
     assert_eq!(with_database("postgres://u@h", "t_2"), "postgres://u@h/t_2");
 }
 
-// ---- measurement (run by hand: the README's "Scaling out" figures) ----
+// ---- measurement (run by hand: the "Scaling out" figures of docs/benchmarks.md) ----
 
 /// Jobs claimed and finished per second through the queue's SQL, with 1, 2
 /// and 4 claimers: the queue's ceiling, whatever the jobs do. Each count

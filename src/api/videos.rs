@@ -50,6 +50,23 @@ pub struct CreateVideo {
 /// Most frames in one video.
 pub const MAX_FRAMES: u32 = 600;
 
+/// The format asked for (MP4 by default where this build has it), refused
+/// when unknown or not in this build.
+fn video_format(asked: Option<&str>) -> ApiResult<VideoFormat> {
+    let format = match asked {
+        None if cfg!(feature = "mp4") => VideoFormat::Mp4,
+        None => VideoFormat::Gif,
+        Some(f) => f.parse::<VideoFormat>().map_err(|_| {
+            ApiError::bad_field(format!("unknown video format '{f}' (expected mp4 or gif)"), "format", f, "mp4, gif")
+        })?,
+    };
+    if !format.is_available() {
+        let message = format!("{format} videos are not available in this build (cargo feature `mp4`); ask for gif");
+        return Err(ApiError::bad_field(message, "format", format.to_string(), "gif"));
+    }
+    Ok(format)
+}
+
 /// Checks a request against the model's view defaults and the render cap.
 pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) -> ApiResult<VideoSpec> {
     let path = r.path.as_ref().map(|p| camera_path::parse(p, view.fov)).transpose()?;
@@ -73,17 +90,7 @@ pub fn to_spec(mut r: CreateVideo, view: &ViewDefaults, max_render_pixels: u64) 
     if !(1..=60).contains(&fps) {
         return Err(ApiError::bad_field("fps must be in 1..=60", "fps", fps, "1..=60"));
     }
-    let format = match r.format.as_deref() {
-        None if cfg!(feature = "mp4") => VideoFormat::Mp4,
-        None => VideoFormat::Gif,
-        Some(f) => f.parse::<VideoFormat>().map_err(|_| {
-            ApiError::bad_field(format!("unknown video format '{f}' (expected mp4 or gif)"), "format", f, "mp4, gif")
-        })?,
-    };
-    if !format.is_available() {
-        let message = format!("{format} videos are not available in this build (cargo feature `mp4`); ask for gif");
-        return Err(ApiError::bad_field(message, "format", format.to_string(), "gif"));
-    }
+    let format = video_format(r.format.as_deref())?;
     let (width, height) = frame_size(&r, view, format)?;
     let max_side = 4096;
     if !(16..=max_side).contains(&width)

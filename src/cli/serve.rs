@@ -111,15 +111,32 @@ pub struct ServeArgs {
     pub common: Common,
 }
 
-pub fn run(a: ServeArgs) -> anyhow::Result<()> {
+/// The log on stderr: `RUST_LOG`'s filter (info by default), colour codes
+/// only for a terminal (a log file or a pipe gets plain text).
+fn init_logging() {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,tower_http=warn".into()),
         )
         .with_writer(std::io::stderr)
-        // Colour codes only for a terminal: a log file or a pipe gets plain text.
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
+}
+
+/// Refuses a `--cors-origin` that is not an `http(s)://` origin.
+fn check_cors_origins(origins: &[String]) -> anyhow::Result<()> {
+    for o in origins {
+        anyhow::ensure!(
+            o.starts_with("http://") || o.starts_with("https://"),
+            "--cors-origin {o}: expected an origin such as https://example.com"
+        );
+        anyhow::ensure!(axum::http::HeaderValue::from_str(o).is_ok(), "--cors-origin {o}: not a valid header value");
+    }
+    Ok(())
+}
+
+pub fn run(a: ServeArgs) -> anyhow::Result<()> {
+    init_logging();
     let shared = deployment(a.role, a.database_url.as_deref(), a.object_store.as_deref())?;
     let distributed = shared.map(|(db, store)| distributed_settings(&a, db, store)).transpose()?;
     let api_key = api_key(a.api_key)?;
@@ -133,13 +150,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
     config.max_unpacked_bytes = a.max_unpacked_mb << 20;
     config.max_render_pixels = a.max_render_pixels;
     config.api_key = api_key;
-    for o in &a.cors_origins {
-        anyhow::ensure!(
-            o.starts_with("http://") || o.starts_with("https://"),
-            "--cors-origin {o}: expected an origin such as https://example.com"
-        );
-        anyhow::ensure!(axum::http::HeaderValue::from_str(o).is_ok(), "--cors-origin {o}: not a valid header value");
-    }
+    check_cors_origins(&a.cors_origins)?;
     config.cors_origins = a.cors_origins;
     config.role = a.role;
     let budget = a.memory_budget_mb.map_or_else(default_memory_budget, |m| m << 20);

@@ -1,4 +1,4 @@
-//! The two measurements of the README's "Scaling out" (issue 16,
+//! The two "Scaling out" measurements of docs/benchmarks.md (issue 16,
 //! docs/design/scale-out.md step 12), run by hand and printed as Markdown
 //! tables:
 //!

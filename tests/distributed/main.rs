@@ -7,7 +7,7 @@
 //! and a cancel reaching the worker (`api_nodes`, on `file://` and on S3),
 //! SIGTERM and a frozen worker's self-fence (`fencing`), readiness and
 //! start-up (`ready`), an API node killed mid-upload to S3 (`upload`); and,
-//! run by hand, the measurements of the README's "Scaling out" (`bench`).
+//! run by hand, the "Scaling out" measurements of docs/benchmarks.md (`bench`).
 
 #[path = "../common/mod.rs"]
 mod common;

@@ -24,9 +24,9 @@ pub fn split_file(root: &Path, split: Split) -> PathBuf {
     root.join(format!("transforms_{}.json", split.name()))
 }
 
-/// Loads the split files listed in `opts.splits` (an empty list means all)
-/// that exist; at least one must. Frames are ordered train, val, test.
-pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
+/// The split files listed in `opts.splits` (all when empty) that exist,
+/// read: at least one must.
+fn split_files(root: &Path, opts: &LoadOptions) -> Result<Vec<(Split, PathBuf, Obj)>, DatasetError> {
     let wanted: Vec<Split> =
         Split::ALL.into_iter().filter(|s| opts.splits.is_empty() || opts.splits.contains(s)).collect();
     let mut docs: Vec<(Split, PathBuf, Obj)> = Vec::new();
@@ -44,6 +44,13 @@ pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             message: format!("none of the requested split files exists ({})", names.join(", ")),
         });
     }
+    Ok(docs)
+}
+
+/// Loads the split files listed in `opts.splits` (an empty list means all)
+/// that exist; at least one must. Frames are ordered train, val, test.
+pub fn load(root: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
+    let docs = split_files(root, opts)?;
 
     // Pass 1: poses and image paths (cheap checks before any decoding).
     struct Entry<'a> {

@@ -16,6 +16,7 @@
 //! With an NDC map, points outside the frustum (`u` outside the open unit
 //! cube) get no density (nerfacto's selector).
 
+use super::size;
 use super::space::SpaceMap;
 use super::{Field, Points};
 use crate::engine::nn::appearance::{Appearance, AppearanceBatch};
@@ -117,15 +118,6 @@ pub struct Ctx {
     d_unit: Vec<f32>,
     d_pos: Vec<f32>,
     d_dirs: Vec<f32>,
-}
-
-/// Makes `v` hold at least `n` values. Buffers never shrink, so reusing one
-/// for chunks of varying size does not zero-fill it again; readers take the
-/// first `ctx.n` rows.
-fn size(v: &mut Vec<f32>, n: usize) {
-    if v.len() < n {
-        v.resize(n, 0.0);
-    }
 }
 
 impl CaptureField {

@@ -3,6 +3,7 @@
 //! the rest geometry features, and a tiny colour MLP on those features and
 //! the spherical-harmonics encoding of the direction.
 
+use super::size;
 use super::{Field, Points};
 use crate::engine::geometry::math::Vec3;
 use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
@@ -50,15 +51,6 @@ pub struct Ctx {
     d_shd: Vec<f32>,
     d_pos: Vec<f32>,
     d_dirs: Vec<f32>,
-}
-
-/// Makes `v` hold at least `n` values. Buffers never shrink, so reusing
-/// one for chunks of varying size does not zero-fill it again (that was 4%
-/// of training time); readers take the first `ctx.n` rows.
-fn size(v: &mut Vec<f32>, n: usize) {
-    if v.len() < n {
-        v.resize(n, 0.0);
-    }
 }
 
 impl Ctx {

@@ -74,6 +74,15 @@ pub trait Field: Send + Sync {
     fn backward(&self, params: &[f32], ctx: &mut Self::Ctx, dsigma: &[f32], drgb: &[f32], grads: &mut [f32]);
 }
 
+/// Makes `v` hold at least `n` values. Buffers never shrink, so reusing
+/// one for chunks of varying size does not zero-fill it again (that was 4%
+/// of training time); readers take the first `ctx.n` rows.
+pub(crate) fn size(v: &mut Vec<f32>, n: usize) {
+    if v.len() < n {
+        v.resize(n, 0.0);
+    }
+}
+
 /// Densities `[n]` of `field` at model-space points `pos` (`[n x 3]`),
 /// evaluated in parallel chunks of `chunk` points (what an occupancy grid
 /// asks). Directions do not change a density; the fields get +z.

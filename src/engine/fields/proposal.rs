@@ -11,6 +11,7 @@
 //! straight-through derivative `dσ/draw = σ`; zero outside an NDC frustum.
 
 use super::capture::{density_activation, to_grid};
+use super::size;
 use super::space::SpaceMap;
 use crate::engine::nn::hashgrid::{HalfTable, HashGrid, HashGridConfig};
 use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward};
@@ -50,14 +51,6 @@ pub struct ProposalCtx {
     /// The grid's table in half precision, read instead of the parameters'
     /// while rendering ([`ProposalField::set_render_table`]).
     half: Option<std::sync::Arc<HalfTable>>,
-}
-
-/// Makes `v` hold at least `n` values (buffers never shrink; readers take
-/// the first `n`).
-fn size(v: &mut Vec<f32>, n: usize) {
-    if v.len() < n {
-        v.resize(n, 0.0);
-    }
 }
 
 impl ProposalField {

@@ -215,27 +215,99 @@ fn percentile(mut xs: Vec<f64>, p: f64) -> f64 {
     xs[k.min(xs.len() - 1)]
 }
 
+/// The cameras of `poses` (centre, optical axis, up, right); `None` for no
+/// cameras or a non-finite pose.
+fn cams_of(poses: &[[[f32; 4]; 3]]) -> Option<Vec<Cam>> {
+    if poses.is_empty() {
+        return None;
+    }
+    let col = |m: &[[f32; 4]; 3], c: usize| [m[0][c] as f64, m[1][c] as f64, m[2][c] as f64];
+    let mut cams: Vec<Cam> = Vec::with_capacity(poses.len());
+    for m in poses {
+        let centre = col(m, 3);
+        let axis = unit(scale(col(m, 2), -1.0))?;
+        let up = unit(col(m, 1))?;
+        let right = unit(col(m, 0))?;
+        if !centre.iter().all(|x| x.is_finite()) {
+            return None;
+        }
+        cams.push((centre, axis, up, right));
+    }
+    Some(cams)
+}
+
+/// The least-squares point nearest all optical axes, when it is well
+/// defined (the axes are not nearly parallel) and in front of at least 90%
+/// of the cameras.
+fn axes_focus(cams: &[Cam]) -> Option<V> {
+    let mut a = [[0.0; 3]; 3];
+    let mut b = [0.0; 3];
+    for (c, ax, _, _) in cams {
+        let p = [
+            [1.0 - ax[0] * ax[0], -ax[0] * ax[1], -ax[0] * ax[2]],
+            [-ax[1] * ax[0], 1.0 - ax[1] * ax[1], -ax[1] * ax[2]],
+            [-ax[2] * ax[0], -ax[2] * ax[1], 1.0 - ax[2] * ax[2]],
+        ];
+        for i in 0..3 {
+            for j in 0..3 {
+                a[i][j] += p[i][j];
+            }
+            b[i] += dot(p[i], *c);
+        }
+    }
+    let (vals, _) = sym_eigen(a);
+    let n = cams.len() as f64;
+    solve3(a, b).filter(|f| {
+        let in_front = cams.iter().filter(|(c, ax, _, _)| dot(*ax, sub(*f, *c)) > 0.0).count();
+        vals[0] / vals[2].max(1e-300) >= 0.02 && in_front as f64 >= 0.9 * n
+    })
+}
+
+/// Up: `mean_up` (the cameras' mean up), or the normal of the plane the
+/// cameras lie in when they form a ring (four or more, nearly planar, the
+/// normal within 30 degrees of `mean_up`).
+fn ring_up(cams: &[Cam], c_mean: V, mean_up: V) -> V {
+    if cams.len() < 4 {
+        return mean_up;
+    }
+    let mut cov = [[0.0; 3]; 3];
+    for c in cams {
+        let d = sub(c.0, c_mean);
+        for i in 0..3 {
+            for j in 0..3 {
+                cov[i][j] += d[i] * d[j];
+            }
+        }
+    }
+    let (vals, vecs) = sym_eigen(cov);
+    let planar = vals[0].max(0.0).sqrt() < 0.2 * vals[1].max(0.0).sqrt();
+    let normal = if dot(vecs[0], mean_up) < 0.0 { scale(vecs[0], -1.0) } else { vecs[0] };
+    if planar && dot(normal, mean_up) > 30f64.to_radians().cos() { normal } else { mean_up }
+}
+
+/// The direction of azimuth 0, perpendicular to `up`: the cameras' mean
+/// horizontal direction from the focus (`dirs`) when they agree on one, else
+/// the first camera's, else back along the mean axis `a_mean`, else any.
+fn front_of(dirs: &[V], up: V, a_mean: V) -> V {
+    let horizontal = |d: V| sub(d, scale(up, dot(d, up)));
+    let mean_h = dirs.iter().fold([0.0; 3], |s, d| add(s, horizontal(*d)));
+    let mean_len = dirs.iter().map(|d| norm(horizontal(*d))).sum::<f64>();
+    if norm(mean_h) > 0.25 * mean_len { unit(mean_h) } else { None }
+        .or_else(|| dirs.first().and_then(|d| unit(horizontal(*d))))
+        .or_else(|| unit(horizontal(scale(a_mean, -1.0))))
+        .unwrap_or_else(|| {
+            let x = if up[0].abs() > 0.9 { [0.0, 1.0, 0.0] } else { [1.0, 0.0, 0.0] };
+            unit(horizontal(x)).unwrap_or([1.0, 0.0, 0.0])
+        })
+}
+
 impl CameraRig {
     /// The rig of cameras given as camera-to-world matrices (OpenGL axes:
     /// the camera looks down -z, +y is up). `near`/`far` bound the scene
     /// depth (world units), `box_centre` is the last-resort focus. `None`
     /// for no cameras or non-finite poses.
     pub fn from_poses(poses: &[[[f32; 4]; 3]], near: f32, far: f32, box_centre: Vec3) -> Option<Self> {
-        if poses.is_empty() {
-            return None;
-        }
-        let col = |m: &[[f32; 4]; 3], c: usize| [m[0][c] as f64, m[1][c] as f64, m[2][c] as f64];
-        let mut cams: Vec<Cam> = Vec::with_capacity(poses.len());
-        for m in poses {
-            let centre = col(m, 3);
-            let axis = unit(scale(col(m, 2), -1.0))?;
-            let up = unit(col(m, 1))?;
-            let right = unit(col(m, 0))?;
-            if !centre.iter().all(|x| x.is_finite()) {
-                return None;
-            }
-            cams.push((centre, axis, up, right));
-        }
+        let cams = cams_of(poses)?;
         let n = cams.len() as f64;
         let mean = |sel: &dyn Fn(&Cam) -> V| cams.iter().fold([0.0; 3], |s, c| add(s, sel(c)));
         let c_mean = scale(mean(&|c| c.0), 1.0 / n);
@@ -250,28 +322,7 @@ impl CameraRig {
             None => 180.0,
         };
 
-        // The least-squares point nearest all axes.
-        let mut a = [[0.0; 3]; 3];
-        let mut b = [0.0; 3];
-        for (c, ax, _, _) in &cams {
-            let p = [
-                [1.0 - ax[0] * ax[0], -ax[0] * ax[1], -ax[0] * ax[2]],
-                [-ax[1] * ax[0], 1.0 - ax[1] * ax[1], -ax[1] * ax[2]],
-                [-ax[2] * ax[0], -ax[2] * ax[1], 1.0 - ax[2] * ax[2]],
-            ];
-            for i in 0..3 {
-                for j in 0..3 {
-                    a[i][j] += p[i][j];
-                }
-                b[i] += dot(p[i], *c);
-            }
-        }
-        let (vals, _) = sym_eigen(a);
-        let axes_focus = solve3(a, b).filter(|f| {
-            let in_front = cams.iter().filter(|(c, ax, _, _)| dot(*ax, sub(*f, *c)) > 0.0).count();
-            vals[0] / vals[2].max(1e-300) >= 0.02 && in_front as f64 >= 0.9 * n
-        });
-        let (focus, focus_from) = match axes_focus {
+        let (focus, focus_from) = match axes_focus(&cams) {
             Some(p) => (p, FocusFrom::Axes),
             None => {
                 // The NeRF spiral's focus depth: a weighted harmonic mean of
@@ -287,25 +338,7 @@ impl CameraRig {
         let offsets: Vec<V> = cams.iter().map(|c| sub(c.0, focus)).collect();
         let radius = percentile(offsets.iter().map(|o| norm(*o)).collect(), 0.5);
 
-        // Up: the mean camera up, or the normal of a ring's plane.
-        let mut up = unit(mean(&|c| c.2)).unwrap_or([0.0, 0.0, 1.0]);
-        if cams.len() >= 4 {
-            let mut cov = [[0.0; 3]; 3];
-            for c in &cams {
-                let d = sub(c.0, c_mean);
-                for i in 0..3 {
-                    for j in 0..3 {
-                        cov[i][j] += d[i] * d[j];
-                    }
-                }
-            }
-            let (vals, vecs) = sym_eigen(cov);
-            let planar = vals[0].max(0.0).sqrt() < 0.2 * vals[1].max(0.0).sqrt();
-            let normal = if dot(vecs[0], up) < 0.0 { scale(vecs[0], -1.0) } else { vecs[0] };
-            if planar && dot(normal, up) > 30f64.to_radians().cos() {
-                up = normal;
-            }
-        }
+        let up = ring_up(&cams, c_mean, unit(mean(&|c| c.2)).unwrap_or([0.0, 0.0, 1.0]));
 
         let dirs: Vec<V> = offsets.iter().filter_map(|o| unit(*o)).collect();
         let elevation = if dirs.is_empty() {
@@ -314,15 +347,7 @@ impl CameraRig {
             dirs.iter().map(|d| dot(*d, up).clamp(-1.0, 1.0).asin()).sum::<f64>() / dirs.len() as f64
         };
         let horizontal = |d: V| sub(d, scale(up, dot(d, up)));
-        let mean_h = dirs.iter().fold([0.0; 3], |s, d| add(s, horizontal(*d)));
-        let mean_len = dirs.iter().map(|d| norm(horizontal(*d))).sum::<f64>();
-        let front = if norm(mean_h) > 0.25 * mean_len { unit(mean_h) } else { None }
-            .or_else(|| dirs.first().and_then(|d| unit(horizontal(*d))))
-            .or_else(|| unit(horizontal(scale(a_mean, -1.0))))
-            .unwrap_or_else(|| {
-                let x = if up[0].abs() > 0.9 { [0.0, 1.0, 0.0] } else { [1.0, 0.0, 0.0] };
-                unit(horizontal(x)).unwrap_or([1.0, 0.0, 0.0])
-            });
+        let front = front_of(&dirs, up, a_mean);
 
         // Azimuths as `orbit` counts them: from `front` towards up x front.
         let side = cross(up, front);

@@ -547,12 +547,19 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
         return Err(E::ChecksumMismatch { path: p() });
     }
 
-    let mut at = header_end;
+    let tensors = read_tensors(&bytes[header_end..], entries);
+    Ok(Checkpoint { kind: header.kind, step: header.step, meta: header.meta, tensors })
+}
+
+/// The tensors `entries` (name, type, length) laid one after the other in
+/// `payload`, whose size [`parse`] has checked against them.
+fn read_tensors(payload: &[u8], entries: Vec<(String, DType, u64)>) -> Vec<(String, Tensor)> {
+    let mut at = 0;
     let mut tensors = Vec::with_capacity(entries.len());
     for (name, dtype, len) in entries {
-        // Fits: the sizes were checked against the buffer above.
+        // Fits: the sizes were checked against the buffer.
         let n = (len * dtype.size()) as usize;
-        let raw = &bytes[at..at + n];
+        let raw = &payload[at..at + n];
         at += n;
         let tensor = match dtype {
             DType::F32 => {
@@ -567,7 +574,7 @@ fn parse(bytes: &[u8], path: Option<&Path>) -> Result<Checkpoint, CheckpointErro
         };
         tensors.push((name, tensor));
     }
-    Ok(Checkpoint { kind: header.kind, step: header.step, meta: header.meta, tensors })
+    tensors
 }
 
 #[cfg(test)]

@@ -302,40 +302,7 @@ impl<'a> Trainer<'a> {
             self.snapshot();
         }
         let step = self.state.step;
-        let rays = self.batch(step);
-        let parts = rayon::current_num_threads().max(1);
-        let nparams = self.model.params().len();
-        self.part_grads.resize_with(parts, Vec::new);
-        self.part_records.resize_with(parts, GridRecord::default);
-        let per = rays.len().div_ceil(parts).max(1);
-        let ctx = StepCtx { seed: self.config.seed, step, batch_rays: rays.len() };
-        let model = &*self.model;
-        let stats: Vec<BatchStats> = self
-            .part_grads
-            .par_iter_mut()
-            .zip(self.part_records.par_iter_mut())
-            .enumerate()
-            .map(|(p, (g, record))| {
-                // The buffers are left zeroed by the previous step.
-                if g.len() != nparams {
-                    g.clear();
-                    g.resize(nparams, 0.0);
-                }
-                let lo = (p * per).min(rays.len());
-                let hi = ((p + 1) * per).min(rays.len());
-                match model.deferred() {
-                    Some(d) => d.train_rays_deferred(&rays[lo..hi], &ctx, g, record),
-                    None => {
-                        record.clear();
-                        model.train_rays(&rays[lo..hi], &ctx, g)
-                    }
-                }
-            })
-            .collect();
-        let mut total = BatchStats::default();
-        for s in &stats {
-            total.add(s);
-        }
+        let total = self.gradients(step);
         let (first, rest) = self.part_grads.split_at_mut(1);
         let grads = &mut first[0];
         // The deferred grid's gradient is not in any buffer: it is scattered
@@ -379,6 +346,47 @@ impl<'a> Trainer<'a> {
             self.snapshot();
         }
         Some(total)
+    }
+
+    /// The gradients of step `step`'s batch: the batch split into one part
+    /// per thread, each part's gradient in its own buffer (and its deferred
+    /// grid's in its own record). Returns the batch's statistics.
+    fn gradients(&mut self, step: u64) -> BatchStats {
+        let rays = self.batch(step);
+        let parts = rayon::current_num_threads().max(1);
+        let nparams = self.model.params().len();
+        self.part_grads.resize_with(parts, Vec::new);
+        self.part_records.resize_with(parts, GridRecord::default);
+        let per = rays.len().div_ceil(parts).max(1);
+        let ctx = StepCtx { seed: self.config.seed, step, batch_rays: rays.len() };
+        let model = &*self.model;
+        let stats: Vec<BatchStats> = self
+            .part_grads
+            .par_iter_mut()
+            .zip(self.part_records.par_iter_mut())
+            .enumerate()
+            .map(|(p, (g, record))| {
+                // The buffers are left zeroed by the previous step.
+                if g.len() != nparams {
+                    g.clear();
+                    g.resize(nparams, 0.0);
+                }
+                let lo = (p * per).min(rays.len());
+                let hi = ((p + 1) * per).min(rays.len());
+                match model.deferred() {
+                    Some(d) => d.train_rays_deferred(&rays[lo..hi], &ctx, g, record),
+                    None => {
+                        record.clear();
+                        model.train_rays(&rays[lo..hi], &ctx, g)
+                    }
+                }
+            })
+            .collect();
+        let mut total = BatchStats::default();
+        for s in &stats {
+            total.add(s);
+        }
+        total
     }
 
     pub fn progress(&self, loss: f64) -> Progress {

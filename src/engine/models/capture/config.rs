@@ -342,10 +342,10 @@ impl ModelSpec for CaptureConfig {
     /// Instant-NGP's (nerfacto's fields use the same 1e-2 and epsilon),
     /// but decaying to 3e-3 rather than 1e-3: a CPU budget is a few
     /// thousand steps, and the field is still learning at the end of it.
-    /// Measured on the 2-core VM (session 14, `train --steps 4000` then
-    /// `eval`, nearest camera's appearance): gold_cape 20.92 -> 21.16 dB
-    /// (seed 0) and 20.82 -> 21.25 (seed 1), fox 30.31 -> 30.39, fern
-    /// 24.84 -> 24.85, SSIM higher on all four.
+    /// Measured on the 2-core VM when `763a36c` made the change (`train
+    /// --steps 4000` then `eval`, nearest camera's appearance): gold_cape
+    /// 20.92 -> 21.16 dB (seed 0) and 20.82 -> 21.25 (seed 1), fox 30.31
+    /// -> 30.39, fern 24.84 -> 24.85, SSIM higher on all four.
     fn adam(&self) -> AdamConfig {
         AdamConfig { lr: 1e-2, lr_end: LR_END, beta1: 0.9, beta2: 0.99, eps: 1e-15 }
     }

@@ -1,4 +1,4 @@
-//! Unit tests of `hashgrid.rs` (kept apart so the module reads in one sitting).
+//! Unit tests of the hash grid (kept apart so the module reads in one sitting).
 
 use super::*;
 use crate::engine::nn::linear::ParamLayout;
