@@ -210,6 +210,10 @@ impl Scheduler {
     /// scheduler thread.
     pub fn open(storage: Storage, config: SchedulerConfig) -> io::Result<Self> {
         let mut st = State::default();
+        let (killed, removed) = poses::clean_up_after_crash(&storage);
+        if killed + removed > 0 {
+            tracing::info!(processes = killed, folders = removed, "cleaned up after a pose estimation cut short");
+        }
         let (store, mut jobs) = JobStore::open(&storage)?;
         jobs.sort_by_key(|j| j.seq);
         for mut j in jobs {

@@ -26,9 +26,18 @@ pub const UPLOAD_DIR: &str = ScenePart::Upload.dir_name();
 /// The folder the posed dataset is written to.
 pub const DATA_DIR: &str = ScenePart::Data.dir_name();
 
-/// The memory a pose estimation is counted for (COLMAP's CPU SIFT and
-/// mapper on photos of at most `max_size` pixels stay well below it).
+/// COLMAP's share of a pose estimation's memory (its CPU SIFT and mapper
+/// on photos of at most `max_size` pixels stay well below it); a job's
+/// estimate adds what decoding its input takes ([`memory_estimate`]).
 pub const MEMORY_ESTIMATE_BYTES: u64 = 1 << 30;
+
+/// The memory a pose estimation is counted for: COLMAP's share, and the
+/// server's own while it prepares the input, `input_bytes` (for photos,
+/// [`crate::poses::photos::prepare_memory`] of the largest one's decoded
+/// size, which their headers tell at upload).
+pub fn memory_estimate(input_bytes: u64) -> u64 {
+    MEMORY_ESTIMATE_BYTES.saturating_add(input_bytes)
+}
 
 /// What the service runs photo-only uploads with.
 #[derive(Clone, Debug)]
@@ -60,8 +69,20 @@ fn pose(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) ->
     let dir = host
         .posing_workdir(job, &scene)
         .map_err(|e| PoseError::Io { path: format!("scene '{}'", scene.id).into(), message: e.to_string() })?;
-    let fail = |m: String| PoseError::Io { path: dir.clone(), message: m };
-    remove_leftovers(&dir);
+    posed(host, job, &scene, setup, &dir, cancel).map_err(|e| e.relative_to(&dir, &dir.join(UPLOAD_DIR)))
+}
+
+/// [`pose`] in the scene's folder `dir`.
+fn posed(
+    host: &dyn JobHost,
+    job: &Job,
+    scene: &SceneInfo,
+    setup: &PosesSetup,
+    dir: &Path,
+    cancel: &AtomicBool,
+) -> Result<(), PoseError> {
+    let fail = |m: String| PoseError::Io { path: dir.to_path_buf(), message: m };
+    remove_leftovers(dir);
     let data = dir.join(DATA_DIR);
     let report_file = data.join(poses::REPORT_FILE);
     let report: PoseReport = match read_json_opt(&report_file).map_err(|e| fail(e.to_string()))? {
@@ -85,7 +106,12 @@ fn pose(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) ->
                     j.progress.stage = Some(p.stage.name().to_string());
                 });
             };
-            poses::estimate(&dir.join(UPLOAD_DIR), &data, &setup.tools, &opts, &mut on_progress, cancel)?
+            let registry = dir.join(PROCESS_DIR);
+            let estimated = poses::process::with_registry(&registry, || {
+                poses::estimate(&dir.join(UPLOAD_DIR), &data, &setup.tools, &opts, &mut on_progress, cancel)
+            });
+            let _ = std::fs::remove_dir(&registry);
+            estimated?
         }
     };
     let ds = Dataset::load(&data, &LoadOptions::default())
@@ -94,20 +120,50 @@ fn pose(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) ->
     let mut ready = SceneInfo::from_dataset(&scene.id, &ds, size, DATA_DIR.into());
     ready.created_at = scene.created_at;
     ready.warnings.extend(report.warnings.iter().cloned());
-    ready.poses = scene.poses.map(|p| crate::storage::ScenePoses { report: Some(report), ..p });
-    host.publish_posed_scene(job, &ready, &dir).map_err(|e| fail(e.to_string()))?;
+    ready.poses = scene.poses.clone().map(|p| crate::storage::ScenePoses { report: Some(report), ..p });
+    host.publish_posed_scene(job, &ready, dir).map_err(|e| fail(e.to_string()))?;
     tracing::info!(scene = %scene.id, registered = ready.images.train + ready.images.test, "scene posed");
     Ok(())
 }
 
-/// Working folders of an estimation cut short (`.data.posing-*`).
-fn remove_leftovers(dir: &Path) {
+/// The folder of a posing scene listing the programs its job runs
+/// (`poses::process::with_registry`), for [`clean_up_after_crash`].
+pub const PROCESS_DIR: &str = ".processes";
+
+/// At start-up, before any job runs: kills the COLMAP and ffmpeg process
+/// groups that a server killed mid-job left running (`poses::process::reap`;
+/// the parent-death signal stops them already, this catches what escaped
+/// it), and removes the working folders of estimations cut short, whatever
+/// becomes of their jobs. Returns the groups killed and folders removed.
+pub(crate) fn clean_up_after_crash(storage: &Storage) -> (usize, usize) {
+    let (mut killed, mut removed) = (0, 0);
+    for e in std::fs::read_dir(storage.scenes_dir()).into_iter().flatten().flatten() {
+        let dir = e.path();
+        let registry = dir.join(PROCESS_DIR);
+        if registry.is_dir() {
+            let groups = poses::process::reap(&registry);
+            if !groups.is_empty() {
+                tracing::warn!(scene_dir = %dir.display(), groups = ?groups, "killed programs a crashed pose estimation left running");
+            }
+            killed += groups.len();
+            let _ = std::fs::remove_dir(&registry);
+        }
+        removed += remove_leftovers(&dir);
+    }
+    (killed, removed)
+}
+
+/// Working folders of an estimation cut short (`.data.posing-*`); returns
+/// how many were removed.
+fn remove_leftovers(dir: &Path) -> usize {
+    let mut removed = 0;
     let prefix = format!(".{DATA_DIR}.posing-");
     for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
-        if e.file_name().to_string_lossy().starts_with(&prefix) {
-            let _ = std::fs::remove_dir_all(e.path());
+        if e.file_name().to_string_lossy().starts_with(&prefix) && std::fs::remove_dir_all(e.path()).is_ok() {
+            removed += 1;
         }
     }
+    removed
 }
 
 /// Why the scene of a pose-estimation job that ended without success

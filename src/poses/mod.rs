@@ -68,6 +68,25 @@ impl PoseError {
         Self::Io { path: path.to_path_buf(), message: e.to_string() }
     }
 
+    /// The error as a client may read it: the folder the photos were in
+    /// (`input`) left out of the paths it names, and the rest of `work`
+    /// shown relative to it (`./...`), so no server path is shown.
+    pub fn relative_to(self, work: &Path, input: &Path) -> Self {
+        let strip = |m: String| {
+            let (input, work) = (input.display().to_string(), work.display().to_string());
+            m.replace(&format!("{input}/"), "").replace(&input, ".").replace(&work, ".")
+        };
+        match self {
+            Self::Input(m) => Self::Input(strip(m)),
+            Self::Tool(m) => Self::Tool(strip(m)),
+            Self::Reconstruction(m) => Self::Reconstruction(strip(m)),
+            Self::Io { path, message } => {
+                Self::Io { path: PathBuf::from(strip(path.display().to_string())), message: strip(message) }
+            }
+            e @ (Self::TimedOut { .. } | Self::Cancelled) => e,
+        }
+    }
+
     /// A short machine-readable kind, for the API.
     pub fn kind(&self) -> &'static str {
         match self {
