@@ -358,3 +358,43 @@ fn videos_without_enough_distinct_frames_fail_before_colmap_saying_how_many() {
     assert_eq!((p.width, p.height, p.frames, p.distinct), (320, 240, 36, Some(36)), "{p:?}");
     assert!((p.duration - 3.0).abs() < 0.1, "{p:?}");
 }
+
+#[test]
+fn a_kept_working_folder_resumes_at_the_stage_it_stopped() {
+    let tools = tools();
+    let dir = tempfile::tempdir().unwrap();
+    let (photos, out, keep) = (dir.path().join("photos"), dir.path().join("posed"), dir.path().join("work"));
+    TexturedScene::default().write_photos(&photos).unwrap();
+    let o = PoseOptions { resume_in: Some(keep.clone()), ..opts() };
+    // Stopped as a shutdown stops it, once matching has begun.
+    let cancel = AtomicBool::new(false);
+    let stop = |p: Progress| {
+        if p.stage == Stage::Matching {
+            cancel.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+    };
+    let r = poses::estimate(&photos, &out, &tools, &o, &mut { stop }, &cancel);
+    assert!(matches!(r, Err(PoseError::Cancelled)), "{r:?}");
+    assert!(!out.exists());
+    let saved: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(keep.join(poses::PROGRESS_FILE)).unwrap()).unwrap();
+    assert_eq!(saved["done"], serde_json::json!(["features"]), "{saved}");
+    assert_eq!(saved["gathered"]["names"].as_array().map(Vec::len), Some(16), "{saved}");
+    // The next run goes on from matching, and removes the folder at its end.
+    let (report, progress) = estimate(&photos, &out, &tools, &o);
+    let report = report.unwrap();
+    assert_eq!((report.registered, report.seconds.features), (16, 0.0), "{report:?}");
+    assert!(report.seconds.matching > 0.0 && report.seconds.mapping > 0.0, "{report:?}");
+    assert!(progress.iter().any(|p| p.stage == Stage::Features && p.stage_fraction == 1.0));
+    assert!(!keep.exists());
+    only(dir.path(), &["photos", "posed"]);
+    // A run that fails (not cancelled) removes its kept folder too.
+    let noise = dir.path().join("noise");
+    std::fs::create_dir_all(&noise).unwrap();
+    for (name, png) in noise_pngs(5) {
+        std::fs::write(noise.join(name), png).unwrap();
+    }
+    let (r, _) = estimate(&noise, &dir.path().join("never"), &tools, &o);
+    assert!(matches!(r, Err(PoseError::Reconstruction(_))), "{r:?}");
+    assert!(!keep.exists());
+}

@@ -462,7 +462,8 @@ fn count_crash(storage: &Storage, j: &mut Job) {
             .ok()
             .flatten()
             .is_some_and(|m| j.started_at.is_some_and(|s| m.updated_at > s)),
-        JobSpec::Video(_) | JobSpec::Poses(_) => false,
+        JobSpec::Poses(p) => poses::saved_progress_since(storage, &p.scene_id, j.started_at),
+        JobSpec::Video(_) => false,
     };
     j.crashes = crashes_after(j.crashes, saved_since_start);
     if j.crashes >= MAX_CRASHES {

@@ -92,6 +92,7 @@ fn posed(
                 max_size: setup.max_size,
                 threads: rayon::current_num_threads(),
                 time_limit: setup.time_limit,
+                resume_in: Some(dir.join(RESUME_DIR)),
                 ..PoseOptions::default()
             };
             let started = Instant::now();
@@ -124,6 +125,22 @@ fn posed(
     host.publish_posed_scene(job, &ready, dir).map_err(|e| fail(e.to_string()))?;
     tracing::info!(scene = %scene.id, registered = ready.images.train + ready.images.test, "scene posed");
     Ok(())
+}
+
+/// The working folder of a scene's pose estimation, kept across a crash of
+/// the server so the next run goes on from the last stage it finished
+/// (`PoseOptions::resume_in`); removed when the job ends.
+pub const RESUME_DIR: &str = ".data.posing";
+
+/// Whether the pose estimation of `scene_id` saved progress (finished a
+/// stage) after `since` (ms since the epoch): the crash rule's "progress in
+/// between" for a `poses` job, so two kills cost two stages, and only two
+/// crashes in the same stage fail the job.
+pub(crate) fn saved_progress_since(storage: &Storage, scene_id: &str, since: Option<u64>) -> bool {
+    let file = storage.scene_dir(scene_id).join(RESUME_DIR).join(poses::PROGRESS_FILE);
+    let modified = std::fs::metadata(file).and_then(|m| m.modified()).ok();
+    let ms = modified.and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_millis() as u64);
+    matches!((ms, since), (Some(m), Some(s)) if m > s)
 }
 
 /// The folder of a posing scene listing the programs its job runs
@@ -196,7 +213,9 @@ pub(crate) fn settle(storage: &Storage, scene_id: &str, job: Option<&Job>) {
     scene.error = Some(reason);
     match write_json(&storage.scene_record(scene_id), &scene) {
         Ok(()) => {
-            let _ = std::fs::remove_dir_all(storage.scene_dir(scene_id).join(UPLOAD_DIR));
+            let dir = storage.scene_dir(scene_id);
+            let _ = std::fs::remove_dir_all(dir.join(UPLOAD_DIR));
+            let _ = std::fs::remove_dir_all(dir.join(RESUME_DIR));
         }
         Err(e) => tracing::error!(scene = %scene_id, error = %e, "cannot record the failed pose estimation"),
     }
