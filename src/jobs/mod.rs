@@ -463,7 +463,7 @@ fn count_crash(storage: &Storage, j: &mut Job) {
             .flatten()
             .is_some_and(|m| j.started_at.is_some_and(|s| m.updated_at > s)),
         JobSpec::Poses(p) => poses::saved_progress_since(storage, &p.scene_id, j.started_at),
-        JobSpec::Video(_) => false,
+        JobSpec::Video(_) => video::saved_frames_since(storage, &j.id, j.started_at),
     };
     j.crashes = crashes_after(j.crashes, saved_since_start);
     if j.crashes >= MAX_CRASHES {
@@ -606,11 +606,15 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
 
 /// After a pose-estimation job's final record: its scene, if the job did
 /// not succeed, becomes `failed` (see `poses::settle`).
+/// A video job's saved frames go with its end, too.
 fn settle_scene(shared: &Shared, job: &Job) {
     if let JobSpec::Poses(p) = &job.spec
         && job.status.is_final()
     {
         poses::settle(&shared.storage, &p.scene_id, Some(job));
+    }
+    if matches!(job.spec, JobSpec::Video(_)) && job.status.is_final() {
+        let _ = std::fs::remove_dir_all(video::frames_dir(&shared.storage, &job.id));
     }
 }
 

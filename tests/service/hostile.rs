@@ -346,3 +346,43 @@ async fn three_kills_in_a_row_at_different_stages_cost_a_stage_each_not_the_job(
     assert!(leftovers(data.path(), &id).is_empty(), "{:?}", leftovers(data.path(), &id));
     assert!(processes_in(data.path()).is_empty(), "{:?}", processes_in(data.path()));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_video_job_killed_twice_keeps_its_frames_and_finishes() {
+    let data = tempfile::tempdir().unwrap();
+    let mut server = Server::start(data.path());
+    let scene = server.svc.upload_ball().await;
+    let train = server.svc.job(&scene, serde_json::json!({ "steps": 20 })).await;
+    let trained = server.svc.wait_job(&train, 120.0, is_final).await;
+    assert_eq!(trained["status"], "succeeded", "{trained}");
+    let model = trained["model_id"].as_str().unwrap().to_string();
+    let body = serde_json::json!({ "frames": 120, "fps": 10, "width": 96, "height": 96, "format": "gif" });
+    let (s, v) = server.svc.post_json(&format!("/v1/models/{model}/videos"), body).await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+    let job = v["id"].as_str().unwrap().to_string();
+    let frames_dir = data.path().join("videos").join(format!(".frames-{job}"));
+    for (attempt, at_least) in [(1u64, 10u64), (2, 50)] {
+        let at = |j: &Value| {
+            j["status"] == "running" && j["attempts"] == attempt && j["progress"]["step"].as_u64() >= Some(at_least)
+        };
+        server.svc.wait_job(&job, 120.0, at).await;
+        server.child.kill().unwrap();
+        server.child.wait().unwrap();
+        // The frames rendered so far are on disk, each a whole PNG.
+        let saved = std::fs::read_dir(&frames_dir).unwrap().count() as u64;
+        assert!(saved >= at_least, "{saved} frames saved");
+        server = Server::start(data.path());
+        let (_, j) = server.svc.get(&format!("/v1/jobs/{job}")).await;
+        // Frames saved since the last start: progress, not a crash in a row.
+        assert!(j["status"] != "failed" && j["crashes"] == 1, "{j}");
+    }
+    let done = server.svc.wait_job(&job, 180.0, is_final).await;
+    assert_eq!((done["status"].as_str(), done["attempts"].as_u64()), (Some("succeeded"), Some(3)), "{done}");
+    assert_eq!(done["progress"]["step"], 120, "{done}");
+    assert!(!frames_dir.exists(), "the saved frames outlived their job");
+    let r = server.svc.client.get(server.svc.url(&format!("/v1/videos/{}", done["video_id"].as_str().unwrap())));
+    let bytes = r.send().await.unwrap().bytes().await.unwrap();
+    let gif = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(&bytes[..])).unwrap();
+    use image::AnimationDecoder;
+    assert_eq!(gif.into_frames().count(), 120);
+}
