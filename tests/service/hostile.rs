@@ -263,6 +263,8 @@ async fn videos_that_cannot_give_views_are_refused_at_upload_saying_why() {
     let (_, job) = svc.get(&format!("/v1/jobs/{}", v["poses"]["job_id"].as_str().unwrap())).await;
     let base = radiance::jobs::poses::MEMORY_ESTIMATE_BYTES;
     assert_eq!(job["memory_estimate_bytes"].as_u64(), Some(base + 320 * 240 * 3 / 2 * 40), "{job}");
+    let peak = peak_rss(server.child.id());
+    assert!(peak < 500 << 20, "server peak RSS {} MiB", peak >> 20);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -315,6 +317,8 @@ async fn smaller_holes_answer_as_documented() {
     let (_, sc) = svc.get(&format!("/v1/scenes/{}", v["id"].as_str().unwrap())).await;
     let root = data.path().display().to_string();
     assert!(!err.contains(&root) && !sc["error"].as_str().unwrap().contains(&root), "{err} / {sc}");
+    let peak = peak_rss(server.child.id());
+    assert!(peak < 500 << 20, "server peak RSS {} MiB", peak >> 20);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
