@@ -390,3 +390,41 @@ async fn a_video_job_killed_twice_keeps_its_frames_and_finishes() {
     use image::AnimationDecoder;
     assert_eq!(gif.into_frames().count(), 120);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_video_upload_killed_during_frame_extraction_leaves_no_ffmpeg_and_finishes() {
+    // A walk around the textured scene, filmed: 48 rendered views at 12 fps.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = TexturedScene { width: 320, height: 240, views: 48, fov: 0.9 };
+    scene.write_photos(&dir.path().join("frames")).unwrap();
+    let clip = dir.path().join("walk.mp4");
+    let status = std::process::Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-framerate", "12", "-i"])
+        .arg(dir.path().join("frames/view_%03d.png"))
+        .args(["-c:v", "libx264", "-crf", "12", "-pix_fmt", "yuv420p"])
+        .arg(&clip)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let data = tempfile::tempdir().unwrap();
+    let mut server = Server::start(data.path());
+    let (s, v) = server.svc.upload_form(form_of(&[("walk.mp4".into(), std::fs::read(&clip).unwrap())], true)).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
+    let extracting = |j: &Value| j["status"] == "running" && j["progress"]["stage"] == "extracting video frames";
+    server.svc.wait_job(&job, 60.0, extracting).await;
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+    let t = std::time::Instant::now();
+    while !processes_in(data.path()).is_empty() {
+        assert!(t.elapsed().as_secs_f64() < 3.0, "orphans: {:?}", processes_in(data.path()));
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    server = Server::start(data.path());
+    let done = server.svc.wait_job(&job, 240.0, is_final).await;
+    assert_eq!((done["status"].as_str(), done["crashes"].as_u64()), (Some("succeeded"), Some(1)), "{done}");
+    let (_, sc) = server.svc.get(&format!("/v1/scenes/{id}")).await;
+    assert_eq!((sc["status"].as_str(), sc["poses"]["report"]["source"].as_str()), (Some("ready"), Some("video")));
+    assert!(leftovers(data.path(), &id).is_empty(), "{:?}", leftovers(data.path(), &id));
+    assert!(processes_in(data.path()).is_empty(), "{:?}", processes_in(data.path()));
+}
