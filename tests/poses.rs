@@ -178,8 +178,13 @@ fn a_video_gives_its_sharp_frames_and_they_pose() {
     }
     // The whole way: the video in, 24 posed frames out, matched sequentially.
     let out = dir.path().join("posed");
-    let (report, _) = estimate(&clip, &out, &tools, &PoseOptions { frames: 24, ..opts() });
+    let (report, progress) = estimate(&clip, &out, &tools, &PoseOptions { frames: 24, ..opts() });
     let report = report.unwrap();
+    // Matching moves in parts (one run of COLMAP each), not from 0 to 1.
+    let mut matching: Vec<f32> =
+        progress.iter().filter(|p| p.stage == Stage::Matching).map(|p| p.stage_fraction).collect();
+    matching.dedup();
+    assert!(matching.iter().filter(|f| **f > 0.0 && **f < 1.0).count() >= 3, "{matching:?}");
     assert_eq!((report.source.as_str(), report.images, report.matcher), ("video", 24, Matcher::Sequential));
     assert_eq!(report.registered, 24, "{report:?}");
     only(dir.path(), &["frames", "picked", "posed", "scratch", "walk.mp4"]);
@@ -306,4 +311,90 @@ fn the_cli_writes_a_dataset_that_train_reads() {
     let stderr = String::from_utf8_lossy(&missing.stderr);
     assert!(stderr.contains("COLMAP not found") && stderr.contains("apt-get install colmap"), "{stderr}");
     assert!(!dir.path().join("never").exists());
+}
+
+#[test]
+fn videos_without_enough_distinct_frames_fail_before_colmap_saying_how_many() {
+    let tools = tools();
+    let ffmpeg = tools.ffmpeg.as_ref().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let clip = |name: &str, source: &str, frames: u32| {
+        let path = dir.path().join(name);
+        let status = std::process::Command::new(&ffmpeg.ffmpeg)
+            .args([
+                "-loglevel",
+                "error",
+                "-f",
+                "lavfi",
+                "-i",
+                &format!("{source}{}size=320x240:rate=12", if source.contains('=') { ":" } else { "=" }),
+            ])
+            .args(["-frames:v", &frames.to_string(), "-c:v", "libx264", "-pix_fmt", "yuv420p"])
+            .arg(&path)
+            .status()
+            .unwrap();
+        assert!(status.success());
+        path
+    };
+    for (path, says) in [
+        (clip("one.mp4", "testsrc", 1), "'one.mp4' has 1 distinct frame;"),
+        (clip("still.mp4", "color=c=gray", 60), "'still.mp4' has 1 distinct frame (60 in all, the rest repeats)"),
+    ] {
+        let out = dir.path().join("out");
+        let t = std::time::Instant::now();
+        let (r, progress) = estimate(&path, &out, &tools, &opts());
+        let e = r.unwrap_err();
+        assert!(matches!(e, PoseError::Input(_)) && e.to_string().contains(says), "{e}");
+        // Before any COLMAP step (the one-frame clip matched for 202 s).
+        assert!(progress.iter().all(|p| p.stage == Stage::Frames), "{progress:?}");
+        assert!(t.elapsed() < Duration::from_secs(30), "{:?}", t.elapsed());
+        assert!(!out.exists());
+    }
+    // Probed as an upload is: the same answers, and a moving clip's counts.
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    let e = video::probe(ffmpeg, &dir.path().join("still.mp4"), "x/still.mp4", deadline).unwrap_err().to_string();
+    assert!(e.contains("'x/still.mp4' has 1 distinct frame (60 in all"), "{e}");
+    let p = video::probe(ffmpeg, &clip("moving.mp4", "testsrc", 36), "moving.mp4", deadline).unwrap();
+    assert_eq!((p.width, p.height, p.frames, p.distinct), (320, 240, 36, Some(36)), "{p:?}");
+    assert!((p.duration - 3.0).abs() < 0.1, "{p:?}");
+}
+
+#[test]
+fn a_kept_working_folder_resumes_at_the_stage_it_stopped() {
+    let tools = tools();
+    let dir = tempfile::tempdir().unwrap();
+    let (photos, out, keep) = (dir.path().join("photos"), dir.path().join("posed"), dir.path().join("work"));
+    TexturedScene::default().write_photos(&photos).unwrap();
+    let o = PoseOptions { resume_in: Some(keep.clone()), ..opts() };
+    // Stopped as a shutdown stops it, once matching has begun.
+    let cancel = AtomicBool::new(false);
+    let stop = |p: Progress| {
+        if p.stage == Stage::Matching {
+            cancel.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+    };
+    let r = poses::estimate(&photos, &out, &tools, &o, &mut { stop }, &cancel);
+    assert!(matches!(r, Err(PoseError::Cancelled)), "{r:?}");
+    assert!(!out.exists());
+    let saved: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(keep.join(poses::PROGRESS_FILE)).unwrap()).unwrap();
+    assert_eq!(saved["done"], serde_json::json!(["features"]), "{saved}");
+    assert_eq!(saved["gathered"]["names"].as_array().map(Vec::len), Some(16), "{saved}");
+    // The next run goes on from matching, and removes the folder at its end.
+    let (report, progress) = estimate(&photos, &out, &tools, &o);
+    let report = report.unwrap();
+    assert_eq!((report.registered, report.seconds.features), (16, 0.0), "{report:?}");
+    assert!(report.seconds.matching > 0.0 && report.seconds.mapping > 0.0, "{report:?}");
+    assert!(progress.iter().any(|p| p.stage == Stage::Features && p.stage_fraction == 1.0));
+    assert!(!keep.exists());
+    only(dir.path(), &["photos", "posed"]);
+    // A run that fails (not cancelled) removes its kept folder too.
+    let noise = dir.path().join("noise");
+    std::fs::create_dir_all(&noise).unwrap();
+    for (name, png) in noise_pngs(5) {
+        std::fs::write(noise.join(name), png).unwrap();
+    }
+    let (r, _) = estimate(&noise, &dir.path().join("never"), &tools, &o);
+    assert!(matches!(r, Err(PoseError::Reconstruction(_))), "{r:?}");
+    assert!(!keep.exists());
 }

@@ -187,6 +187,10 @@ fn extract_zip(bytes: &[u8], dest: &Path, budget: &mut Budget) -> Result<(), Arc
     let mut zip = zip::ZipArchive::new(io::Cursor::new(bytes))
         .map_err(|e| ArchiveError::Bad(format!("not a valid zip archive: {e}")))?;
     check_zip_declared(&mut zip, budget.limits)?;
+    if let Some(name) = zip_repeated_name(bytes) {
+        // The zip reader keeps one entry per name: the other would vanish.
+        return Err(ArchiveError::Bad(format!("archive entry '{name}' appears twice")));
+    }
     for i in 0..zip.len() {
         budget.entry()?;
         let mut f = zip.by_index(i).map_err(|e| ArchiveError::Bad(format!("zip entry {i}: {e}")))?;
@@ -204,6 +208,36 @@ fn extract_zip(bytes: &[u8], dest: &Path, budget: &mut Budget) -> Result<(), Arc
         }
     }
     Ok(())
+}
+
+/// The first name a zip's central directory lists twice, read from its
+/// end-of-directory record and the directory's headers (the zip crate
+/// keeps one entry per name). `None` when there is none, or when the
+/// directory cannot be walked this simply (zip64, data before the archive):
+/// the zip reader then judges it alone.
+fn zip_repeated_name(bytes: &[u8]) -> Option<String> {
+    let u16_at = |at: usize| bytes.get(at..at + 2).map(|b| u16::from_le_bytes([b[0], b[1]]) as usize);
+    let u32_at = |at: usize| bytes.get(at..at + 4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize);
+    // The end record: its signature in the last 22 + 65535 bytes.
+    let from = bytes.len().saturating_sub(22 + 0xffff);
+    let eocd = (from..bytes.len().saturating_sub(21)).rev().find(|&i| bytes[i..i + 4] == *b"PK\x05\x06")?;
+    let (count, mut at) = (u16_at(eocd + 10)?, u32_at(eocd + 16)?);
+    if count == 0xffff || at == 0xffff_ffff {
+        return None;
+    }
+    let mut seen = std::collections::HashSet::with_capacity(count);
+    for _ in 0..count {
+        if bytes.get(at..at + 4)? != b"PK\x01\x02" {
+            return None;
+        }
+        let (name_len, extra, comment) = (u16_at(at + 28)?, u16_at(at + 30)?, u16_at(at + 32)?);
+        let name = bytes.get(at + 46..at + 46 + name_len)?;
+        if !seen.insert(name) {
+            return Some(String::from_utf8_lossy(name).into_owned());
+        }
+        at += 46 + name_len + extra + comment;
+    }
+    None
 }
 
 /// Refuses a zip from its central directory alone: when the declared sizes
@@ -367,6 +401,32 @@ mod tests {
             Err(ArchiveError::TooLarge { message, .. }) => message,
             other => panic!("expected TooLarge, got {other:?}"),
         }
+    }
+
+    /// Renames every `from` to `to` (of the same length) in a zip's bytes:
+    /// its local and central headers both, as a hand-made zip may have them.
+    fn rename_in(zip: &mut [u8], from: &[u8], to: &[u8]) {
+        for i in 0..zip.len() - from.len() {
+            if &zip[i..i + from.len()] == from {
+                zip[i..i + from.len()].copy_from_slice(to);
+            }
+        }
+    }
+
+    #[test]
+    fn a_zip_naming_an_entry_twice_is_refused() {
+        let mut zip = zip_of(&[("images/a.png", b"first"), ("images/b.png", b"second")], None);
+        assert!(zip_repeated_name(&zip).is_none());
+        rename_in(&mut zip, b"images/b.png", b"images/a.png");
+        // The zip reader itself sees one entry (it keeps one per name).
+        assert_eq!(zip::ZipArchive::new(io::Cursor::new(&zip[..])).unwrap().len(), 1);
+        let (r, _) = extract_listing(ArchiveKind::Zip, &zip, limits(1 << 20));
+        match r {
+            Err(ArchiveError::Bad(m)) => assert_eq!(m, "archive entry 'images/a.png' appears twice"),
+            other => panic!("expected Bad, got {other:?}"),
+        }
+        // Junk after or before the directory does not confuse the walk.
+        assert!(zip_repeated_name(b"PK\x05\x06").is_none() && zip_repeated_name(b"").is_none());
     }
 
     #[test]

@@ -17,6 +17,9 @@ use serde_json::Value;
 use super::{ApiError, ApiResult};
 use crate::engine::geometry::path::{CameraPath, Keyframe, MAX_KEYFRAMES};
 
+/// The longest a nerfstudio path may last, seconds (a day).
+const MAX_SECONDS: f64 = 86_400.0;
+
 /// A path and the video settings it brings (nerfstudio files only).
 #[derive(Debug)]
 pub struct ParsedPath {
@@ -26,6 +29,10 @@ pub struct ParsedPath {
     pub width: Option<u32>,
     pub height: Option<u32>,
 }
+
+/// The largest entry of a camera matrix: far beyond any scene, and far
+/// inside what a 32-bit float holds.
+const MAX_COORDINATE: f64 = 1e9;
 
 const C2W: &str = "12 or 16 numbers (row-major) or 3 or 4 rows of 4: a rigid camera-to-world transform";
 const SHAPES: &str = "an array of keyframes {c2w, fov?, time?}, or a nerfstudio camera_path.json object";
@@ -62,6 +69,11 @@ fn matrix(v: &Value, field: &str) -> ApiResult<[[f32; 4]; 3]> {
     };
     if numbers.len() != 12 && numbers.len() != 16 {
         return Err(bad(&format!("expected 12 or 16 numbers, got {}", numbers.len())));
+    }
+    // Finite in JSON, yet past what a coordinate holds (1e308 would become
+    // infinite): refused as what it is.
+    if let Some(x) = numbers.iter().find(|x| x.abs() > MAX_COORDINATE) {
+        return Err(bad(&format!("{x:e} is too large (entries are at most {MAX_COORDINATE:e} in size)")));
     }
     if numbers.len() == 16 && numbers[12..] != [0.0, 0.0, 0.0, 1.0] {
         return Err(bad("the last row of a 4x4 matrix must be 0, 0, 0, 1"));
@@ -137,14 +149,24 @@ fn nerfstudio(v: &Value) -> ApiResult<ParsedPath> {
     };
     let (width, height) = (size("render_width")?, size("render_height")?);
     let fps = number(o, "fps", "path.fps")?;
+    if let Some(f) = fps
+        && !(1.0..=60.0).contains(&f.round())
+    {
+        return Err(ApiError::bad_field("path.fps must be in 1..=60", "path.fps", f, "1..=60"));
+    }
+    let seconds = number(o, "seconds", "path.seconds")?;
+    if let Some(s) = seconds
+        && !(s > 0.0 && s <= MAX_SECONDS)
+    {
+        let allowed = format!("more than 0 and at most {MAX_SECONDS}");
+        return Err(ApiError::bad_field(format!("path.seconds must be {allowed}"), "path.seconds", s, &allowed));
+    }
     let default_aspect = match (width, height) {
         (Some(w), Some(h)) => w as f64 / h as f64,
         _ => 1.0,
     };
     let n = frames.len();
-    let seconds = number(o, "seconds", "path.seconds")?
-        .filter(|s| *s > 0.0)
-        .unwrap_or_else(|| n.saturating_sub(1).max(1) as f64 / fps.filter(|f| *f > 0.0).unwrap_or(30.0));
+    let seconds = seconds.unwrap_or_else(|| n.saturating_sub(1).max(1) as f64 / fps.unwrap_or(30.0));
     let mut keys = Vec::with_capacity(n);
     for (i, f) in frames.iter().enumerate() {
         let field = format!("path.camera_path[{i}]");
@@ -168,13 +190,7 @@ fn nerfstudio(v: &Value) -> ApiResult<ParsedPath> {
         let time = if n > 1 { seconds * i as f64 / (n - 1) as f64 } else { 0.0 };
         keys.push(Keyframe { c2w, fov: fov_x.to_degrees() as f32, time });
     }
-    Ok(ParsedPath {
-        path: checked(keys)?,
-        frames: Some(n as u32),
-        fps: fps.map(|f| f.round().clamp(1.0, 60.0) as u32),
-        width,
-        height,
-    })
+    Ok(ParsedPath { path: checked(keys)?, frames: Some(n as u32), fps: fps.map(|f| f.round() as u32), width, height })
 }
 
 #[cfg(test)]
@@ -211,6 +227,28 @@ mod tests {
             field(json!({ "camera_path": [{ "camera_to_world": [1, 0] }] })),
             "path.camera_path[0].camera_to_world"
         );
+    }
+
+    #[test]
+    fn out_of_range_values_are_refused_not_clamped() {
+        let m: Vec<f32> = EYE.iter().copied().chain([0.0, 0.0, 0.0, 1.0]).collect();
+        let file = |key: &str, v: Value| {
+            let mut f = json!({ "fps": 24, "camera_path": [{ "camera_to_world": m }, { "camera_to_world": m }] });
+            f[key] = v;
+            parse(&f, 45.0)
+        };
+        for (key, v) in [("fps", json!(0)), ("fps", json!(1e9)), ("fps", json!(-5)), ("seconds", json!(-1))] {
+            let e = file(key, v.clone()).unwrap_err();
+            assert_eq!(e.details["field"], format!("path.{key}"), "{key}={v}: {}", e.message);
+        }
+        assert!(file("seconds", json!(0)).is_err() && file("seconds", json!(1e12)).is_err());
+        let p = file("fps", json!(29.97)).unwrap();
+        assert_eq!(p.fps, Some(30));
+        // A finite number too large for a coordinate is called that, not
+        // "non-finite".
+        let big = json!([{ "c2w": [1.0, 0.0, 0.0, 1e308, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0] }]);
+        let e = parse(&big, 45.0).unwrap_err().message;
+        assert!(e.contains("1e308 is too large") && !e.contains("finite"), "{e}");
     }
 
     #[test]

@@ -224,10 +224,19 @@ impl From<axum::extract::rejection::JsonRejection> for ApiError {
             J::MissingJsonContentType(_) => {
                 Self::new(Code::UnsupportedMediaType, "expected a JSON body (Content-Type: application/json)")
             }
+            // A body over axum's limit for JSON (`DefaultBodyLimit`, 2 MiB).
+            other if other.status() == StatusCode::PAYLOAD_TOO_LARGE => Self::too_large(
+                format!("the JSON body is larger than {JSON_BODY_LIMIT} bytes"),
+                Limit::Bytes(JSON_BODY_LIMIT as u64),
+            ),
             other => Self::bad_request(other.body_text()),
         }
     }
 }
+
+/// The largest JSON body a route takes: axum's default body limit for its
+/// `Json` extractor.
+pub const JSON_BODY_LIMIT: usize = 2 << 20;
 
 impl From<axum::extract::rejection::QueryRejection> for ApiError {
     fn from(e: axum::extract::rejection::QueryRejection) -> Self {

@@ -213,6 +213,7 @@ fn check_upload(
     {
         return Ok(posing(id, size, upload));
     }
+    check_images(&data, s.config.scheduler.max_job_memory_bytes)?;
     let ds = Dataset::load(&root, &LoadOptions::default()).map_err(|e| {
         // Name files relative to the upload, not the server's folders.
         let mut e = ApiError::from(e);
@@ -225,6 +226,48 @@ fn check_upload(
     }
     let rel = root.strip_prefix(staging).unwrap_or(Path::new("data")).to_string_lossy().into_owned();
     Ok(Checked { info: SceneInfo::from_dataset(id, &ds, size, rel), posing: None })
+}
+
+/// Reads the header of every image in an upload (a dataset's images and
+/// masks), before the loader decodes them: none may declare more than
+/// `photos::MAX_PIXELS`, and all of them decoded (8-bit RGBA, as the loader
+/// holds them) must fit in what the server allows a job, `max_bytes`.
+fn check_images(data: &Path, max_bytes: u64) -> ApiResult<()> {
+    fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
+        for e in std::fs::read_dir(dir)? {
+            let e = e?;
+            if e.file_type()?.is_dir() {
+                walk(&e.path(), out)?;
+            } else if photos::has_extension(&e.path(), &photos::PHOTO_EXTENSIONS) {
+                out.push(e.path());
+            }
+        }
+        Ok(())
+    }
+    let mut images = Vec::new();
+    walk(data, &mut images)?;
+    let rel = |p: &Path| p.strip_prefix(data).unwrap_or(p).display().to_string();
+    let mut total = 0u64;
+    for p in &images {
+        // Unreadable images are left for the loader to name.
+        let Ok(header) = photos::read_header(p) else { continue };
+        header.check_pixels().map_err(|e| ApiError::new(Code::InvalidDataset, format!("image '{}' {e}", rel(p))))?;
+        total = total.saturating_add(header.pixels() * 4);
+    }
+    if total > max_bytes {
+        return Err(ApiError::new(
+            Code::ResourceLimit,
+            format!(
+                "the upload's {} images decode to {} MiB, more than the server allows a job ({} MiB, \
+                 --max-job-memory-mb): send fewer or smaller images",
+                images.len(),
+                total >> 20,
+                max_bytes >> 20
+            ),
+        )
+        .with_details(serde_json::json!({ "estimate_bytes": total, "limit_bytes": max_bytes })));
+    }
+    Ok(())
 }
 
 /// Stores a checked upload: its files (a photo-only upload's as `upload/`,
@@ -249,6 +292,8 @@ struct PhotoUpload {
     photos: usize,
     /// Of the first photo, as uploaded (0x0 for a video).
     resolution: [u32; 2],
+    /// The `poses` job's memory estimate.
+    memory: u64,
 }
 
 /// `Some` when `data` (an upload in no dataset format) holds photos or a
@@ -278,7 +323,17 @@ fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
              (apt-get install ffmpeg); upload photos instead"
                 .into(),
         )),
-        Some(photos::Source::Video(_)) => Ok(Some(PhotoUpload { source: "video", photos: 0, resolution: [0, 0] })),
+        Some(photos::Source::Video(clip)) => {
+            // Probed now (frames there, decodable, distinct), so a video
+            // that cannot give views is refused here, saying why.
+            let ffmpeg = setup.tools.ffmpeg.as_ref().ok_or_else(|| invalid("this server cannot read videos".into()))?;
+            let deadline = std::time::Instant::now() + VIDEO_PROBE_LIMIT;
+            let probe =
+                crate::poses::video::probe(ffmpeg, clip, &rel(clip), deadline).map_err(|e| invalid(e.to_string()))?;
+            let memory = poses_job::memory_estimate(crate::poses::video::decode_memory(probe.width, probe.height));
+            check_job_memory(s, memory)?;
+            Ok(Some(PhotoUpload { source: "video", photos: 0, resolution: [0, 0], memory }))
+        }
         Some(photos::Source::Photos(list)) => {
             let n = list.len();
             if n < photos::MIN_PHOTOS {
@@ -289,17 +344,47 @@ fn photo_upload(s: &AppState, data: &Path) -> ApiResult<Option<PhotoUpload>> {
                     photos::MIN_PHOTOS
                 )));
             }
-            let mut resolution = [0, 0];
-            for (k, p) in list.iter().enumerate() {
-                let (w, h) = image::image_dimensions(p)
-                    .map_err(|e| invalid(format!("'{}' is not a readable JPEG or PNG image: {e}", rel(p))))?;
-                if k == 0 {
-                    resolution = [w, h];
-                }
+            // Headers only: a photo's pixels are decoded by its job, once
+            // its declared size passed the limit here.
+            let mut sizes = Vec::with_capacity(n);
+            let mut largest = 0u64;
+            for p in list {
+                let header = photos::read_header(p)
+                    .map_err(|e| invalid(format!("'{}' is not a readable JPEG or PNG image: it {e}", rel(p))))?;
+                header.check_pixels().map_err(|e| invalid(format!("photo '{}' {e}", rel(p))))?;
+                largest = largest.max(header.decoded_bytes());
+                let (w, h) = header.prepared_size(setup.max_size);
+                sizes.push((rel(p), w, h, header.width, header.height));
             }
-            Ok(Some(PhotoUpload { source: "photos", photos: n, resolution }))
+            let named: Vec<(&str, u32, u32)> = sizes.iter().map(|(n, w, h, ..)| (n.as_str(), *w, *h)).collect();
+            photos::check_sizes(&named).map_err(invalid)?;
+            let memory = poses_job::memory_estimate(photos::prepare_memory(largest, rayon::current_num_threads()));
+            check_job_memory(s, memory)?;
+            let resolution = [sizes[0].3, sizes[0].4];
+            Ok(Some(PhotoUpload { source: "photos", photos: n, resolution, memory }))
         }
     }
+}
+
+/// The longest a video upload is probed (`poses::video::probe`).
+const VIDEO_PROBE_LIMIT: std::time::Duration = std::time::Duration::from_secs(120);
+
+/// Refuses a pose estimation whose estimate passes the per-job limit.
+fn check_job_memory(s: &AppState, memory: u64) -> ApiResult<()> {
+    let limit = s.config.scheduler.max_job_memory_bytes;
+    if memory > limit {
+        return Err(ApiError::new(
+            Code::ResourceLimit,
+            format!(
+                "estimating these photos' poses would need about {} MiB of memory, more than the server allows a \
+                 job ({} MiB, --max-job-memory-mb): send smaller photos",
+                memory >> 20,
+                limit >> 20
+            ),
+        )
+        .with_details(serde_json::json!({ "estimate_bytes": memory, "limit_bytes": limit })));
+    }
+    Ok(())
 }
 
 /// A photo-only upload as a `posing` scene (its files go to `upload/`)
@@ -344,7 +429,7 @@ fn posing(id: &str, size: u64, upload: PhotoUpload) -> Checked {
         id: Some(job_id),
         spec: JobSpec::Poses(PosesSpec { scene_id: id.to_string() }),
         model_id: None,
-        memory_estimate: poses_job::MEMORY_ESTIMATE_BYTES,
+        memory_estimate: upload.memory,
     };
     Checked { info, posing: Some((upload, job)) }
 }

@@ -60,6 +60,7 @@ pub fn run(a: PosesArgs) -> anyhow::Result<()> {
         time_limit: Duration::from_secs_f64(a.time_limit_min * 60.0),
         matcher: a.matcher,
         frames: a.frames,
+        resume_in: None,
     };
     let cancel = Arc::new(AtomicBool::new(false));
     {

@@ -49,6 +49,13 @@ pub(crate) trait JobHost: Send + Sync {
     /// names a whole video.
     fn publish_video(&self, job: &Job, info: &VideoInfo, bytes: &[u8]) -> io::Result<()>;
 
+    /// Where a video job keeps the frames it rendered, so that a restart
+    /// after a crash renders only the rest (`None`: not kept). Removed when
+    /// the job ends.
+    fn video_frames_dir(&self, _job: &Job) -> Option<PathBuf> {
+        None
+    }
+
     /// The folder a pose estimation works in: the scene's folder, holding
     /// the photos in `upload/`; the dataset is written to `data/` beside them.
     fn posing_workdir(&self, job: &Job, scene: &SceneInfo) -> io::Result<PathBuf>;
@@ -108,6 +115,11 @@ impl JobHost for Shared {
 
     fn posing_workdir(&self, _job: &Job, scene: &SceneInfo) -> io::Result<PathBuf> {
         Ok(self.storage.scene_dir(&scene.id))
+    }
+
+    /// `videos/.frames-JOB/`.
+    fn video_frames_dir(&self, job: &Job) -> Option<PathBuf> {
+        Some(super::video::frames_dir(&self.storage, &job.id))
     }
 
     /// Rewrites `scenes/ID/scene.json` (the dataset is already in place in

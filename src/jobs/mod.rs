@@ -210,6 +210,10 @@ impl Scheduler {
     /// scheduler thread.
     pub fn open(storage: Storage, config: SchedulerConfig) -> io::Result<Self> {
         let mut st = State::default();
+        let (killed, removed) = poses::clean_up_after_crash(&storage);
+        if killed + removed > 0 {
+            tracing::info!(processes = killed, folders = removed, "cleaned up after a pose estimation cut short");
+        }
         let (store, mut jobs) = JobStore::open(&storage)?;
         jobs.sort_by_key(|j| j.seq);
         for mut j in jobs {
@@ -458,7 +462,8 @@ fn count_crash(storage: &Storage, j: &mut Job) {
             .ok()
             .flatten()
             .is_some_and(|m| j.started_at.is_some_and(|s| m.updated_at > s)),
-        JobSpec::Video(_) | JobSpec::Poses(_) => false,
+        JobSpec::Poses(p) => poses::saved_progress_since(storage, &p.scene_id, j.started_at),
+        JobSpec::Video(_) => video::saved_frames_since(storage, &j.id, j.started_at),
     };
     j.crashes = crashes_after(j.crashes, saved_since_start);
     if j.crashes >= MAX_CRASHES {
@@ -601,11 +606,15 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
 
 /// After a pose-estimation job's final record: its scene, if the job did
 /// not succeed, becomes `failed` (see `poses::settle`).
+/// A video job's saved frames go with its end, too.
 fn settle_scene(shared: &Shared, job: &Job) {
     if let JobSpec::Poses(p) = &job.spec
         && job.status.is_final()
     {
         poses::settle(&shared.storage, &p.scene_id, Some(job));
+    }
+    if matches!(job.spec, JobSpec::Video(_)) && job.status.is_final() {
+        let _ = std::fs::remove_dir_all(video::frames_dir(&shared.storage, &job.id));
     }
 }
 

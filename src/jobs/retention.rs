@@ -42,6 +42,16 @@ pub(crate) fn remove_orphans(storage: &Storage, jobs: &BTreeMap<String, Job>) ->
             removed.push(format!("models/{id}.ckpt"));
         }
     }
+    // Frames saved by video jobs that are no longer running (`video.rs`).
+    for e in std::fs::read_dir(storage.videos_dir())? {
+        let name = e?.file_name().to_string_lossy().into_owned();
+        if let Some(job) = name.strip_prefix(super::video::FRAMES_PREFIX)
+            && !active.iter().any(|j| j.id == job)
+        {
+            let _ = std::fs::remove_dir_all(storage.videos_dir().join(&name));
+            removed.push(format!("videos/{name}"));
+        }
+    }
     for id in ids_with_extension(&storage.videos_dir(), "bin")? {
         let written = active.iter().any(|j| matches!(j.spec, JobSpec::Video(_)) && j.reserved_video_id() == id);
         if !written && !storage.video_record(&id).exists() {

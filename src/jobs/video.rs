@@ -1,24 +1,64 @@
 //! A video job: render an orbit around a trained model's scene, or a camera
 //! path through keyframes, frame by frame on the worker pool, and encode it (GIF or MP4). The file and then
 //! its record are written atomically, so a video either exists whole or not
-//! at all; an interrupted job renders again from the start.
+//! at all. Where the host keeps them (`JobHost::video_frames_dir`), each
+//! frame rendered is saved (a PNG, atomically), so a job cut short by a
+//! crash renders only the frames it had not saved; they go when it ends.
 
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::host::JobHost;
 use super::{Job, Outcome, VideoSpec};
 use crate::engine::geometry::camera::Camera;
+use crate::engine::io::fsio::write_atomic;
 use crate::engine::train::persist;
 use crate::engine::view::render_view_with;
 use crate::media::{png, video};
-use crate::storage::{VideoInfo, now_ms};
+use crate::storage::{Storage, VideoInfo, now_ms};
+
+/// The folder of a video job's saved frames in the data directory.
+pub(crate) fn frames_dir(storage: &Storage, job_id: &str) -> PathBuf {
+    storage.videos_dir().join(format!("{FRAMES_PREFIX}{job_id}"))
+}
+
+/// The name of a video job's frames folder before its job's id.
+pub(crate) const FRAMES_PREFIX: &str = ".frames-";
+
+/// Whether the video job `job_id` saved a frame after `since` (ms since
+/// the epoch): the crash rule's "progress in between" for video jobs.
+pub(crate) fn saved_frames_since(storage: &Storage, job_id: &str, since: Option<u64>) -> bool {
+    let modified = std::fs::metadata(frames_dir(storage, job_id)).and_then(|m| m.modified()).ok();
+    let ms = modified.and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_millis() as u64);
+    matches!((ms, since), (Some(m), Some(s)) if m > s)
+}
+
+/// A frame saved by a run before, if it is whole and of the video's size.
+fn saved_frame(path: &Path, width: u32, height: u32) -> Option<image::RgbImage> {
+    let img = image::load_from_memory_with_format(&std::fs::read(path).ok()?, image::ImageFormat::Png).ok()?;
+    Some(img.to_rgb8()).filter(|i| i.dimensions() == (width, height))
+}
+
+fn save_frame(path: &Path, img: &image::RgbImage) -> Result<(), String> {
+    let mut png = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png).map_err(|e| e.to_string())?;
+    write_atomic(path, &png).map_err(|e| format!("saving a frame: {e}"))
+}
 
 pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Outcome {
-    match render(host, job, spec, cancel) {
+    let outcome = match render(host, job, spec, cancel) {
         Ok(o) => o,
         Err(e) => Outcome::Failed(e),
+    };
+    // Kept only for a run to come (stopped by a shutdown; a canceled job's
+    // go when its end is recorded).
+    if !matches!(outcome, Outcome::Stopped)
+        && let Some(dir) = host.video_frames_dir(job)
+    {
+        let _ = std::fs::remove_dir_all(dir);
     }
+    outcome
 }
 
 fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
@@ -32,22 +72,37 @@ fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) 
     let orbit = info.view.orbit(spec.elevation, spec.radius);
     let started = Instant::now();
     let mut frames = Vec::with_capacity(spec.frames as usize);
+    let saved = host.video_frames_dir(job);
+    if let Some(dir) = &saved {
+        std::fs::create_dir_all(dir).map_err(|e| format!("making the frames folder: {e}"))?;
+    }
     for k in 0..spec.frames {
         if cancel.load(Ordering::Relaxed) {
             return Ok(Outcome::Stopped);
         }
-        let camera = match &spec.path {
-            Some(path) => {
-                let (c2w, fov) = path.at(path.frame_time(k, spec.frames));
-                Camera::from_fov(spec.width, spec.height, fov.to_radians(), c2w)
+        let file = saved.as_ref().map(|d| d.join(format!("frame_{k:05}.png")));
+        let img = match file.as_deref().and_then(|f| saved_frame(f, spec.width, spec.height)) {
+            Some(img) => img,
+            None => {
+                let camera = match &spec.path {
+                    Some(path) => {
+                        let (c2w, fov) = path.at(path.frame_time(k, spec.frames));
+                        Camera::from_fov(spec.width, spec.height, fov.to_radians(), c2w)
+                    }
+                    None => orbit
+                        .camera(360.0 * k as f32 / spec.frames as f32, spec.width, spec.height, spec.fov)
+                        .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?,
+                };
+                let options = spec.appearance.resolve(&*model, &camera).map_err(|e| e.to_string())?;
+                let view = render_view_with(&*model, &camera, [1.0; 3], &options);
+                let img = png::rgb_image(&view).map_err(|e| e.to_string())?;
+                if let Some(f) = &file {
+                    save_frame(f, &img)?;
+                }
+                img
             }
-            None => orbit
-                .camera(360.0 * k as f32 / spec.frames as f32, spec.width, spec.height, spec.fov)
-                .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?,
         };
-        let options = spec.appearance.resolve(&*model, &camera).map_err(|e| e.to_string())?;
-        let view = render_view_with(&*model, &camera, [1.0; 3], &options);
-        frames.push(png::rgb_image(&view).map_err(|e| e.to_string())?);
+        frames.push(img);
         let done = k as u64 + 1;
         let elapsed = started.elapsed().as_secs_f64();
         host.set_progress(&job.id, &mut |j| {

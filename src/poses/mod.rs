@@ -33,6 +33,26 @@ pub use video::Ffmpeg;
 /// Where the report is written in the dataset.
 pub const REPORT_FILE: &str = "poses.json";
 
+/// What an estimation in a kept working folder (`PoseOptions::resume_in`)
+/// has finished, in that folder; rewritten (atomically) as each stage ends.
+pub const PROGRESS_FILE: &str = "progress.json";
+
+/// The contents of [`PROGRESS_FILE`].
+#[derive(Debug, Default, Serialize, Deserialize)]
+struct Saved {
+    /// The photos (or frames) in `dataset/images`, once all are there.
+    gathered: Option<SavedGather>,
+    /// COLMAP's steps done, in order.
+    done: Vec<Stage>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct SavedGather {
+    source: String,
+    names: Vec<String>,
+    size: (u32, u32),
+}
+
 /// Default longest side of the photos given to COLMAP (and kept for training).
 pub const DEFAULT_MAX_SIZE: u32 = 800;
 
@@ -68,6 +88,25 @@ impl PoseError {
         Self::Io { path: path.to_path_buf(), message: e.to_string() }
     }
 
+    /// The error as a client may read it: the folder the photos were in
+    /// (`input`) left out of the paths it names, and the rest of `work`
+    /// shown relative to it (`./...`), so no server path is shown.
+    pub fn relative_to(self, work: &Path, input: &Path) -> Self {
+        let strip = |m: String| {
+            let (input, work) = (input.display().to_string(), work.display().to_string());
+            m.replace(&format!("{input}/"), "").replace(&input, ".").replace(&work, ".")
+        };
+        match self {
+            Self::Input(m) => Self::Input(strip(m)),
+            Self::Tool(m) => Self::Tool(strip(m)),
+            Self::Reconstruction(m) => Self::Reconstruction(strip(m)),
+            Self::Io { path, message } => {
+                Self::Io { path: PathBuf::from(strip(path.display().to_string())), message: strip(message) }
+            }
+            e @ (Self::TimedOut { .. } | Self::Cancelled) => e,
+        }
+    }
+
     /// A short machine-readable kind, for the API.
     pub fn kind(&self) -> &'static str {
         match self {
@@ -101,6 +140,13 @@ pub struct PoseOptions {
     pub matcher: Option<Matcher>,
     /// Frames taken from a video.
     pub frames: usize,
+    /// A working folder that outlives a crash of the process: the stages an
+    /// estimation finished there (photos or frames prepared, features,
+    /// matching, mapping; [`PROGRESS_FILE`]) are not run again by the next
+    /// estimation given it. It is removed when an estimation ends, unless
+    /// cancelled (a shutdown: the next run goes on). `None`: a fresh folder
+    /// beside the output, removed at the end.
+    pub resume_in: Option<PathBuf>,
 }
 
 impl Default for PoseOptions {
@@ -111,6 +157,7 @@ impl Default for PoseOptions {
             time_limit: DEFAULT_TIME_LIMIT,
             matcher: None,
             frames: video::DEFAULT_FRAMES,
+            resume_in: None,
         }
     }
 }
@@ -209,11 +256,30 @@ pub fn estimate(
     progress: &mut dyn FnMut(Progress),
     cancel: &AtomicBool,
 ) -> Result<PoseReport, PoseError> {
+    check_output(out)?;
+    let mut work = match &opts.resume_in {
+        Some(dir) => Work::kept(dir)?,
+        None => Work::new(out)?,
+    };
+    let result = estimate_in(&work, input, out, tools, opts, progress, cancel);
+    // A cancelled run of a kept folder (a shutdown) leaves it for the next.
+    work.keep = opts.resume_in.is_some() && matches!(result, Err(PoseError::Cancelled));
+    result
+}
+
+/// [`estimate`] in the working folder `work`.
+fn estimate_in(
+    work: &Work,
+    input: &Path,
+    out: &Path,
+    tools: &Tools,
+    opts: &PoseOptions,
+    progress: &mut dyn FnMut(Progress),
+    cancel: &AtomicBool,
+) -> Result<PoseReport, PoseError> {
     let started = Instant::now();
     let deadline = started + opts.time_limit;
-    check_output(out)?;
-    let work = Work::new(out)?;
-    let dataset = work.0.join("dataset");
+    let dataset = work.dir.join("dataset");
     let images = dataset.join("images");
     // Fractions never go back, even when COLMAP's counts do (the mapper
     // starts over from another image pair when a start fails).
@@ -226,9 +292,42 @@ pub fn estimate(
         progress(p);
     };
 
+    // What a run before a crash finished here (kept folders only).
+    let progress_file = work.dir.join(PROGRESS_FILE);
+    let mut saved: Saved = match &opts.resume_in {
+        Some(_) => std::fs::read(&progress_file).ok().and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default(),
+        None => Saved::default(),
+    };
+    let save = |saved: &Saved| -> Result<(), PoseError> {
+        if opts.resume_in.is_none() {
+            return Ok(());
+        }
+        let json = serde_json::to_vec(saved).map_err(|e| PoseError::io(&progress_file, e.into()))?;
+        write_atomic(&progress_file, &json).map_err(|e| PoseError::io(&progress_file, e))
+    };
+    if dataset.join("sparse").exists() {
+        // Cut short while the model kept was moved into the dataset: map again.
+        let _ = std::fs::remove_dir_all(dataset.join("sparse"));
+        saved.done.retain(|s| *s != Stage::Mapping);
+    }
+
     // 1. Photos, or a video's frames, into dataset/images.
-    let Gathered { source, names, size } =
-        gather(input, &work.0, &images, tools, opts, deadline, cancel, &mut report_stage)?;
+    let Gathered { source, names, size } = match saved.gathered.clone() {
+        Some(g) if images.is_dir() => {
+            report_stage(if g.source == "video" { Stage::Frames } else { Stage::Photos }, 1.0);
+            Gathered { source: if g.source == "video" { "video" } else { "photos" }, names: g.names, size: g.size }
+        }
+        _ => {
+            for d in [dataset.clone(), work.dir.join("candidates"), work.dir.join("colmap")] {
+                let _ = std::fs::remove_dir_all(d);
+            }
+            saved = Saved::default();
+            let g = gather(input, &work.dir, &images, tools, opts, deadline, cancel, &mut report_stage)?;
+            saved.gathered = Some(SavedGather { source: g.source.into(), names: g.names.clone(), size: g.size });
+            save(&saved)?;
+            g
+        }
+    };
     let mut seconds = StageSeconds { prepare: started.elapsed().as_secs_f64(), ..Default::default() };
 
     // 2. COLMAP.
@@ -241,7 +340,7 @@ pub fn estimate(
     sorted_names.sort();
     let run = colmap::Run {
         colmap: &tools.colmap,
-        work: &work.0.join("colmap"),
+        work: &work.dir.join("colmap"),
         images: &images,
         names: &sorted_names,
         threads: opts.threads.max(1),
@@ -250,7 +349,7 @@ pub fn estimate(
         cancel,
     };
     std::fs::create_dir_all(run.work).map_err(|e| PoseError::io(run.work, e))?;
-    run_steps(&run, started, &mut seconds, &mut report_stage)?;
+    run_steps(&run, started, &mut seconds, &mut report_stage, &mut saved, &save)?;
 
     // 3. The model to keep.
     report_stage(Stage::Checking, 0.0);
@@ -286,11 +385,12 @@ pub fn estimate(
     let json = serde_json::to_vec_pretty(&report).map_err(|e| PoseError::io(&dataset, e.into()))?;
     write_atomic(&dataset.join(REPORT_FILE), &json).map_err(|e| PoseError::io(&dataset, e))?;
     report_stage(Stage::Checking, 1.0);
-    work.finish(&dataset, out)?;
+    Work::finish(&dataset, out)?;
     Ok(report)
 }
 
-/// COLMAP's three steps, each timed into `seconds`. A mapper that found no
+/// COLMAP's three steps, each timed into `seconds`, skipping those `saved`
+/// holds as done (each one done is added and saved). A mapper that found no
 /// pair of photos to start from is not an error here: it leaves no model,
 /// which [`outcome::judge`] explains.
 fn run_steps(
@@ -298,12 +398,30 @@ fn run_steps(
     started: Instant,
     seconds: &mut StageSeconds,
     report_stage: &mut dyn FnMut(Stage, f32),
+    saved: &mut Saved,
+    save: &dyn Fn(&Saved) -> Result<(), PoseError>,
 ) -> Result<(), PoseError> {
     for (step, stage) in [
         (colmap::Step::Features, Stage::Features),
         (colmap::Step::Matching, Stage::Matching),
         (colmap::Step::Mapping, Stage::Mapping),
     ] {
+        if saved.done.contains(&stage) {
+            report_stage(stage, 1.0);
+            continue;
+        }
+        // What a run cut short left of this step: features are extracted
+        // again into a new database; matching goes on in the database
+        // (COLMAP skips the pairs it holds); mapping starts over.
+        let stale: &[&str] = match step {
+            colmap::Step::Features => &["database.db", "database.db-journal", "database.db-wal", "database.db-shm"],
+            colmap::Step::Matching => &[],
+            colmap::Step::Mapping => &["sparse"],
+        };
+        for name in stale {
+            let p = run.work.join(name);
+            let _ = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
+        }
         let t = Instant::now();
         report_stage(stage, 0.0);
         let result = run.step(step, &mut |f| report_stage(stage, f));
@@ -311,7 +429,8 @@ fn run_steps(
             && step == colmap::Step::Mapping
             && tail.iter().any(|l| l.contains("failed to create sparse model"))
         {
-            return Ok(());
+            saved.done.push(stage);
+            return save(saved);
         }
         result.map_err(|e| match e {
             process::RunError::Cancelled => PoseError::Cancelled,
@@ -326,6 +445,8 @@ fn run_steps(
             colmap::Step::Matching => seconds.matching = s,
             colmap::Step::Mapping => seconds.mapping = s,
         }
+        saved.done.push(stage);
+        save(saved)?;
     }
     Ok(())
 }
@@ -437,20 +558,28 @@ fn check_output(out: &Path) -> Result<(), PoseError> {
 }
 
 /// The working folder beside the output (same file system, so the finished
-/// dataset is renamed into place); removed when dropped.
-struct Work(PathBuf);
+/// dataset is renamed into place); removed when dropped unless `keep`.
+struct Work {
+    dir: PathBuf,
+    keep: bool,
+}
 
 impl Work {
     fn new(out: &Path) -> Result<Self, PoseError> {
         let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "dataset".into());
         let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
         let dir = out.with_file_name(format!(".{name}.posing-{}-{nanos}", std::process::id()));
-        std::fs::create_dir_all(&dir).map_err(|e| PoseError::io(&dir, e))?;
-        Ok(Self(dir))
+        Self::kept(&dir)
+    }
+
+    /// `dir`, made if missing, with what it holds.
+    fn kept(dir: &Path) -> Result<Self, PoseError> {
+        std::fs::create_dir_all(dir).map_err(|e| PoseError::io(dir, e))?;
+        Ok(Self { dir: dir.to_path_buf(), keep: false })
     }
 
     /// Moves the finished `dataset` to `out` (replacing an empty folder).
-    fn finish(self, dataset: &Path, out: &Path) -> Result<(), PoseError> {
+    fn finish(dataset: &Path, out: &Path) -> Result<(), PoseError> {
         if out.is_dir() {
             std::fs::remove_dir(out).map_err(|e| PoseError::io(out, e))?;
         }
@@ -460,6 +589,8 @@ impl Work {
 
 impl Drop for Work {
     fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
+        if !self.keep {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
     }
 }

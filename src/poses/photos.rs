@@ -28,6 +28,106 @@ pub const MAX_PHOTOS: usize = 2000;
 /// Folders deeper than this below the input are not searched.
 const MAX_DEPTH: usize = 4;
 
+/// Photos (and any image a client sends) declaring more pixels than this are
+/// refused from their header, before decoding: a PNG of a few kilobytes can
+/// declare 30000x30000 pixels, gigabytes once decoded. 50 megapixels holds
+/// the largest common phone photos (48 MP, 8064x6048); decoded at up to 8
+/// bytes a pixel (16-bit RGBA), one such photo stays under 400 MB.
+pub const MAX_PIXELS: u64 = 50_000_000;
+
+/// Photos whose shorter side (after downscaling) is below this are refused:
+/// COLMAP finds no features to match in them.
+pub const MIN_SIDE: u32 = 32;
+
+/// What an image's header tells, read without decoding its pixels.
+#[derive(Debug, Clone, Copy)]
+pub struct Header {
+    pub format: ImageFormat,
+    pub width: u32,
+    pub height: u32,
+    /// Bytes of a decoded pixel in the image's own colour type (3 for RGB
+    /// 8-bit, 8 for 16-bit RGBA).
+    pub bytes_per_pixel: u64,
+    /// Whether EXIF turns it a quarter turn (width and height swap).
+    pub transposed: bool,
+}
+
+impl Header {
+    pub fn pixels(&self) -> u64 {
+        self.width as u64 * self.height as u64
+    }
+
+    /// Bytes of the image decoded in its own colour type.
+    pub fn decoded_bytes(&self) -> u64 {
+        self.pixels() * self.bytes_per_pixel
+    }
+
+    /// Width and height once turned upright and downscaled so the longer
+    /// side is at most `max_size`: the size [`prepare`] writes.
+    pub fn prepared_size(&self, max_size: u32) -> (u32, u32) {
+        let (w, h) = if self.transposed { (self.height, self.width) } else { (self.width, self.height) };
+        downscaled(w, h, max_size)
+    }
+
+    /// Refuses an image that declares more than [`MAX_PIXELS`] (or none).
+    pub fn check_pixels(&self) -> Result<(), String> {
+        if self.width == 0 || self.height == 0 {
+            return Err(format!("is empty ({}x{} pixels)", self.width, self.height));
+        }
+        if self.pixels() > MAX_PIXELS {
+            return Err(format!(
+                "declares {}x{} pixels ({:.0} megapixels), more than the {} megapixels an image may have; \
+                 downscale it",
+                self.width,
+                self.height,
+                self.pixels() as f64 / 1e6,
+                MAX_PIXELS / 1_000_000
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The header of the JPEG or PNG at `path` (its pixels are not decoded);
+/// the error says what is wrong with the file.
+pub fn read_header(path: &Path) -> Result<Header, String> {
+    let reader = ImageReader::open(path).map_err(|e| e.to_string())?;
+    header_of(reader.with_guessed_format().map_err(|e| e.to_string())?)
+}
+
+fn header_of<R: std::io::BufRead + std::io::Seek>(reader: ImageReader<R>) -> Result<Header, String> {
+    let format = match reader.format() {
+        Some(f @ (ImageFormat::Jpeg | ImageFormat::Png)) => f,
+        _ => return Err("is not a JPEG or PNG image".into()),
+    };
+    let mut decoder = reader.into_decoder().map_err(|e| format!("cannot be read: {e}"))?;
+    header_from(format, &mut decoder)
+}
+
+fn header_from(format: ImageFormat, decoder: &mut impl ImageDecoder) -> Result<Header, String> {
+    use image::metadata::Orientation::*;
+    let (width, height) = decoder.dimensions();
+    let orientation = decoder.orientation().map_err(|e| format!("has an unreadable orientation: {e}"))?;
+    let transposed = matches!(orientation, Rotate90 | Rotate270 | Rotate90FlipH | Rotate270FlipH);
+    Ok(Header { format, width, height, bytes_per_pixel: decoder.color_type().bytes_per_pixel() as u64, transposed })
+}
+
+/// `(w, h)` scaled so the longer side is at most `max_size` (never below 1).
+fn downscaled(w: u32, h: u32, max_size: u32) -> (u32, u32) {
+    let scale = max_size as f64 / w.max(h) as f64;
+    if scale >= 1.0 {
+        return (w, h);
+    }
+    (((w as f64 * scale).round() as u32).max(1), ((h as f64 * scale).round() as u32).max(1))
+}
+
+/// The peak memory of preparing photos whose largest decodes to
+/// `largest_decoded` bytes on `workers` threads at once: each holds the
+/// decoded photo, its upright copy and the converted or downscaled one.
+pub fn prepare_memory(largest_decoded: u64, workers: usize) -> u64 {
+    largest_decoded.saturating_mul(3).saturating_mul(workers.max(1) as u64)
+}
+
 /// What a folder holds.
 #[derive(Debug, Default)]
 pub struct Found {
@@ -181,6 +281,13 @@ fn prepare_one(src: &Path, dst: &Path, name: &str, max_size: u32) -> Result<Prep
         _ => return Err(bad("is not a JPEG or PNG image".into())),
     };
     let mut decoder = reader.into_decoder().map_err(|e| bad(format!("cannot be read: {e}")))?;
+    // The size the header declares is checked before a pixel is decoded,
+    // and the decoder is held to it.
+    let header = header_from(format, &mut decoder).map_err(bad)?;
+    header.check_pixels().map_err(bad)?;
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(header.decoded_bytes().max(1 << 20).saturating_mul(2));
+    decoder.set_limits(limits).map_err(|e| bad(format!("cannot be decoded: {e}")))?;
     let orientation = decoder.orientation().map_err(|e| bad(format!("has an unreadable orientation: {e}")))?;
     let mut img = DynamicImage::from_decoder(decoder).map_err(|e| bad(format!("cannot be decoded: {e}")))?;
     if img.width() == 0 || img.height() == 0 {
@@ -189,15 +296,13 @@ fn prepare_one(src: &Path, dst: &Path, name: &str, max_size: u32) -> Result<Prep
     let upright = orientation == image::metadata::Orientation::NoTransforms;
     img.apply_orientation(orientation);
     let (w, h) = (img.width(), img.height());
-    let scale = max_size as f64 / w.max(h) as f64;
     let write_err = |e: image::ImageError| PoseError::Io { path: dst.to_path_buf(), message: e.to_string() };
-    if scale >= 1.0 && upright {
+    let (nw, nh) = downscaled(w, h, max_size);
+    if (nw, nh) == (w, h) && upright {
         std::fs::write(dst, &bytes).map_err(|e| PoseError::io(dst, e))?;
         return Ok(Prepared { name: name.to_string(), width: w, height: h, converted: false });
     }
-    if scale < 1.0 {
-        let nw = ((w as f64 * scale).round() as u32).max(1);
-        let nh = ((h as f64 * scale).round() as u32).max(1);
+    if (nw, nh) != (w, h) {
         img = img.resize_exact(nw, nh, image::imageops::FilterType::CatmullRom);
     }
     match format {
@@ -216,23 +321,36 @@ fn prepare_one(src: &Path, dst: &Path, name: &str, max_size: u32) -> Result<Prep
 /// All photos one size, or an error that counts each size and names a photo
 /// of each.
 fn check_one_size(prepared: &[Prepared]) -> Result<(), PoseError> {
-    let mut sizes: BTreeMap<(u32, u32), Vec<&str>> = BTreeMap::new();
-    for p in prepared {
-        sizes.entry((p.width, p.height)).or_default().push(&p.name);
+    let sizes: Vec<(&str, u32, u32)> = prepared.iter().map(|p| (p.name.as_str(), p.width, p.height)).collect();
+    check_sizes(&sizes).map_err(PoseError::Input)
+}
+
+/// Photos as `(name, width, height)` after downscaling: all one size and
+/// none too small, or an error that counts each size and names a photo of
+/// each (what [`prepare`] would find, told before it runs).
+pub fn check_sizes(sizes: &[(&str, u32, u32)]) -> Result<(), String> {
+    if let Some((name, w, h)) = sizes.iter().find(|(_, w, h)| (*w).min(*h) < MIN_SIDE) {
+        return Err(format!(
+            "photo '{name}' is {w}x{h} pixels; pose estimation needs photos at least {MIN_SIDE} pixels on each side"
+        ));
     }
-    if sizes.len() <= 1 {
+    let mut by_size: BTreeMap<(u32, u32), Vec<&str>> = BTreeMap::new();
+    for (name, w, h) in sizes {
+        by_size.entry((*w, *h)).or_default().push(name);
+    }
+    if by_size.len() <= 1 {
         return Ok(());
     }
-    let mut groups: Vec<_> = sizes.into_iter().collect();
+    let mut groups: Vec<_> = by_size.into_iter().collect();
     groups.sort_by_key(|(_, names)| std::cmp::Reverse(names.len()));
     let list: Vec<String> =
         groups.iter().map(|((w, h), names)| format!("{} at {w}x{h} (e.g. {})", names.len(), names[0])).collect();
-    Err(PoseError::Input(format!(
+    Err(format!(
         "the photos come in {} different sizes: {}; a scene needs photos from one camera at one orientation \
          (same size after downscaling): leave the others out",
         groups.len(),
         list.join(", ")
-    )))
+    ))
 }
 
 #[cfg(test)]
@@ -295,25 +413,25 @@ mod tests {
     fn bad_photo_sets_are_refused_by_name() {
         let d = tempfile::tempdir().unwrap();
         let src = d.path().join("in");
-        write_png(&src.join("only.png"), 8, 8);
+        write_png(&src.join("only.png"), 40, 40);
         let photos = scan(&src).unwrap().photos;
         let e = prepare(&src, &photos, &d.path().join("o1"), 800).unwrap_err().to_string();
         assert!(e.contains("1 photo found") && e.contains("at least 3"), "{e}");
 
-        write_png(&src.join("b.png"), 8, 8);
+        write_png(&src.join("b.png"), 40, 40);
         std::fs::write(src.join("c.jpg"), b"this is not a jpeg").unwrap();
         let photos = scan(&src).unwrap().photos;
         let e = prepare(&src, &photos, &d.path().join("o2"), 800).unwrap_err().to_string();
         assert!(e.contains("c.jpg") && e.contains("not a JPEG or PNG"), "{e}");
 
         std::fs::remove_file(src.join("c.jpg")).unwrap();
-        write_png(&src.join("tall.png"), 8, 12);
-        write_png(&src.join("tall2.png"), 8, 12);
-        write_png(&src.join("tall3.png"), 8, 12);
+        write_png(&src.join("tall.png"), 40, 60);
+        write_png(&src.join("tall2.png"), 40, 60);
+        write_png(&src.join("tall3.png"), 40, 60);
         let photos = scan(&src).unwrap().photos;
         let e = prepare(&src, &photos, &d.path().join("o3"), 800).unwrap_err().to_string();
-        assert!(e.contains("2 different sizes") && e.contains("3 at 8x12 (e.g. tall.png)"), "{e}");
-        assert!(e.contains("2 at 8x8 (e.g. b.png)"), "{e}");
+        assert!(e.contains("2 different sizes") && e.contains("3 at 40x60 (e.g. tall.png)"), "{e}");
+        assert!(e.contains("2 at 40x40 (e.g. b.png)"), "{e}");
     }
 
     #[test]
@@ -331,6 +449,75 @@ mod tests {
         assert_eq!(e, "2 videos found (a.mp4, b.mov); send one video, or photos");
         let e = found(&["a.jpg"], &["v.mp4"]).source().unwrap_err().to_string();
         assert!(e.starts_with("found both photos and a video"), "{e}");
+    }
+
+    /// A PNG of a few kilobytes whose header declares `w`x`h` RGB pixels
+    /// (its data, zeros, ends long before that).
+    fn bomb_png(w: u32, h: u32) -> Vec<u8> {
+        fn chunk(out: &mut Vec<u8>, kind: &[u8], data: &[u8]) {
+            out.extend((data.len() as u32).to_be_bytes());
+            let start = out.len();
+            out.extend(kind);
+            out.extend(data);
+            let crc = crc32fast::hash(&out[start..]);
+            out.extend(crc.to_be_bytes());
+        }
+        let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+        let mut ihdr = Vec::new();
+        ihdr.extend(w.to_be_bytes());
+        ihdr.extend(h.to_be_bytes());
+        ihdr.extend([8, 2, 0, 0, 0]);
+        chunk(&mut png, b"IHDR", &ihdr);
+        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+        std::io::Write::write_all(&mut z, &vec![0u8; 4 << 20]).unwrap();
+        chunk(&mut png, b"IDAT", &z.finish().unwrap());
+        chunk(&mut png, b"IEND", &[]);
+        png
+    }
+
+    #[test]
+    fn a_header_declaring_too_many_pixels_is_refused_before_decoding() {
+        let d = tempfile::tempdir().unwrap();
+        let src = d.path().join("in");
+        for k in 0..3 {
+            write_jpeg(&src.join(format!("p{k}.jpg")), 64, 48);
+        }
+        let bomb = bomb_png(30000, 30000);
+        assert!(bomb.len() < 10_000, "{} bytes", bomb.len());
+        std::fs::write(src.join("bomb.png"), &bomb).unwrap();
+        let h = read_header(&src.join("bomb.png")).unwrap();
+        assert_eq!((h.width, h.height, h.bytes_per_pixel, h.decoded_bytes()), (30000, 30000, 3, 2_700_000_000));
+        let e = h.check_pixels().unwrap_err();
+        assert!(e.contains("30000x30000") && e.contains("900 megapixels"), "{e}");
+        // Prepared as the poses job does: refused by name and declared size
+        // before decoding (a decode fails only later, as truncated).
+        let photos = scan(&src).unwrap().photos;
+        let err = prepare(&src, &photos, &d.path().join("out"), 800).unwrap_err().to_string();
+        assert!(err.contains("bomb.png") && err.contains("30000x30000"), "{err}");
+        // Just under the limit passes the header check.
+        let h = Header { width: 8000, height: 6250, ..h };
+        assert!(h.check_pixels().is_ok());
+        assert!(Header { width: 8001, ..h }.check_pixels().is_err());
+    }
+
+    #[test]
+    fn sizes_are_told_from_headers_upright_and_downscaled() {
+        let d = tempfile::tempdir().unwrap();
+        write_jpeg(&d.path().join("a.jpg"), 1600, 1200);
+        let h = read_header(&d.path().join("a.jpg")).unwrap();
+        assert_eq!(
+            (h.format, h.prepared_size(800), h.prepared_size(2000)),
+            (ImageFormat::Jpeg, (800, 600), (1600, 1200))
+        );
+        assert_eq!(Header { transposed: true, ..h }.prepared_size(800), (600, 800));
+        std::fs::write(d.path().join("t.png"), b"not an image").unwrap();
+        let e = read_header(&d.path().join("t.png")).unwrap_err();
+        assert!(e.starts_with("cannot be read"), "{e}");
+        let e = check_sizes(&[("a.jpg", 800, 600), ("b.jpg", 1, 1), ("c.jpg", 800, 600)]).unwrap_err();
+        assert!(e.contains("'b.jpg' is 1x1 pixels") && e.contains("at least 32"), "{e}");
+        let e = check_sizes(&[("a.jpg", 800, 600), ("b.jpg", 600, 800), ("c.jpg", 800, 600)]).unwrap_err();
+        assert!(e.contains("2 different sizes: 2 at 800x600 (e.g. a.jpg), 1 at 600x800 (e.g. b.jpg)"), "{e}");
+        assert!(check_sizes(&[("a.jpg", 800, 600), ("c.jpg", 800, 600)]).is_ok());
     }
 
     #[test]

@@ -79,11 +79,17 @@ pub fn extract(
     if frames < super::photos::MIN_PHOTOS {
         return Err(PoseError::Input(format!("--frames must be at least {}", super::photos::MIN_PHOTOS)));
     }
-    let duration = probe_duration(tools, video, deadline, cancel)?;
+    let (duration, packets) = probe_duration(tools, video, deadline, cancel)?;
+    let shown = video.file_name().map_or_else(|| video.display().to_string(), |n| n.to_string_lossy().into_owned());
+    if packets.is_some_and(|n| n < super::photos::MIN_PHOTOS as u64) {
+        let n = packets.unwrap_or(0);
+        return Err(too_few(&shown, n, n));
+    }
     let candidates_dir = scratch.to_path_buf();
     std::fs::create_dir_all(&candidates_dir).map_err(|e| PoseError::io(&candidates_dir, e))?;
     std::fs::create_dir_all(out).map_err(|e| PoseError::io(out, e))?;
-    let wanted = frames * CANDIDATES_PER_FRAME;
+    // No more candidates than the video has frames: more would repeat them.
+    let wanted = (frames * CANDIDATES_PER_FRAME).min(packets.map_or(usize::MAX, |n| n as usize));
     let rate = wanted as f64 / duration;
     let scale =
         format!("fps={rate:.6},scale='if(gt(iw,ih),min({max_size},iw),-2)':'if(gt(iw,ih),-2,min({max_size},ih))'");
@@ -108,6 +114,19 @@ pub fn extract(
         .filter(|p| p.extension().is_some_and(|x| x == "jpg"))
         .collect();
     names.sort();
+    // A candidate the same as the one before (a still, or a frame repeated
+    // to fill the rate) is no new view.
+    let before = names.len();
+    let mut last: Option<Vec<u8>> = None;
+    names.retain(|p| {
+        let bytes = std::fs::read(p).ok();
+        let repeat = bytes.is_some() && bytes == last;
+        last = bytes;
+        !repeat
+    });
+    if names.len() < super::photos::MIN_PHOTOS && before >= super::photos::MIN_PHOTOS {
+        return Err(too_few(&shown, before as u64, names.len() as u64));
+    }
     if names.len() < super::photos::MIN_PHOTOS {
         return Err(PoseError::Input(format!(
             "the video '{}' gave only {} frame(s); it needs to be longer or have more frames",
@@ -127,23 +146,147 @@ pub fn extract(
     Ok(written)
 }
 
-/// The video's duration in seconds, from ffprobe.
-fn probe_duration(tools: &Ffmpeg, video: &Path, deadline: Instant, cancel: &AtomicBool) -> Result<f64, PoseError> {
+/// What [`probe`] found out about a video.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Probe {
+    pub width: u32,
+    pub height: u32,
+    pub duration: f64,
+    /// Frames in the file (packets of its video stream).
+    pub frames: u64,
+    /// Frames that differ from the one before (ffmpeg's `mpdecimate`);
+    /// `None` when decoding them all did not finish in time.
+    pub distinct: Option<u64>,
+}
+
+/// The longest a [`probe`] decodes the whole video to count its distinct
+/// frames.
+pub const PROBE_DECODE_LIMIT: Duration = Duration::from_secs(60);
+
+/// Reads `video` as a pose estimation would take it, without writing a
+/// frame: ffprobe counts its frames (all of them there: a file cut short
+/// lists frames its index holds and its data does not), then ffmpeg decodes
+/// it small, through `mpdecimate`, to count the frames that differ (a
+/// still or a one-frame clip gives no two views). Errors name the problem
+/// and the file as `shown`; `deadline` bounds both runs.
+pub fn probe(tools: &Ffmpeg, video: &Path, shown: &str, deadline: Instant) -> Result<Probe, PoseError> {
+    let cancel = AtomicBool::new(false);
+    let bad = |m: String| PoseError::Input(format!("'{shown}' {m}"));
     let mut cmd = Command::new(&tools.ffprobe);
-    cmd.args(["-v", "error", "-show_entries", "format=duration", "-of", "default=noprint_wrappers=1:nokey=1"]);
+    cmd.args(["-v", "error", "-select_streams", "v:0", "-count_packets", "-show_entries"]);
+    cmd.args(["stream=width,height,nb_frames,nb_read_packets:format=duration", "-of", "default=noprint_wrappers=1"]);
     cmd.arg(video);
-    let mut value = None;
-    process::run(cmd, deadline, cancel, &mut |l| {
-        if let Ok(v) = l.trim().parse::<f64>() {
-            value = Some(v);
+    let mut fields = std::collections::BTreeMap::new();
+    let mut errors = Vec::new();
+    let ran = process::run(cmd, deadline, &cancel, &mut |l| match l.split_once('=') {
+        Some((k, v)) if !k.contains(' ') => {
+            fields.insert(k.to_string(), v.trim().to_string());
         }
+        _ if !l.trim().is_empty() && errors.len() < 3 => {
+            errors.push(l.trim().replace(&*video.to_string_lossy(), shown))
+        }
+        _ => {}
+    });
+    let why = || if errors.is_empty() { String::new() } else { format!(" ({})", errors.join("; ")) };
+    match ran {
+        Ok(()) => {}
+        Err(RunError::TimedOut { .. }) => return Err(bad("could not be read in time".into())),
+        Err(_) => return Err(bad(format!("is not a video ffmpeg can read{}", why()))),
+    }
+    let num = |k: &str| fields.get(k).and_then(|v| v.parse::<f64>().ok()).filter(|v| v.is_finite());
+    let (Some(width), Some(height)) = (num("width"), num("height")) else {
+        return Err(bad(format!("holds no video stream{}", why())));
+    };
+    let (width, height) = (width as u32, height as u32);
+    let frames = num("nb_read_packets").unwrap_or(0.0) as u64;
+    if let Some(listed) = num("nb_frames").map(|n| n as u64)
+        && listed > frames
+    {
+        return Err(bad(format!("is cut short: its index lists {listed} frames, the file holds {frames}")));
+    }
+    let pixels = width as u64 * height as u64;
+    if pixels == 0 || pixels > super::photos::MAX_PIXELS {
+        return Err(bad(format!(
+            "has frames of {width}x{height} pixels; a video's frames may have at most {} megapixels",
+            super::photos::MAX_PIXELS / 1_000_000
+        )));
+    }
+    let duration = num("duration").filter(|d| *d > 0.0).unwrap_or(0.0);
+    if frames < super::photos::MIN_PHOTOS as u64 {
+        return Err(too_few(shown, frames, frames));
+    }
+    // Every frame decoded, small, duplicates dropped: what is left counts.
+    let mut cmd = Command::new(&tools.ffmpeg);
+    cmd.args(["-nostdin", "-v", "error", "-progress", "pipe:1", "-i"]).arg(video);
+    cmd.args(["-map", "0:v:0", "-vf", "scale=160:-2,mpdecimate", "-fps_mode", "passthrough", "-f", "null", "-"]);
+    let (mut distinct, mut errors) = (0u64, Vec::new());
+    let decode_deadline = deadline.min(Instant::now() + PROBE_DECODE_LIMIT);
+    let ran = process::run(cmd, decode_deadline, &cancel, &mut |l| match l.split_once('=') {
+        Some(("frame", n)) => distinct = n.trim().parse().unwrap_or(distinct),
+        Some((k, _)) if !k.contains(' ') => {}
+        _ if !l.trim().is_empty() && errors.len() < 3 => {
+            errors.push(l.trim().replace(&*video.to_string_lossy(), shown))
+        }
+        _ => {}
+    });
+    let distinct = match ran {
+        Err(RunError::TimedOut { .. }) => None,
+        Err(e) => return Err(bad(format!("cannot be decoded: {e}"))),
+        Ok(()) if !errors.is_empty() => {
+            return Err(bad(format!("is damaged: ffmpeg could not decode it ({})", errors.join("; "))));
+        }
+        Ok(()) => Some(distinct),
+    };
+    if let Some(d) = distinct
+        && d < super::photos::MIN_PHOTOS as u64
+    {
+        return Err(too_few(shown, frames, d));
+    }
+    Ok(Probe { width, height, duration, frames, distinct })
+}
+
+/// A video with fewer distinct frames than pose estimation needs.
+fn too_few(shown: &str, frames: u64, distinct: u64) -> PoseError {
+    let all = if distinct == frames { String::new() } else { format!(" ({frames} in all, the rest repeats)") };
+    PoseError::Input(format!(
+        "'{shown}' has {distinct} distinct frame{}{all}; pose estimation needs at least {} views of the scene \
+         from different places: film a longer walk around it",
+        if distinct == 1 { "" } else { "s" },
+        super::photos::MIN_PHOTOS
+    ))
+}
+
+/// The memory decoding a video of `width`x`height` frames takes: ffmpeg's
+/// frames in flight (its threads, the reference frames and the filter
+/// chain, about 40 frames of 1.5 bytes a pixel at most).
+pub fn decode_memory(width: u32, height: u32) -> u64 {
+    (width as u64 * height as u64 * 3 / 2).saturating_mul(40)
+}
+
+/// The video's duration in seconds and the frames (packets) of its video
+/// stream, from ffprobe.
+fn probe_duration(
+    tools: &Ffmpeg,
+    video: &Path,
+    deadline: Instant,
+    cancel: &AtomicBool,
+) -> Result<(f64, Option<u64>), PoseError> {
+    let mut cmd = Command::new(&tools.ffprobe);
+    cmd.args(["-v", "error", "-select_streams", "v:0", "-count_packets"]);
+    cmd.args(["-show_entries", "format=duration:stream=nb_read_packets", "-of", "default=noprint_wrappers=1"]);
+    cmd.arg(video);
+    let (mut value, mut packets) = (None, None);
+    process::run(cmd, deadline, cancel, &mut |l| match l.trim().split_once('=') {
+        Some(("duration", v)) => value = v.parse::<f64>().ok(),
+        Some(("nb_read_packets", v)) => packets = v.parse::<u64>().ok(),
+        _ => {}
     })
     .map_err(|e| match e {
         RunError::Cancelled => PoseError::Cancelled,
         e => PoseError::Input(format!("'{}' is not a video ffmpeg can read: {e}", video.display())),
     })?;
     match value {
-        Some(d) if d.is_finite() && d > 0.0 => Ok(d),
+        Some(d) if d.is_finite() && d > 0.0 => Ok((d, packets)),
         _ => Err(PoseError::Input(format!("'{}' has no duration: is it a video?", video.display()))),
     }
 }

@@ -7,6 +7,7 @@ mod common;
 
 mod appearance;
 mod auth;
+mod hostile;
 mod jobs;
 mod openapi;
 mod poses;
