@@ -301,6 +301,25 @@ fn front_of(dirs: &[V], up: V, a_mean: V) -> V {
         })
 }
 
+/// The frame of the small spiral a forward-facing capture's default video
+/// follows: centred on the cameras' mean centre `c_mean`, in the plane
+/// across the mean axis `a_mean` (right from the cameras' mean right, up
+/// from both; `up` where they fail), its half-widths the 90th percentile
+/// of the cameras' distances from the centre along each (at least 1% of
+/// `radius`).
+fn spiral_of(cams: &[Cam], c_mean: V, a_mean: V, mean_right: V, up: V, radius: f64) -> Spiral {
+    let mean_up = unit(cross(scale(a_mean, -1.0), mean_right)).unwrap_or(up);
+    let mean_right = cross(mean_up, scale(a_mean, -1.0));
+    let along = |axis: V| percentile(cams.iter().map(|c| dot(sub(c.0, c_mean), axis).abs()).collect(), 0.9);
+    let floor = 0.01 * radius.max(1e-6);
+    Spiral {
+        centre: f(c_mean),
+        right: f(mean_right),
+        up: f(mean_up),
+        half_widths: [along(mean_right).max(floor) as f32, along(mean_up).max(floor) as f32],
+    }
+}
+
 impl CameraRig {
     /// The rig of cameras given as camera-to-world matrices (OpenGL axes:
     /// the camera looks down -z, +y is up). `near`/`far` bound the scene
@@ -360,10 +379,6 @@ impl CameraRig {
         let arc = covered_arc(azimuths, ARC_GAP_DEG as f64).filter(|_| !forward_facing);
 
         let mean_right = unit(mean(&|c| c.3)).unwrap_or([1.0, 0.0, 0.0]);
-        let mean_up = unit(cross(scale(a_mean, -1.0), mean_right)).unwrap_or(up);
-        let mean_right = cross(mean_up, scale(a_mean, -1.0));
-        let along = |axis: V| percentile(cams.iter().map(|c| dot(sub(c.0, c_mean), axis).abs()).collect(), 0.9);
-        let floor = 0.01 * radius.max(1e-6);
         Some(Self {
             focus: f(focus),
             focus_from,
@@ -373,12 +388,7 @@ impl CameraRig {
             front: f(front),
             spread_deg: spread as f32,
             forward_facing,
-            spiral: Spiral {
-                centre: f(c_mean),
-                right: f(mean_right),
-                up: f(mean_up),
-                half_widths: [along(mean_right).max(floor) as f32, along(mean_up).max(floor) as f32],
-            },
+            spiral: spiral_of(&cams, c_mean, a_mean, mean_right, up, radius),
             image: [0, 0],
             fov_deg: 0.0,
             frames: cams
