@@ -112,7 +112,7 @@ pub struct VideoSpec {
     /// over their times; each keyframe has its own field of view).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub path: Option<CameraPath>,
-    /// The frames' appearance (`render::appearance`): the mean of the
+    /// The frames' appearance (`view::appearance`): the mean of the
     /// images trained on (left out of the record), or one image's.
     #[serde(default, skip_serializing_if = "Appearance::is_mean")]
     pub appearance: Appearance,

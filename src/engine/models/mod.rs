@@ -1,10 +1,10 @@
-//! Models: a field, a sampler and settings, wired together in one file per
+//! Models: a field, a sampler and settings, wired together in one folder per
 //! kind, and what every model offers the trainer, the renderer and
 //! checkpoints ([`Model`]).
 //!
-//! Adding a model is one file here (its config, a [`Model`] impl built from
-//! the parts in `fields`, `sampling`, `render` and `train::pass`), one arm of
-//! [`config::ModelConfig`] and its presets.
+//! Adding a model is its folder (its config, a [`Model`] impl built from
+//! the parts in `fields`, `sampling`, `render` and `models::pass`) and one
+//! line of `config`'s `registry!` (docs/architecture.md, "Adding a model").
 
 pub mod auto;
 pub mod capture;
@@ -89,7 +89,7 @@ pub struct RenderOptions {
     /// The training image whose appearance embedding the view takes;
     /// `None`: the mean embedding of the images trained on. The engine's
     /// choice of it (a user's `mean`, index or `nearest`, checked against
-    /// the model) is `render::appearance`.
+    /// the model) is `view::appearance`.
     pub image: Option<u32>,
 }
 

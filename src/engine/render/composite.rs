@@ -28,7 +28,7 @@ pub fn optical_depth(sigma: f32, delta: f32) -> f32 {
 
 /// The transmittance along a ray, interval by interval: the weights of
 /// [`composite`] and [`composite`], which rendering in rounds
-/// (`render::rounds`, and the proposal levels in `train::capture_levels`)
+/// (`render::rounds`, and the capture model's proposal levels, `models::capture::levels`)
 /// also takes, resuming where a round ended.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Transmittance {

@@ -6,7 +6,7 @@
 //! and their mean squared error is an unbiased estimate of the views'.
 //!
 //! Each view's pixels render with the appearance its whole view is scored
-//! with (`render::appearance::held_out_options`: the nearest training
+//! with (`view::appearance::held_out_options`: the nearest training
 //! camera's, for a model with per-image appearance), so the chart agrees
 //! with `eval` and the training job's final number.
 

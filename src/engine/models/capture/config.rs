@@ -61,7 +61,7 @@ pub struct CaptureConfig {
     pub space: Space,
     /// With `space: ndc`, the reference camera in model units: not a
     /// setting, but derived from the training cameras when a model is built
-    /// (`capture_space::resolve`) and stored with its configuration, so a
+    /// (`space::resolve`) and stored with its configuration, so a
     /// checkpoint reloads, resumes and renders with the map it was trained
     /// with. `None` (and not written) otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -7,15 +7,15 @@
 //!   `camera_radius` from it; a scene contraction maps all of space into the
 //!   grids' cube (`fields::space`), so the background is modelled too. For
 //!   forward-facing captures, `space: ndc` maps the mean training camera's
-//!   frustum there instead (`capture_space`).
+//!   frustum there instead (`space`).
 //! - **Sampling**: proposal networks (`fields::proposal`) place each ray's
-//!   samples over the ray-distance warp (`train::capture_levels`); the last
+//!   samples over the ray-distance warp (`levels`); the last
 //!   interval of a ray is opaque (photographs have no see-through pixels).
 //! - **Field**: the fast model's networks in contracted space with a
 //!   per-image appearance embedding (`fields::capture`); a new view takes
 //!   the mean embedding of the images trained on, or one image's
-//!   ([`RenderOptions::image`], chosen by `render::appearance`).
-//! - **Training**: `train::capture_pass` (colour, distortion and interlevel
+//!   ([`RenderOptions::image`], chosen by `view::appearance`).
+//! - **Training**: `pass` (colour, distortion and interlevel
 //!   losses); **rendering**: the shared loop (`render::rounds`) over the
 //!   final samples, with early termination and dropped colours.
 //! - **Poses** (`pose_refine`): each training image's camera is corrected
@@ -24,7 +24,7 @@
 //!   by the training cameras' common drift ([`PoseRefinement::heldout_pose`]), and
 //!   [`CaptureModel::pose_report`] says how far the cameras moved.
 //!
-//! The configuration and its checks are in `capture_config`.
+//! The configuration and its checks are in `config`.
 //!
 
 pub mod config;
@@ -199,7 +199,7 @@ struct RenderTables {
 impl CaptureModel {
     /// A fresh model for `scene` (as the dataset gives it; normalised by
     /// [`capture_scene`]). With `space: ndc`, its NDC camera comes from the
-    /// scene's training cameras (`capture_space::resolve`), and a scene
+    /// scene's training cameras (`space::resolve`), and a scene
     /// that cannot give one is refused.
     pub fn new(config: CaptureConfig, scene: Scene, seed: u64) -> Result<Self, ModelError> {
         let config = resolve(config, &scene)?;
@@ -529,7 +529,7 @@ impl Model for CaptureModel {
 
     /// Renders with the appearance `options` names: an image's embedding
     /// (zero for an image beyond the table, or one never trained on:
-    /// `render::appearance` refuses those before they get here), or the
+    /// `view::appearance` refuses those before they get here), or the
     /// mean of the images trained on.
     fn render_rays(
         &self,

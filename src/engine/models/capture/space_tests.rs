@@ -1,4 +1,4 @@
-//! Unit tests of `capture_space.rs`: the NDC camera against the training
+//! Unit tests of `space.rs`: the NDC camera against the training
 //! cameras' own poses (what lands on the near plane, the image's corners
 //! and infinity), the refusals, and the configuration as checkpoints store
 //! it.

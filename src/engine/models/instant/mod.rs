@@ -1,7 +1,7 @@
 //! The fast model (Instant-NGP): the hash-grid field (`fields::hash_grid`)
 //! sampled by constant steps through the cells an occupancy grid marks
 //! occupied (`sampling::marcher`), trained with the shared pass
-//! (`train::pass`) and rendered by the shared loop (`render::rounds`).
+//! (`models::pass`) and rendered by the shared loop (`render::rounds`).
 //!
 //! What a scene does not need is skipped: rays are clipped to the scene box,
 //! empty cells are stepped over, and when rendering the colour network runs

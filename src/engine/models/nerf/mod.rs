@@ -2,7 +2,7 @@
 //! (`fields::mlp`), stratified coarse samples and fine samples drawn from
 //! the coarse weights along the occupied part of each ray
 //! (`sampling::hierarchical`), both fields trained with the shared pass
-//! (`train::pass`); views are rendered by the shared loop
+//! (`models::pass`); views are rendered by the shared loop
 //! (`render::rounds`) over the fine samples.
 
 pub mod config;
