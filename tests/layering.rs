@@ -374,12 +374,14 @@ fn top_level_files_use_engine_parts_through_super() {
     assert!(p[0].contains("batch.rs:2: `batch` uses `train`"), "{p:?}");
 }
 
-/// The names users pick a model by, outside the engine, are the registry's
-/// presets exactly (`models::config::presets`): openapi.yaml's enum and the
-/// web app's picker, each after `auto`.
+/// The names users pick a model to train by, outside the engine, are the
+/// registry's trainable presets exactly (`models::config::trainable_presets`:
+/// splats are baked, not trained): openapi.yaml's enum and the web app's
+/// picker, each after `auto`.
 #[test]
 fn user_facing_model_lists_are_the_registrys_presets() {
-    let presets: Vec<String> = radiance::engine::models::config::presets().into_iter().map(String::from).collect();
+    let presets: Vec<String> =
+        radiance::engine::models::config::trainable_presets().into_iter().map(String::from).collect();
     let mut want = vec!["auto".to_string()];
     want.extend(presets.iter().cloned());
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));

@@ -14,7 +14,7 @@ use serde::Deserialize;
 use super::{ApiError, ApiResult, AppState, limits};
 use crate::engine::dataset::MaskUse;
 use crate::engine::models::auto::{self, AUTO, ModelChoice};
-use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, presets};
+use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, trainable_presets};
 use crate::engine::train::estimate;
 use crate::jobs::train::load_dataset;
 use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, check_trainable};
@@ -62,8 +62,8 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
         (AUTO, None, None) => return Err(ApiError::internal("the model for 'auto' was not chosen")),
         (name, _, _) => (name.to_string(), None),
     };
-    let allowed = || format!("{AUTO}, {}", presets().join(", "));
-    let mut config = ModelConfig::preset(&model).ok_or_else(|| {
+    let allowed = || format!("{AUTO}, {}", trainable_presets().join(", "));
+    let mut config = ModelConfig::preset(&model).filter(|c| c.spec().trains_on_rays()).ok_or_else(|| {
         let message = format!("unknown model '{}' (available: {})", r.model, allowed());
         ApiError::bad_field(message, "model", &r.model, &allowed())
     })?;
@@ -74,6 +74,10 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
             return Err(ApiError::bad_field(message, "config.kind", c.kind(), config.kind()));
         }
         config = c;
+    }
+    if !config.spec().trains_on_rays() {
+        let message = format!("a '{}' model is baked from a trained model, not trained", config.kind());
+        return Err(ApiError::bad_field(message, "config.kind", config.kind(), &allowed()));
     }
     config.check().map_err(config_error)?;
     let b = r.budget;

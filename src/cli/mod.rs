@@ -1,4 +1,4 @@
-//! The command line: `radiance demo | train | render | eval | bench | poses | serve`.
+//! The command line: `radiance demo | train | render | bake | export | eval | bench | poses | video | serve`.
 
 use std::path::PathBuf;
 
@@ -10,6 +10,7 @@ mod eval;
 mod poses;
 mod serve;
 mod setup;
+mod splats;
 mod train;
 mod video;
 
@@ -18,6 +19,7 @@ pub use demo::DemoArgs;
 pub use eval::{EvalArgs, RenderArgs};
 pub use poses::PosesArgs;
 pub use serve::ServeArgs;
+pub use splats::{BakeArgs, ExportArgs};
 pub use train::TrainArgs;
 pub use video::VideoArgs;
 
@@ -37,6 +39,10 @@ pub enum Command {
     Train(TrainArgs),
     /// Render every view of a split to PNG files named by the frames' file stems.
     Render(RenderArgs),
+    /// Turn a trained model into 3D Gaussian splats (rendered in real time, exported to splat viewers).
+    Bake(BakeArgs),
+    /// Write a splats model as a .ply (3DGS layout) or .splat file.
+    Export(ExportArgs),
     /// Render a split and print PSNR and SSIM against its ground truth.
     Eval(EvalArgs),
     /// Train each model once and score its test views at several training-time budgets.
@@ -139,6 +145,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(a) => demo::run(a),
         Command::Train(a) => train::run(a),
         Command::Render(a) => eval::render(a),
+        Command::Bake(a) => splats::bake_cmd(a),
+        Command::Export(a) => splats::export_cmd(a),
         Command::Eval(a) => eval::eval(a),
         Command::Bench(a) => bench::run(a),
         Command::Poses(a) => poses::run(a),

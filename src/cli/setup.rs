@@ -13,7 +13,7 @@ pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
 
 /// The names `--model` accepts besides `auto`: the presets (each model
 /// kind is one, and `auto` may choose `capture-360`).
-use crate::engine::models::config::presets;
+use crate::engine::models::config::trainable_presets as presets;
 
 /// Refuses a `--model` that is neither `auto` nor a preset.
 pub fn check_model_name(name: &str) -> anyhow::Result<()> {

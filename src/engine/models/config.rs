@@ -10,6 +10,7 @@ use crate::engine::geometry::scene::Scene;
 use crate::engine::models::capture::CaptureConfig;
 use crate::engine::models::instant::InstantConfig;
 use crate::engine::models::nerf::NerfConfig;
+use crate::engine::models::splats::SplatsConfig;
 use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::{Adam, AdamConfig};
@@ -30,6 +31,11 @@ pub trait ModelSpec {
     /// A model with saved parameters (its state then comes back through
     /// `Model::restore_state`).
     fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError>;
+    /// Whether the trainer can train the kind from rays (`Model::train_rays`);
+    /// `false` for a kind made another way (splats, by `train::bake`).
+    fn trains_on_rays(&self) -> bool {
+        true
+    }
     /// The optimiser's settings.
     fn adam(&self) -> AdamConfig;
     /// Whether training composites RGBA images on a random colour per ray
@@ -104,6 +110,14 @@ registry! {
     /// Real captures: contracted unbounded space, proposal sampling,
     /// per-image appearance.
     Capture(CaptureConfig) = capture,
+    /// 3D Gaussian splats baked from a trained model, rasterised.
+    Splats(SplatsConfig) = splats,
+}
+
+/// The presets a training run can start from ([`presets`] of the kinds
+/// that train on rays; splats are baked from one of them instead).
+pub fn trainable_presets() -> Vec<&'static str> {
+    presets().into_iter().filter(|p| ModelConfig::preset(p).is_some_and(|c| c.spec().trains_on_rays())).collect()
 }
 
 /// Rays per optimisation step for `nerf` (the fast model adapts its number of
@@ -285,6 +299,12 @@ mod tests {
         for name in presets() {
             let c = ModelConfig::preset(name).unwrap();
             c.check().unwrap_or_else(|e| panic!("{name}: {e}"));
+            if !c.spec().trains_on_rays() {
+                // Made by baking: building one fresh is refused, saying so.
+                let e = c.build(ds.scene(), 1).err().expect("refused");
+                assert!(e.to_string().contains("bake"), "{name}: {e}");
+                continue;
+            }
             let (m, adam) = c.build_with_adam(ds.scene(), 1, None).unwrap();
             assert_eq!(m.kind(), c.kind());
             assert_eq!(adam.m.len(), m.params().len());

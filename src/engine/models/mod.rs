@@ -12,6 +12,7 @@ pub mod config;
 pub mod instant;
 pub mod nerf;
 pub mod pass;
+pub mod splats;
 pub mod training;
 
 /// The accessors every model implements alike, inside its `impl Model`:
@@ -95,7 +96,7 @@ pub struct RenderOptions {
 
 /// A trainable radiance field.
 pub trait Model: Send + Sync {
-    /// "instant", "nerf" or "capture".
+    /// "instant", "nerf", "capture" or "splats".
     fn kind(&self) -> &'static str;
     fn scene(&self) -> &Scene;
     fn params(&self) -> &[f32];
@@ -156,6 +157,11 @@ pub trait Model: Send + Sync {
     /// Per-image appearance ([`Appearance`]); `None` (the default) for a
     /// model whose every view looks alike.
     fn appearance(&self) -> Option<&dyn Appearance> {
+        None
+    }
+    /// Whole views drawn at once ([`splats::Rasteriser`]) rather than ray
+    /// by ray; `None` (the default) for a model that renders rays.
+    fn rasteriser(&self) -> Option<&dyn splats::Rasteriser> {
         None
     }
 }

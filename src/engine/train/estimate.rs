@@ -160,7 +160,7 @@ mod tests {
     #[test]
     fn parameter_counts_match_the_built_models() {
         let ds = BallScene { size: 8, views: 2, ..Default::default() }.dataset();
-        for name in crate::engine::models::config::presets() {
+        for name in crate::engine::models::config::trainable_presets() {
             let c = ModelConfig::preset(name).unwrap();
             let m = c.build(ds.scene(), 1).unwrap();
             let e = training(&c, DataSize::uniform(2, 8, 8), 2);

@@ -16,6 +16,7 @@ use std::time::Instant;
 use crate::engine::dataset::Dataset;
 use crate::engine::io::checkpoint::CheckpointError;
 use crate::engine::models::Model;
+use crate::engine::models::config::ModelConfig;
 use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::adam::Adam;
 use crate::engine::train::heldout::HeldOutPixels;
@@ -110,6 +111,10 @@ pub enum SessionError {
     WrongKind { path: PathBuf, expected: String, found: String },
     #[error("saving the checkpoint: {0}")]
     Save(CheckpointError),
+    /// The checkpoint holds a kind the trainer cannot train from rays
+    /// (splats: they are baked).
+    #[error("{} holds a '{kind}' model, which is made by `radiance bake`, not trained from rays", .path.display())]
+    NotTrainable { path: PathBuf, kind: String },
 }
 
 /// The held-out pixels and when to render them next.
@@ -156,6 +161,9 @@ impl<'a> Session<'a> {
                     && r.model.kind() != expected
                 {
                     return Err(SessionError::WrongKind { path: from, expected, found: r.model.kind().into() });
+                }
+                if ModelConfig::of_model(&*r.model).is_some_and(|c| !c.spec().trains_on_rays()) {
+                    return Err(SessionError::NotTrainable { path: from, kind: r.model.kind().into() });
                 }
                 // Why the model is what it is stays with it.
                 if config.train.model_choice.is_none() {

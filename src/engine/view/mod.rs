@@ -85,6 +85,22 @@ pub fn render_view_until(
 ) -> Option<View> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let scene = model.scene();
+    let inv = 1.0 / scene.scale;
+    if let Some(r) = model.rasteriser() {
+        // Drawn whole, in a fraction of a ray-marched view's time: nothing
+        // to cancel part-way.
+        let (rgb, depth, opacity) = r.render_view(camera, background);
+        let stats = BatchStats { rays: (w * h) as u64, ..Default::default() };
+        let depth = depth.iter().map(|d| d * inv).collect();
+        return (!cancel.load(Ordering::Relaxed)).then_some(View {
+            width: camera.width,
+            height: camera.height,
+            rgb,
+            depth,
+            opacity,
+            stats,
+        });
+    }
     let order = block_order(w, h);
     let rays: Vec<Ray> = order.iter().map(|&(x, y)| camera.pixel_ray(x as u32, y as u32)).collect();
     let (blocked, stats) = render_rays_until(model, &rays, background, options, cancel)?;
@@ -92,7 +108,6 @@ pub fn render_view_until(
     for (&(x, y), o) in order.iter().zip(blocked) {
         out[y * w + x] = o;
     }
-    let inv = 1.0 / scene.scale;
     Some(View {
         width: camera.width,
         height: camera.height,

@@ -1,0 +1,356 @@
+//! The rasteriser's backward ([`raster::forward`](super::raster::forward)'s
+//! derivative): from the gradient of a loss with respect to a view's
+//! colours to every Gaussian's parameters. Each tile walks its pixels'
+//! Gaussians back to front (the 3DGS paper's order, which needs no stored
+//! per-pixel lists: the transmittance is divided back out) and keeps one
+//! gradient per entry of its list; the entries are then summed per
+//! Gaussian, and each Gaussian's projection is differentiated on its own.
+
+use rayon::prelude::*;
+
+use super::gaussians::{Layout, SH_C0, covariance, rotation_backward, rotation_matrix, unit_quat};
+use super::raster::{Frame, MAX_ALPHA, Projected, RasterCamera, RasterOptions, TILE, jacobian, jw, sym};
+use crate::engine::nn::sh;
+
+/// The gradient of a loss with respect to one Gaussian's projection:
+/// mean (2), conic (3), opacity, colour (3).
+pub type ScreenGrad = [f32; 9];
+
+/// Adds to `grads` (laid out as the parameters) the gradient of a loss
+/// whose gradient with respect to `frame`'s colours (`[h x w x 3]`) is
+/// `d_rgb`. Returns each Gaussian's screen-space gradient (for
+/// densification: the norm of its first two entries says how much the loss
+/// wants it to move on the image).
+pub fn backward(
+    layout: &Layout,
+    params: &[f32],
+    cam: &RasterCamera,
+    opt: &RasterOptions,
+    frame: &Frame,
+    d_rgb: &[f32],
+    grads: &mut [f32],
+) -> Vec<ScreenGrad> {
+    let screen = screen_grads(cam, opt, frame, d_rgb, layout.n);
+    let per: Vec<GaussianGrad> = (0..layout.n)
+        .into_par_iter()
+        .map_init(
+            || [0.0f32; sh::WIDTH],
+            |basis, i| {
+                let p = &frame.projected[i];
+                if !p.visible || screen[i] == [0.0; 9] {
+                    return GaussianGrad::default();
+                }
+                gaussian_backward(layout, params, i, cam, p, &screen[i], basis)
+            },
+        )
+        .collect();
+    let n = layout.n;
+    let k3 = 3 * layout.k;
+    for (i, g) in per.iter().enumerate() {
+        for c in 0..3 {
+            grads[3 * i + c] += g.mean[c];
+            grads[3 * n + 3 * i + c] += g.log_scale[c];
+        }
+        for c in 0..4 {
+            grads[6 * n + 4 * i + c] += g.rotation[c];
+        }
+        grads[10 * n + i] += g.opacity_logit;
+        let sh = &mut grads[11 * n + k3 * i..11 * n + k3 * (i + 1)];
+        for (s, v) in sh.iter_mut().zip(&g.sh[..k3]) {
+            *s += v;
+        }
+    }
+    screen
+}
+
+/// Per tile, back to front: each list entry's screen gradient, summed per
+/// Gaussian.
+fn screen_grads(cam: &RasterCamera, opt: &RasterOptions, frame: &Frame, d_rgb: &[f32], n: usize) -> Vec<ScreenGrad> {
+    // Each tile's slice of the per-entry gradients.
+    let mut entries = vec![[0.0f32; 9]; frame.list.len()];
+    let mut slices = Vec::with_capacity(frame.tile_ranges.len());
+    let mut rest: &mut [ScreenGrad] = &mut entries;
+    for r in &frame.tile_ranges {
+        let (a, b) = rest.split_at_mut(r.len());
+        slices.push(a);
+        rest = b;
+    }
+    slices.into_par_iter().enumerate().for_each(|(t, out)| tile_backward(cam, opt, frame, d_rgb, t, out));
+    let mut screen = vec![[0.0f32; 9]; n];
+    for (&g, e) in frame.list.iter().zip(&entries) {
+        let s = &mut screen[g as usize];
+        for c in 0..9 {
+            s[c] += e[c];
+        }
+    }
+    screen
+}
+
+/// One pixel's state, walking its Gaussians back to front: the loss's
+/// gradient there, how many of its tile's list it took, the transmittance
+/// in front of the current Gaussian, the colour behind it, and the last
+/// alpha and colour seen.
+struct Px {
+    g: [f32; 3],
+    last: usize,
+    t_final: f32,
+    bg_dot: f32,
+    tr: f32,
+    accum: [f32; 3],
+    last_a: f32,
+    last_c: [f32; 3],
+}
+
+/// The states of the pixels `[x0, x1) x [y0, y1)` before the walk, and the
+/// deepest position of the tile's list any of them took.
+fn pixel_states(frame: &Frame, d_rgb: &[f32], [x0, x1, y0, y1]: [usize; 4]) -> (Vec<Px>, usize) {
+    let bg = frame.background;
+    let mut px = Vec::with_capacity((x1 - x0) * (y1 - y0));
+    let mut deepest = 0;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let i = y * frame.width + x;
+            let g = [d_rgb[3 * i], d_rgb[3 * i + 1], d_rgb[3 * i + 2]];
+            let last = if g == [0.0; 3] { 0 } else { frame.last[i] as usize };
+            deepest = deepest.max(last);
+            let t_final = frame.final_t[i];
+            px.push(Px {
+                g,
+                last,
+                t_final,
+                bg_dot: bg[0] * g[0] + bg[1] * g[1] + bg[2] * g[2],
+                tr: t_final,
+                accum: [0.0; 3],
+                last_a: 0.0,
+                last_c: [0.0; 3],
+            });
+        }
+    }
+    (px, deepest)
+}
+
+fn tile_backward(
+    cam: &RasterCamera,
+    opt: &RasterOptions,
+    frame: &Frame,
+    d_rgb: &[f32],
+    t: usize,
+    out: &mut [ScreenGrad],
+) {
+    let tx = cam.tiles_x();
+    let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
+    let (x1, y1) = ((x0 + TILE).min(frame.width), (y0 + TILE).min(frame.height));
+    let w = x1 - x0;
+    let list = &frame.list[frame.tile_ranges[t].clone()];
+    let (mut px, deepest) = pixel_states(frame, d_rgb, [x0, x1, y0, y1]);
+    for pos in (0..deepest).rev() {
+        let p = &frame.projected[list[pos] as usize];
+        let [gx0, gx1, gy0, gy1] = p.pixel_rect(frame.width, frame.height);
+        let e = &mut out[pos];
+        for y in gy0.max(y0)..gy1.min(y1) {
+            for x in gx0.max(x0)..gx1.min(x1) {
+                let q = &mut px[(y - y0) * w + (x - x0)];
+                if pos >= q.last {
+                    continue;
+                }
+                let Some((a, raw, [dx, dy])) = alpha_parts(p, x as f32 + 0.5, y as f32 + 0.5, opt.min_alpha) else {
+                    continue;
+                };
+                q.tr /= 1.0 - a;
+                let tr = q.tr;
+                let mut d_a = 0.0;
+                for c in 0..3 {
+                    e[6 + c] += a * tr * q.g[c];
+                    q.accum[c] = q.last_a * q.last_c[c] + (1.0 - q.last_a) * q.accum[c];
+                    d_a += (p.rgb[c] - q.accum[c]) * q.g[c];
+                }
+                d_a *= tr;
+                d_a -= q.t_final / (1.0 - a) * q.bg_dot;
+                q.last_a = a;
+                q.last_c = p.rgb;
+                if raw >= MAX_ALPHA {
+                    continue; // alpha is held at its maximum: no gradient
+                }
+                // a = o exp(power): da/do = a / o, da/dpower = a.
+                e[5] += d_a * a / p.opacity;
+                let gp = d_a * a;
+                e[2] += -0.5 * dx * dx * gp;
+                e[3] += -dx * dy * gp;
+                e[4] += -0.5 * dy * dy * gp;
+                let c = &p.conic;
+                e[0] += gp * (c[0] * dx + c[1] * dy);
+                e[1] += gp * (c[2] * dy + c[1] * dx);
+            }
+        }
+    }
+}
+
+/// Gaussian `p`'s alpha at the pixel centre `(px, py)` as the forward takes
+/// it (`None` where it adds nothing), its value before the cap, and the
+/// offset `(dx, dy)` from the mean.
+#[inline]
+fn alpha_parts(p: &Projected, px: f32, py: f32, min_alpha: f32) -> Option<(f32, f32, [f32; 2])> {
+    let a = super::raster::alpha_at(p, px, py, min_alpha);
+    if a == 0.0 {
+        return None;
+    }
+    let (dx, dy) = (px - p.mean[0], py - p.mean[1]);
+    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
+    Some((a, p.opacity * power.exp(), [dx, dy]))
+}
+
+/// One Gaussian's parameter gradients (`sh`: the first `3 k`).
+#[derive(Clone, Debug)]
+struct GaussianGrad {
+    mean: [f32; 3],
+    log_scale: [f32; 3],
+    rotation: [f32; 4],
+    opacity_logit: f32,
+    sh: [f32; 3 * sh::WIDTH],
+}
+
+impl Default for GaussianGrad {
+    fn default() -> Self {
+        Self { mean: [0.0; 3], log_scale: [0.0; 3], rotation: [0.0; 4], opacity_logit: 0.0, sh: [0.0; 3 * sh::WIDTH] }
+    }
+}
+
+/// Differentiates Gaussian `i`'s projection, given its screen gradient `s`.
+fn gaussian_backward(
+    layout: &Layout,
+    params: &[f32],
+    i: usize,
+    cam: &RasterCamera,
+    p: &Projected,
+    s: &ScreenGrad,
+    basis: &mut [f32; sh::WIDTH],
+) -> GaussianGrad {
+    let g = layout.get(params, i);
+    let mut out = GaussianGrad::default();
+    let d_dir = colour_backward(layout.k, g.sh, p, [s[6], s[7], s[8]], g.mean, cam.origin, &mut out.sh, basis);
+    out.opacity_logit = s[5] * p.opacity * (1.0 - p.opacity);
+    let d_cov = conic_backward(p.cov, [s[2], s[3], s[4]]);
+    let (sigma, m) = covariance(g.log_scale, g.rotation);
+    let (d_t, d_sigma) = projection_backward(cam, p.t, &sigma, d_cov, [s[0], s[1]]);
+    let w = &cam.rot;
+    for c in 0..3 {
+        out.mean[c] = d_dir[c] + w[0][c] * d_t[0] + w[1][c] * d_t[1] + w[2][c] * d_t[2];
+    }
+    // Σ = M Mᵀ with M = R S: dM = 2 dΣ M; dR = dM S, dS = diag(Rᵀ dM).
+    let r = rotation_matrix(unit_quat(g.rotation));
+    let mut d_r = [[0.0f32; 3]; 3];
+    for a in 0..3 {
+        for b in 0..3 {
+            let dm = 2.0 * (d_sigma[a][0] * m[0][b] + d_sigma[a][1] * m[1][b] + d_sigma[a][2] * m[2][b]);
+            let s_b = g.log_scale[b].exp();
+            d_r[a][b] = dm * s_b;
+            out.log_scale[b] += dm * r[a][b] * s_b;
+        }
+    }
+    out.rotation = rotation_backward(g.rotation, d_r);
+    out
+}
+
+/// The colour's backward: writes the SH coefficients' gradient into
+/// `d_sh` and returns the position's (through the viewing direction).
+/// Clamped channels pass nothing.
+#[allow(clippy::too_many_arguments)]
+fn colour_backward(
+    k: usize,
+    sh_coeffs: &[f32],
+    p: &Projected,
+    mut d_rgb: [f32; 3],
+    mean: [f32; 3],
+    origin: [f32; 3],
+    d_sh: &mut [f32],
+    basis: &mut [f32; sh::WIDTH],
+) -> [f32; 3] {
+    for (c, d) in d_rgb.iter_mut().enumerate() {
+        if p.clamped & (1 << c) != 0 {
+            *d = 0.0;
+        }
+    }
+    for c in 0..3 {
+        d_sh[c] = SH_C0 * d_rgb[c];
+    }
+    if k == 1 {
+        return [0.0; 3];
+    }
+    let dir = [mean[0] - origin[0], mean[1] - origin[1], mean[2] - origin[2]];
+    sh::encode_one(dir, basis);
+    let mut d_basis = [0.0f32; sh::WIDTH];
+    for j in 1..k {
+        for c in 0..3 {
+            d_sh[3 * j + c] = basis[j] * d_rgb[c];
+            d_basis[j] += sh_coeffs[3 * j + c] * d_rgb[c];
+        }
+    }
+    sh::encode_backward_one(dir, &d_basis)
+}
+
+/// The projection's backward: from the gradients of the 2D covariance
+/// (`d_cov`) and of the projected mean (`d_mean`) to those of the centre
+/// in the camera's frame and of the 3D covariance `sigma`.
+fn projection_backward(
+    cam: &RasterCamera,
+    t: [f32; 3],
+    sigma: &[f32; 6],
+    d_cov: [f32; 3],
+    d_mean: [f32; 2],
+) -> ([f32; 3], [[f32; 3]; 3]) {
+    let (fx, fy, z) = (cam.fx, cam.fy, t[2]);
+    let mut d_t = [d_mean[0] * fx / z, d_mean[1] * fy / z, -(d_mean[0] * fx * t[0] + d_mean[1] * fy * t[1]) / (z * z)];
+    let (j, clamp) = jacobian(cam, t);
+    let tm = jw(&j, &cam.rot);
+    let sg = sym(sigma);
+    // cov2 = T Σ Tᵀ: dΣ = Tᵀ G T, dT = 2 G T Σ, with G the symmetric
+    // gradient (the off-diagonal entry's split between its two places).
+    let gm = [[d_cov[0], 0.5 * d_cov[1]], [0.5 * d_cov[1], d_cov[2]]];
+    let mut d_sigma = [[0.0f32; 3]; 3];
+    for a in 0..3 {
+        for b in 0..3 {
+            d_sigma[a][b] =
+                (0..2).flat_map(|r| (0..2).map(move |q| (r, q))).map(|(r, q)| tm[r][a] * gm[r][q] * tm[q][b]).sum();
+        }
+    }
+    let mut d_tm = [[0.0f32; 3]; 2];
+    for r in 0..2 {
+        for c in 0..3 {
+            d_tm[r][c] = 2.0
+                * (0..2)
+                    .flat_map(|q| (0..3).map(move |k| (q, k)))
+                    .map(|(q, k)| gm[r][q] * tm[q][k] * sg[k][c])
+                    .sum::<f32>();
+        }
+    }
+    // T = J W: dJ = dT Wᵀ.
+    let w = &cam.rot;
+    let d_j = [0, 1].map(|r| [0, 1, 2].map(|k| d_tm[r][0] * w[k][0] + d_tm[r][1] * w[k][1] + d_tm[r][2] * w[k][2]));
+    let (u, v) = (-j[0][2] * z / fx, -j[1][2] * z / fy);
+    let z2 = z * z;
+    d_t[2] += d_j[0][0] * (-fx / z2) + d_j[0][2] * (fx * u / z2) + d_j[1][1] * (-fy / z2) + d_j[1][2] * (fy * v / z2);
+    let (d_u, d_v) = (d_j[0][2] * (-fx / z), d_j[1][2] * (-fy / z));
+    if clamp & (1 << 3) == 0 {
+        d_t[0] += d_u / z;
+        d_t[2] -= d_u * t[0] / z2;
+    }
+    if clamp & (1 << 4) == 0 {
+        d_t[1] += d_v / z;
+        d_t[2] -= d_v * t[1] / z2;
+    }
+    (d_t, d_sigma)
+}
+
+/// From the gradient with respect to the conic (`xx xy yy` of the inverse)
+/// to that with respect to the covariance `(a, b, c)` it inverts, `b`
+/// counted once.
+fn conic_backward(cov: [f32; 3], g: [f32; 3]) -> [f32; 3] {
+    let [a, b, c] = cov;
+    let det = a * c - b * b;
+    let d2 = det * det;
+    [
+        (-c * c * g[0] + b * c * g[1] - b * b * g[2]) / d2,
+        (2.0 * b * c * g[0] - (det + 2.0 * b * b) * g[1] + 2.0 * a * b * g[2]) / d2,
+        (-b * b * g[0] + a * b * g[1] - a * a * g[2]) / d2,
+    ]
+}

@@ -1,0 +1,91 @@
+//! The splats model's configuration and what it provides the registry
+//! (`models::config::ModelSpec`).
+
+use super::gaussians::Layout;
+use super::{KIND, SplatsModel};
+use crate::engine::geometry::scene::Scene;
+use crate::engine::models::config::{Checks, Footprint, ModelSpec};
+use crate::engine::models::{Model, ModelError};
+use crate::engine::nn::adam::AdamConfig;
+
+/// The splats model's configuration. The number of Gaussians is not a
+/// setting: it is what baking made (the parameters' length says it).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SplatsConfig {
+    /// Degree of the colours' spherical harmonics (0 to 3): 0 is one colour
+    /// in every direction, 3 the 3DGS paper's 16 coefficients per channel.
+    pub sh_degree: u32,
+    /// The most Gaussians baking may make (500k).
+    pub max_gaussians: usize,
+}
+
+impl Default for SplatsConfig {
+    fn default() -> Self {
+        Self { sh_degree: 3, max_gaussians: 500_000 }
+    }
+}
+
+impl ModelSpec for SplatsConfig {
+    fn kind(&self) -> &'static str {
+        KIND
+    }
+
+    fn check(&self, c: &mut Checks) {
+        c.int("sh_degree", self.sh_degree, 0..=3);
+        c.int("max_gaussians", self.max_gaussians, 1..=4_000_000);
+    }
+
+    /// Splats are baked from a trained model (`radiance bake`), not trained
+    /// from rays: there is no fresh model to build.
+    fn build(&self, _scene: Scene, _seed: u64) -> Result<Box<dyn Model>, ModelError> {
+        Err(ModelError::Config {
+            kind: KIND,
+            message: "splats are baked from a trained instant or capture model (`radiance bake`), not trained from \
+                      scratch"
+                .into(),
+        })
+    }
+
+    fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError> {
+        Ok(Box::new(SplatsModel::from_parts(self.clone(), scene, params)?))
+    }
+
+    fn trains_on_rays(&self) -> bool {
+        false
+    }
+
+    /// The 3DGS paper's rates are per block (`train::bake` scales them);
+    /// this is the base the blocks' scales multiply.
+    fn adam(&self) -> AdamConfig {
+        AdamConfig { lr: 1e-3, lr_end: 1e-4, beta1: 0.9, beta2: 0.999, eps: 1e-15 }
+    }
+
+    fn random_background(&self) -> bool {
+        false
+    }
+
+    fn footprint(&self, _threads: u64) -> Footprint {
+        let per = Layout::stride(super::gaussians::sh_coeffs(self.sh_degree)) as u64;
+        // A view's projections (about 24 values a Gaussian) and its tile
+        // lists (about 8 entries a Gaussian, 10 values each in the backward).
+        Footprint {
+            params: per * self.max_gaussians as u64,
+            occupancy_cells: 0,
+            activations: 104 * self.max_gaussians as u64,
+        }
+    }
+}
+
+/// This kind's presets, the default first.
+pub const PRESETS: &[&str] = &["splats", "splats-dc"];
+
+/// A named configuration:
+/// - `splats`: colours of SH degree 3, up to 500k Gaussians;
+/// - `splats-dc`: one colour per Gaussian (a quarter of the file).
+pub fn preset(name: &str) -> Option<SplatsConfig> {
+    match name {
+        "splats" => Some(SplatsConfig::default()),
+        "splats-dc" => Some(SplatsConfig { sh_degree: 0, ..SplatsConfig::default() }),
+        _ => None,
+    }
+}

@@ -1,0 +1,453 @@
+//! The tile rasteriser of Gaussian splats (the 3DGS paper's, on the CPU):
+//! each Gaussian is projected to a 2D Gaussian on the image (the EWA
+//! splatting approximation, its 2D covariance dilated by 0.3 px² as the
+//! paper's code does), the Gaussians are sorted front to back and binned
+//! into 16x16-pixel tiles, and each tile composites its pixels in parallel
+//! with the others.
+//!
+//! What a Gaussian adds to a pixel, exactly (the f64 reference in the tests
+//! renders by this rule alone, pixel by pixel, with no tiles):
+//! - the Gaussian lies in front of the camera (`z > near`) and its
+//!   projected covariance is positive definite;
+//! - the pixel centre `p` lies within the Gaussian's box: `|p - m| <=
+//!   r sqrt(diag Σ')` on each axis, with `m` the projected mean, `Σ'` the
+//!   dilated 2D covariance and `r = min(radius_sigmas, sqrt(2 ln(o /
+//!   min_alpha)))` (beyond it the Gaussian's alpha is below `min_alpha`
+//!   anyway, or the box is cut at `radius_sigmas` standard deviations);
+//! - its alpha `a = min(0.99, o exp(-½ dᵀ Σ'⁻¹ d))` (`d = p - m`, `o` the
+//!   opacity) is at least `min_alpha`;
+//! - the pixel's transmittance after it, `T (1 - a)`, would not fall below
+//!   `min_transmittance`; once it would, the pixel takes nothing more.
+//!
+//! The pixel's colour is `sum c_i a_i T_i + T_final * background`, in
+//! order of the Gaussians' depth along the camera's axis (ties by index).
+
+use rayon::prelude::*;
+
+use super::gaussians::{Layout, covariance, sh_colour, sigmoid};
+use crate::engine::geometry::camera::Camera;
+use crate::engine::geometry::scene::Scene;
+use crate::engine::nn::sh;
+
+/// Side of a tile in pixels.
+pub const TILE: usize = 16;
+
+/// The rules of what a Gaussian adds to a pixel (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RasterOptions {
+    /// Alpha below which a Gaussian adds nothing to a pixel (1/255).
+    pub min_alpha: f32,
+    /// Transmittance below which a pixel takes nothing more (1e-4).
+    pub min_transmittance: f32,
+    /// The farthest a Gaussian reaches, in standard deviations (3).
+    pub radius_sigmas: f32,
+    /// Gaussians nearer the camera plane than this (model units) are not
+    /// drawn.
+    pub near: f32,
+}
+
+impl Default for RasterOptions {
+    fn default() -> Self {
+        Self { min_alpha: 1.0 / 255.0, min_transmittance: 1e-4, radius_sigmas: 3.0, near: 0.01 }
+    }
+}
+
+/// The largest alpha a Gaussian takes (the 3DGS paper's, which keeps the
+/// backward's division by `1 - alpha` finite).
+pub const MAX_ALPHA: f32 = 0.99;
+/// Added to the projected covariance's diagonal (px²): a Gaussian covers at
+/// least about a pixel (the paper's low-pass filter).
+pub const DILATION: f32 = 0.3;
+/// How far outside the view (as a multiple of the half field of view) a
+/// Gaussian's centre may lie before its projection's Jacobian is taken at
+/// the view's edge instead (the paper's 1.3).
+pub const FRUSTUM_SLACK: f32 = 1.3;
+
+/// A pinhole camera in model space, as the rasteriser uses it: its frame
+/// has x right, y down and z forward (the COLMAP convention; [`Camera`] is
+/// OpenGL's, y up and looking down -z).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RasterCamera {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    /// Model-to-camera rotation (rows).
+    pub rot: [[f32; 3]; 3],
+    /// The camera's centre in model space.
+    pub origin: [f32; 3],
+}
+
+impl RasterCamera {
+    /// `camera` (world units, any distortion ignored) in `scene`'s model
+    /// space.
+    pub fn new(camera: &Camera, scene: &Scene) -> Self {
+        let m = &camera.c2w;
+        let col = |j: usize, s: f32| [s * m[0][j], s * m[1][j], s * m[2][j]];
+        let o = camera.origin();
+        let origin = [
+            (o.x - scene.centre[0]) * scene.scale,
+            (o.y - scene.centre[1]) * scene.scale,
+            (o.z - scene.centre[2]) * scene.scale,
+        ];
+        Self {
+            width: camera.width,
+            height: camera.height,
+            fx: camera.fx,
+            fy: camera.fy,
+            cx: camera.cx,
+            cy: camera.cy,
+            rot: [col(0, 1.0), col(1, -1.0), col(2, -1.0)],
+            origin,
+        }
+    }
+
+    /// A model-space point in the camera's frame.
+    pub fn to_camera(&self, p: [f32; 3]) -> [f32; 3] {
+        let d = [p[0] - self.origin[0], p[1] - self.origin[1], p[2] - self.origin[2]];
+        let r = &self.rot;
+        [
+            r[0][0] * d[0] + r[0][1] * d[1] + r[0][2] * d[2],
+            r[1][0] * d[0] + r[1][1] * d[1] + r[1][2] * d[2],
+            r[2][0] * d[0] + r[2][1] * d[1] + r[2][2] * d[2],
+        ]
+    }
+
+    pub fn tiles_x(&self) -> usize {
+        (self.width as usize).div_ceil(TILE)
+    }
+    pub fn tiles_y(&self) -> usize {
+        (self.height as usize).div_ceil(TILE)
+    }
+}
+
+/// One Gaussian as a camera sees it.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Projected {
+    /// The projected centre (pixels).
+    pub mean: [f32; 2],
+    /// The inverse of the dilated 2D covariance (`xx xy yy`).
+    pub conic: [f32; 3],
+    /// The dilated 2D covariance (`xx xy yy`).
+    pub cov: [f32; 3],
+    pub opacity: f32,
+    /// Colour, clamped at 0.
+    pub rgb: [f32; 3],
+    /// Which colour channels were clamped (bits 0-2) and whether the
+    /// Jacobian's x (bit 3) or y (bit 4) was taken at the view's edge.
+    pub clamped: u8,
+    /// The centre in the camera's frame.
+    pub t: [f32; 3],
+    /// Distance from the camera centre (model units).
+    pub dist: f32,
+    /// Half-widths of the box the Gaussian reaches (pixels).
+    pub extent: [f32; 2],
+    pub visible: bool,
+}
+
+impl Projected {
+    /// The pixels `[x0, x1) x [y0, y1)` whose centres lie in the box.
+    pub fn pixel_rect(&self, width: usize, height: usize) -> [usize; 4] {
+        // Pixel i's centre is i + 0.5: inside when |i + 0.5 - m| <= e.
+        let lo = |m: f32, e: f32| (m - e - 0.5).ceil().max(0.0) as usize;
+        let hi = |m: f32, e: f32, n: usize| (((m + e - 0.5).floor() + 1.0).max(0.0) as usize).min(n);
+        let [mx, my] = self.mean;
+        let [ex, ey] = self.extent;
+        [lo(mx, ex), hi(mx, ex, width), lo(my, ey), hi(my, ey, height)]
+    }
+}
+
+/// Projects Gaussian `i` of `params`.
+pub fn project(
+    layout: &Layout,
+    params: &[f32],
+    i: usize,
+    cam: &RasterCamera,
+    opt: &RasterOptions,
+    basis: &mut [f32; sh::WIDTH],
+) -> Projected {
+    let g = layout.get(params, i);
+    let t = cam.to_camera(g.mean);
+    let opacity = sigmoid(g.opacity_logit);
+    let mut p = Projected { t, opacity, ..Default::default() };
+    if t[2].is_nan() || t[2] <= opt.near || opacity.is_nan() || opacity < opt.min_alpha {
+        return p;
+    }
+    let (sigma, _) = covariance(g.log_scale, g.rotation);
+    let (j, clamp) = jacobian(cam, t);
+    let cov = project_cov(&j, &cam.rot, &sigma);
+    let cov = [cov[0] + DILATION, cov[1], cov[2] + DILATION];
+    let det = cov[0] * cov[2] - cov[1] * cov[1];
+    if det.is_nan() || det <= 0.0 || !det.is_finite() {
+        return p;
+    }
+    let r = reach(opacity, opt);
+    p.conic = [cov[2] / det, -cov[1] / det, cov[0] / det];
+    p.cov = cov;
+    p.mean = [cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy];
+    p.extent = [r * cov[0].sqrt(), r * cov[2].sqrt()];
+    let dir = [g.mean[0] - cam.origin[0], g.mean[1] - cam.origin[1], g.mean[2] - cam.origin[2]];
+    p.dist = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
+    let rgb = sh_colour(g.sh, layout.k, dir, basis);
+    p.clamped = clamp;
+    for c in 0..3 {
+        if rgb[c] < 0.0 {
+            p.clamped |= 1 << c;
+        }
+        p.rgb[c] = rgb[c].max(0.0);
+    }
+    let rect = p.pixel_rect(cam.width as usize, cam.height as usize);
+    p.visible = rect[0] < rect[1] && rect[2] < rect[3] && p.mean.iter().all(|m| m.is_finite());
+    p
+}
+
+/// How far a Gaussian of opacity `o` reaches, in standard deviations.
+pub fn reach(o: f32, opt: &RasterOptions) -> f32 {
+    if opt.min_alpha > 0.0 {
+        (2.0 * (o / opt.min_alpha).ln()).max(0.0).sqrt().min(opt.radius_sigmas)
+    } else {
+        opt.radius_sigmas
+    }
+}
+
+/// The Jacobian of the perspective projection at `t` (rows: `[fx/z, 0,
+/// -fx u/z]`, `[0, fy/z, -fy v/z]`, with `u = x/z` and `v = y/z` held
+/// within [`FRUSTUM_SLACK`] times the half field of view) and which of `u`,
+/// `v` were held (bits 3 and 4).
+pub fn jacobian(cam: &RasterCamera, t: [f32; 3]) -> ([[f32; 3]; 2], u8) {
+    let lim_x = FRUSTUM_SLACK * 0.5 * cam.width as f32 / cam.fx;
+    let lim_y = FRUSTUM_SLACK * 0.5 * cam.height as f32 / cam.fy;
+    let (u, v) = (t[0] / t[2], t[1] / t[2]);
+    let mut flags = 0;
+    if u.abs() > lim_x {
+        flags |= 1 << 3;
+    }
+    if v.abs() > lim_y {
+        flags |= 1 << 4;
+    }
+    let (u, v) = (u.clamp(-lim_x, lim_x), v.clamp(-lim_y, lim_y));
+    let z = t[2];
+    ([[cam.fx / z, 0.0, -cam.fx * u / z], [0.0, cam.fy / z, -cam.fy * v / z]], flags)
+}
+
+/// `T Σ Tᵀ` with `T = J W` (`xx xy yy`), for the symmetric `sigma` (`xx xy
+/// xz yy yz zz`).
+pub fn project_cov(j: &[[f32; 3]; 2], w: &[[f32; 3]; 3], sigma: &[f32; 6]) -> [f32; 3] {
+    let t = jw(j, w);
+    let s = sym(sigma);
+    let ts = |r: usize| -> [f32; 3] { [0, 1, 2].map(|c| t[r][0] * s[0][c] + t[r][1] * s[1][c] + t[r][2] * s[2][c]) };
+    let (a, b) = (ts(0), ts(1));
+    let dot = |x: [f32; 3], y: [f32; 3]| x[0] * y[0] + x[1] * y[1] + x[2] * y[2];
+    [dot(a, t[0]), dot(a, t[1]), dot(b, t[1])]
+}
+
+/// `J W`.
+pub fn jw(j: &[[f32; 3]; 2], w: &[[f32; 3]; 3]) -> [[f32; 3]; 2] {
+    [0, 1].map(|r| [0, 1, 2].map(|c| j[r][0] * w[0][c] + j[r][1] * w[1][c] + j[r][2] * w[2][c]))
+}
+
+/// The full matrix of a symmetric `xx xy xz yy yz zz`.
+pub fn sym(s: &[f32; 6]) -> [[f32; 3]; 3] {
+    [[s[0], s[1], s[2]], [s[1], s[3], s[4]], [s[2], s[4], s[5]]]
+}
+
+/// A rendered view and what its backward needs.
+#[derive(Clone, Debug, Default)]
+pub struct Frame {
+    pub width: usize,
+    pub height: usize,
+    /// `[h x w x 3]`, composited on the background.
+    pub rgb: Vec<f32>,
+    /// Expected distance from the camera (model units; 0 where nothing was
+    /// drawn).
+    pub depth: Vec<f32>,
+    /// `1 - T_final`.
+    pub opacity: Vec<f32>,
+    /// Each Gaussian's projection.
+    pub projected: Vec<Projected>,
+    /// Each tile's range of `list`.
+    pub tile_ranges: Vec<std::ops::Range<usize>>,
+    /// The Gaussians of each tile, front to back.
+    pub list: Vec<u32>,
+    /// Per pixel: the position in its tile's list after the last Gaussian
+    /// it took (relative to the tile's range start).
+    pub last: Vec<u32>,
+    /// Per pixel: transmittance after the last Gaussian.
+    pub final_t: Vec<f32>,
+    pub background: [f32; 3],
+}
+
+/// Renders `params` (laid out as `layout`) from `cam`.
+pub fn forward(
+    layout: &Layout,
+    params: &[f32],
+    cam: &RasterCamera,
+    opt: &RasterOptions,
+    background: [f32; 3],
+) -> Frame {
+    let projected = project_all(layout, params, cam, opt);
+    let (tile_ranges, list) = bin(&projected, cam);
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut frame = Frame {
+        width: w,
+        height: h,
+        rgb: vec![0.0; w * h * 3],
+        depth: vec![0.0; w * h],
+        opacity: vec![0.0; w * h],
+        last: vec![0; w * h],
+        final_t: vec![1.0; w * h],
+        projected,
+        tile_ranges,
+        list,
+        background,
+    };
+    let tiles: Vec<TileOut> =
+        (0..frame.tile_ranges.len()).into_par_iter().map(|t| composite_tile(&frame, cam, opt, t)).collect();
+    let tx = cam.tiles_x();
+    for (t, out) in tiles.iter().enumerate() {
+        let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
+        for (k, p) in out.pixels.iter().enumerate() {
+            let (x, y) = (x0 + k % out.w, y0 + k / out.w);
+            let i = y * w + x;
+            for c in 0..3 {
+                frame.rgb[3 * i + c] = p.rgb[c] + p.t * background[c];
+            }
+            frame.depth[i] = p.depth;
+            frame.opacity[i] = 1.0 - p.t;
+            frame.final_t[i] = p.t;
+            frame.last[i] = p.last;
+        }
+    }
+    frame
+}
+
+/// Every Gaussian's projection, in parallel.
+pub fn project_all(layout: &Layout, params: &[f32], cam: &RasterCamera, opt: &RasterOptions) -> Vec<Projected> {
+    (0..layout.n)
+        .into_par_iter()
+        .map_init(|| [0.0f32; sh::WIDTH], |basis, i| project(layout, params, i, cam, opt, basis))
+        .collect()
+}
+
+/// Sorts the visible Gaussians by depth (ties by index) and lists them per
+/// tile, front to back: the tiles' ranges of the list, and the list.
+pub fn bin(projected: &[Projected], cam: &RasterCamera) -> (Vec<std::ops::Range<usize>>, Vec<u32>) {
+    let mut order: Vec<u32> = (0..projected.len() as u32).filter(|&i| projected[i as usize].visible).collect();
+    // Depths are positive, so their bits sort as the numbers do.
+    order.par_sort_unstable_by_key(|&i| (projected[i as usize].t[2].to_bits(), i));
+    let (tx, ty) = (cam.tiles_x(), cam.tiles_y());
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let rects: Vec<[usize; 4]> = order
+        .iter()
+        .map(|&i| {
+            let [x0, x1, y0, y1] = projected[i as usize].pixel_rect(w, h);
+            [x0 / TILE, (x1 - 1) / TILE + 1, y0 / TILE, (y1 - 1) / TILE + 1]
+        })
+        .collect();
+    let mut count = vec![0usize; tx * ty + 1];
+    for r in &rects {
+        for y in r[2]..r[3] {
+            for x in r[0]..r[1] {
+                count[y * tx + x + 1] += 1;
+            }
+        }
+    }
+    for t in 0..tx * ty {
+        count[t + 1] += count[t];
+    }
+    let ranges: Vec<_> = (0..tx * ty).map(|t| count[t]..count[t + 1]).collect();
+    let mut next = count;
+    let mut list = vec![0u32; ranges.last().map_or(0, |r| r.end)];
+    for (&i, r) in order.iter().zip(&rects) {
+        for y in r[2]..r[3] {
+            for x in r[0]..r[1] {
+                let t = y * tx + x;
+                list[next[t]] = i;
+                next[t] += 1;
+            }
+        }
+    }
+    (ranges, list)
+}
+
+/// One pixel's result.
+#[derive(Clone, Copy, Debug, Default)]
+struct PixelOut {
+    rgb: [f32; 3],
+    depth: f32,
+    t: f32,
+    last: u32,
+}
+
+struct TileOut {
+    w: usize,
+    pixels: Vec<PixelOut>,
+}
+
+/// The pixel rectangle of tile `t`: `[x0, x1, y0, y1]`.
+fn tile_rect(cam: &RasterCamera, t: usize) -> [usize; 4] {
+    let tx = cam.tiles_x();
+    let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
+    [x0, (x0 + TILE).min(cam.width as usize), y0, (y0 + TILE).min(cam.height as usize)]
+}
+
+/// The alpha Gaussian `p` gives the pixel centred at `(px, py)`, or 0 when
+/// it adds nothing there (outside its box, or below `min_alpha`).
+#[inline]
+pub fn alpha_at(p: &Projected, px: f32, py: f32, min_alpha: f32) -> f32 {
+    let (dx, dy) = (px - p.mean[0], py - p.mean[1]);
+    if dx.abs() > p.extent[0] || dy.abs() > p.extent[1] {
+        return 0.0;
+    }
+    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
+    if power > 0.0 {
+        return 0.0;
+    }
+    let a = (p.opacity * power.exp()).min(MAX_ALPHA);
+    if a < min_alpha { 0.0 } else { a }
+}
+
+fn composite_tile(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
+    let [x0, x1, y0, y1] = tile_rect(cam, t);
+    let w = x1 - x0;
+    let mut px = vec![PixelOut { t: 1.0, ..Default::default() }; w * (y1 - y0)];
+    let mut live = vec![true; px.len()];
+    let mut n_live = px.len();
+    let range = frame.tile_ranges[t].clone();
+    for (pos, &g) in frame.list[range].iter().enumerate() {
+        if n_live == 0 {
+            break;
+        }
+        let p = &frame.projected[g as usize];
+        let [gx0, gx1, gy0, gy1] = p.pixel_rect(cam.width as usize, cam.height as usize);
+        for y in gy0.max(y0)..gy1.min(y1) {
+            for x in gx0.max(x0)..gx1.min(x1) {
+                let k = (y - y0) * w + (x - x0);
+                if !live[k] {
+                    continue;
+                }
+                let a = alpha_at(p, x as f32 + 0.5, y as f32 + 0.5, opt.min_alpha);
+                if a == 0.0 {
+                    continue;
+                }
+                let o = &mut px[k];
+                let next_t = o.t * (1.0 - a);
+                if next_t < opt.min_transmittance {
+                    live[k] = false;
+                    n_live -= 1;
+                    continue;
+                }
+                let wgt = a * o.t;
+                for c in 0..3 {
+                    o.rgb[c] += wgt * p.rgb[c];
+                }
+                o.depth += wgt * p.dist;
+                o.t = next_t;
+                o.last = pos as u32 + 1;
+            }
+        }
+    }
+    TileOut { w, pixels: px }
+}

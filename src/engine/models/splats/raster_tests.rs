@@ -1,0 +1,391 @@
+//! The rasteriser against ground truth: an f64 reference that renders by
+//! the module's rule pixel by pixel (no tiles, no sorting shortcuts),
+//! analytic cases, finite differences of the reference for every
+//! parameter of the backward, and a rotated camera with a rotated scene.
+
+use super::backward::backward;
+use super::gaussians::{Layout, SH_C0};
+use super::raster::{DILATION, FRUSTUM_SLACK, MAX_ALPHA, RasterCamera, RasterOptions, forward};
+use crate::engine::geometry::camera::{Camera, look_at};
+use crate::engine::geometry::math::Vec3;
+use crate::engine::geometry::scene::Scene;
+use crate::engine::rng::Rng;
+
+/// The f64 reference: every pixel, every Gaussian sorted by camera depth.
+fn reference(layout: &Layout, params: &[f64], cam: &RasterCamera, opt: &RasterOptions, bg: [f64; 3]) -> Vec<f64> {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let n = layout.n;
+    let k = layout.k;
+    struct P {
+        z: f64,
+        m: [f64; 2],
+        conic: [f64; 3],
+        ext: [f64; 2],
+        o: f64,
+        rgb: [f64; 3],
+    }
+    let rot = cam.rot.map(|r| r.map(f64::from));
+    let org = cam.origin.map(f64::from);
+    let (fx, fy, cx, cy) = (cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64);
+    let mut ps = Vec::new();
+    for i in 0..n {
+        let p = [params[3 * i], params[3 * i + 1], params[3 * i + 2]];
+        let d = [p[0] - org[0], p[1] - org[1], p[2] - org[2]];
+        let t: Vec<f64> = (0..3).map(|r| rot[r][0] * d[0] + rot[r][1] * d[1] + rot[r][2] * d[2]).collect();
+        let o = 1.0 / (1.0 + (-params[10 * n + i]).exp());
+        if t[2] <= opt.near as f64 || o < opt.min_alpha as f64 {
+            continue;
+        }
+        let q = &params[6 * n + 4 * i..6 * n + 4 * i + 4];
+        let qn = (q.iter().map(|v| v * v).sum::<f64>()).sqrt();
+        let [qw, qx, qy, qz] = [q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn];
+        let r = [
+            [1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy)],
+            [2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx)],
+            [2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy)],
+        ];
+        let s: Vec<f64> = (0..3).map(|j| params[3 * n + 3 * i + j].exp()).collect();
+        let mut sigma = [[0.0; 3]; 3];
+        for a in 0..3 {
+            for b in 0..3 {
+                sigma[a][b] = (0..3).map(|j| r[a][j] * s[j] * s[j] * r[b][j]).sum();
+            }
+        }
+        let lim_x = FRUSTUM_SLACK as f64 * 0.5 * w as f64 / fx;
+        let lim_y = FRUSTUM_SLACK as f64 * 0.5 * h as f64 / fy;
+        let (u, v) = ((t[0] / t[2]).clamp(-lim_x, lim_x), (t[1] / t[2]).clamp(-lim_y, lim_y));
+        let j = [[fx / t[2], 0.0, -fx * u / t[2]], [0.0, fy / t[2], -fy * v / t[2]]];
+        let mut tm = [[0.0; 3]; 2];
+        for a in 0..2 {
+            for b in 0..3 {
+                tm[a][b] = (0..3).map(|c| j[a][c] * rot[c][b]).sum();
+            }
+        }
+        let mut cov = [[0.0; 2]; 2];
+        for a in 0..2 {
+            for b in 0..2 {
+                cov[a][b] = (0..3)
+                    .flat_map(|c| (0..3).map(move |e| (c, e)))
+                    .map(|(c, e)| tm[a][c] * sigma[c][e] * tm[b][e])
+                    .sum();
+            }
+        }
+        let (ca, cb, cc) = (cov[0][0] + DILATION as f64, cov[0][1], cov[1][1] + DILATION as f64);
+        let det = ca * cc - cb * cb;
+        if det <= 0.0 {
+            continue;
+        }
+        let reach = if opt.min_alpha > 0.0 {
+            (2.0 * (o / opt.min_alpha as f64).ln()).max(0.0).sqrt().min(opt.radius_sigmas as f64)
+        } else {
+            opt.radius_sigmas as f64
+        };
+        let dn = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        // The basis in f64, from the unit direction.
+        let (x, y, z) = (d[0] / dn, d[1] / dn, d[2] / dn);
+        let b64 = sh_basis64(x, y, z);
+        let mut rgb = [0.5; 3];
+        for jj in 0..k {
+            for c in 0..3 {
+                rgb[c] += b64[jj] * params[11 * n + 3 * k * i + 3 * jj + c];
+            }
+        }
+        ps.push(P {
+            z: t[2],
+            m: [fx * t[0] / t[2] + cx, fy * t[1] / t[2] + cy],
+            conic: [cc / det, -cb / det, ca / det],
+            ext: [reach * ca.sqrt(), reach * cc.sqrt()],
+            o,
+            rgb: rgb.map(|v| v.max(0.0)),
+        });
+    }
+    ps.sort_by(|a, b| a.z.total_cmp(&b.z));
+    let mut img = vec![0.0; w * h * 3];
+    for y in 0..h {
+        for x in 0..w {
+            let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
+            let mut tr = 1.0;
+            let mut c = [0.0; 3];
+            for p in &ps {
+                let (dx, dy) = (px - p.m[0], py - p.m[1]);
+                if dx.abs() > p.ext[0] || dy.abs() > p.ext[1] {
+                    continue;
+                }
+                let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
+                if power > 0.0 {
+                    continue;
+                }
+                let a = (p.o * power.exp()).min(MAX_ALPHA as f64);
+                if a < opt.min_alpha as f64 {
+                    continue;
+                }
+                if tr * (1.0 - a) < opt.min_transmittance as f64 {
+                    break;
+                }
+                for ch in 0..3 {
+                    c[ch] += p.rgb[ch] * a * tr;
+                }
+                tr *= 1.0 - a;
+            }
+            for ch in 0..3 {
+                img[3 * (y * w + x) + ch] = c[ch] + tr * bg[ch];
+            }
+        }
+    }
+    img
+}
+
+/// The real SH basis (degree 3) of a unit direction, in f64 (the 3DGS
+/// paper's constants).
+fn sh_basis64(x: f64, y: f64, z: f64) -> [f64; 16] {
+    let (xx, yy, zz) = (x * x, y * y, z * z);
+    [
+        0.28209479177387814,
+        -0.4886025119029199 * y,
+        0.4886025119029199 * z,
+        -0.4886025119029199 * x,
+        1.0925484305920792 * x * y,
+        -1.0925484305920792 * y * z,
+        0.31539156525252005 * (2.0 * zz - xx - yy),
+        -1.0925484305920792 * x * z,
+        0.5462742152960396 * (xx - yy),
+        -0.5900435899266435 * y * (3.0 * xx - yy),
+        2.890611442640554 * x * y * z,
+        -0.4570457994644658 * y * (4.0 * zz - xx - yy),
+        0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+        -0.4570457994644658 * x * (4.0 * zz - xx - yy),
+        1.445305721320277 * z * (xx - yy),
+        -0.5900435899266435 * x * (xx - 3.0 * yy),
+    ]
+}
+
+/// A camera `dist` from the origin looking at it from `eye_dir`, `w x h`.
+fn camera(eye: [f32; 3], w: u32, h: u32, fov_deg: f32) -> Camera {
+    let c2w = look_at(Vec3::from_array(eye), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap();
+    Camera::from_fov(w, h, fov_deg.to_radians(), c2w)
+}
+
+fn unit_scene() -> Scene {
+    Scene::from_bounds(crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }, 0.0, 10.0)
+}
+
+/// `n` random Gaussians near the origin, inside the view of
+/// [`camera`]`([0, -4, 0.5], ..)`.
+fn random_gaussians(n: usize, degree: u32, seed: u64, max_opacity: f32) -> (Layout, Vec<f32>) {
+    let l = Layout::new(n, degree);
+    let mut rng = Rng::new(seed);
+    let mut p = vec![0.0f32; l.len()];
+    for i in 0..n {
+        for c in 0..3 {
+            p[3 * i + c] = (rng.f32() - 0.5) * 1.2;
+            p[3 * n + 3 * i + c] = -2.2 + 0.8 * rng.f32();
+        }
+        for c in 0..4 {
+            p[6 * n + 4 * i + c] = rng.normal();
+        }
+        let o = 0.2 + (max_opacity - 0.2) * rng.f32();
+        p[10 * n + i] = (o / (1.0 - o)).ln();
+        for j in 0..l.k {
+            for c in 0..3 {
+                p[11 * n + 3 * l.k * i + 3 * j + c] =
+                    if j == 0 { 1.5 * (rng.f32() - 0.3) } else { 0.25 * rng.normal() };
+            }
+        }
+    }
+    (l, p)
+}
+
+#[test]
+fn forward_matches_the_f64_reference() {
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 61, 47, 40.0), &scene);
+    for (degree, n, seed) in [(0, 40, 1), (3, 120, 2), (1, 300, 3)] {
+        let (l, p) = random_gaussians(n, degree, seed, 0.95);
+        let opt = RasterOptions::default();
+        let bg = [0.2, 0.5, 0.9];
+        let f = forward(&l, &p, &cam, &opt, bg);
+        let r = reference(&l, &p.iter().map(|&v| v as f64).collect::<Vec<_>>(), &cam, &opt, bg.map(f64::from));
+        let diffs: Vec<f64> = f.rgb.iter().zip(&r).map(|(a, b)| (*a as f64 - b).abs()).collect();
+        let max = diffs.iter().cloned().fold(0.0, f64::max);
+        let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+        // f32 rounding; a pixel on the edge of a threshold (min_alpha, a
+        // box's edge) may take a Gaussian in one and not the other, by at
+        // most min_alpha of a colour.
+        let over = diffs.iter().filter(|&&d| d > 1e-4).count();
+        assert!(
+            mean < 2e-5 && over * 200 <= diffs.len() && max < 0.02,
+            "degree {degree}: mean {mean}, max {max}, {over} over"
+        );
+        assert!(f.opacity.iter().any(|&o| o > 0.5), "the scene is in view");
+    }
+}
+
+#[test]
+fn one_gaussians_footprint_is_the_analytic_one() {
+    // An isotropic Gaussian of scale s at distance z on the axis: on the
+    // image, a Gaussian of variance (f s / z)^2 + DILATION around the
+    // principal point.
+    let scene = unit_scene();
+    let c = camera([0.0, -4.0, 0.0], 64, 64, 50.0);
+    let cam = RasterCamera::new(&c, &scene);
+    let l = Layout::new(1, 0);
+    let s = 0.05f32;
+    let o = 0.8f32;
+    let mut p = vec![0.0; l.len()];
+    p[3..6].copy_from_slice(&[s.ln(); 3]);
+    p[6] = 1.0;
+    p[10] = (o / (1.0 - o)).ln();
+    let colour = [0.9f32, 0.3, 0.1];
+    for ch in 0..3 {
+        p[11 + ch] = (colour[ch] - 0.5) / SH_C0;
+    }
+    let opt = RasterOptions { min_alpha: 0.0, ..Default::default() };
+    let bg = [0.0, 0.0, 1.0];
+    let f = forward(&l, &p, &cam, &opt, bg);
+    let var = (c.fx * s / 4.0).powi(2) + DILATION;
+    let mut checked = 0;
+    for y in 0..64 {
+        for x in 0..64 {
+            let (dx, dy) = (x as f32 + 0.5 - 32.0, y as f32 + 0.5 - 32.0);
+            let r2 = dx * dx + dy * dy;
+            let inside = dx.abs() <= 3.0 * var.sqrt() && dy.abs() <= 3.0 * var.sqrt();
+            let a = if inside { o * (-0.5 * r2 / var).exp() } else { 0.0 };
+            for ch in 0..3 {
+                let want = a * colour[ch] + (1.0 - a) * bg[ch];
+                let got = f.rgb[3 * (y * 64 + x) + ch];
+                assert!((got - want).abs() < 2e-5, "({x}, {y}) {ch}: {got} vs {want}");
+            }
+            checked += inside as usize;
+        }
+    }
+    assert!(checked > 20, "the footprint covers {checked} pixels");
+}
+
+#[test]
+fn two_gaussians_composite_in_depth_order() {
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.0, -4.0, 0.0], 32, 32, 50.0), &scene);
+    let l = Layout::new(2, 0);
+    let (o1, o2) = (0.6f32, 0.7f32);
+    let (c1, c2) = ([1.0f32, 0.0, 0.0], [0.0f32, 1.0, 0.0]);
+    let bg = [0.0, 0.0, 1.0];
+    // Both on the camera axis; the nearer one's colour comes first.
+    for (y1, y2) in [(-0.5f32, 0.5f32), (0.5, -0.5)] {
+        let mut p = vec![0.0; l.len()];
+        p[1] = y1;
+        p[4] = y2;
+        p[6..12].copy_from_slice(&[(0.3f32).ln(); 6]);
+        p[12] = 1.0;
+        p[16] = 1.0;
+        p[20] = (o1 / (1.0 - o1)).ln();
+        p[21] = (o2 / (1.0 - o2)).ln();
+        for ch in 0..3 {
+            p[22 + ch] = (c1[ch] - 0.5) / SH_C0;
+            p[25 + ch] = (c2[ch] - 0.5) / SH_C0;
+        }
+        let f = forward(&l, &p, &cam, &RasterOptions::default(), bg);
+        let centre = &f.rgb[3 * (16 * 32 + 16)..3 * (16 * 32 + 16) + 3];
+        // At the centre pixel each alpha is its opacity times exp(-r²/2σ²)
+        // of a half-pixel offset: compute both exactly.
+        let alpha = |o: f32, y: f32| {
+            let z = 4.0 + y;
+            let var = (cam.fx * 0.3 / z).powi(2) + DILATION;
+            o * (-0.5 * 0.5 / var).exp()
+        };
+        let (a1, a2) = (alpha(o1, y1), alpha(o2, y2));
+        let (front, back, af, ab) = if y1 < y2 { (c1, c2, a1, a2) } else { (c2, c1, a2, a1) };
+        for ch in 0..3 {
+            let want = front[ch] * af + back[ch] * ab * (1.0 - af) + bg[ch] * (1.0 - af) * (1.0 - ab);
+            assert!((centre[ch] - want).abs() < 1e-5, "{y1}: {ch}: {} vs {want}", centre[ch]);
+        }
+    }
+}
+
+#[test]
+fn backward_matches_finite_differences_for_every_parameter() {
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.4, -4.0, 0.6], 28, 22, 35.0), &scene);
+    // No thresholds near the test's values: every Gaussian reaches every
+    // pixel smoothly (the box is 10 standard deviations wide, nothing is
+    // cut by min_alpha or the transmittance floor).
+    let opt = RasterOptions { min_alpha: 0.0, min_transmittance: 0.0, radius_sigmas: 10.0, near: 0.01 };
+    for (degree, seed) in [(3, 7), (0, 8)] {
+        let (l, mut p) = random_gaussians(4, degree, seed, 0.8);
+        // Larger Gaussians, so that each covers many pixels of this small view.
+        for v in &mut p[l.log_scales()] {
+            *v += 1.0;
+        }
+        let bg = [0.3f32, 0.1, 0.7];
+        let mut rng = Rng::new(seed + 100);
+        let weights: Vec<f32> = (0..28 * 22 * 3).map(|_| rng.normal()).collect();
+        let f = forward(&l, &p, &cam, &opt, bg);
+        let mut grads = vec![0.0f32; l.len()];
+        backward(&l, &p, &cam, &opt, &f, &weights, &mut grads);
+        let loss = |q: &[f64]| -> f64 {
+            let img = reference(&l, q, &cam, &opt, bg.map(f64::from));
+            img.iter().zip(&weights).map(|(a, &w)| a * w as f64).sum()
+        };
+        let p64: Vec<f64> = p.iter().map(|&v| v as f64).collect();
+        let names = [
+            ("mean", l.means()),
+            ("log_scale", l.log_scales()),
+            ("rotation", l.rotations()),
+            ("opacity", l.opacities()),
+            ("sh", l.sh()),
+        ];
+        for (name, range) in names {
+            for i in range {
+                let h = 1e-5;
+                let (mut a, mut b) = (p64.clone(), p64.clone());
+                a[i] += h;
+                b[i] -= h;
+                let fd = (loss(&a) - loss(&b)) / (2.0 * h);
+                let an = grads[i] as f64;
+                let tol = 2e-3 * fd.abs().max(an.abs()) + 2e-3;
+                assert!((an - fd).abs() <= tol, "degree {degree}, {name} [{i}]: analytic {an}, differences {fd}");
+            }
+        }
+    }
+}
+
+#[test]
+fn a_rotated_camera_sees_a_rotated_scene_alike() {
+    // Rotating both the Gaussians and the camera about the origin leaves
+    // the image as it was (colours of degree 0: they do not turn).
+    let scene = unit_scene();
+    let (l, p) = random_gaussians(60, 0, 5, 0.9);
+    let c = camera([0.5, -4.0, 1.0], 40, 30, 45.0);
+    let opt = RasterOptions::default();
+    let bg = [0.1, 0.2, 0.3];
+    let base = forward(&l, &p, &RasterCamera::new(&c, &scene), &opt, bg);
+    let q = crate::engine::geometry::quat::Quat::from_axis_angle([0.3, 0.8, -0.5], 1.1).normalized();
+    let m = q.to_matrix();
+    let rot = |v: [f32; 3]| -> [f32; 3] {
+        [0, 1, 2].map(|r| (m[r][0] * v[0] as f64 + m[r][1] * v[1] as f64 + m[r][2] * v[2] as f64) as f32)
+    };
+    let mut p2 = p.clone();
+    let n = l.n;
+    for i in 0..n {
+        let v = rot([p[3 * i], p[3 * i + 1], p[3 * i + 2]]);
+        p2[3 * i..3 * i + 3].copy_from_slice(&v);
+        let g = l.get(&p, i);
+        let [w, x, y, z] = g.rotation.map(f64::from);
+        let r = q.times(crate::engine::geometry::quat::Quat { w, x, y, z });
+        p2[6 * n + 4 * i..6 * n + 4 * i + 4].copy_from_slice(&[r.w as f32, r.x as f32, r.y as f32, r.z as f32]);
+    }
+    let mut c2 = c.clone();
+    for r in 0..3 {
+        for k in 0..3 {
+            c2.c2w[r][k] = (0..3).map(|j| m[r][j] as f32 * c.c2w[j][k]).sum();
+        }
+    }
+    let o = rot(c.origin().to_array());
+    for r in 0..3 {
+        c2.c2w[r][3] = o[r];
+    }
+    let turned = forward(&l, &p2, &RasterCamera::new(&c2, &scene), &opt, bg);
+    let max = base.rgb.iter().zip(&turned.rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let mean: f32 = base.rgb.iter().zip(&turned.rgb).map(|(a, b)| (a - b).abs()).sum::<f32>() / base.rgb.len() as f32;
+    assert!(mean < 1e-4 && max < 0.02, "mean {mean}, max {max}");
+    assert!(base.opacity.iter().filter(|&&o| o > 0.1).count() > 100);
+}
