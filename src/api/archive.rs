@@ -365,9 +365,9 @@ mod tests {
             assert!(safe_relative(bad).is_err(), "{bad}");
         }
         // Names the file system would refuse are the client's error, named.
-        let long = format!("images/{}.png", "n".repeat(252));
+        let long = format!("images/{}.png", "n".repeat(251));
         assert!(safe_relative(&long).is_ok());
-        let longer = format!("images/{}.png", "n".repeat(253));
+        let longer = format!("images/{}.png", "n".repeat(252));
         let e = safe_relative(&longer).unwrap_err().to_string();
         assert!(e.contains("longer than 255 bytes") && e.len() < 300, "{e}");
         let deep = "d/".repeat(600) + "x.png";
