@@ -64,16 +64,33 @@ pub enum ArchiveError {
     Io(#[from] io::Error),
 }
 
+/// The longest entry name accepted, bytes (the data directory's own path
+/// and the upload's folders come before it, within Linux's 4096).
+pub const MAX_NAME_BYTES: usize = 1024;
+
+/// The longest folder or file name in an entry name, bytes (Linux's).
+pub const MAX_COMPONENT_BYTES: usize = 255;
+
 /// Checks an entry name and returns it as a relative path (`None` for the
 /// archive's root folder itself, e.g. `./`).
 pub fn safe_relative(name: &str) -> Result<Option<PathBuf>, ArchiveError> {
-    let bad = |why: &str| Err(ArchiveError::Bad(format!("archive entry '{name}': {why}")));
+    let shown: String = name.chars().take(100).collect();
+    let shown = if shown.len() < name.len() { format!("{shown}...") } else { shown };
+    let bad = |why: &str| Err(ArchiveError::Bad(format!("archive entry '{shown}': {why}")));
     if name.contains('\0') || name.contains('\\') {
         return bad("name contains a backslash or NUL");
+    }
+    // The file system refuses longer names (ENAMETOOLONG), which would be
+    // the server's error rather than the client's.
+    if name.len() > MAX_NAME_BYTES {
+        return bad(&format!("name is {} bytes long, more than {MAX_NAME_BYTES}", name.len()));
     }
     let mut out = PathBuf::new();
     for c in Path::new(name).components() {
         match c {
+            Component::Normal(p) if p.len() > MAX_COMPONENT_BYTES => {
+                return bad(&format!("a folder or file name in it is longer than {MAX_COMPONENT_BYTES} bytes"));
+            }
             Component::Normal(p) => out.push(p),
             Component::CurDir => {}
             Component::ParentDir => return bad("path contains '..'"),
@@ -347,6 +364,15 @@ mod tests {
         for bad in ["../x", "a/../../x", "/etc/passwd", "a\\..\\b", "a/.."] {
             assert!(safe_relative(bad).is_err(), "{bad}");
         }
+        // Names the file system would refuse are the client's error, named.
+        let long = format!("images/{}.png", "n".repeat(251));
+        assert!(safe_relative(&long).is_ok());
+        let longer = format!("images/{}.png", "n".repeat(252));
+        let e = safe_relative(&longer).unwrap_err().to_string();
+        assert!(e.contains("longer than 255 bytes") && e.len() < 300, "{e}");
+        let deep = "d/".repeat(600) + "x.png";
+        let e = safe_relative(&deep).unwrap_err().to_string();
+        assert!(e.contains("1205 bytes long, more than 1024"), "{e}");
     }
 
     #[test]

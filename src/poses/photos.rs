@@ -29,11 +29,9 @@ pub const MAX_PHOTOS: usize = 2000;
 const MAX_DEPTH: usize = 4;
 
 /// Photos (and any image a client sends) declaring more pixels than this are
-/// refused from their header, before decoding: a PNG of a few kilobytes can
-/// declare 30000x30000 pixels, gigabytes once decoded. 50 megapixels holds
-/// the largest common phone photos (48 MP, 8064x6048); decoded at up to 8
-/// bytes a pixel (16-bit RGBA), one such photo stays under 400 MB.
-pub const MAX_PIXELS: u64 = 50_000_000;
+/// refused from their header, before decoding: the engine's own limit
+/// (`engine::dataset::MAX_PIXELS`, which says why 50 megapixels).
+pub const MAX_PIXELS: u64 = crate::engine::dataset::MAX_PIXELS;
 
 /// Photos whose shorter side (after downscaling) is below this are refused:
 /// COLMAP finds no features to match in them.

@@ -211,6 +211,12 @@ pub fn probe(tools: &Ffmpeg, video: &Path, shown: &str, deadline: Instant) -> Re
             super::photos::MAX_PIXELS / 1_000_000
         )));
     }
+    if width.min(height) < super::photos::MIN_SIDE {
+        return Err(bad(format!(
+            "has frames of {width}x{height} pixels; pose estimation needs frames at least {} pixels on each side",
+            super::photos::MIN_SIDE
+        )));
+    }
     let duration = num("duration").filter(|d| *d > 0.0).unwrap_or(0.0);
     if frames < super::photos::MIN_PHOTOS as u64 {
         return Err(too_few(shown, frames, frames));

@@ -268,14 +268,16 @@ pub fn assert_no_scene_files(data: &Path) {
 }
 
 /// Starts the real binary; returns it and its base URL.
-pub fn spawn_binary(data: &Path) -> (std::process::Child, String) {
+pub fn spawn_binary(data: &Path) -> (Served, String) {
     spawn_binary_with(data, &["--checkpoint-every", "0.2"])
 }
 
 /// Starts the real binary with more `serve` arguments; returns it and its
-/// base URL once it listens.
-pub fn spawn_binary_with(data: &Path, args: &[&str]) -> (std::process::Child, String) {
+/// base URL once it listens. Its stderr goes to a file, read when it is
+/// dropped: a test whose server panicked fails.
+pub fn spawn_binary_with(data: &Path, args: &[&str]) -> (Served, String) {
     use std::io::BufRead;
+    let stderr = tempfile::NamedTempFile::new().unwrap();
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_radiance"))
         .args(["serve", "--addr", "127.0.0.1:0", "--threads", "2"])
         .args(args)
@@ -283,11 +285,60 @@ pub fn spawn_binary_with(data: &Path, args: &[&str]) -> (std::process::Child, St
         .arg(data)
         .env_remove("RADIANCE_API_KEY")
         .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::null())
+        .stderr(stderr.reopen().unwrap())
         .spawn()
         .unwrap();
     let mut line = String::new();
     std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected output: {line}"));
-    (child, addr.to_string())
+    let served = Served { child, stderr };
+    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| {
+        panic!("unexpected output: {line}; stderr: {}", std::fs::read_to_string(served.stderr.path()).unwrap())
+    });
+    (served, addr.to_string())
+}
+
+/// The server binary as a child process (a [`std::process::Child`] through
+/// `Deref`), with its stderr in a file. Dropped, it is killed if still
+/// running, and the test fails if its stderr tells of a panic.
+pub struct Served {
+    child: std::process::Child,
+    stderr: tempfile::NamedTempFile,
+}
+
+impl Served {
+    /// The lines of the server's stderr so far that tell of a panic.
+    pub fn panics(&self) -> Vec<String> {
+        let log = std::fs::read(self.stderr.path()).unwrap();
+        String::from_utf8_lossy(&log).lines().filter(|l| l.contains("panicked")).map(str::to_string).collect()
+    }
+
+    /// The server's peak resident memory (`VmHWM`) so far, bytes; the
+    /// process must not have been waited for.
+    pub fn peak_rss(&self) -> u64 {
+        poses::peak_rss(self.child.id())
+    }
+}
+
+impl std::ops::Deref for Served {
+    type Target = std::process::Child;
+    fn deref(&self) -> &std::process::Child {
+        &self.child
+    }
+}
+
+impl std::ops::DerefMut for Served {
+    fn deref_mut(&mut self) -> &mut std::process::Child {
+        &mut self.child
+    }
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        if !std::thread::panicking() {
+            let panics = self.panics();
+            assert!(panics.is_empty(), "the server panicked: {panics:?}");
+        }
+    }
 }

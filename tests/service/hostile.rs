@@ -2,7 +2,10 @@
 //! server binary with the real COLMAP and ffmpeg: decompression bombs
 //! refused from their headers at upload (the server's peak memory read from
 //! /proc), photos that cannot be posed refused at upload, the poses job's
-//! memory estimate following its input.
+//! memory estimate following its input. A server killed (-9) at any stage
+//! leaves no process and no folder, and every server here stays under 500
+//! MB (its peak RSS, checked before each kill and at the end) and never
+//! panics (its stderr, read when it is dropped).
 
 use std::path::Path;
 
@@ -10,7 +13,7 @@ use radiance::engine::dataset::textured::TexturedScene;
 use reqwest::StatusCode;
 use serde_json::Value;
 
-use crate::common::poses::{bomb_png, peak_rss};
+use crate::common::poses::bomb_png;
 use crate::common::*;
 
 /// The textured scene's photos (no poses) at `w`x`h`, under `photos/`.
@@ -31,8 +34,11 @@ fn message(v: &Value) -> &str {
     v["error"]["message"].as_str().unwrap_or_default()
 }
 
+/// The most memory a server may have held at its peak.
+const MAX_PEAK_RSS: u64 = 500 << 20;
+
 struct Server {
-    child: std::process::Child,
+    child: Served,
     svc: Svc,
 }
 
@@ -41,12 +47,19 @@ impl Server {
         let (child, base) = spawn_binary_with(data, &[]);
         Self { child, svc: Svc::remote(base) }
     }
-}
 
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+    /// Asserts the server's peak memory so far is under [`MAX_PEAK_RSS`].
+    fn assert_peak_rss(&self) {
+        let peak = self.child.peak_rss();
+        eprintln!("server peak RSS {} MiB", peak >> 20);
+        assert!(peak < MAX_PEAK_RSS, "server peak RSS {} MiB", peak >> 20);
+    }
+
+    /// kill -9 (no chance to clean up), once its peak memory is checked.
+    fn kill(&mut self) {
+        self.assert_peak_rss();
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
     }
 }
 
@@ -112,9 +125,7 @@ async fn bombs_and_unposable_photos_are_refused_at_upload_from_their_headers() {
 
     // Through all of it the server stayed small (bombs decoded would have
     // taken gigabytes).
-    let peak = peak_rss(server.child.id());
-    eprintln!("server peak RSS {} MiB", peak >> 20);
-    assert!(peak < 500 << 20, "server peak RSS {} MiB", peak >> 20);
+    server.assert_peak_rss();
 }
 
 /// Processes (not zombies) whose command line names `dir`: the COLMAP and
@@ -162,8 +173,7 @@ async fn a_server_killed_at_each_stage_of_colmap_leaves_no_process_and_no_folder
         let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
         server.svc.wait_job(&job, 120.0, |j| j["status"] == "running" && j["progress"]["stage"] == stage).await;
         assert!(!processes_in(data.path()).is_empty(), "COLMAP is not running during {stage}");
-        server.child.kill().unwrap(); // SIGKILL
-        server.child.wait().unwrap();
+        server.kill();
         // COLMAP dies with the server, not 40 s later.
         let t = std::time::Instant::now();
         while !processes_in(data.path()).is_empty() {
@@ -184,6 +194,7 @@ async fn a_server_killed_at_each_stage_of_colmap_leaves_no_process_and_no_folder
         assert!(leftovers(data.path(), &id).is_empty(), "{:?}", leftovers(data.path(), &id));
         assert!(processes_in(data.path()).is_empty(), "{:?}", processes_in(data.path()));
     }
+    server.assert_peak_rss();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -199,8 +210,7 @@ async fn a_poses_job_failed_at_start_up_leaves_no_folder() {
         let at_work = |j: &Value| j["attempts"] == attempt && j["progress"]["stage"] == "matching";
         server.svc.wait_job(&job, 120.0, at_work).await;
         assert!(!leftovers(data.path(), &id).is_empty(), "no working folder while COLMAP runs");
-        server.child.kill().unwrap();
-        server.child.wait().unwrap();
+        server.kill();
         server = Server::start(data.path());
     }
     let (_, j) = server.svc.get(&format!("/v1/jobs/{job}")).await;
@@ -209,10 +219,16 @@ async fn a_poses_job_failed_at_start_up_leaves_no_folder() {
     assert_eq!(sc["status"], "failed", "{sc}");
     assert!(leftovers(data.path(), &id).is_empty(), "{:?}", leftovers(data.path(), &id));
     assert!(processes_in(data.path()).is_empty(), "{:?}", processes_in(data.path()));
+    server.assert_peak_rss();
 }
 
-/// An MP4 (H.264) of `frames` frames of ffmpeg's `source` at 12 fps.
+/// An MP4 (H.264) of `frames` frames of ffmpeg's `source` at 12 fps,
+/// 320x240.
 fn mp4(dir: &Path, name: &str, source: &str, frames: u32, faststart: bool) -> Vec<u8> {
+    mp4_sized(dir, name, source, "320x240", frames, faststart)
+}
+
+fn mp4_sized(dir: &Path, name: &str, source: &str, size: &str, frames: u32, faststart: bool) -> Vec<u8> {
     let path = dir.join(name);
     let mut cmd = std::process::Command::new("ffmpeg");
     cmd.args([
@@ -222,7 +238,7 @@ fn mp4(dir: &Path, name: &str, source: &str, frames: u32, faststart: bool) -> Ve
         "-f",
         "lavfi",
         "-i",
-        &format!("{source}{}size=320x240:rate=12", if source.contains('=') { ":" } else { "=" }),
+        &format!("{source}{}size={size}:rate=12", if source.contains('=') { ":" } else { "=" }),
     ]);
     cmd.args(["-frames:v", &frames.to_string(), "-c:v", "libx264", "-pix_fmt", "yuv420p"]);
     if faststart {
@@ -245,6 +261,11 @@ async fn videos_that_cannot_give_views_are_refused_at_upload_saying_why() {
         ("cut.mp4", good[..good.len() / 2].to_vec(), "is cut short: its index lists 48 frames, the file holds"),
         ("one.mp4", mp4(dir.path(), "one.mp4", "testsrc", 1, false), "has 1 distinct frame; pose estimation"),
         ("still.mp4", mp4(dir.path(), "still.mp4", "color=c=gray", 48, false), "has 1 distinct frame (48 in all"),
+        (
+            "tiny.mp4",
+            mp4_sized(dir.path(), "tiny.mp4", "testsrc", "16x16", 48, false),
+            "has frames of 16x16 pixels; pose estimation needs frames at least 32 pixels",
+        ),
     ];
     for (name, bytes, says) in cases {
         let t = std::time::Instant::now();
@@ -263,8 +284,7 @@ async fn videos_that_cannot_give_views_are_refused_at_upload_saying_why() {
     let (_, job) = svc.get(&format!("/v1/jobs/{}", v["poses"]["job_id"].as_str().unwrap())).await;
     let base = radiance::jobs::poses::MEMORY_ESTIMATE_BYTES;
     assert_eq!(job["memory_estimate_bytes"].as_u64(), Some(base + 320 * 240 * 3 / 2 * 40), "{job}");
-    let peak = peak_rss(server.child.id());
-    assert!(peak < 500 << 20, "server peak RSS {} MiB", peak >> 20);
+    server.assert_peak_rss();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -303,6 +323,16 @@ async fn smaller_holes_answer_as_documented() {
     assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
     assert!(message(&v).contains(&format!("archive entry '{a}' appears twice")), "{v}");
 
+    // Names longer than the file system takes (255 bytes a name, 1024 in
+    // all) are the client's error, named, not the server's.
+    let long = format!("images/{}.png", "n".repeat(1000));
+    let (s, v) = svc.upload("application/zip", zip_of(&[(long, png(8, 8))])).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert!(message(&v).contains("longer than 255 bytes"), "{v}");
+    let (s, v) = svc.upload_form(form_of(&[(format!("{}.png", "q".repeat(5000)), png(8, 8))], true)).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert!(message(&v).contains("5004 bytes long, more than 1024"), "{v}");
+
     // A photo whose header is whole and data cut short fails in its job,
     // which names it as uploaded, not by the server's folders.
     let mut photos = photos_at(3, 320, 240);
@@ -317,8 +347,7 @@ async fn smaller_holes_answer_as_documented() {
     let (_, sc) = svc.get(&format!("/v1/scenes/{}", v["id"].as_str().unwrap())).await;
     let root = data.path().display().to_string();
     assert!(!err.contains(&root) && !sc["error"].as_str().unwrap().contains(&root), "{err} / {sc}");
-    let peak = peak_rss(server.child.id());
-    assert!(peak < 500 << 20, "server peak RSS {} MiB", peak >> 20);
+    server.assert_peak_rss();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -331,8 +360,7 @@ async fn three_kills_in_a_row_at_different_stages_cost_a_stage_each_not_the_job(
     for (attempt, stage) in [(1u64, "feature extraction"), (2, "matching"), (3, "mapping")] {
         let at = |j: &Value| j["status"] == "running" && j["attempts"] == attempt && j["progress"]["stage"] == stage;
         server.svc.wait_job(&job, 120.0, at).await;
-        server.child.kill().unwrap();
-        server.child.wait().unwrap();
+        server.kill();
         server = Server::start(data.path());
         let (_, j) = server.svc.get(&format!("/v1/jobs/{job}")).await;
         // A stage was finished since the last start: progress, not a crash in a row.
@@ -349,6 +377,7 @@ async fn three_kills_in_a_row_at_different_stages_cost_a_stage_each_not_the_job(
     assert!(secs["mapping"].as_f64().unwrap() > 0.0, "{sc}");
     assert!(leftovers(data.path(), &id).is_empty(), "{:?}", leftovers(data.path(), &id));
     assert!(processes_in(data.path()).is_empty(), "{:?}", processes_in(data.path()));
+    server.assert_peak_rss();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -370,8 +399,7 @@ async fn a_video_job_killed_twice_keeps_its_frames_and_finishes() {
             j["status"] == "running" && j["attempts"] == attempt && j["progress"]["step"].as_u64() >= Some(at_least)
         };
         server.svc.wait_job(&job, 120.0, at).await;
-        server.child.kill().unwrap();
-        server.child.wait().unwrap();
+        server.kill();
         // The frames rendered so far are on disk, each a whole PNG.
         let saved = std::fs::read_dir(&frames_dir).unwrap().count() as u64;
         assert!(saved >= at_least, "{saved} frames saved");
@@ -389,6 +417,7 @@ async fn a_video_job_killed_twice_keeps_its_frames_and_finishes() {
     let gif = image::codecs::gif::GifDecoder::new(std::io::Cursor::new(&bytes[..])).unwrap();
     use image::AnimationDecoder;
     assert_eq!(gif.into_frames().count(), 120);
+    server.assert_peak_rss();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -413,8 +442,7 @@ async fn a_video_upload_killed_during_frame_extraction_leaves_no_ffmpeg_and_fini
     let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
     let extracting = |j: &Value| j["status"] == "running" && j["progress"]["stage"] == "extracting video frames";
     server.svc.wait_job(&job, 60.0, extracting).await;
-    server.child.kill().unwrap();
-    server.child.wait().unwrap();
+    server.kill();
     let t = std::time::Instant::now();
     while !processes_in(data.path()).is_empty() {
         assert!(t.elapsed().as_secs_f64() < 3.0, "orphans: {:?}", processes_in(data.path()));
@@ -427,4 +455,5 @@ async fn a_video_upload_killed_during_frame_extraction_leaves_no_ffmpeg_and_fini
     assert_eq!((sc["status"].as_str(), sc["poses"]["report"]["source"].as_str()), (Some("ready"), Some("video")));
     assert!(leftovers(data.path(), &id).is_empty(), "{:?}", leftovers(data.path(), &id));
     assert!(processes_in(data.path()).is_empty(), "{:?}", processes_in(data.path()));
+    server.assert_peak_rss();
 }

@@ -5,9 +5,18 @@
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
+use image::ImageDecoder;
 use rayon::prelude::*;
 
 use super::{DatasetError, Image};
+
+/// Images declaring more pixels than this are refused from their header,
+/// before decoding: a PNG of a few kilobytes can declare 30000x30000 pixels,
+/// gigabytes once decoded. 50 megapixels holds the largest common phone
+/// photos (48 MP, 8064x6048); decoded at up to 8 bytes a pixel (16-bit
+/// RGBA), one such image stays under 400 MB. The service's uploads and pose
+/// estimation refuse the same (`poses::photos::MAX_PIXELS` is this).
+pub const MAX_PIXELS: u64 = 50_000_000;
 
 /// File extensions (lower case) treated as images.
 pub const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
@@ -38,7 +47,23 @@ pub(super) fn decode_bytes(bytes: &[u8], path: &Path) -> Result<Image, DatasetEr
     if reader.format().is_none() {
         return Err(bad("unrecognised image format (expected PNG or JPEG)".into()));
     }
-    let img = reader.decode().map_err(|e| bad(e.to_string()))?;
+    // The size the header declares is checked before a pixel is decoded,
+    // and the decoder is held to it.
+    let mut decoder = reader.into_decoder().map_err(|e| bad(e.to_string()))?;
+    let (w, h) = decoder.dimensions();
+    if w as u64 * h as u64 > MAX_PIXELS {
+        return Err(DatasetError::TooManyPixels {
+            path: path.to_path_buf(),
+            width: w,
+            height: h,
+            limit_mp: MAX_PIXELS / 1_000_000,
+        });
+    }
+    let decoded = w as u64 * h as u64 * decoder.color_type().bytes_per_pixel() as u64;
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(decoded.max(1 << 20).saturating_mul(2));
+    decoder.set_limits(limits).map_err(|e| bad(e.to_string()))?;
+    let img = image::DynamicImage::from_decoder(decoder).map_err(|e| bad(e.to_string()))?;
     let has_alpha = img.color().has_alpha();
     let rgba = img.into_rgba8();
     let (width, height) = rgba.dimensions();
@@ -118,5 +143,55 @@ mod tests {
         }
         assert!(matches!(decode_image(&garbage, &by), Err(DatasetError::BadImage { .. })));
         assert!(matches!(decode_image(&truncated, &by), Err(DatasetError::BadImage { .. })));
+    }
+
+    /// A PNG of a few kilobytes whose header declares `w`x`h` 8-bit RGB
+    /// pixels; its compressed data (zeros) ends long before that.
+    fn bomb_png(w: u32, h: u32) -> Vec<u8> {
+        fn chunk(out: &mut Vec<u8>, kind: &[u8], data: &[u8]) {
+            out.extend((data.len() as u32).to_be_bytes());
+            let start = out.len();
+            out.extend(kind);
+            out.extend(data);
+            let crc = crc32fast::hash(&out[start..]);
+            out.extend(crc.to_be_bytes());
+        }
+        let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+        let mut ihdr = Vec::new();
+        ihdr.extend(w.to_be_bytes());
+        ihdr.extend(h.to_be_bytes());
+        ihdr.extend([8, 2, 0, 0, 0]);
+        chunk(&mut png, b"IHDR", &ihdr);
+        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+        std::io::Write::write_all(&mut z, &vec![0u8; 4 << 20]).unwrap();
+        chunk(&mut png, b"IDAT", &z.finish().unwrap());
+        chunk(&mut png, b"IEND", &[]);
+        png
+    }
+
+    #[test]
+    fn a_bomb_is_refused_from_its_header_naming_the_file_and_its_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let by = dir.path().join("t.json");
+        let bomb = dir.path().join("bomb.png");
+        let bytes = bomb_png(30000, 30000);
+        assert!(bytes.len() < 20_000, "{} bytes", bytes.len());
+        std::fs::write(&bomb, &bytes).unwrap();
+        let ok = dir.path().join("ok.png");
+        image::RgbImage::new(8, 8).save(&ok).unwrap();
+        let e = decode_all(&[(ok.clone(), by.clone()), (bomb.clone(), by.clone())]).unwrap_err();
+        assert!(
+            matches!(&e, DatasetError::TooManyPixels { path, width: 30000, height: 30000, limit_mp: 50 } if path == &bomb),
+            "{e:?}"
+        );
+        let m = e.to_string();
+        assert!(
+            m.contains("bomb.png") && m.contains("30000x30000") && m.contains("more than the 50 megapixels"),
+            "{m}"
+        );
+        // Under the limit the header passes, and the data cut short is a
+        // decoding error.
+        std::fs::write(&bomb, bomb_png(4000, 3000)).unwrap();
+        assert!(matches!(decode_image(&bomb, &by), Err(DatasetError::BadImage { .. })));
     }
 }

@@ -12,7 +12,7 @@ mod blender;
 mod colmap;
 pub mod colmap_model;
 mod images;
-pub use images::IMAGE_EXTENSIONS;
+pub use images::{IMAGE_EXTENSIONS, MAX_PIXELS};
 mod json;
 mod llff;
 pub mod masks;
@@ -255,6 +255,12 @@ pub enum DatasetError {
     MissingMask { image: PathBuf, looked_in: String, missing: usize, total: usize },
     #[error("{path}: image does not decode: {message}")]
     BadImage { path: PathBuf, message: String },
+    #[error(
+        "{path}: image declares {width}x{height} pixels ({:.0} megapixels), more than the {limit_mp} megapixels \
+         an image may have; downscale it",
+        *width as f64 * *height as f64 / 1e6
+    )]
+    TooManyPixels { path: PathBuf, width: u32, height: u32, limit_mp: u64 },
     #[error("{path}: image is {got_w}x{got_h}, expected {want_w}x{want_h}")]
     SizeMismatch { path: PathBuf, got_w: u32, got_h: u32, want_w: u32, want_h: u32 },
     #[error("{path}: frame {frame}: {message}")]
