@@ -9,6 +9,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod cards;
 mod flow;
 mod key;
 mod posing;
