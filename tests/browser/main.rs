@@ -2,7 +2,8 @@
 //! `common::cdp`) against the real server on 127.0.0.1. The tests upload a
 //! generated scene through the page, train it and watch the progress, drag
 //! the model in the viewer and see the image change, make videos, and fail
-//! on any JavaScript error the page reports. Screenshots go to
+//! on any JavaScript error the page reports; the splat viewer draws a
+//! generated `.splat` file where its camera says. Screenshots go to
 //! `target/tmp/screenshots/` (and to `$RADIANCE_SCREENSHOTS` when set: the
 //! README's come from there, `RADIANCE_SCREENSHOTS=docs`).
 
@@ -13,6 +14,7 @@ mod cards;
 mod flow;
 mod key;
 mod posing;
+mod splats;
 mod trial;
 
 use std::path::PathBuf;
