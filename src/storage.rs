@@ -559,6 +559,12 @@ pub struct ScenePoses {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SceneInfo {
     pub id: String,
+    /// What the upload was called, to show people: the archive's file name
+    /// or the folder's (`POST /v1/scenes?name=`, or a multipart upload's one
+    /// top folder); `None` when it is not known (and in records from before
+    /// names were kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
     #[serde(default)]
     pub status: SceneStatus,
     /// Why pose estimation failed (status `failed`).
@@ -602,6 +608,7 @@ impl SceneInfo {
         }
         SceneInfo {
             id: id.to_string(),
+            name: None,
             status: SceneStatus::Ready,
             error: None,
             poses: None,
@@ -704,6 +711,7 @@ pub(crate) fn sample_scene(id: &str) -> SceneInfo {
         error: None,
         poses: None,
         id: id.into(),
+        name: None,
         format: crate::engine::dataset::DatasetFormat::Blender,
         images: SplitCounts { train: 1, val: 0, test: 0 },
         resolution: [4, 4],

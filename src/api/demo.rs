@@ -13,7 +13,7 @@ use crate::storage::{SceneInfo, tree_bytes};
 
 pub async fn create(State(s): State<AppState>) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
     let (id, dir) = staging(&*s.artifacts);
-    let info = ingest(&s, id, dir, |data| {
+    let info = ingest(&s, id, dir, Some("demo scene".into()), |data| {
         BallScene::demo().write_blender(data)?;
         Ok(tree_bytes(data)?)
     })

@@ -1,7 +1,8 @@
 //! The REST service: `app(state)` builds every route; [`Server::start`]
 //! opens the stores, binds the router and serves it.
 //!
-//! One file per resource (`scenes`, `jobs`, `models`, `videos`, `demo`), one
+//! One file per resource (`scenes` and their `thumbnails`, `jobs`, `models`,
+//! `videos`, `demo`), one
 //! error type (`error`), archive extraction (`archive`), `/healthz`,
 //! `/readyz` and `/metrics` (`health`), the web app's embedded files
 //! (`web`), the node's role (`role`), the shared stores and worker of
@@ -40,6 +41,7 @@ pub mod limits;
 pub mod models;
 pub mod role;
 pub mod scenes;
+pub mod thumbnails;
 pub mod videos;
 pub mod web;
 
@@ -134,6 +136,7 @@ pub fn app(state: AppState) -> Router {
         // The body limit of uploads is tower-http's (`layers`), on every route.
         .route("/v1/scenes", post(scenes::create).layer(DefaultBodyLimit::disable()).merge(quick(get(scenes::list))))
         .route("/v1/scenes/{id}", quick(get(scenes::get_one).delete(scenes::delete)))
+        .route("/v1/scenes/{id}/thumbnail", get(thumbnails::get))
         .route("/v1/demo", quick(post(demo::create)))
         .route("/v1/jobs", quick(post(jobs::create).get(jobs::list)))
         .route("/v1/jobs/{id}", quick(get(jobs::get_one).delete(jobs::delete)))
@@ -147,7 +150,7 @@ pub fn app(state: AppState) -> Router {
         .route("/metrics", quick(get(health::metrics)))
         .route_layer(middleware::from_fn_with_state(state.clone(), auth));
     // The page and its files need no key: the page asks for it.
-    let web = Router::new().route("/", get(web::index)).route("/assets/{name}", get(web::asset));
+    let web = Router::new().route("/", get(web::index)).route("/assets/{*name}", get(web::asset));
     let (max_body, cors) = (state.config.max_upload_bytes, state.config.cors_origins.clone());
     let routes = Router::new()
         .route("/healthz", get(health::healthz))

@@ -13,8 +13,10 @@ use std::path::{Path, PathBuf};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::multipart::MultipartError;
-use axum::extract::{FromRequest, Multipart, Path as UrlPath, Request, State};
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{FromRequest, Multipart, Path as UrlPath, Query, Request, State};
 use axum::http::{StatusCode, header::CONTENT_TYPE};
+use serde::Deserialize;
 
 use super::archive::{self, ArchiveKind, Limit, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
@@ -26,7 +28,20 @@ use crate::storage::{SceneInfo, ScenePart, ScenePoses, SceneStatus, SplitCounts,
 use crate::store::Artifact;
 use crate::store::{ArtifactStore, NewJob};
 
-pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
+/// `POST /v1/scenes?name=`: what the upload is called (the archive's file
+/// name, or the folder's), shown to people; optional.
+#[derive(Debug, Deserialize)]
+pub struct UploadQuery {
+    pub name: Option<String>,
+}
+
+pub async fn create(
+    State(s): State<AppState>,
+    q: Result<Query<UploadQuery>, QueryRejection>,
+    req: Request,
+) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
+    let Query(q) = q?;
+    let name = q.name.as_deref().and_then(clean_name);
     let ct = req.headers().get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
     let limits = Limits { max_unpacked_bytes: s.config.max_unpacked_bytes, max_entries: s.config.max_archive_entries };
     let too_large = |s: &AppState| {
@@ -45,7 +60,7 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
             }
         });
         match received {
-            Ok(size) => ingest(&s, id, staging, move |_| Ok(size)).await?,
+            Ok((size, folder)) => ingest(&s, id, staging, name.or(folder), move |_| Ok(size)).await?,
             Err(e) => {
                 remove_staging(staging).await;
                 return Err(e);
@@ -72,10 +87,18 @@ pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(Statu
             return Err(ApiError::bad_request("empty upload: send the archive as the request body"));
         }
         let (id, staging) = staging(&*s.artifacts);
-        ingest(&s, id, staging, move |data| Ok(archive::extract(kind, &body, data, limits)?)).await?
+        ingest(&s, id, staging, name, move |data| Ok(archive::extract(kind, &body, data, limits)?)).await?
     };
     tracing::info!(scene = %info.id, format = %info.format, train = info.images.train, "scene stored");
     Ok((StatusCode::CREATED, Json(info)))
+}
+
+/// A scene's name as given, made fit to show: control characters dropped,
+/// spaces trimmed, at most 120 characters; `None` when nothing is left.
+pub(super) fn clean_name(name: &str) -> Option<String> {
+    let kept: String = name.chars().filter(|c| !c.is_control()).take(120).collect();
+    let kept = kept.trim();
+    (!kept.is_empty()).then(|| kept.to_string())
 }
 
 /// A new scene id and its staging folder (not yet created).
@@ -111,12 +134,20 @@ impl From<std::io::Error> for PartError {
 /// part's field name, or its file name when the field is named `file` or
 /// `files` (as `curl -F 'file=@x;filename=images/x.png'` sends). Paths are
 /// checked as archive entries are; the same limits apply. Returns the bytes
-/// written.
-async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) -> Result<u64, PartError> {
+/// written and the one folder every part is in, when they are all in one
+/// (a folder chosen in a browser: the scene's name).
+async fn receive_parts(
+    mut multipart: Multipart,
+    data: &Path,
+    limits: Limits,
+) -> Result<(u64, Option<String>), PartError> {
     use tokio::io::AsyncWriteExt;
     let bad = |m: String| PartError::Api(ApiError::bad_request(m));
     tokio::fs::create_dir_all(data).await?;
     let (mut total, mut entries) = (0u64, 0usize);
+    // The first folder of every path so far: None before the first part,
+    // Some(None) once two parts disagree or a part is at the top.
+    let mut top: Option<Option<String>> = None;
     while let Some(mut field) = multipart.next_field().await? {
         let name = match (field.name(), field.file_name()) {
             (Some("file" | "files") | None, Some(f)) => f.to_string(),
@@ -134,6 +165,14 @@ async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) ->
         let rel = archive::safe_relative(&name)
             .map_err(|e| bad(e.to_string().replace("archive entry", "uploaded file")))?
             .ok_or_else(|| bad(format!("uploaded file '{name}' has an empty path")))?;
+        let mut parts = rel.components();
+        let first = parts.next().map(|c| c.as_os_str().to_string_lossy().into_owned());
+        let folder = if parts.next().is_some() { first } else { None };
+        top = Some(match top {
+            None => folder,
+            Some(t) if t == folder => t,
+            Some(_) => None,
+        });
         let dest = data.join(rel);
         if let Some(p) = dest.parent() {
             tokio::fs::create_dir_all(p).await?;
@@ -161,24 +200,28 @@ async fn receive_parts(mut multipart: Multipart, data: &Path, limits: Limits) ->
     if entries == 0 {
         return Err(bad("empty multipart upload: send one part per file of the dataset".into()));
     }
-    Ok(total)
+    Ok((total, top.flatten().as_deref().and_then(clean_name)))
 }
 
 /// Fills `staging/data` with `fill` (returning the bytes written), then
 /// loads, validates and stores the dataset: its files in the artifact
 /// store, then its record (and a photo-only upload's pose estimation job)
 /// in the job store, which makes it visible. Removes everything staged on
-/// failure.
+/// failure. `name` is what the scene is called (see [`SceneInfo::name`]).
 pub(super) async fn ingest(
     s: &AppState,
     id: String,
     staging: PathBuf,
+    name: Option<String>,
     fill: impl FnOnce(&Path) -> ApiResult<u64> + Send + 'static,
 ) -> ApiResult<SceneInfo> {
     let (s2, staging2) = (s.clone(), staging.clone());
     let checked = tokio::task::spawn_blocking(move || check_upload(&s2, &id, &staging2, fill)).await;
     let stored = match checked {
-        Ok(Ok(upload)) => store(s, &staging, upload).await,
+        Ok(Ok(mut upload)) => {
+            upload.info.name = name;
+            store(s, &staging, upload).await
+        }
         Ok(Err(e)) => Err(e),
         Err(e) => Err(e.into()),
     };
@@ -394,6 +437,7 @@ fn posing(id: &str, size: u64, upload: PhotoUpload) -> Checked {
     let job_id = new_id("job");
     let info = SceneInfo {
         id: id.to_string(),
+        name: None,
         status: SceneStatus::Posing,
         error: None,
         poses: Some(ScenePoses {

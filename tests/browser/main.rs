@@ -2,16 +2,19 @@
 //! `common::cdp`) against the real server on 127.0.0.1. The tests upload a
 //! generated scene through the page, train it and watch the progress, drag
 //! the model in the viewer and see the image change, make videos, and fail
-//! on any JavaScript error the page reports. Screenshots go to
+//! on any JavaScript error the page reports; the splat viewer draws a
+//! generated `.splat` file where its camera says. Screenshots go to
 //! `target/tmp/screenshots/` (and to `$RADIANCE_SCREENSHOTS` when set: the
 //! README's come from there, `RADIANCE_SCREENSHOTS=docs`).
 
 #[path = "../common/mod.rs"]
 mod common;
 
+mod cards;
 mod flow;
 mod key;
 mod posing;
+mod splats;
 mod trial;
 
 use std::path::PathBuf;

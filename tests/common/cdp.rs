@@ -2,7 +2,8 @@
 //! 127.0.0.1 with a throw-away profile, attach to its page, call methods,
 //! evaluate JavaScript, send real mouse events, set file inputs, take
 //! screenshots, and collect every JavaScript error the page reports
-//! (exceptions, `console.error`, error log entries such as failed loads).
+//! (exceptions, `console.error`, error log entries such as failed loads)
+//! and, once asked (`record_requests`), the URL of every request it sends.
 //!
 //! Every wait is bounded. A missing browser is a failure, not a skip: the
 //! browser tests exist to run it (CI installs the Debian package
@@ -34,6 +35,10 @@ impl Browser {
                 "--headless=new",
                 "--no-sandbox", // CI runs as root
                 "--disable-gpu",
+                // WebGL (the splat viewer) on the software renderer,
+                // SwiftShader: asked for, as Chromium no longer falls back
+                // to it by itself in future versions.
+                "--enable-unsafe-swiftshader",
                 "--disable-dev-shm-usage",
                 "--no-first-run",
                 "--no-default-browser-check",
@@ -131,6 +136,9 @@ pub struct Page {
     next_id: u64,
     /// JavaScript errors the page reported, in order.
     pub errors: Vec<String>,
+    /// URLs of the requests the page sent since `record_requests` (its
+    /// own, not its workers'), in order.
+    pub requests: Vec<String>,
 }
 
 impl Page {
@@ -139,7 +147,7 @@ impl Page {
         let stream = TcpStream::connect(addr).unwrap();
         let (ws, _) = tungstenite::client(url, stream).unwrap();
         ws.get_ref().set_read_timeout(Some(Duration::from_millis(5))).unwrap();
-        let mut page = Page { ws, next_id: 0, errors: Vec::new() };
+        let mut page = Page { ws, next_id: 0, errors: Vec::new(), requests: Vec::new() };
         for domain in ["Page.enable", "Runtime.enable", "Log.enable", "DOM.enable"] {
             page.call(domain, json!({}));
         }
@@ -200,8 +208,17 @@ impl Page {
             Some("Log.entryAdded") if p["entry"]["level"] == "error" => {
                 self.errors.push(format!("log: {} ({})", p["entry"]["text"], p["entry"]["url"]));
             }
+            Some("Network.requestWillBeSent") => {
+                self.requests.push(p["request"]["url"].as_str().unwrap_or("?").to_string());
+            }
             _ => {}
         }
+    }
+
+    /// Records the URL of every request the page sends from now on (in
+    /// `requests`).
+    pub fn record_requests(&mut self) {
+        self.call("Network.enable", json!({}));
     }
 
     /// Reads pending events for `d` (to collect errors while waiting).

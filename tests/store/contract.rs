@@ -143,6 +143,7 @@ pub fn sample_view_scene(id: &str) -> SceneInfo {
     });
     SceneInfo {
         id: id.into(),
+        name: None,
         status: SceneStatus::Ready,
         error: None,
         poses: None,

@@ -1,0 +1,327 @@
+// The viewer: a model rendered by the server from a camera the user turns
+// (drag, wheel, pinch, keys), small renders while the view moves and a
+// full-resolution one once it is still; depth and opacity; a camera path
+// for a video. `window.radianceStats` keeps its timings for people and
+// for the browser tests.
+
+import { api, getJson } from './api.js';
+import { $, el, fail, showTab, status } from './ui.js';
+import { makeVideo } from './videos.js';
+
+let models = [];
+
+export async function refreshModels() {
+  models = (await getJson('/v1/models')).reverse();
+  for (const id of ['view-model', 'video-model']) {
+    const s = $(id);
+    const chosen = s.value;
+    s.replaceChildren(...models.map((m) => el('option', { value: m.id },
+      `${m.id} (${m.model}, ${m.steps} steps${m.test_psnr != null ? `, ${m.test_psnr.toFixed(1)} dB` : ''}${m.complete ? '' : ', training'})`)));
+    if (chosen && models.some((m) => m.id === chosen)) s.value = chosen;
+  }
+  if (!viewer.model && models.length) selectModel(models[0].id);
+}
+
+const v3 = {
+  add: (a, b) => a.map((x, i) => x + b[i]),
+  sub: (a, b) => a.map((x, i) => x - b[i]),
+  scale: (a, s) => a.map((x) => x * s),
+  dot: (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2],
+  cross: (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]],
+  norm: (a) => Math.hypot(a[0], a[1], a[2]),
+  unit: (a) => v3.scale(a, 1 / (v3.norm(a) || 1)),
+};
+
+const viewer = {
+  model: null, // the model record
+  target: [0, 0, 0], azimuth: 30, elevation: 25, radius: 4, fov: 50,
+  inflight: null, // { controller, full, issued }
+  dirty: false, moving: false, stillTimer: 0,
+  movedAt: 0, // when the latest movement began after a still view
+  lastMove: 0,
+  full: { blob: null },
+  keyframes: [],
+  pointers: new Map(), pinch: 0,
+};
+
+// Measurements, for people and for the browser tests.
+window.radianceStats = { firstImageMs: [], fullImageMs: [], images: 0, renders: [] };
+
+/**
+ * The orbit's basis around the scene's up axis, as the engine's camera::Orbit:
+ * azimuth 0 towards the side the training cameras saw (`view.front`; scenes
+ * stored before it existed: world x).
+ */
+function orbitBasis(view) {
+  const u = v3.unit(view.up);
+  const ref = view.front || (Math.abs(u[0]) > 0.9 ? [0, 1, 0] : [1, 0, 0]);
+  const a = v3.unit(v3.sub(ref, v3.scale(u, v3.dot(u, ref))));
+  return [u, a, v3.cross(u, a)];
+}
+
+function eye() {
+  const [u, a, b] = orbitBasis(viewer.model.view);
+  const [az, elv] = [(viewer.azimuth * Math.PI) / 180, (viewer.elevation * Math.PI) / 180];
+  const dir = v3.add(v3.scale(v3.add(v3.scale(a, Math.cos(az)), v3.scale(b, Math.sin(az))), Math.cos(elv)), v3.scale(u, Math.sin(elv)));
+  return v3.add(viewer.target, v3.scale(dir, viewer.radius));
+}
+
+/** Camera-to-world rows (OpenGL: the camera looks down -z) looking from `from` at `at`. */
+function lookAt(from, at, up) {
+  const back = v3.unit(v3.sub(from, at));
+  const right = v3.unit(v3.cross(up, back));
+  const up2 = v3.cross(back, right);
+  return [0, 1, 2].map((i) => [right[i], up2[i], back[i], from[i]]);
+}
+
+const c2w = () => lookAt(eye(), viewer.target, v3.unit(viewer.model.view.up));
+
+/**
+ * Full-resolution size: the training cameras' (at least 256 pixels on the
+ * long side, so small scenes are not a blur), at most the size the image is
+ * shown at (512 pixels wide) and the server's cap.
+ */
+function fullSize() {
+  const { width, height } = viewer.model.view;
+  const shown = $('view-img').clientWidth || 512;
+  const s = Math.min(Math.max(1, 256 / Math.max(width, height)), shown / width, Math.sqrt(1048576 / (width * height)));
+  return [Math.max(1, Math.round(width * s)), Math.max(1, Math.round(height * s))];
+}
+
+/** The small size shown while the view moves: about 128x128 pixels. */
+function previewSize() {
+  const [w, h] = fullSize();
+  const s = Math.min(1, Math.sqrt(16384 / (w * h)));
+  return [Math.max(8, Math.round(w * s)), Math.max(8, Math.round(h * s))];
+}
+
+function renderUrl(m, size, output, fov) {
+  const flat = m.flat().map((x) => +x.toFixed(6)).join(',');
+  return `/v1/models/${viewer.model.id}/render?c2w=${flat}&width=${size[0]}&height=${size[1]}&fov=${fov.toFixed(4)}&output=${output}`;
+}
+
+function selectModel(id) {
+  const m = models.find((x) => x.id === id);
+  if (!m) return;
+  viewer.model = m;
+  $('view-model').value = id;
+  resetView();
+}
+
+function resetView() {
+  const v = viewer.model.view;
+  Object.assign(viewer, { target: v.centre.slice(), azimuth: 0, elevation: v.elevation ?? 25, radius: v.radius, fov: v.fov });
+  changed(false);
+}
+
+/** The camera moved (moving: a drag, wheel or key still going on). */
+function changed(moving = true) {
+  if (!viewer.model) return;
+  const now = performance.now();
+  if (moving && !viewer.moving) viewer.movedAt = now;
+  viewer.moving = moving;
+  viewer.lastMove = now;
+  viewer.dirty = true;
+  clearTimeout(viewer.stillTimer);
+  if (moving) {
+    viewer.stillTimer = setTimeout(() => { viewer.moving = false; viewer.dirty = true; pump(); }, 120);
+  }
+  pump();
+}
+
+/**
+ * Keeps at most one render in flight. While the view moves it asks for the
+ * small size; once still, for full resolution. A full-size render still
+ * running when the view moves again is aborted (the server stops it too),
+ * so the image never lags behind the mouse by more than one small render.
+ */
+function pump() {
+  const f = viewer.inflight;
+  if (f) {
+    if (f.full && viewer.dirty) f.controller.abort();
+    else return;
+  }
+  if (!viewer.dirty || !viewer.model) return;
+  viewer.dirty = false;
+  const full = !viewer.moving;
+  const size = full ? fullSize() : previewSize();
+  const output = $('view-output').value;
+  const controller = new AbortController();
+  const issued = performance.now();
+  const request = { controller, full, issued, movedAt: viewer.movedAt, lastMove: viewer.lastMove };
+  viewer.inflight = request;
+  const url = renderUrl(c2w(), size, output, viewer.fov);
+  api(url, { signal: controller.signal })
+    .then((r) => r.blob())
+    .then((blob) => show(blob, request, size, output))
+    .catch((e) => { if (e.name !== 'AbortError') fail(e); })
+    .finally(() => {
+      if (viewer.inflight === request) viewer.inflight = null;
+      pump();
+    });
+}
+
+async function show(blob, request, size, output) {
+  const img = $('view-img');
+  const url = URL.createObjectURL(blob);
+  const next = new Image();
+  next.src = url;
+  await next.decode();
+  const old = img.src;
+  img.src = url;
+  if (old) URL.revokeObjectURL(old);
+  const now = performance.now();
+  const stats = window.radianceStats;
+  stats.images += 1;
+  stats.renders.push({ full: request.full, ms: now - request.issued, width: size[0], height: size[1] });
+  if (stats.renders.length > 200) stats.renders.shift();
+  // From the start of a movement to its first new image; from the last
+  // movement to the full-resolution image.
+  if (request.movedAt && request.issued >= request.movedAt && !request.firstCounted && stats._firstFor !== request.movedAt) {
+    stats._firstFor = request.movedAt;
+    stats.firstImageMs.push(now - request.movedAt);
+  }
+  if (request.full && request.lastMove && stats._fullFor !== request.lastMove && request.issued >= request.lastMove) {
+    stats._fullFor = request.lastMove;
+    stats.fullImageMs.push(now - request.lastMove);
+  }
+  img.dataset.hash = String(await hashOf(blob));
+  img.dataset.full = String(request.full);
+  img.dataset.count = String(stats.images);
+  const what = { rgb: 'colour', depth: 'depth (darker is nearer)', alpha: 'opacity' }[output];
+  img.alt = `Model ${viewer.model.id}, ${what}, seen from ${viewer.azimuth.toFixed(0)} degrees azimuth and ` +
+    `${viewer.elevation.toFixed(0)} degrees elevation at distance ${viewer.radius.toFixed(2)}` + (request.full ? '' : ' (low resolution while moving)');
+  if (request.full) viewer.full.blob = blob;
+  $('view-info').textContent = `${size[0]}x${size[1]} ${request.full ? 'full' : 'preview'} image in ${(now - request.issued).toFixed(0)} ms`;
+}
+
+async function hashOf(blob) {
+  const bytes = new Uint8Array(await blob.arrayBuffer());
+  let h = 2166136261;
+  for (let i = 0; i < bytes.length; i++) h = Math.imul(h ^ bytes[i], 16777619) >>> 0;
+  return h;
+}
+
+/** Recentres the orbit on the surface under pixel (px, py) of the shown image, from a 1-pixel depth render along that ray. */
+async function recentre(px, py) {
+  const img = $('view-img');
+  const [w, h] = [img.clientWidth, img.clientHeight];
+  const f = (0.5 * w) / Math.tan((viewer.fov * Math.PI) / 360);
+  const m = c2w();
+  const local = [px - w / 2, -(py - h / 2), -f];
+  const dir = v3.unit([0, 1, 2].map((i) => m[i][0] * local[0] + m[i][1] * local[1] + m[i][2] * local[2]));
+  const from = eye();
+  const up = Math.abs(v3.dot(dir, v3.unit(viewer.model.view.up))) > 0.99 ? orbitBasis(viewer.model.view)[1] : viewer.model.view.up;
+  const probe = lookAt(from, v3.add(from, dir), v3.unit(up));
+  const blob = await (await api(renderUrl(probe, [1, 1], 'depth', 2))).blob();
+  const bitmap = await createImageBitmap(blob);
+  const canvas = document.createElement('canvas');
+  canvas.width = canvas.height = 1;
+  const g = canvas.getContext('2d');
+  g.drawImage(bitmap, 0, 0);
+  const value = g.getImageData(0, 0, 1, 1).data[0];
+  if (value >= 254) { status('nothing there to centre on'); return; }
+  const depth = (value / 255) * viewer.model.view.far;
+  const target = v3.add(from, v3.scale(dir, depth));
+  // Keep the camera where it is; turn it to the new centre.
+  const back = v3.sub(from, target);
+  const [u, a, b] = orbitBasis(viewer.model.view);
+  const r = v3.norm(back);
+  Object.assign(viewer, {
+    target, radius: r,
+    elevation: (Math.asin(Math.max(-1, Math.min(1, v3.dot(back, u) / r))) * 180) / Math.PI,
+    azimuth: (Math.atan2(v3.dot(back, b), v3.dot(back, a)) * 180) / Math.PI,
+  });
+  status(`centred on the point ${target.map((x) => x.toFixed(2)).join(', ')}`);
+  changed(false);
+}
+
+function orbitBy(dAz, dEl) {
+  viewer.azimuth = (viewer.azimuth + dAz) % 360;
+  viewer.elevation = Math.max(-89, Math.min(89, viewer.elevation + dEl));
+  changed(true);
+}
+
+function zoomBy(factor) {
+  viewer.radius = Math.max(0.05, Math.min(100, viewer.radius * factor));
+  changed(true);
+}
+
+export function setupViewer() {
+  const stage = $('stage');
+  stage.addEventListener('pointerdown', (e) => {
+    stage.setPointerCapture(e.pointerId);
+    viewer.pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    if (viewer.pointers.size === 2) {
+      const [p, q] = [...viewer.pointers.values()];
+      viewer.pinch = Math.hypot(p[0] - q[0], p[1] - q[1]);
+    }
+  });
+  stage.addEventListener('pointermove', (e) => {
+    const last = viewer.pointers.get(e.pointerId);
+    if (!last) return;
+    viewer.pointers.set(e.pointerId, [e.clientX, e.clientY]);
+    if (viewer.pointers.size === 2) {
+      const [p, q] = [...viewer.pointers.values()];
+      const d = Math.hypot(p[0] - q[0], p[1] - q[1]);
+      if (viewer.pinch > 0 && d > 0) zoomBy(viewer.pinch / d);
+      viewer.pinch = d;
+    } else {
+      orbitBy(-(e.clientX - last[0]) * 0.4, (e.clientY - last[1]) * 0.4);
+    }
+  });
+  const release = (e) => { viewer.pointers.delete(e.pointerId); viewer.pinch = 0; };
+  stage.addEventListener('pointerup', release);
+  stage.addEventListener('pointercancel', release);
+  stage.addEventListener('wheel', (e) => { e.preventDefault(); zoomBy(Math.exp(e.deltaY * 0.001)); }, { passive: false });
+  stage.addEventListener('dblclick', (e) => {
+    const r = $('view-img').getBoundingClientRect();
+    recentre(e.clientX - r.left, e.clientY - r.top).catch(fail);
+  });
+  stage.addEventListener('keydown', (e) => {
+    const keys = {
+      ArrowLeft: () => orbitBy(5, 0), ArrowRight: () => orbitBy(-5, 0),
+      ArrowUp: () => orbitBy(0, 5), ArrowDown: () => orbitBy(0, -5),
+      '+': () => zoomBy(0.9), '=': () => zoomBy(0.9), '-': () => zoomBy(1 / 0.9),
+      Home: () => resetView(),
+      Enter: () => { const i = $('view-img'); recentre(i.clientWidth / 2, i.clientHeight / 2).catch(fail); },
+    };
+    if (keys[e.key] && viewer.model) { e.preventDefault(); keys[e.key](); }
+  });
+  stage.addEventListener('keyup', () => { if (viewer.moving) { clearTimeout(viewer.stillTimer); viewer.stillTimer = setTimeout(() => { viewer.moving = false; viewer.dirty = true; pump(); }, 120); } });
+  $('view-model').addEventListener('change', (e) => selectModel(e.target.value));
+  $('view-output').addEventListener('change', () => changed(false));
+  $('view-reset').addEventListener('click', () => resetView());
+  $('view-save').addEventListener('click', () => {
+    if (!viewer.full.blob) { status('no full-resolution image yet'); return; }
+    const a = el('a', { href: URL.createObjectURL(viewer.full.blob), download: `${viewer.model.id}-${$('view-output').value}-az${viewer.azimuth.toFixed(0)}-el${viewer.elevation.toFixed(0)}.png` });
+    document.body.append(a);
+    a.click();
+    a.remove();
+  });
+  $('view-add').addEventListener('click', () => {
+    if (!viewer.model) return;
+    viewer.keyframes.push({ c2w: c2w(), fov: viewer.fov, label: `azimuth ${viewer.azimuth.toFixed(0)}°, elevation ${viewer.elevation.toFixed(0)}°, distance ${viewer.radius.toFixed(2)}` });
+    showKeyframes();
+    status(`view ${viewer.keyframes.length} added to the path`);
+  });
+  $('path-clear').addEventListener('click', () => { viewer.keyframes = []; showKeyframes(); });
+  $('path-form').addEventListener('submit', async (e) => {
+    e.preventDefault();
+    const path = viewer.keyframes.map((k) => ({ c2w: k.c2w, fov: k.fov }));
+    await makeVideo(viewer.model.id, { path, frames: Number($('path-frames').value), format: $('path-format').value });
+  });
+}
+
+function showKeyframes() {
+  $('keyframes').replaceChildren(...viewer.keyframes.map((k, i) => el('li', {}, k.label, ' ',
+    el('button', { type: 'button', 'aria-label': `Remove view ${i + 1}`, onclick: () => { viewer.keyframes.splice(i, 1); showKeyframes(); } }, 'Remove'))));
+  $('path-make').disabled = viewer.keyframes.length < 2;
+}
+
+export async function openViewer(modelId) {
+  showTab('viewer');
+  await refreshModels();
+  selectModel(modelId);
+  $('stage').focus();
+}
