@@ -115,6 +115,7 @@ fn train(scene: &str) -> JobSpec {
         batch_rays: 64,
         masks: Default::default(),
         model_reason: None,
+        bake: None,
     }))
 }
 
@@ -735,6 +736,7 @@ async fn jobs_and_scenes_read_back_as_the_embedded_queue_shows_them() {
         diverged_steps: 1,
         rollbacks: 2,
         stage: Some("training".into()),
+        gaussians: None,
     };
     let state = RunState { progress, model_id: Some(c.job.reserved_model_id()), video_id: None };
     t.queue.heartbeat(&c.lease, &state).await.unwrap();

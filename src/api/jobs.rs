@@ -1,4 +1,4 @@
-//! `/v1/jobs`: enqueue a training job (202), list, get, cancel, and follow
+//! `/v1/jobs`: enqueue a training or bake job (202), list, get, cancel, and follow
 //! a job's progress as Server-Sent Events.
 
 use std::convert::Infallible;
@@ -15,10 +15,12 @@ use super::{ApiError, ApiResult, AppState, limits};
 use crate::engine::dataset::MaskUse;
 use crate::engine::models::auto::{self, AUTO, ModelChoice};
 use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, trainable_presets};
+use crate::engine::models::splats::SplatsConfig;
 use crate::engine::train::estimate;
 use crate::jobs::train::load_dataset;
-use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, check_trainable};
+use crate::jobs::{BakeAfter, BakeSpec, Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, bake, check_trainable};
 use crate::storage::ScenePart;
+use crate::storage::new_id;
 use crate::store::NewJob;
 
 /// `POST /v1/jobs` body.
@@ -43,6 +45,58 @@ pub struct CreateJob {
     /// `ignore`, `composite` or `off`. Read as any JSON value, so that a
     /// wrong one is refused naming the field.
     pub masks: Option<serde_json::Value>,
+    /// `train` (the default here; `bake` bodies are [`CreateBake`]).
+    pub kind: Option<String>,
+    /// Bake the model into splats when training succeeds.
+    pub bake: Option<BakeBudget>,
+}
+
+/// A bake's budget: seconds (60 when neither is given) or optimisation steps.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BakeBudget {
+    pub seconds: Option<f64>,
+    pub steps: Option<u64>,
+}
+
+/// `POST /v1/jobs` body of a bake job: a trained model becomes splats.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreateBake {
+    pub kind: String,
+    /// The trained model (instant, nerf or capture) to bake.
+    pub model_id: String,
+    pub seconds: Option<f64>,
+    pub steps: Option<u64>,
+    /// Spherical-harmonic degree of the colours, 0-3 (3).
+    pub sh_degree: Option<u32>,
+    /// The most Gaussians (500000).
+    pub max_gaussians: Option<usize>,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+/// A bake budget checked: seconds in (0, an hour], steps in 1..=10^9; a
+/// minute when neither is given.
+fn bake_budget(b: &BakeBudget, prefix: &str) -> ApiResult<(Option<f64>, Option<u64>)> {
+    if let Some(t) = b.seconds
+        && !(t.is_finite() && t > 0.0 && t <= bake::MAX_SECONDS)
+    {
+        let allowed = format!("(0, {}]", bake::MAX_SECONDS);
+        let field = format!("{prefix}seconds");
+        return Err(ApiError::bad_field(format!("{field} must be in {allowed}"), &field, t, &allowed));
+    }
+    if let Some(n) = b.steps
+        && !(1..=1_000_000_000).contains(&n)
+    {
+        let field = format!("{prefix}steps");
+        return Err(ApiError::bad_field(format!("{field} must be in 1..=1000000000"), &field, n, "1..=1000000000"));
+    }
+    let seconds = match (b.seconds, b.steps) {
+        (None, None) => Some(bake::DEFAULT_SECONDS),
+        (s, _) => s,
+    };
+    Ok((seconds, b.steps))
 }
 
 fn default_model() -> String {
@@ -107,7 +161,27 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
         return Err(ApiError::bad_field("batch_rays must be in 1..=65536", "batch_rays", batch_rays, "1..=65536"));
     }
     let masks = mask_use(r.masks)?;
-    Ok(TrainSpec { scene_id: r.scene_id, model, model_reason, config, budget: b, seed: r.seed, batch_rays, masks })
+    if let Some(k) = r.kind.as_deref().filter(|k| *k != "train") {
+        return Err(ApiError::bad_field(format!("unknown job kind '{k}'"), "kind", k, KINDS));
+    }
+    let bake = match &r.bake {
+        Some(b) => {
+            let (seconds, steps) = bake_budget(b, "bake.")?;
+            Some(BakeAfter { job_id: String::new(), seconds, steps })
+        }
+        None => None,
+    };
+    Ok(TrainSpec {
+        scene_id: r.scene_id,
+        model,
+        model_reason,
+        config,
+        budget: b,
+        seed: r.seed,
+        batch_rays,
+        masks,
+        bake,
+    })
 }
 
 /// What `auto` chooses for the scene `scene_id` trained with `masks`: from
@@ -145,16 +219,29 @@ fn config_error(e: ConfigError) -> ApiError {
     ApiError::bad_request(e.to_string()).with_details(details)
 }
 
+/// The job kinds `POST /v1/jobs` takes.
+const KINDS: &str = "train or bake";
+
+/// `POST /v1/jobs`: a training job (`kind` absent or `train`) or a bake
+/// job (`kind: bake`).
 pub async fn create(
     State(s): State<AppState>,
-    body: Result<Json<CreateJob>, JsonRejection>,
+    body: Result<Json<serde_json::Value>, JsonRejection>,
 ) -> ApiResult<(StatusCode, Json<Job>)> {
-    let Json(req) = body?;
+    let Json(body) = body?;
+    let parse_error = |e: serde_json::Error| {
+        ApiError::bad_request(format!("Failed to deserialize the JSON body into the target type: {e}"))
+    };
+    if body.get("kind").and_then(|k| k.as_str()) == Some("bake") {
+        let req: CreateBake = serde_json::from_value(body).map_err(parse_error)?;
+        return create_bake(&s, req).await;
+    }
+    let req: CreateJob = serde_json::from_value(body).map_err(parse_error)?;
     let choice = match req.model == AUTO && req.config.is_none() {
         true => Some(auto_choice(&s, &req.scene_id, mask_use(req.masks.clone())?).await?),
         false => None,
     };
-    let spec = to_spec(req, choice)?;
+    let mut spec = to_spec(req, choice)?;
     if let Some(reason) = &spec.model_reason {
         tracing::info!(scene = %spec.scene_id, model = %spec.model, reason = %reason, "model chosen automatically");
     }
@@ -162,15 +249,73 @@ pub async fn create(
     let memory = match s.jobs.get_scene(&spec.scene_id).await? {
         Some(scene) => {
             let threads = rayon::current_num_threads();
-            let e = estimate::training(&spec.config, limits::scene_data(&scene, spec.masks), threads);
+            let data = limits::scene_data(&scene, spec.masks);
+            let e = estimate::training(&spec.config, data, threads);
             limits::check(&e, &s.config, s.artifacts.free_space().await?)?;
+            if let Some(after) = &spec.bake {
+                // The bake it asks for must fit as well.
+                let bake = bake::spec_after_training(after, "", &spec.scene_id, spec.seed);
+                limits::check(&bake::memory_estimate(&spec.config, &bake, data), &s.config, None)?;
+            }
             e.memory_bytes
         }
         None => 0,
     };
-    let new = NewJob { id: None, spec: JobSpec::Train(Box::new(spec)), model_id: None, memory_estimate: memory };
+    let id = new_id("job");
+    if let Some(after) = &mut spec.bake {
+        after.job_id = new_id("job");
+    }
+    let new = NewJob { id: Some(id), spec: JobSpec::Train(Box::new(spec)), model_id: None, memory_estimate: memory };
     let job = s.jobs.enqueue(new).await?;
     tracing::info!(job = %job.id, kind = "train", "job queued");
+    Ok((StatusCode::ACCEPTED, Json(job)))
+}
+
+/// A bake job: the model must be a trained (complete) instant, nerf or
+/// capture model whose scene is still there; the bake must fit the job
+/// memory limit.
+async fn create_bake(s: &AppState, r: CreateBake) -> ApiResult<(StatusCode, Json<Job>)> {
+    let (seconds, steps) = bake_budget(&BakeBudget { seconds: r.seconds, steps: r.steps }, "")?;
+    let defaults = SplatsConfig::default();
+    let splats = SplatsConfig {
+        sh_degree: r.sh_degree.unwrap_or(defaults.sh_degree),
+        max_gaussians: r.max_gaussians.unwrap_or(defaults.max_gaussians),
+    };
+    ModelConfig::Splats(splats.clone()).check().map_err(config_error)?;
+    let id = &r.model_id;
+    let source = s.jobs.get_model(id).await?.ok_or_else(|| ApiError::not_found("model", id))?;
+    let config: ModelConfig = serde_json::from_value(source.config.clone())
+        .map_err(|e| ApiError::internal(format!("model '{id}' has an unreadable configuration: {e}")))?;
+    if !config.spec().trains_on_rays() {
+        let message = format!(
+            "model '{id}' is a '{}' model already: bake a trained instant, nerf or capture model",
+            config.kind()
+        );
+        return Err(ApiError::conflict(message));
+    }
+    if !source.complete {
+        return Err(ApiError::conflict(format!("model '{id}' is still training: bake it once its training has ended")));
+    }
+    let scene = s.jobs.get_scene(&source.scene_id).await?.ok_or_else(|| {
+        ApiError::conflict(format!(
+            "the scene of model '{id}' ('{}') was deleted: its photos are what baking needs",
+            source.scene_id
+        ))
+    })?;
+    let spec = BakeSpec {
+        source_model_id: id.clone(),
+        scene_id: scene.id.clone(),
+        seconds,
+        steps,
+        sh_degree: splats.sh_degree,
+        max_gaussians: splats.max_gaussians,
+        seed: r.seed,
+    };
+    let e = bake::memory_estimate(&config, &spec, limits::scene_data(&scene, MaskUse::Auto));
+    limits::check(&e, &s.config, s.artifacts.free_space().await?)?;
+    let new = NewJob { id: None, spec: JobSpec::Bake(spec), model_id: None, memory_estimate: e.memory_bytes };
+    let job = s.jobs.enqueue(new).await?;
+    tracing::info!(job = %job.id, kind = "bake", model = %id, "job queued");
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
 

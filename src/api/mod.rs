@@ -41,6 +41,7 @@ pub mod limits;
 pub mod models;
 pub mod role;
 pub mod scenes;
+pub mod site;
 pub mod thumbnails;
 pub mod videos;
 pub mod web;
@@ -145,6 +146,7 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/models", quick(get(models::list)))
         .route("/v1/models/{id}", quick(get(models::get_one).delete(models::delete)))
         .route("/v1/models/{id}/render", get(models::render))
+        .route("/v1/models/{id}/export", get(models::export))
         .route("/v1/models/{id}/videos", quick(post(videos::create)))
         .route("/v1/videos/{id}", get(videos::get_one).merge(quick(delete(videos::delete))))
         .route("/metrics", quick(get(health::metrics)))

@@ -1,4 +1,5 @@
-//! `/v1/models`: list, get, delete, and render a novel view as PNG.
+//! `/v1/models`: list, get, delete, render a novel view as PNG, and export
+//! a splats model (`.splat`, `.ply`, or a static web site).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -8,14 +9,15 @@ use axum::Json;
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{Path, Query, State};
 use axum::http::StatusCode;
-use axum::http::header::CONTENT_TYPE;
+use axum::http::header::{CONTENT_DISPOSITION, CONTENT_TYPE};
 use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
 
-use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
+use super::{ApiError, ApiResult, AppInner, AppState, CachedModel, site};
 use crate::engine::geometry::camera::Camera;
 use crate::engine::io::checkpoint::CheckpointError;
 use crate::engine::models::Model;
+use crate::engine::models::splats::export;
 use crate::engine::train::persist;
 use crate::engine::view::appearance::Appearance;
 use crate::engine::view::render_view_until;
@@ -249,6 +251,72 @@ pub async fn render(
     r.count += 1;
     r.seconds += t0.elapsed().as_secs_f64();
     Ok(([(CONTENT_TYPE, "image/png")], png))
+}
+
+/// Query of `GET /v1/models/{id}/export`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExportQuery {
+    /// `splat` (default: antimatter15's 32 bytes a Gaussian), `ply` (the
+    /// 3DGS paper's layout) or `html` (a zip of a static web site showing
+    /// the splats: `api::site`).
+    pub format: Option<String>,
+}
+
+/// What `format` takes.
+const EXPORT_FORMATS: &str = "splat, ply or html";
+
+/// `GET /v1/models/{id}/export`: a splats model as a file other tools
+/// open, or as a static web site (zip), named by `Content-Disposition`.
+/// A model of another kind is a conflict (409), saying to bake it.
+pub async fn export(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+    q: Result<Query<ExportQuery>, QueryRejection>,
+) -> ApiResult<impl IntoResponse> {
+    let Query(q) = q?;
+    let name = q.format.as_deref().unwrap_or("splat");
+    let format = match name {
+        "html" => None,
+        f => Some(export::Format::parse(f).ok_or_else(|| {
+            let message = format!("unknown export format '{f}' (expected {EXPORT_FORMATS})");
+            ApiError::bad_field(message, "format", f, EXPORT_FORMATS)
+        })?),
+    };
+    let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
+    let model = model_of(&s, &info).await?;
+    if export::splats_of(&*model).is_none() {
+        return Err(ApiError::conflict(format!(
+            "model '{id}' is a '{}' model: only splats export as {name}; bake it first              (POST /v1/jobs {{\"kind\": \"bake\", \"model_id\": \"{id}\"}})",
+            model.kind()
+        )));
+    }
+    let view = info.view.clone();
+    let title = format!("{} ({} splats)", info.id, info.scene_id);
+    let folder = format!("{id}-site");
+    let folder2 = folder.clone();
+    let bytes = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<u8>> {
+        let splats = export::splats_of(&*model).expect("checked above");
+        let mut out = Vec::new();
+        match format {
+            Some(f) => export::write(splats, f, &mut out)?,
+            None => {
+                let mut splat = Vec::new();
+                export::write(splats, export::Format::Splat, &mut splat)?;
+                let files = site::files(&title, &view, splat)?;
+                site::write_zip(&folder2, &files, std::io::Cursor::new(&mut out))?;
+            }
+        }
+        Ok(out)
+    })
+    .await?
+    .map_err(ApiError::internal)?;
+    let (file, content_type) = match format {
+        Some(f) => (format!("{id}.{}", f.extension()), f.content_type()),
+        None => (format!("{folder}.zip"), "application/zip"),
+    };
+    let disposition = format!("attachment; filename=\"{file}\"");
+    Ok(([(CONTENT_TYPE, content_type.to_string()), (CONTENT_DISPOSITION, disposition)], bytes))
 }
 
 /// Sets its flag when dropped.

@@ -9,6 +9,7 @@ use anyhow::Context;
 use clap::Args;
 
 use super::Common;
+use crate::api::site;
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::models::splats::export::{self, Format};
@@ -100,16 +101,34 @@ pub struct ExportArgs {
     /// A splats checkpoint written by `radiance bake`.
     #[arg(long)]
     pub model: PathBuf,
-    /// `ply` (the 3DGS paper's layout) or `splat` (antimatter15's 32 bytes a Gaussian).
+    /// `ply` (the 3DGS paper's layout), `splat` (antimatter15's 32 bytes a
+    /// Gaussian) or `html` (a static web site showing the splats: a folder,
+    /// or a zip when `--out` ends in `.zip`).
     #[arg(long, value_parser = parse_format)]
-    pub format: Format,
-    /// The file to write.
+    pub format: ExportFormat,
+    /// The file to write (`html`: the folder, or the `.zip`).
     #[arg(long)]
     pub out: PathBuf,
+    /// `html` only: the dataset the model was baked from; its training
+    /// cameras give the view the page opens at.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
 }
 
-fn parse_format(s: &str) -> Result<Format, String> {
-    Format::parse(s).ok_or_else(|| format!("unknown format '{s}' (known: ply, splat)"))
+/// What `export --format` takes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ExportFormat {
+    File(Format),
+    Html,
+}
+
+fn parse_format(s: &str) -> Result<ExportFormat, String> {
+    match s {
+        "html" => Ok(ExportFormat::Html),
+        s => Format::parse(s)
+            .map(ExportFormat::File)
+            .ok_or_else(|| format!("unknown format '{s}' (known: ply, splat, html)")),
+    }
 }
 
 pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
@@ -121,9 +140,40 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
             restored.model.kind()
         );
     };
+    let format = match a.format {
+        ExportFormat::File(f) => f,
+        ExportFormat::Html => return export_site(&a, splats),
+    };
     let mut bytes = Vec::new();
-    export::write(splats, a.format, &mut bytes)?;
+    export::write(splats, format, &mut bytes)?;
     write_atomic(&a.out, &bytes).with_context(|| format!("writing {}", a.out.display()))?;
     eprintln!("wrote {} ({} Gaussians, {} bytes)", a.out.display(), splats.layout().n, bytes.len());
+    Ok(())
+}
+
+/// `export --format html`: the site of `api::site`, as a folder or a zip.
+fn export_site(a: &ExportArgs, splats: &crate::engine::models::splats::SplatsModel) -> anyhow::Result<()> {
+    let Some(data) = &a.data else {
+        anyhow::bail!("--format html needs --data DIR: the dataset's training cameras give the view the page opens at");
+    };
+    let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
+    let ds = Dataset::load(data, &opts).with_context(|| format!("loading {}", data.display()))?;
+    let view = crate::storage::ViewDefaults::from_dataset(&ds);
+    let mut splat = Vec::new();
+    export::write(splats, Format::Splat, &mut splat)?;
+    let stem = a.out.file_stem().and_then(|s| s.to_str()).unwrap_or("splats").to_string();
+    let files = site::files(&stem, &view, splat)?;
+    if a.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("zip")) {
+        let mut zip = std::io::Cursor::new(Vec::new());
+        site::write_zip(&stem, &files, &mut zip)?;
+        write_atomic(&a.out, zip.get_ref()).with_context(|| format!("writing {}", a.out.display()))?;
+    } else {
+        site::write_dir(&a.out, &files).with_context(|| format!("writing {}", a.out.display()))?;
+    }
+    eprintln!(
+        "wrote {} ({} Gaussians): serve it with any static web server and open index.html",
+        a.out.display(),
+        splats.layout().n
+    );
     Ok(())
 }

@@ -12,7 +12,7 @@
 use std::io;
 use std::path::{Path, PathBuf};
 
-use super::{Counters, Job, SchedulerConfig, Shared};
+use super::{Counters, Enqueuer, Job, JobSpec, SchedulerConfig, Shared};
 use crate::engine::io::fsio::write_atomic;
 use crate::storage::{Local, ModelInfo, SceneInfo, ScenePart, VideoInfo, write_json};
 
@@ -63,6 +63,11 @@ pub(crate) trait JobHost: Send + Sync {
     /// Publishes a posed scene: its `ready` record (for the dataset in
     /// `workdir/data/`), after which the uploaded photos go.
     fn publish_posed_scene(&self, job: &Job, ready: &SceneInfo, workdir: &Path) -> io::Result<()>;
+
+    /// Enqueues a job under the id `id` (a training job's bake); a job of
+    /// that id already queued or run (this job enqueued it in a run before)
+    /// is not enqueued again.
+    fn enqueue(&self, id: String, spec: JobSpec, memory_estimate: u64) -> Result<(), String>;
 }
 
 /// The embedded scheduler's host: the data directory, in place.
@@ -129,6 +134,13 @@ impl JobHost for Shared {
         write_json(&self.storage.scene_record(&ready.id), ready)?;
         let _ = std::fs::remove_dir_all(workdir.join(ScenePart::Upload.dir_name()));
         Ok(())
+    }
+
+    fn enqueue(&self, id: String, spec: JobSpec, memory_estimate: u64) -> Result<(), String> {
+        if self.lock().jobs.contains_key(&id) {
+            return Ok(());
+        }
+        Enqueuer { shared: self }.enqueue_as(id, spec, None, memory_estimate).map(|_| ()).map_err(|e| e.to_string())
     }
 }
 

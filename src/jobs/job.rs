@@ -67,6 +67,39 @@ pub struct TrainSpec {
     /// masks existed).
     #[serde(default)]
     pub masks: MaskUse,
+    /// Bake the model into splats when training succeeds: the bake job's
+    /// id (chosen when the training job was posted) and its budget.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bake: Option<BakeAfter>,
+}
+
+/// The bake a training job asks for when it succeeds (`TrainSpec::bake`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BakeAfter {
+    /// The id the bake job gets: clients follow it once training ends.
+    pub job_id: String,
+    pub seconds: Option<f64>,
+    pub steps: Option<u64>,
+}
+
+/// What a bake job bakes: a trained model (`model_id`) of scene
+/// `scene_id`, optimised against the scene's training photos, into a new
+/// model of kind `splats` (the job's reserved model id).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct BakeSpec {
+    /// The trained model baked (instant, nerf or capture).
+    pub source_model_id: String,
+    /// Its scene: the dataset it was trained on.
+    pub scene_id: String,
+    /// Wall-clock budget (seconds).
+    pub seconds: Option<f64>,
+    /// Optimisation steps (one photo each); the first budget reached ends it.
+    pub steps: Option<u64>,
+    /// Spherical-harmonic degree of the colours (0-3).
+    pub sh_degree: u32,
+    /// The most Gaussians.
+    pub max_gaussians: usize,
+    pub seed: u64,
 }
 
 /// When a training job stops: at the first limit reached.
@@ -132,6 +165,7 @@ pub enum JobSpec {
     Train(Box<TrainSpec>),
     Video(VideoSpec),
     Poses(PosesSpec),
+    Bake(BakeSpec),
 }
 
 impl JobSpec {
@@ -140,13 +174,15 @@ impl JobSpec {
             JobSpec::Train(_) => "train",
             JobSpec::Video(_) => "video",
             JobSpec::Poses(_) => "poses",
+            JobSpec::Bake(_) => "bake",
         }
     }
-    /// The scene a training or pose-estimation job works on.
+    /// The scene a training, pose-estimation or bake job works on.
     pub fn scene_id(&self) -> Option<&str> {
         match self {
             JobSpec::Train(t) => Some(&t.scene_id),
             JobSpec::Poses(p) => Some(&p.scene_id),
+            JobSpec::Bake(b) => Some(&b.scene_id),
             JobSpec::Video(_) => None,
         }
     }
@@ -183,6 +219,9 @@ pub struct JobProgress {
     /// extraction`, `matching`, `mapping`, ...).
     #[serde(default)]
     pub stage: Option<String>,
+    /// Baking: the Gaussians the splats have now.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gaussians: Option<u64>,
 }
 
 /// A job record.
@@ -199,6 +238,7 @@ pub struct Job {
     pub finished_at: Option<u64>,
     pub error: Option<String>,
     /// Training: set once a checkpoint exists. Video: the model rendered.
+    /// Bake: the splats model, set once it is saved.
     pub model_id: Option<String>,
     /// Video: set when the video is ready at `/v1/videos/{video_id}`.
     #[serde(default)]

@@ -61,15 +61,19 @@ impl Scheduler {
     }
 }
 
-/// Whether `job` writes model `id` (a training job) or reads it (a video job).
+/// Whether `job` writes model `id` (a training or bake job) or reads it
+/// (a video job, or a bake job of that model).
 pub(crate) fn uses_model(job: &Job, id: &str) -> bool {
-    writes_model(job, id) || job.model_id.as_deref() == Some(id)
+    let bakes = matches!(&job.spec, JobSpec::Bake(b) if b.source_model_id == id);
+    writes_model(job, id) || job.model_id.as_deref() == Some(id) || bakes
 }
 
-/// Whether `job` is the training job of model `id` (before its first
-/// checkpoint the job's `model_id` is not set yet, but the id is reserved).
+/// Whether `job` is the training (or bake) job of model `id` (before its
+/// first checkpoint the job's `model_id` is not set yet, but the id is
+/// reserved).
 pub(crate) fn writes_model(job: &Job, id: &str) -> bool {
-    matches!(job.spec, JobSpec::Train(_)) && (job.reserved_model_id() == id || job.model_id.as_deref() == Some(id))
+    matches!(job.spec, JobSpec::Train(_) | JobSpec::Bake(_))
+        && (job.reserved_model_id() == id || job.model_id.as_deref() == Some(id))
 }
 
 /// A queued, running or enqueuing job that writes or renders model `id`.

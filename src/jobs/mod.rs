@@ -19,9 +19,13 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crate::storage::{SceneInfo, SceneStatus, Storage, new_id, now_ms};
-pub use job::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec, reserved_model_id};
+pub use job::{
+    BakeAfter, BakeSpec, Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec,
+    reserved_model_id,
+};
 use store::{JobStore, Record};
 
+pub mod bake;
 pub(crate) mod host;
 mod job;
 mod lifecycle;
@@ -275,6 +279,24 @@ impl Scheduler {
         model_id: Option<String>,
         memory_estimate: u64,
     ) -> Result<Job, SchedError> {
+        Enqueuer { shared: &self.shared }.enqueue_as(id, spec, model_id, memory_estimate)
+    }
+}
+
+/// The enqueueing of [`Scheduler::enqueue_as`] over the shared state, which
+/// job bodies reach too (a training job enqueues its bake: `JobHost::enqueue`).
+pub(crate) struct Enqueuer<'a> {
+    pub(crate) shared: &'a Shared,
+}
+
+impl Enqueuer<'_> {
+    pub(crate) fn enqueue_as(
+        &self,
+        id: String,
+        spec: JobSpec,
+        model_id: Option<String>,
+        memory_estimate: u64,
+    ) -> Result<Job, SchedError> {
         let record = self.reserve(id, spec, model_id, memory_estimate)?;
         // Outside the lock; the job is `enqueuing` meanwhile, so deleting its
         // scene or model is refused as when it is queued.
@@ -320,6 +342,7 @@ impl Scheduler {
                     return Err(SchedError::ModelNotFound(id));
                 }
             }
+            JobSpec::Bake(b) => bake::check_source(&storage.load_model(&b.source_model_id)?, b)?,
         }
         let waiting = st.queue.len() + st.enqueuing.len();
         if waiting >= self.shared.config.max_queued {
@@ -348,7 +371,9 @@ impl Scheduler {
         st.enqueuing.insert(job.id.clone(), job.clone());
         Ok(st.record(job))
     }
+}
 
+impl Scheduler {
     pub fn get(&self, id: &str) -> Option<Job> {
         self.shared.lock().jobs.get(id).cloned()
     }
@@ -457,7 +482,7 @@ pub const MAX_CRASHES: u32 = 2;
 /// start.
 fn count_crash(storage: &Storage, j: &mut Job) {
     let saved_since_start = match &j.spec {
-        JobSpec::Train(_) => storage
+        JobSpec::Train(_) | JobSpec::Bake(_) => storage
             .load_model(&j.reserved_model_id())
             .ok()
             .flatten()
@@ -590,6 +615,7 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
         JobSpec::Train(spec) => train::run(host, &job, spec, &cancel),
         JobSpec::Video(spec) => video::run(host, &job, spec, &cancel),
         JobSpec::Poses(spec) => poses::run(host, &job, spec, &cancel),
+        JobSpec::Bake(spec) => bake::run(host, &job, spec, &cancel),
     }))
     .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
     // Recorded and its scene settled before the lock is released: a client

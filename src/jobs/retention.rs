@@ -155,6 +155,7 @@ mod tests {
                 batch_rays: 64,
                 masks: Default::default(),
                 model_reason: None,
+                bake: None,
             }))
         } else {
             let format = VideoFormat::Gif;

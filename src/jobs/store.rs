@@ -149,6 +149,7 @@ mod tests {
             batch_rays: 64,
             masks: Default::default(),
             model_reason: None,
+            bake: None,
         }))
     }
 

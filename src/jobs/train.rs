@@ -167,6 +167,11 @@ fn finish(
         }
     });
     record.write(&p, true, metric, poses)?;
+    if let Some(after) = &record.spec.bake {
+        let data = crate::engine::train::estimate::DataSize::of(ds);
+        let config = &record.spec.config;
+        super::bake::enqueue_after_training(host, job, after, &record.scene.id, config, data, record.spec.seed)?;
+    }
     Ok(Outcome::Succeeded)
 }
 
@@ -223,7 +228,7 @@ impl<'a> Report<'a> {
 /// each rendered with the appearance `eval` scores it with by default
 /// (`held_out_options`: the nearest training camera's), as the held-out
 /// chart (`HeldOutPixels`) does.
-fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBool) -> Option<(f64, usize)> {
+pub(crate) fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBool) -> Option<(f64, usize)> {
     let split = if ds.test.is_empty() { Split::Val } else { Split::Test };
     let mut sum = 0.0;
     let mut n = 0;

@@ -22,10 +22,10 @@ use std::sync::Arc;
 use super::Ctx;
 use super::keeper::Run;
 use crate::jobs::host::JobHost;
-use crate::jobs::{Counters, Job, SchedulerConfig};
+use crate::jobs::{Counters, Job, JobSpec, SchedulerConfig};
 use crate::storage::{Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
-use crate::store::ArtifactStore;
 use crate::store::pg::PgError;
+use crate::store::{ArtifactStore, NewJob};
 
 /// The host of one running job (see the module comment).
 pub struct RemoteHost {
@@ -163,5 +163,15 @@ impl JobHost for RemoteHost {
 
     fn publish_posed_scene(&self, _job: &Job, _ready: &SceneInfo, _workdir: &Path) -> io::Result<()> {
         Err(io::Error::new(io::ErrorKind::Unsupported, "pose estimation does not run on workers yet"))
+    }
+
+    /// Through the queue; an id already taken is the job this one enqueued
+    /// in a run before.
+    fn enqueue(&self, id: String, spec: JobSpec, memory_estimate: u64) -> Result<(), String> {
+        if self.ctx.rt.block_on(self.ctx.queue.get(&id)).map_err(|e| e.to_string())?.is_some() {
+            return Ok(());
+        }
+        let new = NewJob { id: Some(id), spec, model_id: None, memory_estimate };
+        self.ctx.rt.block_on(self.ctx.queue.enqueue(new)).map(|_| ()).map_err(|e| e.to_string())
     }
 }

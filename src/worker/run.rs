@@ -15,7 +15,7 @@ use std::time::Duration;
 use super::Ctx;
 use super::host::RemoteHost;
 use super::keeper::{self, Run};
-use crate::jobs::{JobSpec, Outcome, poses, train, video};
+use crate::jobs::{JobSpec, Outcome, bake, poses, train, video};
 use crate::store::pg::{Claimed, RunEnd};
 
 /// Attempts at recording a run's end while the database does not answer.
@@ -35,6 +35,7 @@ pub fn run_claimed(ctx: Arc<Ctx>, claimed: Claimed, run: Arc<Run>) {
         JobSpec::Train(spec) => train::run(&host, &job, spec, &run.cancel),
         JobSpec::Video(spec) => video::run(&host, &job, spec, &run.cancel),
         JobSpec::Poses(spec) => poses::run(&host, &job, spec, &run.cancel),
+        JobSpec::Bake(spec) => bake::run(&host, &job, spec, &run.cancel),
     }))
     .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the worker's log)".into()));
     let _ = stop_heartbeat.send(());

@@ -179,6 +179,7 @@ pub fn train(scene: &str, steps: u64, seed: u64) -> JobSpec {
         batch_rays: 64,
         masks: Default::default(),
         model_reason: None,
+        bake: None,
     }))
 }
 

@@ -131,6 +131,31 @@ pub fn training(config: &ModelConfig, data: DataSize, threads: usize) -> Estimat
     Estimate::new(f.params, f.occupancy_cells, parts)
 }
 
+/// Peak memory and checkpoint size of baking a model of `source` (loaded
+/// with its optimiser state) into splats of `splats` against the training
+/// photos of `data` (`train::bake`): the source model, the splats at their
+/// most Gaussians with Adam's moments, one gradient and the rasteriser's
+/// buffers, the dataset and the photos as f32 targets.
+pub fn bake(source: &ModelConfig, splats: &ModelConfig, data: DataSize, threads: usize) -> Estimate {
+    let threads = threads.max(1) as u64;
+    let src = source.spec().footprint(threads);
+    let f = splats.spec().footprint(threads);
+    let p = f.params * F32;
+    let parts = vec![
+        ("source model and its state", 6 * src.params * F32),
+        ("source occupancy grid", src.occupancy_cells * (F32 + 2)),
+        ("source render buffers", threads * src.activations * F32),
+        ("splats", p),
+        ("optimiser moments", 2 * p),
+        ("gradient", p),
+        ("checkpoint copy", 3 * p),
+        ("rasteriser buffers", f.activations * F32),
+        ("dataset", data.pixels * PIXEL_BYTES),
+        ("photos as targets", data.pixels * 3 * F32),
+    ];
+    Estimate::new(f.params, 0, parts)
+}
+
 /// Peak memory of rendering a video of `frames` frames of `width` x
 /// `height` from a model of `config` (loaded with its optimiser state).
 pub fn video(config: &ModelConfig, frames: u32, width: u32, height: u32, threads: usize) -> Estimate {

@@ -369,7 +369,7 @@ impl PgQueue {
         let mut client = self.pool.get().await?;
         let tx = client.transaction().await?;
         let spec = fenced_spec(&tx, lease).await?;
-        if !matches!(spec, JobSpec::Train(_)) || info.job_id != lease.job_id {
+        if !matches!(spec, JobSpec::Train(_) | JobSpec::Bake(_)) || info.job_id != lease.job_id {
             return Err(PgError::Invalid(format!("job '{}' does not train model '{}'", lease.job_id, info.id)));
         }
         let previous: Option<String> = tx

@@ -17,7 +17,7 @@ use tokio_postgres::types::Json;
 use super::error::PgError;
 use super::rows::{JOB_COLUMNS, bigint, job};
 use crate::jobs::{Job, JobProgress, JobSpec, SchedError, Status, check_trainable, poses, reserved_model_id};
-use crate::storage::{SceneInfo, new_id, valid_id};
+use crate::storage::{ModelInfo, SceneInfo, new_id, valid_id};
 use crate::store::NewJob;
 
 /// The transaction advisory lock enqueues take: "radiqueu" in ASCII.
@@ -203,6 +203,12 @@ impl PgQueue {
     }
 }
 
+/// A model's record, read for a job that uses it (kept until the job is queued).
+async fn pg_model(tx: &Transaction<'_>, id: &str) -> Result<Option<ModelInfo>, PgError> {
+    let row = tx.query_opt("SELECT record FROM models WHERE id = $1 FOR SHARE", &[&id]).await?;
+    Ok(row.map(|r| r.try_get::<_, Json<ModelInfo>>(0)).transpose()?.map(|j| j.0))
+}
+
 /// The enqueue of [`PgQueue::enqueue`], inside the caller's transaction.
 async fn enqueue_in(tx: &Transaction<'_>, max_queued: usize, new: NewJob) -> Result<Job, PgError> {
     let id = match new.id {
@@ -223,6 +229,7 @@ async fn enqueue_in(tx: &Transaction<'_>, max_queued: usize, new: NewJob) -> Res
                 return Err(SchedError::SceneNotFound(p.scene_id.clone()).into());
             }
         }
+        JobSpec::Bake(b) => crate::jobs::bake::check_source(&pg_model(tx, &b.source_model_id).await?, b)?,
         JobSpec::Video(_) => {
             let model = new.model_id.clone().unwrap_or_default();
             if tx.query_opt("SELECT 1 FROM models WHERE id = $1 FOR SHARE", &[&model]).await?.is_none() {
@@ -239,6 +246,7 @@ async fn enqueue_in(tx: &Transaction<'_>, max_queued: usize, new: NewJob) -> Res
         JobSpec::Train(_) => Some(reserved_model_id(&id)),
         JobSpec::Video(_) => new.model_id.clone(),
         JobSpec::Poses(_) => None,
+        JobSpec::Bake(b) => Some(b.source_model_id.clone()),
     };
     let spec = serde_json::to_value(&new.spec).map_err(|e| PgError::Invalid(format!("job spec: {e}")))?;
     let row = tx

@@ -1,0 +1,222 @@
+//! A bake job: a trained model of the service (instant, nerf or capture)
+//! becomes a new model of kind `splats` (`engine::train::bake`), optimised
+//! against the training photos of its scene, where its training job read
+//! them. Progress: optimisation steps, the Gaussians, the smoothed PSNR of
+//! the training photos; then the held-out PSNR, measured as a training
+//! job's is.
+//!
+//! Restart-safety: a bake keeps nothing while it runs (a minute by
+//! default), so a job cut short (a shutdown, a killed server) bakes again
+//! from the start. What it makes appears whole or not at all: the
+//! checkpoint is written atomically, then the model's record, which alone
+//! makes the model visible. A crash between the two leaves an orphan
+//! checkpoint that the next run overwrites.
+//!
+//! A training job asks for a bake when it succeeds (`TrainSpec::bake`):
+//! [`enqueue_after_training`] enqueues it under the id the training job was
+//! given when it was posted, so a training job run twice (a crash after
+//! its end) enqueues one bake.
+
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+use super::host::JobHost;
+use super::train::{evaluate, load_dataset};
+use super::{BakeAfter, BakeSpec, Job, JobSpec, Outcome, SchedError};
+use crate::engine::dataset::MaskUse;
+use crate::engine::models::Model;
+use crate::engine::models::config::ModelConfig;
+use crate::engine::models::splats::SplatsConfig;
+use crate::engine::models::training::{Budget, TrainConfig};
+use crate::engine::train::bake::{BakeError, BakeSettings, bake};
+use crate::engine::train::estimate::{self, DataSize};
+use crate::engine::train::persist;
+use crate::engine::train::trainer::TrainState;
+use crate::storage::{ModelInfo, ScenePart, now_ms};
+
+/// The preset name a bake's model record gets.
+pub const BAKED_MODEL: &str = "splats";
+
+/// Longest accepted bake budget: an hour.
+pub const MAX_SECONDS: f64 = 3600.0;
+
+/// The default bake budget (seconds), as the command line's.
+pub const DEFAULT_SECONDS: f64 = 60.0;
+
+/// The enqueue-time check of a bake job (under the queue's lock, or in the
+/// queue's transaction): its source model exists.
+pub(crate) fn check_source(source: &Option<ModelInfo>, spec: &BakeSpec) -> Result<(), SchedError> {
+    match source {
+        Some(_) => Ok(()),
+        None => Err(SchedError::ModelNotFound(spec.source_model_id.clone())),
+    }
+}
+
+/// The splats settings of a bake job.
+pub fn splats_config(spec: &BakeSpec) -> SplatsConfig {
+    SplatsConfig { sh_degree: spec.sh_degree, max_gaussians: spec.max_gaussians }
+}
+
+/// Peak memory of a bake of `source` on `data` (see `estimate::bake`).
+pub fn memory_estimate(source: &ModelConfig, spec: &BakeSpec, data: DataSize) -> estimate::Estimate {
+    let splats = ModelConfig::Splats(splats_config(spec));
+    estimate::bake(source, &splats, data, rayon::current_num_threads())
+}
+
+/// The bake a finished training job asked for: `spec` as the API checked
+/// it when the training job was posted, of the model `model_id` just
+/// trained on `scene_id`.
+pub(crate) fn spec_after_training(after: &BakeAfter, model_id: &str, scene_id: &str, seed: u64) -> BakeSpec {
+    let defaults = SplatsConfig::default();
+    BakeSpec {
+        source_model_id: model_id.to_string(),
+        scene_id: scene_id.to_string(),
+        seconds: after.seconds.or(if after.steps.is_none() { Some(DEFAULT_SECONDS) } else { None }),
+        steps: after.steps,
+        sh_degree: defaults.sh_degree,
+        max_gaussians: defaults.max_gaussians,
+        seed,
+    }
+}
+
+/// Enqueues the bake that training job `job` asked for, of its model
+/// (trained on `ds`). An error is the training job's: it says the bake
+/// could not be queued.
+pub(crate) fn enqueue_after_training(
+    host: &dyn JobHost,
+    job: &Job,
+    after: &BakeAfter,
+    scene_id: &str,
+    config: &ModelConfig,
+    data: DataSize,
+    seed: u64,
+) -> Result<(), String> {
+    let spec = spec_after_training(after, &job.reserved_model_id(), scene_id, seed);
+    let memory = memory_estimate(config, &spec, data).memory_bytes;
+    host.enqueue(after.job_id.clone(), JobSpec::Bake(spec), memory)
+        .map_err(|e| format!("the model is trained, but its bake could not be queued: {e}"))?;
+    tracing::info!(job = %job.id, bake = %after.job_id, "bake queued after training");
+    Ok(())
+}
+
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &AtomicBool) -> Outcome {
+    match run_bake(host, job, spec, cancel) {
+        Ok(o) => o,
+        Err(e) => Outcome::Failed(e),
+    }
+}
+
+fn run_bake(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
+    let started = Instant::now();
+    let stage = |s: &str| host.set_progress(&job.id, &mut |j| j.progress.stage = Some(s.to_string()));
+    stage("loading the model and its photos");
+    let id = &spec.source_model_id;
+    let source = host.model(id).map_err(|e| e.to_string())?.ok_or_else(|| format!("model '{id}' no longer exists"))?;
+    let scene = host
+        .scene(&source.scene_id)
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| format!("scene '{}' of model '{id}' no longer exists", source.scene_id))?;
+    let dir = host.scene_dir(&scene, ScenePart::Data).map_err(|e| e.to_string())?;
+    let ds = load_dataset(&dir.path, &scene, MaskUse::Auto)?;
+    let ckpt = host.model_checkpoint(&source).map_err(|e| format!("loading model '{id}': {e}"))?;
+    let model = persist::load(&ckpt.path).map_err(|e| format!("loading model '{id}': {e}"))?.model;
+    let settings = BakeSettings {
+        seconds: spec.seconds,
+        steps: spec.steps,
+        seed: spec.seed,
+        splats: splats_config(spec),
+        ..Default::default()
+    };
+    stage("placing Gaussians");
+    let mut last = Instant::now();
+    let baked = bake(&*model, &ds, &settings, cancel, |p| {
+        if last.elapsed().as_secs_f64() < 0.1 {
+            return;
+        }
+        last = Instant::now();
+        host.set_progress(&job.id, &mut |j| {
+            let g = &mut j.progress;
+            g.stage = Some("optimising".into());
+            g.step = p.step;
+            g.total_steps = spec.steps;
+            g.train_psnr = p.psnr;
+            g.elapsed = p.elapsed;
+            g.eta = (p.progress > 0.0).then(|| p.elapsed * (1.0 - p.progress) / p.progress);
+            g.gaussians = Some(p.gaussians as u64);
+        });
+    });
+    let (splats, adam, steps) = match baked {
+        Ok(b) => b,
+        Err(BakeError::Cancelled) => return Ok(Outcome::Stopped),
+        Err(e) => return Err(e.to_string()),
+    };
+    let gaussians = splats.layout().n as u64;
+    stage("measuring on held-out views");
+    let metric = evaluate(&splats, &ds, host.config().eval_views, cancel);
+    if cancel.load(std::sync::atomic::Ordering::SeqCst) {
+        return Ok(Outcome::Stopped);
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    let model_id = job.reserved_model_id();
+    let out = host.job_checkpoint(job, &model_id).map_err(|e| e.to_string())?;
+    let train = TrainConfig {
+        seed: spec.seed,
+        budget: Budget { steps: spec.steps, seconds: spec.seconds },
+        ..Default::default()
+    };
+    let state = TrainState { step: steps, elapsed, ..Default::default() };
+    persist::save(&out, &splats, &adam, &train, &state).map_err(|e| format!("saving the splats: {e}"))?;
+    let now = now_ms();
+    let info = ModelInfo {
+        id: model_id.clone(),
+        scene_id: source.scene_id.clone(),
+        job_id: job.id.clone(),
+        model: BAKED_MODEL.into(),
+        model_reason: Some(format!("baked from model '{id}' ({})", source.model)),
+        config: splats.config_json(),
+        steps,
+        training_seconds: elapsed,
+        test_psnr: metric.map(|m| m.0),
+        test_views: metric.map_or(0, |m| m.1),
+        size_bytes: std::fs::metadata(&out).map_or(0, |m| m.len()),
+        created_at: now,
+        updated_at: now,
+        complete: true,
+        training_state: true,
+        view: source.view.clone(),
+        poses: None,
+    };
+    host.publish_model(job, &info, &out).map_err(|e| e.to_string())?;
+    host.set_progress(&job.id, &mut |j| {
+        j.model_id = Some(model_id.clone());
+        let g = &mut j.progress;
+        g.stage = None;
+        g.step = steps;
+        g.elapsed = elapsed;
+        g.eta = Some(0.0);
+        g.gaussians = Some(gaussians);
+        if let Some(m) = metric {
+            (g.test_psnr, g.test_psnr_step) = (Some(m.0), Some(steps));
+        }
+    });
+    tracing::info!(job = %job.id, model = %model_id, gaussians, steps, "baked");
+    Ok(Outcome::Succeeded)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_bake_after_training_takes_the_budget_asked_for_or_a_minute() {
+        let after = BakeAfter { job_id: "job_b".into(), seconds: None, steps: None };
+        let s = spec_after_training(&after, "mdl_a", "scn_a", 3);
+        assert_eq!((s.seconds, s.steps, s.source_model_id.as_str()), (Some(DEFAULT_SECONDS), None, "mdl_a"));
+        let after = BakeAfter { steps: Some(50), ..after };
+        let s = spec_after_training(&after, "mdl_a", "scn_a", 3);
+        assert_eq!((s.seconds, s.steps), (None, Some(50)));
+        let splats = ModelConfig::Splats(splats_config(&s));
+        assert!(splats.check().is_ok());
+        assert!(check_source(&None, &s).is_err());
+    }
+}
