@@ -8,7 +8,7 @@ import { refreshScenes, setupScenes } from './scenes.js';
 import { refreshJobs, setupTraining } from './training.js';
 import { $, TABS, fail, showTab, whenShown } from './ui.js';
 import { refreshVideos, setupVideos } from './videos.js';
-import { refreshModels, setupViewer } from './viewer.js';
+import { openFromLink, refreshModels, setupViewer } from './viewer.js';
 
 function start() {
   whenShown('scenes', () => refreshScenes().catch(fail));
@@ -20,7 +20,8 @@ function start() {
   setupTraining();
   setupViewer();
   setupVideos();
-  showTab('scenes');
+  // A link to a model's view (`#/models/ID?...`) opens it there.
+  if (!openFromLink()) showTab('scenes');
   document.body.dataset.ready = 'true';
 }
 

@@ -11,10 +11,10 @@ const training = { id: null, abort: null, points: [], lastPreview: 0, previewBus
 
 export async function refreshJobs() {
   await refreshScenes();
-  const jobs = (await getJson('/v1/jobs')).filter((j) => j.kind === 'train').reverse();
+  const jobs = (await getJson('/v1/jobs')).filter((j) => j.kind === 'train' || j.kind === 'bake').reverse();
   $('job-list').replaceChildren(...jobs.slice(0, 12).map((j) => el('li', { class: j.id === training.id ? 'current' : '' },
     el('strong', {}, j.id), el('div', { class: 'meta' },
-      `${j.model} on ${j.scene_id} · ${j.status} · step ${j.progress.step}` +
+      `${j.kind === 'bake' ? `splats of ${j.source_model_id}` : j.model} on ${j.scene_id} · ${j.status} · step ${j.progress.step}` +
       (j.progress.test_psnr != null ? ` · ${j.progress.test_psnr.toFixed(2)} dB` : '')),
     j.error ? el('p', { class: 'err' }, j.error) : null,
     el('button', { type: 'button', onclick: () => watchJob(j) }, 'Follow'))));
@@ -23,7 +23,8 @@ export async function refreshJobs() {
 function watchJob(job) {
   if (training.abort) training.abort.abort();
   training.abort = new AbortController();
-  Object.assign(training, { id: job.id, points: [], lastPreview: 0, modelId: null, lastStep: null, shown: null });
+  Object.assign(training, { id: job.id, points: [], lastPreview: 0, modelId: null, lastStep: null, shown: null, baking: null });
+  $('bake-line').hidden = true;
   $('job-panel').hidden = false;
   $('job-id').textContent = job.id;
   $('preview').removeAttribute('src');
@@ -34,10 +35,31 @@ function watchJob(job) {
     .catch(fail);
 }
 
+/**
+ * Follows the bake a training job asked for; when it succeeds and the
+ * training page is still shown, opens its splats in the viewer: a dropped
+ * set of photos ends on the real-time view.
+ */
+function followBake(id) {
+  training.baking = id;
+  const line = $('bake-line');
+  line.hidden = false;
+  line.textContent = `baking the real-time view (job ${id})...`;
+  const show = (j) => {
+    const p = j.progress;
+    line.dataset.status = j.status;
+    line.textContent = `real-time view (job ${j.id}): ${j.status}` +
+      (p.gaussians ? ` · ${p.gaussians} Gaussians` : '') + ` · step ${p.step}` +
+      (p.test_psnr != null ? ` · held-out PSNR ${p.test_psnr.toFixed(2)} dB` : '') + (j.error ? ` · ${j.error}` : '');
+    if (j.status === 'succeeded' && j.model_id && !$('training').hidden) openViewer(j.model_id).catch(fail);
+  };
+  followJob(id, show).catch(fail);
+}
+
 function showJob(job) {
   if (job.id !== training.id) return;
   const p = job.progress;
-  const b = job.budget || {};
+  const b = job.budget || { seconds: job.seconds };
   const fraction = p.total_steps ? p.step / p.total_steps : b.seconds ? Math.min(1, p.elapsed / b.seconds) : 0;
   $('job-progress').value = job.status === 'succeeded' ? 1 : fraction;
   const psnr = p.test_psnr != null ? ` · held-out PSNR ${p.test_psnr.toFixed(2)} dB` : '';
@@ -56,6 +78,9 @@ function showJob(job) {
     training.lastStep = key;
     training.points.push([p.elapsed, p.test_psnr, job.status === 'succeeded']);
     drawChart();
+  }
+  if (job.kind === 'train' && job.bake && job.status === 'succeeded' && training.baking !== job.bake.job_id) {
+    followBake(job.bake.job_id);
   }
   if (job.model_id) {
     training.modelId = job.model_id;
@@ -157,7 +182,9 @@ export function setupTraining() {
     const value = Number($('train-budget').value);
     const budget = { [kind]: kind === 'steps' ? Math.round(value) : value };
     try {
-      const job = await postJson('/v1/jobs', { scene_id: $('train-scene').value, model: $('train-model').value, budget });
+      const body = { scene_id: $('train-scene').value, model: $('train-model').value, budget };
+      if ($('train-bake').checked) body.bake = { seconds: 60 };
+      const job = await postJson('/v1/jobs', body);
       status(`job ${job.id} queued`);
       watchJob(job);
       refreshJobs().catch(fail);

@@ -1,10 +1,15 @@
 // The viewer: a model rendered by the server from a camera the user turns
 // (drag, wheel, pinch, keys), small renders while the view moves and a
 // full-resolution one once it is still; depth and opacity; a camera path
-// for a video. `window.radianceStats` keeps its timings for people and
-// for the browser tests.
+// for a video. A splats model is drawn by the browser instead (splats.js,
+// loaded when first needed): its `.splat` file is fetched once from
+// `/v1/models/{id}/export` and nothing more is asked of the server. The
+// page's address follows the camera (`#/models/ID?eye=x,y,z&target=x,y,z&fov=F`,
+// both kinds), so a link opens the model at that view.
+// `window.radianceStats` keeps its timings for people and for the browser
+// tests.
 
-import { api, getJson } from './api.js';
+import { api, followJob, getJson, postJson } from './api.js';
 import { $, el, fail, showTab, status } from './ui.js';
 import { makeVideo } from './videos.js';
 
@@ -19,7 +24,7 @@ export async function refreshModels() {
       `${m.id} (${m.model}, ${m.steps} steps${m.test_psnr != null ? `, ${m.test_psnr.toFixed(1)} dB` : ''}${m.complete ? '' : ', training'})`)));
     if (chosen && models.some((m) => m.id === chosen)) s.value = chosen;
   }
-  if (!viewer.model && models.length) selectModel(models[0].id);
+  if (!viewer.model && models.length && !opening) selectModel(models[0].id).catch(fail);
 }
 
 const v3 = {
@@ -100,28 +105,149 @@ function renderUrl(m, size, output, fov) {
   return `/v1/models/${viewer.model.id}/render?c2w=${flat}&width=${size[0]}&height=${size[1]}&fov=${fov.toFixed(4)}&output=${output}`;
 }
 
-function selectModel(id) {
+const isSplats = (m) => m.model === 'splats' || (m.config && m.config.kind === 'splats');
+
+/** The splat viewer (created once, when a splats model is first shown). */
+let splats = null;
+
+async function selectModel(id, camera) {
   const m = models.find((x) => x.id === id);
   if (!m) return;
   viewer.model = m;
   $('view-model').value = id;
-  resetView();
+  const drawn = isSplats(m);
+  $('view-img').hidden = drawn;
+  $('view-splats').hidden = !drawn;
+  $('view-output').disabled = drawn;
+  $('view-bake').hidden = drawn || !m.complete;
+  const v = m.view;
+  Object.assign(viewer, { target: v.centre.slice(), azimuth: 0, elevation: v.elevation ?? 25, radius: v.radius, fov: v.fov });
+  if (camera) setFromLink(camera);
+  if (drawn) await showSplats(m);
+  else changed(false);
 }
 
 function resetView() {
   const v = viewer.model.view;
   Object.assign(viewer, { target: v.centre.slice(), azimuth: 0, elevation: v.elevation ?? 25, radius: v.radius, fov: v.fov });
-  changed(false);
+  if (isSplats(viewer.model) && splats) placeSplatCamera();
+  else changed(false);
+}
+
+/** The orbit from a link's camera: eye and target points, field of view. */
+function setFromLink({ eye: from, target, fov }) {
+  const back = v3.sub(from, target);
+  const r = v3.norm(back);
+  if (!(r > 0)) return;
+  const [u, a, b] = orbitBasis(viewer.model.view);
+  Object.assign(viewer, {
+    target, radius: r, fov: fov || viewer.fov,
+    elevation: (Math.asin(Math.max(-1, Math.min(1, v3.dot(back, u) / r))) * 180) / Math.PI,
+    azimuth: (Math.atan2(v3.dot(back, b), v3.dot(back, a)) * 180) / Math.PI,
+  });
+}
+
+/** The address of the current view: `#/models/ID?eye=...&target=...&fov=...`. */
+export function viewLink() {
+  if (!viewer.model) return '#';
+  const num = (a) => a.map((x) => +x.toFixed(4)).join(',');
+  return `#/models/${viewer.model.id}?eye=${num(eye())}&target=${num(viewer.target)}&fov=${+viewer.fov.toFixed(3)}`;
+}
+
+function updateLink() {
+  const link = viewLink();
+  $('view-link').href = link;
+  if (!$('viewer').hidden && location.hash !== link) history.replaceState(null, '', link);
+}
+
+/** Parses `#/models/ID?eye=x,y,z&target=x,y,z&fov=F` (camera optional). */
+export function parseLink(hash) {
+  const m = /^#\/models\/([a-z0-9_]+)(?:\?(.*))?$/.exec(hash);
+  if (!m) return null;
+  const q = new URLSearchParams(m[2] || '');
+  const vec = (k) => {
+    const v = (q.get(k) || '').split(',').map(Number);
+    return v.length === 3 && v.every(Number.isFinite) ? v : null;
+  };
+  const [from, target, fov] = [vec('eye'), vec('target'), Number(q.get('fov'))];
+  const camera = from && target ? { eye: from, target, fov: Number.isFinite(fov) && fov > 1 && fov < 179 ? fov : null } : null;
+  return { id: m[1], camera };
+}
+
+/** Our pinhole camera for the splat canvas: the full-size render's size and the orbit's field of view. */
+function splatIntrinsics() {
+  const [width, height] = fullSize();
+  const f = (0.5 * width) / Math.tan((viewer.fov * Math.PI) / 360);
+  return { fx: f, fy: f, cx: width / 2, cy: height / 2, width, height };
+}
+
+function placeSplatCamera() {
+  const v = viewer.model.view;
+  splats.camera.up.set(...v3.unit(v.up));
+  splats.setCamera(c2w(), splatIntrinsics(), { near: Math.max(1e-4, viewer.radius * 0.01), far: Math.max(v.far * 4, viewer.radius * 10), target: viewer.target });
+  splats.controls.update();
+  updateLink();
+}
+
+/** The orbit follows the splat view's camera (its controls moved it). */
+function splatMoved() {
+  if (!viewer.model || !isSplats(viewer.model)) return;
+  const p = splats.camera.position, t = splats.controls.target;
+  setFromLink({ eye: [p.x, p.y, p.z], target: [t.x, t.y, t.z], fov: viewer.fov });
+  updateLink();
+}
+
+async function showSplats(m) {
+  if (!splats) {
+    const { SplatView } = await import('./splats.js');
+    splats = new SplatView($('view-splats'), { background: [1, 1, 1], up: m.view.up });
+    splats.controls.addEventListener('change', splatMoved);
+    window.splatView = splats;
+  }
+  placeSplatCamera();
+  $('view-info').textContent = 'loading the splats...';
+  const t0 = performance.now();
+  const n = await splats.load(`/v1/models/${m.id}/export?format=splat`);
+  if (viewer.model !== m) return;
+  placeSplatCamera();
+  await splats.settled();
+  $('view-splats').dataset.model = m.id;
+  $('view-splats').dataset.count = String(n);
+  $('view-info').textContent = `${n} Gaussians, fetched and drawn by this browser in ${(performance.now() - t0).toFixed(0)} ms`;
+}
+
+/** Bakes the shown model into splats, then shows them. */
+async function bakeShown() {
+  const m = viewer.model;
+  if (!m) return;
+  const job = await postJson('/v1/jobs', { kind: 'bake', model_id: m.id, seconds: 60 });
+  status(`baking model ${m.id} into splats (job ${job.id})`);
+  $('view-bake').disabled = true;
+  let end = job;
+  try {
+    await followJob(job.id, (j) => {
+      end = j;
+      const p = j.progress;
+      $('view-info').textContent = `baking (job ${j.id}): ${j.status} · step ${p.step}` + (p.gaussians ? ` · ${p.gaussians} Gaussians` : '');
+    });
+  } finally {
+    $('view-bake').disabled = false;
+  }
+  if (end.status !== 'succeeded') { status(`bake ${end.id} ${end.status}${end.error ? ': ' + end.error : ''}`, true); return; }
+  await refreshModels();
+  await selectModel(end.model_id);
 }
 
 /** The camera moved (moving: a drag, wheel or key still going on). */
 function changed(moving = true) {
-  if (!viewer.model) return;
+  // A splats model is drawn by the browser: its own controls move it.
+  if (!viewer.model || isSplats(viewer.model)) return;
   const now = performance.now();
   if (moving && !viewer.moving) viewer.movedAt = now;
   viewer.moving = moving;
   viewer.lastMove = now;
   viewer.dirty = true;
+  updateLink();
   clearTimeout(viewer.stillTimer);
   if (moving) {
     viewer.stillTimer = setTimeout(() => { viewer.moving = false; viewer.dirty = true; pump(); }, 120);
@@ -204,6 +330,7 @@ async function hashOf(blob) {
 
 /** Recentres the orbit on the surface under pixel (px, py) of the shown image, from a 1-pixel depth render along that ray. */
 async function recentre(px, py) {
+  if (isSplats(viewer.model)) return;
   const img = $('view-img');
   const [w, h] = [img.clientWidth, img.clientHeight];
   const f = (0.5 * w) / Math.tan((viewer.fov * Math.PI) / 360);
@@ -249,7 +376,10 @@ function zoomBy(factor) {
 
 export function setupViewer() {
   const stage = $('stage');
+  // A splats model's canvas has its own controls (splats.js).
+  const drawnHere = () => viewer.model && isSplats(viewer.model);
   stage.addEventListener('pointerdown', (e) => {
+    if (drawnHere()) return;
     stage.setPointerCapture(e.pointerId);
     viewer.pointers.set(e.pointerId, [e.clientX, e.clientY]);
     if (viewer.pointers.size === 2) {
@@ -273,12 +403,13 @@ export function setupViewer() {
   const release = (e) => { viewer.pointers.delete(e.pointerId); viewer.pinch = 0; };
   stage.addEventListener('pointerup', release);
   stage.addEventListener('pointercancel', release);
-  stage.addEventListener('wheel', (e) => { e.preventDefault(); zoomBy(Math.exp(e.deltaY * 0.001)); }, { passive: false });
+  stage.addEventListener('wheel', (e) => { if (drawnHere()) return; e.preventDefault(); zoomBy(Math.exp(e.deltaY * 0.001)); }, { passive: false });
   stage.addEventListener('dblclick', (e) => {
     const r = $('view-img').getBoundingClientRect();
     recentre(e.clientX - r.left, e.clientY - r.top).catch(fail);
   });
   stage.addEventListener('keydown', (e) => {
+    if (drawnHere()) return;
     const keys = {
       ArrowLeft: () => orbitBy(5, 0), ArrowRight: () => orbitBy(-5, 0),
       ArrowUp: () => orbitBy(0, 5), ArrowDown: () => orbitBy(0, -5),
@@ -289,7 +420,9 @@ export function setupViewer() {
     if (keys[e.key] && viewer.model) { e.preventDefault(); keys[e.key](); }
   });
   stage.addEventListener('keyup', () => { if (viewer.moving) { clearTimeout(viewer.stillTimer); viewer.stillTimer = setTimeout(() => { viewer.moving = false; viewer.dirty = true; pump(); }, 120); } });
-  $('view-model').addEventListener('change', (e) => selectModel(e.target.value));
+  $('view-model').addEventListener('change', (e) => selectModel(e.target.value).catch(fail));
+  $('view-bake').addEventListener('click', () => bakeShown().catch(fail));
+  $('view-link').addEventListener('click', (e) => { e.preventDefault(); navigator.clipboard?.writeText(location.href.split('#')[0] + viewLink()).catch(() => {}); status('link to this view copied (and in the address bar)'); });
   $('view-output').addEventListener('change', () => changed(false));
   $('view-reset').addEventListener('click', () => resetView());
   $('view-save').addEventListener('click', () => {
@@ -319,9 +452,25 @@ function showKeyframes() {
   $('path-make').disabled = viewer.keyframes.length < 2;
 }
 
-export async function openViewer(modelId) {
-  showTab('viewer');
-  await refreshModels();
-  selectModel(modelId);
-  $('stage').focus();
+/** Whether a model is being opened (the list's refresh then selects none). */
+let opening = false;
+
+export async function openViewer(modelId, camera) {
+  opening = true;
+  try {
+    showTab('viewer');
+    await refreshModels();
+    await selectModel(modelId, camera);
+  } finally {
+    opening = false;
+  }
+  (isSplats(viewer.model) ? $('view-splats') : $('stage')).focus();
+}
+
+/** Opens the model a link names (`#/models/ID?...`), if any; true if it did. */
+export function openFromLink() {
+  const link = parseLink(location.hash);
+  if (!link) return false;
+  openViewer(link.id, link.camera).catch(fail);
+  return true;
 }

@@ -284,7 +284,8 @@ async fn create_bake(s: &AppState, r: CreateBake) -> ApiResult<(StatusCode, Json
     ModelConfig::Splats(splats.clone()).check().map_err(config_error)?;
     let id = &r.model_id;
     let source = s.jobs.get_model(id).await?.ok_or_else(|| ApiError::not_found("model", id))?;
-    let config: ModelConfig = serde_json::from_value(source.config.clone())
+    let kind = ModelConfig::preset(&source.model).map(|c| c.kind()).unwrap_or(source.model.as_str());
+    let config = ModelConfig::parse(kind, source.config.clone())
         .map_err(|e| ApiError::internal(format!("model '{id}' has an unreadable configuration: {e}")))?;
     if !config.spec().trains_on_rays() {
         let message = format!(

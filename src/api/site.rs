@@ -59,6 +59,7 @@ pub fn index_html(title: &str, camera: &Camera, view: &ViewDefaults) -> String {
 <head>
 <meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
+<link rel="icon" href="data:,">
 <title>{title}</title>
 <script type="importmap">
 {{ "imports": {{ "three": "./vendor/three/three.module.min.js", "three/addons/": "./vendor/three/addons/" }} }}

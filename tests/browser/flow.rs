@@ -55,6 +55,8 @@ fn upload_train_view_and_make_videos_in_the_browser() {
     page.fill("#train-model", "instant-tiny");
     page.fill("#train-budget-kind", "seconds");
     page.fill("#train-budget", "8");
+    // The NeRF viewer is what this test drives: no bake after training.
+    page.eval("document.getElementById('train-bake').checked = false");
     page.click("#train-start");
     page.wait_for("document.getElementById('job-line').dataset.status === 'running'", 30.0);
     let mut steps = Vec::new();

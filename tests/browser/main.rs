@@ -14,6 +14,7 @@ mod cards;
 mod flow;
 mod key;
 mod posing;
+mod realtime;
 mod splats;
 mod trial;
 
