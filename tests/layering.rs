@@ -38,7 +38,7 @@ const LAYERS: &[&[&str]] = &[
 ];
 
 /// Modules of the crate the engine must never use.
-const SERVICE: &[&str] = &["api", "jobs", "cli", "store", "storage", "worker", "media", "poses"];
+const SERVICE: &[&str] = &["api", "jobs", "cli", "backend", "datadir", "records", "worker", "media", "poses"];
 
 /// A use of another part: the file and line it is on.
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]

@@ -12,14 +12,14 @@ use futures_util::Stream;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, limits};
+use crate::backend::NewJob;
+use crate::datadir::ScenePart;
 use crate::engine::dataset::MaskUse;
 use crate::engine::models::auto::{self, AUTO, ModelChoice};
 use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, presets};
 use crate::engine::train::estimate;
 use crate::jobs::train::load_dataset;
 use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, check_trainable};
-use crate::storage::ScenePart;
-use crate::store::NewJob;
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize)]

@@ -8,7 +8,7 @@ use serde_json::json;
 use super::{ApiError, Code, ServiceConfig};
 use crate::engine::dataset::{DatasetFormat, MaskUse};
 use crate::engine::train::estimate::{DataSize, Estimate, mib};
-use crate::storage::SceneInfo;
+use crate::records::SceneInfo;
 
 /// The dataset a training job will load with `masks`: every frame of every
 /// split at the scene's resolution (formats without a split hold their

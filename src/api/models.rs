@@ -13,6 +13,7 @@ use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
 
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
+use crate::backend::Artifact;
 use crate::engine::geometry::camera::Camera;
 use crate::engine::io::checkpoint::CheckpointError;
 use crate::engine::models::Model;
@@ -20,8 +21,7 @@ use crate::engine::train::persist;
 use crate::engine::view::appearance::Appearance;
 use crate::engine::view::render_view_until;
 use crate::media::png::{self, ViewImage};
-use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
-use crate::store::Artifact;
+use crate::records::{ModelInfo, VideoInfo, ViewDefaults};
 
 /// A model as the API shows it: its record and the disk use of its videos.
 #[derive(Debug, Serialize)]
@@ -302,7 +302,7 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults { width: 8, height: 8, fov: 50.0, radius: 4.0, far: 6.0, ..crate::storage::sample_view() }
+        ViewDefaults { width: 8, height: 8, fov: 50.0, radius: 4.0, far: 6.0, ..crate::records::sample_view() }
     }
 
     /// The `details` of the error a render query gets.

@@ -18,13 +18,14 @@ use axum::http::{StatusCode, header::CONTENT_TYPE};
 
 use super::archive::{self, ArchiveKind, Limit, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
+use crate::backend::Artifact;
+use crate::backend::{ArtifactStore, NewJob};
+use crate::datadir::{ScenePart, new_id, now_ms};
 use crate::engine::dataset::{Dataset, LoadOptions};
 use crate::engine::dataset::{DatasetError, DatasetFormat, detect_format};
 use crate::jobs::{JobSpec, PosesSpec, poses as poses_job};
 use crate::poses::photos;
-use crate::storage::{SceneInfo, ScenePart, ScenePoses, SceneStatus, SplitCounts, ViewDefaults, new_id, now_ms};
-use crate::store::Artifact;
-use crate::store::{ArtifactStore, NewJob};
+use crate::records::{SceneInfo, ScenePoses, SceneStatus, SplitCounts, ViewDefaults};
 
 pub async fn create(State(s): State<AppState>, req: Request) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
     let ct = req.headers().get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();

@@ -12,14 +12,14 @@ use axum::response::IntoResponse;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, camera_path, limits, models};
+use crate::backend::Artifact;
+use crate::backend::NewJob;
 use crate::engine::geometry::path::CameraPath;
 use crate::engine::models::config::ModelConfig;
 use crate::engine::train::estimate;
 use crate::jobs::{Job, JobSpec, VideoSpec};
 use crate::media::video::VideoFormat;
-use crate::storage::ViewDefaults;
-use crate::store::Artifact;
-use crate::store::NewJob;
+use crate::records::ViewDefaults;
 
 /// `POST /v1/models/{id}/videos` body; every field is optional.
 #[derive(Debug, Default, Deserialize)]
@@ -216,7 +216,7 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults { width: 200, height: 100, radius: 4.0, far: 6.0, ..crate::storage::sample_view() }
+        ViewDefaults { width: 200, height: 100, radius: 4.0, far: 6.0, ..crate::records::sample_view() }
     }
 
     #[test]
