@@ -35,7 +35,13 @@ const LAYERS: &[&[&str]] = &[
     &["view"],
     // Training: the trainer, sessions, held-out estimates, checkpoints of a run.
     &["train"],
+    // The front door: what the service uses of the engine.
+    &["front"],
 ];
+
+/// The service's folders that may reach the engine only through
+/// `engine::front`.
+const THROUGH_THE_FRONT_DOOR: &[&str] = &["api", "jobs", "worker"];
 
 /// Modules of the crate the engine must never use.
 const SERVICE: &[&str] = &["api", "jobs", "cli", "backend", "datadir", "records", "worker", "media", "poses"];
@@ -374,6 +380,68 @@ fn top_level_files_use_engine_parts_through_super() {
     assert!(p[0].contains("batch.rs:2: `batch` uses `train`"), "{p:?}");
 }
 
+/// Every use of the engine in `text` (a file of the service) that does not
+/// go through `engine::front`, as `file:line: path`.
+fn back_door_uses(rel: &str, text: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    for (n, line) in code_only(text).lines().enumerate() {
+        for (at, _) in line.match_indices("crate::engine") {
+            let rest = &line[at + "crate::engine".len()..];
+            let heads = match rest.strip_prefix("::") {
+                Some(r) => match r.strip_prefix('{') {
+                    Some(group) => group_heads(group),
+                    None => vec![ident_at(r)],
+                },
+                None => vec![""],
+            };
+            if heads.iter().any(|h| *h != "front") {
+                found.push(format!("{rel}:{}: {}", n + 1, line.trim()));
+            }
+        }
+    }
+    found
+}
+
+fn read_rs(dir: &Path, root: &Path, files: &mut Vec<(String, String)>) {
+    let mut entries: Vec<_> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+    entries.sort();
+    for p in entries {
+        if p.is_dir() {
+            read_rs(&p, root, files);
+        } else if p.extension().is_some_and(|e| e == "rs") {
+            let rel = p.strip_prefix(root).unwrap().to_string_lossy().replace('\\', "/");
+            files.push((rel, std::fs::read_to_string(&p).unwrap()));
+        }
+    }
+}
+
+/// `api`, `jobs` and `worker` reach the engine only through its front door
+/// (`engine::front`): a load, a render, a training session, an estimate and
+/// the types they take. Test code may use anything.
+#[test]
+fn the_service_uses_the_engine_through_its_front_door() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    for part in THROUGH_THE_FRONT_DOOR {
+        read_rs(&src.join(part), &src, &mut files);
+    }
+    assert!(files.len() > 20, "found only {} files under src/api, src/jobs and src/worker", files.len());
+    let through: usize = files.iter().map(|(_, t)| code_only(t).matches("crate::engine::front").count()).sum();
+    assert!(through > 10, "the scanner found only {through} uses of engine::front");
+    let found: Vec<String> = files.iter().flat_map(|(rel, text)| back_door_uses(rel, text)).collect();
+    assert!(found.is_empty(), "the service uses the engine past engine::front:\n{}", found.join("\n"));
+}
+
+#[test]
+fn a_use_past_the_front_door_fails() {
+    let text = "use crate::engine::front::{Model, load_model};\nuse crate::engine::train::persist;\n\
+                fn f() { crate::engine::view::render_view_with(); }\nuse crate::engine::{front::Model, io::fsio};\n\
+                use crate::engine;\n#[cfg(test)]\nmod tests {\n    use crate::engine::train::trainer::Trainer;\n}\n";
+    let found = back_door_uses("api/models.rs", text);
+    let lines: Vec<&str> = found.iter().map(|f| &f[..f.find(": ").unwrap()]).collect();
+    assert_eq!(lines, ["api/models.rs:2", "api/models.rs:3", "api/models.rs:4", "api/models.rs:5"], "{found:?}");
+}
+
 /// The names users pick a model by, outside the engine, are the registry's
 /// presets exactly (`models::config::presets`): openapi.yaml's enum and the
 /// web app's picker, each after `auto`.
@@ -400,3 +468,4 @@ fn user_facing_model_lists_are_the_registrys_presets() {
         page[start..end].split("<option value=\"").skip(1).map(|s| s[..s.find('"').unwrap()].to_string()).collect();
     assert_eq!(options, want, "web/index.html's model picker");
 }
+

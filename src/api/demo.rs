@@ -9,7 +9,7 @@ use axum::http::StatusCode;
 use super::scenes::{ingest, staging};
 use super::{ApiResult, AppState};
 use crate::datadir::tree_bytes;
-use crate::engine::dataset::synthetic::BallScene;
+use crate::engine::front::BallScene;
 use crate::records::SceneInfo;
 
 pub async fn create(State(s): State<AppState>) -> ApiResult<(StatusCode, Json<SceneInfo>)> {

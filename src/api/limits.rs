@@ -6,8 +6,7 @@
 use serde_json::json;
 
 use super::{ApiError, Code, ServiceConfig};
-use crate::engine::dataset::{DatasetFormat, MaskUse};
-use crate::engine::train::estimate::{DataSize, Estimate, mib};
+use crate::engine::front::{DataSize, DatasetFormat, Estimate, MaskUse, mib};
 use crate::records::SceneInfo;
 
 /// The dataset a training job will load with `masks`: every frame of every

@@ -25,7 +25,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
 
 use crate::backend::{Artifact, ArtifactStore, JobStore, embedded};
-use crate::engine::models::Model;
+use crate::engine::front::Model;
 use crate::jobs::SchedulerConfig;
 
 pub mod archive;

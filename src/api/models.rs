@@ -14,12 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
 use crate::backend::Artifact;
-use crate::engine::geometry::camera::Camera;
-use crate::engine::io::checkpoint::CheckpointError;
-use crate::engine::models::Model;
-use crate::engine::train::persist;
-use crate::engine::view::appearance::Appearance;
-use crate::engine::view::render_view_until;
+use crate::engine::front::{Appearance, Camera, CheckpointError, Model, load_model, render_view_until};
 use crate::media::png::{self, ViewImage};
 use crate::records::{ModelInfo, VideoInfo, ViewDefaults};
 
@@ -270,7 +265,7 @@ pub(super) async fn model_of(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dy
         }
     }
     let ckpt = s.artifacts.checkpoint(info).await?;
-    let restored = tokio::task::spawn_blocking(move || persist::load(&ckpt.path).map(|r| r.model)).await?;
+    let restored = tokio::task::spawn_blocking(move || load_model(&ckpt.path)).await?;
     let model = restored.map_err(|e| match e {
         // Deleted since its record was read.
         CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {

@@ -4,11 +4,7 @@
 
 use std::io;
 
-use crate::engine::dataset::DatasetError;
-use crate::engine::io::checkpoint::CheckpointError;
-use crate::engine::models::ModelError;
-use crate::engine::train::session::{SessionError, Stop};
-use crate::engine::view::appearance::AppearanceError;
+use crate::engine::front::{AppearanceError, CheckpointError, DatasetError, ModelError, SessionError, Stop};
 use crate::media::video::VideoError;
 use crate::poses::PoseError;
 

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use super::{Counters, Job, SchedulerConfig, Shared};
 use crate::datadir::{Local, ScenePart, write_json};
-use crate::engine::io::fsio::write_atomic;
+use crate::engine::front::write_atomic;
 use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// A job body's view of the service (see the module comment).

@@ -126,7 +126,7 @@ mod tests {
 
     use super::*;
     use crate::datadir::write_json;
-    use crate::engine::models::config::ModelConfig;
+    use crate::engine::front::ModelConfig;
     use crate::jobs::{JobBudget, JobSpec, Scheduler, SchedulerConfig, Status, TrainSpec};
 
     /// A data directory with the record of scene `scn_a` (enough to enqueue

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use super::host::JobHost;
 use super::{Job, JobError, Outcome, PosesSpec, Status};
 use crate::datadir::{DataDir, ScenePart, read_json_opt, tree_bytes, write_json};
-use crate::engine::dataset::{Dataset, LoadOptions};
+use crate::engine::front::{Dataset, LoadOptions};
 use crate::poses::{self, PoseError, PoseOptions, PoseReport, Tools};
 use crate::records::{SceneInfo, SceneStatus};
 

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use super::lifecycle::writes_model;
 use super::{Job, JobSpec, Shared};
 use crate::datadir::{DataDir, now_ms, remove_file_if_exists, valid_id, write_json};
-use crate::engine::train::persist;
+use crate::engine::front::strip_training_state;
 use crate::records::ModelInfo;
 
 /// Longest pause between two sweeps.
@@ -129,7 +129,7 @@ fn strip_model(shared: &Shared, id: &str) -> Result<Option<u64>, String> {
     let path = storage.checkpoint(id);
     // A crash after this rewrite but before the record's leaves the record
     // claiming the state: the next sweep finds the file stripped and fixes it.
-    persist::strip_training_state(&path).map_err(|e| e.to_string())?;
+    strip_training_state(&path).map_err(|e| e.to_string())?;
     info.size_bytes = std::fs::metadata(&path).map_err(|e| e.to_string())?.len();
     info.training_state = false;
     info.updated_at = now_ms();
@@ -140,7 +140,7 @@ fn strip_model(shared: &Shared, id: &str) -> Result<Option<u64>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::models::config::ModelConfig;
+    use crate::engine::front::ModelConfig;
     use crate::jobs::{JobBudget, JobProgress, Status, TrainSpec, VideoSpec};
     use crate::media::video::VideoFormat;
     use crate::records::ViewDefaults;

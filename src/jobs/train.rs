@@ -11,16 +11,10 @@ use std::time::Instant;
 use super::host::JobHost;
 use super::{Job, JobError, Outcome, TrainSpec};
 use crate::datadir::{ScenePart, now_ms};
-use crate::engine::dataset::{Dataset, DatasetError, LoadOptions, MaskUse, Split};
-use crate::engine::metrics::psnr;
-use crate::engine::models::Model;
-use crate::engine::models::auto::ModelChoice;
-use crate::engine::models::training::TrainConfig;
-use crate::engine::nn::pose_report::PoseReport;
-use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
-use crate::engine::train::trainer::{Progress, TrainState};
-use crate::engine::view::appearance::held_out_options;
-use crate::engine::view::render_heldout_view;
+use crate::engine::front::{
+    Dataset, DatasetError, Event, HeldOut, LoadOptions, MaskUse, Model, ModelChoice, PoseReport, Progress, Session,
+    SessionConfig, Split, Start, Stop, TrainConfig, TrainState, held_out_options, psnr, render_heldout_view,
+};
 use crate::records::{ModelInfo, SceneInfo};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.

@@ -12,10 +12,7 @@ use std::time::Instant;
 use super::host::JobHost;
 use super::{Job, JobError, Outcome, VideoSpec};
 use crate::datadir::{DataDir, now_ms};
-use crate::engine::geometry::camera::Camera;
-use crate::engine::io::fsio::write_atomic;
-use crate::engine::train::persist;
-use crate::engine::view::render_view_with;
+use crate::engine::front::{Camera, load_model, render_view_with, write_atomic};
 use crate::media::{png, video};
 use crate::records::VideoInfo;
 
@@ -64,7 +61,7 @@ fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) 
     let model_id = job.model_id.clone().unwrap_or_default();
     let info = host.model(&model_id)?.ok_or_else(|| JobError::ModelGone(model_id.clone()))?;
     let ckpt = host.model_checkpoint(&info).map_err(JobError::ModelFile)?;
-    let model = persist::load(&ckpt.path)?.model;
+    let model = load_model(&ckpt.path)?;
     let orbit = info.view.orbit(spec.elevation, spec.radius);
     let started = Instant::now();
     let mut frames = Vec::with_capacity(spec.frames as usize);
