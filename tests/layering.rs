@@ -469,3 +469,78 @@ fn user_facing_model_lists_are_the_registrys_presets() {
     assert_eq!(options, want, "web/index.html's model picker");
 }
 
+/// The longest a function may be, in lines from its `fn` to its closing
+/// brace; test code is not counted.
+const MAX_FUNCTION_LINES: usize = 80;
+
+/// The functions of `text` (a file's source) longer than `max` lines, as
+/// `file:line: name (N lines)`. Comments, strings and `#[cfg(test)]` items
+/// are not read.
+fn long_functions(rel: &str, text: &str, max: usize) -> Vec<String> {
+    let code = code_only(text);
+    let lines: Vec<&str> = code.lines().collect();
+    let mut found = Vec::new();
+    for (n, line) in lines.iter().enumerate() {
+        let Some(at) = line.find("fn ") else { continue };
+        let before = line[..at].trim();
+        let item = before.is_empty()
+            || before.split_whitespace().all(|w| {
+                matches!(w, "pub" | "const" | "async" | "unsafe" | "extern" | "default") || w.starts_with("pub(")
+            });
+        let name = ident_at(&line[at + 3..]);
+        if !item || name.is_empty() {
+            continue;
+        }
+        // The body: from the first `{` (a `;` first: no body) to its match.
+        let mut depth = 0i64;
+        let mut end = None;
+        'scan: for (m, l) in lines.iter().enumerate().skip(n) {
+            let from = if m == n { at } else { 0 };
+            for ch in l[from..].chars() {
+                match ch {
+                    ';' if depth == 0 => break 'scan,
+                    '{' => depth += 1,
+                    '}' => {
+                        depth -= 1;
+                        if depth == 0 {
+                            end = Some(m);
+                            break 'scan;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+        if let Some(end) = end
+            && end + 1 - n > max
+        {
+            found.push(format!("{rel}:{}: {name} ({} lines)", n + 1, end + 1 - n));
+        }
+    }
+    found
+}
+
+/// No function in `src/` is over [`MAX_FUNCTION_LINES`] lines (test code,
+/// and the `tests.rs` / `*_tests.rs` files of unit tests, aside).
+#[test]
+fn no_function_is_over_80_lines() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    read_rs(&src, &src, &mut files);
+    files.retain(|(rel, _)| !(rel.ends_with("/tests.rs") || rel.ends_with("_tests.rs")));
+    assert!(files.len() > 100, "found only {} files under src", files.len());
+    let found: Vec<String> =
+        files.iter().flat_map(|(rel, text)| long_functions(rel, text, MAX_FUNCTION_LINES)).collect();
+    assert!(found.is_empty(), "functions over {MAX_FUNCTION_LINES} lines:\n{}", found.join("\n"));
+}
+
+#[test]
+fn a_long_function_is_found() {
+    let body = "    let x = 1;\n".repeat(79);
+    let text = format!(
+        "/// {{ not code\npub(crate) fn long(a: u32) -> u32 {{\n{body}}}\nfn short() {{ let s = \"}}\"; }}\n\
+         trait T {{\n    fn declared(&self);\n}}\n#[cfg(test)]\nfn in_tests() {{\n{body}{body}}}\n"
+    );
+    assert_eq!(long_functions("x.rs", &text, 80), ["x.rs:2: long (81 lines)"]);
+    assert!(long_functions("x.rs", &text, 81).is_empty());
+}
