@@ -396,9 +396,9 @@ impl GatherStep<'_> {
     }
 }
 
-/// 3. The model to keep (`outcome::judge`), moved into the dataset as
-/// `sparse/0`, COLMAP's other files removed; 4. the dataset checked to load
-/// as `train` will load it, and the report written beside it.
+/// Steps 3 and 4: the model to keep (`outcome::judge`), moved into the
+/// dataset as `sparse/0`, COLMAP's other files removed; then the dataset
+/// checked to load as `train` will load it, and the report written beside it.
 fn keep_model(
     run: &colmap::Run<'_>,
     dataset: &Path,
