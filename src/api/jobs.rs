@@ -12,14 +12,14 @@ use futures_util::Stream;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, limits};
-use crate::engine::dataset::MaskUse;
-use crate::engine::models::auto::{self, AUTO, ModelChoice};
-use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, trainable_presets};
-use crate::engine::train::estimate;
+use crate::backend::NewJob;
+use crate::datadir::ScenePart;
+use crate::engine::front::{
+    AUTO, ConfigError, DEFAULT_BATCH_RAYS, MaskUse, ModelChoice, ModelConfig, choose_model, estimate_training,
+    trainable_presets,
+};
 use crate::jobs::train::load_dataset;
 use crate::jobs::{Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, check_trainable};
-use crate::storage::ScenePart;
-use crate::store::NewJob;
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize)]
@@ -123,7 +123,7 @@ async fn auto_choice(s: &AppState, scene_id: &str, masks: MaskUse) -> ApiResult<
     let files = s.artifacts.scene_files(&scene, ScenePart::Data).await?;
     let loaded = tokio::task::spawn_blocking(move || load_dataset(&files.path, &scene, masks)).await?;
     let ds = loaded.map_err(|e| ApiError::internal(format!("loading scene '{scene_id}' to choose its model: {e}")))?;
-    Ok(auto::choose(&ds))
+    Ok(choose_model(&ds))
 }
 
 /// The job's `masks`: one of the names of [`MaskUse`], `auto` when absent.
@@ -162,7 +162,7 @@ pub async fn create(
     let memory = match s.jobs.get_scene(&spec.scene_id).await? {
         Some(scene) => {
             let threads = rayon::current_num_threads();
-            let e = estimate::training(&spec.config, limits::scene_data(&scene, spec.masks), threads);
+            let e = estimate_training(&spec.config, limits::scene_data(&scene, spec.masks), threads);
             limits::check(&e, &s.config, s.artifacts.free_space().await?)?;
             e.memory_bytes
         }

@@ -13,15 +13,10 @@ use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
 
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel};
-use crate::engine::geometry::camera::Camera;
-use crate::engine::io::checkpoint::CheckpointError;
-use crate::engine::models::Model;
-use crate::engine::train::persist;
-use crate::engine::view::appearance::Appearance;
-use crate::engine::view::render_view_until;
+use crate::backend::Artifact;
+use crate::engine::front::{Appearance, Camera, CheckpointError, Model, load_model, render_view_until};
 use crate::media::png::{self, ViewImage};
-use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
-use crate::store::Artifact;
+use crate::records::{ModelInfo, VideoInfo, ViewDefaults};
 
 /// A model as the API shows it: its record and the disk use of its videos.
 #[derive(Debug, Serialize)]
@@ -270,7 +265,7 @@ pub(super) async fn model_of(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dy
         }
     }
     let ckpt = s.artifacts.checkpoint(info).await?;
-    let restored = tokio::task::spawn_blocking(move || persist::load(&ckpt.path).map(|r| r.model)).await?;
+    let restored = tokio::task::spawn_blocking(move || load_model(&ckpt.path)).await?;
     let model = restored.map_err(|e| match e {
         // Deleted since its record was read.
         CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
@@ -302,7 +297,7 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults { width: 8, height: 8, fov: 50.0, radius: 4.0, far: 6.0, ..crate::storage::sample_view() }
+        ViewDefaults { width: 8, height: 8, fov: 50.0, radius: 4.0, far: 6.0, ..crate::records::sample_view() }
     }
 
     /// The `details` of the error a render query gets.

@@ -21,11 +21,12 @@ use std::sync::Arc;
 
 use super::Ctx;
 use super::keeper::Run;
+use crate::backend::ArtifactStore;
+use crate::backend::pg::PgError;
+use crate::datadir::{Local, ScenePart};
 use crate::jobs::host::JobHost;
 use crate::jobs::{Counters, Job, SchedulerConfig};
-use crate::storage::{Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
-use crate::store::ArtifactStore;
-use crate::store::pg::PgError;
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// The host of one running job (see the module comment).
 pub struct RemoteHost {
