@@ -35,10 +35,16 @@ const LAYERS: &[&[&str]] = &[
     &["view"],
     // Training: the trainer, sessions, held-out estimates, checkpoints of a run.
     &["train"],
+    // The front door: what the service uses of the engine.
+    &["front"],
 ];
 
+/// The service's folders that may reach the engine only through
+/// `engine::front`.
+const THROUGH_THE_FRONT_DOOR: &[&str] = &["api", "jobs", "worker"];
+
 /// Modules of the crate the engine must never use.
-const SERVICE: &[&str] = &["api", "jobs", "cli", "store", "storage", "worker", "media", "poses"];
+const SERVICE: &[&str] = &["api", "jobs", "cli", "backend", "datadir", "records", "worker", "media", "poses"];
 
 /// A use of another part: the file and line it is on.
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
@@ -374,6 +380,68 @@ fn top_level_files_use_engine_parts_through_super() {
     assert!(p[0].contains("batch.rs:2: `batch` uses `train`"), "{p:?}");
 }
 
+/// Every use of the engine in `text` (a file of the service) that does not
+/// go through `engine::front`, as `file:line: path`.
+fn back_door_uses(rel: &str, text: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    for (n, line) in code_only(text).lines().enumerate() {
+        for (at, _) in line.match_indices("crate::engine") {
+            let rest = &line[at + "crate::engine".len()..];
+            let heads = match rest.strip_prefix("::") {
+                Some(r) => match r.strip_prefix('{') {
+                    Some(group) => group_heads(group),
+                    None => vec![ident_at(r)],
+                },
+                None => vec![""],
+            };
+            if heads.iter().any(|h| *h != "front") {
+                found.push(format!("{rel}:{}: {}", n + 1, line.trim()));
+            }
+        }
+    }
+    found
+}
+
+fn read_rs(dir: &Path, root: &Path, files: &mut Vec<(String, String)>) {
+    let mut entries: Vec<_> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+    entries.sort();
+    for p in entries {
+        if p.is_dir() {
+            read_rs(&p, root, files);
+        } else if p.extension().is_some_and(|e| e == "rs") {
+            let rel = p.strip_prefix(root).unwrap().to_string_lossy().replace('\\', "/");
+            files.push((rel, std::fs::read_to_string(&p).unwrap()));
+        }
+    }
+}
+
+/// `api`, `jobs` and `worker` reach the engine only through its front door
+/// (`engine::front`): a load, a render, a training session, an estimate and
+/// the types they take. Test code may use anything.
+#[test]
+fn the_service_uses_the_engine_through_its_front_door() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    for part in THROUGH_THE_FRONT_DOOR {
+        read_rs(&src.join(part), &src, &mut files);
+    }
+    assert!(files.len() > 20, "found only {} files under src/api, src/jobs and src/worker", files.len());
+    let through: usize = files.iter().map(|(_, t)| code_only(t).matches("crate::engine::front").count()).sum();
+    assert!(through > 10, "the scanner found only {through} uses of engine::front");
+    let found: Vec<String> = files.iter().flat_map(|(rel, text)| back_door_uses(rel, text)).collect();
+    assert!(found.is_empty(), "the service uses the engine past engine::front:\n{}", found.join("\n"));
+}
+
+#[test]
+fn a_use_past_the_front_door_fails() {
+    let text = "use crate::engine::front::{Model, load_model};\nuse crate::engine::train::persist;\n\
+                fn f() { crate::engine::view::render_view_with(); }\nuse crate::engine::{front::Model, io::fsio};\n\
+                use crate::engine;\n#[cfg(test)]\nmod tests {\n    use crate::engine::train::trainer::Trainer;\n}\n";
+    let found = back_door_uses("api/models.rs", text);
+    let lines: Vec<&str> = found.iter().map(|f| &f[..f.find(": ").unwrap()]).collect();
+    assert_eq!(lines, ["api/models.rs:2", "api/models.rs:3", "api/models.rs:4", "api/models.rs:5"], "{found:?}");
+}
+
 /// The names users pick a model to train by, outside the engine, are the
 /// registry's trainable presets exactly (`models::config::trainable_presets`:
 /// splats are baked, not trained): openapi.yaml's enum and the web app's
@@ -401,4 +469,80 @@ fn user_facing_model_lists_are_the_registrys_presets() {
     let options: Vec<String> =
         page[start..end].split("<option value=\"").skip(1).map(|s| s[..s.find('"').unwrap()].to_string()).collect();
     assert_eq!(options, want, "web/index.html's model picker");
+}
+
+/// The longest a function may be, in lines from its `fn` to its closing
+/// brace; test code is not counted.
+const MAX_FUNCTION_LINES: usize = 80;
+
+/// The functions of `text` (a file's source) longer than `max` lines, as
+/// `file:line: name (N lines)`. Comments, strings and `#[cfg(test)]` items
+/// are not read.
+fn long_functions(rel: &str, text: &str, max: usize) -> Vec<String> {
+    let code = code_only(text);
+    let lines: Vec<&str> = code.lines().collect();
+    let mut found = Vec::new();
+    for (n, line) in lines.iter().enumerate() {
+        let Some(at) = line.find("fn ") else { continue };
+        let before = line[..at].trim();
+        let item = before.is_empty()
+            || before.split_whitespace().all(|w| {
+                matches!(w, "pub" | "const" | "async" | "unsafe" | "extern" | "default") || w.starts_with("pub(")
+            });
+        let name = ident_at(&line[at + 3..]);
+        if !item || name.is_empty() {
+            continue;
+        }
+        // The body: from the first `{` (a `;` first: no body) to its match.
+        let mut depth = 0i64;
+        let mut end = None;
+        'scan: for (m, l) in lines.iter().enumerate().skip(n) {
+            let from = if m == n { at } else { 0 };
+            for ch in l[from..].chars() {
+                match ch {
+                    ';' if depth == 0 => break 'scan,
+                    '{' => depth += 1,
+                    '}' => {
+                        depth -= 1;
+                        if depth == 0 {
+                            end = Some(m);
+                            break 'scan;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+        if let Some(end) = end
+            && end + 1 - n > max
+        {
+            found.push(format!("{rel}:{}: {name} ({} lines)", n + 1, end + 1 - n));
+        }
+    }
+    found
+}
+
+/// No function in `src/` is over [`MAX_FUNCTION_LINES`] lines (test code,
+/// and the `tests.rs` / `*_tests.rs` files of unit tests, aside).
+#[test]
+fn no_function_is_over_80_lines() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    read_rs(&src, &src, &mut files);
+    files.retain(|(rel, _)| !(rel.ends_with("/tests.rs") || rel.ends_with("_tests.rs")));
+    assert!(files.len() > 100, "found only {} files under src", files.len());
+    let found: Vec<String> =
+        files.iter().flat_map(|(rel, text)| long_functions(rel, text, MAX_FUNCTION_LINES)).collect();
+    assert!(found.is_empty(), "functions over {MAX_FUNCTION_LINES} lines:\n{}", found.join("\n"));
+}
+
+#[test]
+fn a_long_function_is_found() {
+    let body = "    let x = 1;\n".repeat(79);
+    let text = format!(
+        "/// {{ not code\npub(crate) fn long(a: u32) -> u32 {{\n{body}}}\nfn short() {{ let s = \"}}\"; }}\n\
+         trait T {{\n    fn declared(&self);\n}}\n#[cfg(test)]\nfn in_tests() {{\n{body}{body}}}\n"
+    );
+    assert_eq!(long_functions("x.rs", &text, 80), ["x.rs:2: long (81 lines)"]);
+    assert!(long_functions("x.rs", &text, 81).is_empty());
 }

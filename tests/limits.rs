@@ -13,7 +13,7 @@ use radiance::api::limits::scene_data;
 use radiance::engine::dataset::MaskUse;
 use radiance::engine::models::config::ModelConfig;
 use radiance::engine::train::estimate;
-use radiance::storage::SceneInfo;
+use radiance::records::SceneInfo;
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 
@@ -250,7 +250,7 @@ async fn thirty_kills_during_training_lose_no_job_and_leave_no_temporary() {
     }
     let mut kills = 0;
     while kills < 30 {
-        let started = radiance::storage::now_ms();
+        let started = radiance::datadir::now_ms();
         let t0 = Instant::now();
         // Until this process has written a checkpoint (or nothing is left to run).
         loop {

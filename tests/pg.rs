@@ -1,4 +1,4 @@
-//! The PostgreSQL job queue (`radiance::store::pg`) against a real server:
+//! The PostgreSQL job queue (`radiance::backend::pg`) against a real server:
 //! a throwaway cluster per test (`common::pg`). Migrations, claims under
 //! concurrency, leases, crash counting, fencing, cancel and notifications,
 //! and jobs that read back as the embedded queue shows them.
@@ -9,17 +9,18 @@ use std::collections::HashSet;
 use std::time::{Duration, Instant, SystemTime};
 
 use common::pg::{Pg, bin_dir, with_database};
+use radiance::backend::NewJob;
+use radiance::backend::pg::migrate::{self, MIGRATIONS, Migration};
+use radiance::backend::pg::{
+    Admission, Database, Heartbeat, Lease, Listener, Notice, PgError, PgQueue, QueueConfig, RunEnd, RunState,
+};
+use radiance::datadir::{DataDir, new_id, now_ms, write_json};
 use radiance::engine::dataset::{Dataset, LoadOptions};
 use radiance::engine::models::config::ModelConfig;
 use radiance::jobs::{
     Job, JobBudget, JobProgress, JobSpec, PosesSpec, SchedError, Scheduler, SchedulerConfig, Status, TrainSpec,
 };
-use radiance::storage::{ModelInfo, SceneInfo, ScenePoses, SceneStatus, Storage, new_id, now_ms, write_json};
-use radiance::store::NewJob;
-use radiance::store::pg::migrate::{self, MIGRATIONS, Migration};
-use radiance::store::pg::{
-    Admission, Database, Heartbeat, Lease, Listener, Notice, PgError, PgQueue, QueueConfig, RunEnd, RunState,
-};
+use radiance::records::{ModelInfo, SceneInfo, ScenePoses, SceneStatus};
 use serde_json::Value;
 
 /// A migrated database on a cluster of its own, and the queue over it.
@@ -70,7 +71,7 @@ impl Db {
     }
 
     /// Reclaims until something is taken back (bounded: leases here are short).
-    async fn reclaim_one(&self) -> radiance::store::pg::Reclaimed {
+    async fn reclaim_one(&self) -> radiance::backend::pg::Reclaimed {
         let deadline = Instant::now() + Duration::from_secs(10);
         loop {
             let mut got = self.queue.reclaim().await.unwrap();
@@ -569,7 +570,7 @@ async fn a_video_is_published_under_its_lease_and_a_models_checkpoint_reads_back
     let old = t.queue.claim("w1", &idle(false), SHORT).await.unwrap().unwrap().lease;
     t.reclaim_one().await;
     let lease = t.queue.claim("w2", &idle(false), LONG).await.unwrap().unwrap().lease;
-    let video = radiance::storage::VideoInfo {
+    let video = radiance::records::VideoInfo {
         id: job.reserved_video_id(),
         model_id: model.id.clone(),
         job_id: job.id.clone(),
@@ -586,7 +587,7 @@ async fn a_video_is_published_under_its_lease_and_a_models_checkpoint_reads_back
     let e = t.queue.publish_video(&old, &video).await.expect_err("fenced");
     assert!(matches!(e, PgError::LeaseLost(_)), "{e}");
     assert_eq!(t.queue.video(&video.id).await.unwrap().map(|v| v.id), None);
-    let other = radiance::storage::VideoInfo { job_id: trainer.id.clone(), ..video.clone() };
+    let other = radiance::records::VideoInfo { job_id: trainer.id.clone(), ..video.clone() };
     let e = t.queue.publish_video(&lease, &other).await.expect_err("not this job's video");
     assert!(e.to_string().contains("does not make video"), "{e}");
     // The holder does: the record and the job's video_id together.
@@ -679,7 +680,7 @@ fn comparable(job: &Job) -> Value {
 async fn jobs_and_scenes_read_back_as_the_embedded_queue_shows_them() {
     let t = setup(100).await;
     let data = tempfile::tempdir().unwrap();
-    let storage = Storage::open(data.path()).unwrap();
+    let storage = DataDir::open(data.path()).unwrap();
     let scene = ready_scene();
     let job_id = new_id("job");
     let photos = posing_scene(&job_id);

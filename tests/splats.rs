@@ -61,10 +61,10 @@ fn baking_a_trained_scene_keeps_its_heldout_psnr() {
         assert_eq!(adam.m.len(), splats.params().len());
         let baked = heldout_psnr(&splats, &ds);
         println!("source {source:.2} dB, splats {baked:.2} dB, {} Gaussians", splats.layout().n);
-        // Measured on 2 threads: source 19.69 dB, splats 20.74 dB (6575
+        // Measured on 2 threads: source 19.69 dB, splats 25.25 dB (10116
         // Gaussians); the figures are deterministic on a thread count.
         assert!(source > 19.0, "the source trained: {source:.2} dB");
-        assert!(baked >= 20.0, "splats {baked:.2} dB");
+        assert!(baked >= 24.5, "splats {baked:.2} dB");
         assert!(baked >= source - 0.5, "splats {baked:.2} dB against the source's {source:.2} dB");
     });
 }
@@ -149,9 +149,9 @@ print(json.dumps({'names': [p.name for p in v.properties], 'rows': [[float(x) fo
         for c in 0..3 {
             assert_eq!(r[c], g.mean[c] * (1.0 / scene.scale) + scene.centre[c], "x y z");
             assert_eq!(r[3 + c], 0.0, "normals");
-            assert_eq!(r[6 + c], g.sh[c], "f_dc");
+            assert_eq!(r[6 + c], g.sh_dc[c], "f_dc");
             for j in 1..9 {
-                assert_eq!(r[9 + 8 * c + (j - 1)], g.sh[3 * j + c], "f_rest of channel {c}");
+                assert_eq!(r[9 + 8 * c + (j - 1)], g.sh_rest[3 * (j - 1) + c], "f_rest of channel {c}");
             }
             assert_eq!(r[34 + c], g.log_scale[c] - scene.scale.ln(), "scale");
         }

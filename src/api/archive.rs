@@ -319,7 +319,7 @@ fn extract_tar<R: Read>(reader: R, dest: &Path, budget: &mut Budget) -> Result<(
 pub fn dataset_root(dir: &Path) -> PathBuf {
     let mut d = dir.to_path_buf();
     for _ in 0..4 {
-        if crate::engine::dataset::detect_format(&d).is_ok() {
+        if crate::engine::front::detect_format(&d).is_ok() {
             break;
         }
         let Ok(rd) = fs::read_dir(&d) else { break };

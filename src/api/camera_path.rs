@@ -15,7 +15,7 @@
 use serde_json::Value;
 
 use super::{ApiError, ApiResult};
-use crate::engine::geometry::path::{CameraPath, Keyframe, MAX_KEYFRAMES};
+use crate::engine::front::{CameraPath, Keyframe, MAX_KEYFRAMES};
 
 /// The longest a nerfstudio path may last, seconds (a day).
 const MAX_SECONDS: f64 = 86_400.0;

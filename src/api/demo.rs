@@ -8,8 +8,9 @@ use axum::http::StatusCode;
 
 use super::scenes::{ingest, staging};
 use super::{ApiResult, AppState};
-use crate::engine::dataset::synthetic::BallScene;
-use crate::storage::{SceneInfo, tree_bytes};
+use crate::datadir::tree_bytes;
+use crate::engine::front::BallScene;
+use crate::records::SceneInfo;
 
 pub async fn create(State(s): State<AppState>) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
     let (id, dir) = staging(&*s.artifacts);

@@ -14,10 +14,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::Role;
+use crate::backend::ArtifactStore;
+use crate::backend::object::{ObjectArtifacts, ObjectConfig};
+use crate::backend::pg::{Database, PgError, PgJobStore, PgStoreConfig, QueueConfig};
 use crate::jobs::SchedulerConfig;
-use crate::store::ArtifactStore;
-use crate::store::object::{ObjectArtifacts, ObjectConfig};
-use crate::store::pg::{Database, PgError, PgJobStore, PgStoreConfig, QueueConfig};
 use crate::worker::{Worker, WorkerConfig};
 
 /// How often start-up tries an unreachable store again.

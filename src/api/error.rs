@@ -24,9 +24,7 @@ use axum::response::{IntoResponse, Response};
 use serde_json::{Value, json};
 
 use super::archive::{ArchiveError, Limit};
-use crate::engine::dataset::DatasetError;
-use crate::engine::io::checkpoint::CheckpointError;
-use crate::engine::view::appearance::AppearanceError;
+use crate::engine::front::{AppearanceError, CheckpointError, DatasetError};
 use crate::jobs::SchedError;
 use crate::media::video::VideoError;
 

@@ -11,8 +11,8 @@ use axum::response::IntoResponse;
 use serde_json::{Value, json};
 
 use super::{ApiError, ApiResult, AppState, Code};
+use crate::datadir::DiskUsage;
 use crate::jobs::{Counters, Status};
-use crate::storage::DiskUsage;
 
 /// Liveness, the version, and which optional uploads this server takes
 /// (photo-only and video uploads need COLMAP, videos also ffmpeg).

@@ -12,16 +12,14 @@ use futures_util::Stream;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, limits};
-use crate::engine::dataset::MaskUse;
-use crate::engine::models::auto::{self, AUTO, ModelChoice};
-use crate::engine::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, trainable_presets};
-use crate::engine::models::splats::SplatsConfig;
-use crate::engine::train::estimate;
+use crate::backend::NewJob;
+use crate::datadir::{ScenePart, new_id};
+use crate::engine::front::{
+    AUTO, ConfigError, DEFAULT_BATCH_RAYS, MaskUse, ModelChoice, ModelConfig, SplatsConfig, choose_model,
+    estimate_training, trainable_presets,
+};
 use crate::jobs::train::load_dataset;
 use crate::jobs::{BakeAfter, BakeSpec, Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, bake, check_trainable};
-use crate::storage::ScenePart;
-use crate::storage::new_id;
-use crate::store::NewJob;
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize)]
@@ -197,7 +195,7 @@ async fn auto_choice(s: &AppState, scene_id: &str, masks: MaskUse) -> ApiResult<
     let files = s.artifacts.scene_files(&scene, ScenePart::Data).await?;
     let loaded = tokio::task::spawn_blocking(move || load_dataset(&files.path, &scene, masks)).await?;
     let ds = loaded.map_err(|e| ApiError::internal(format!("loading scene '{scene_id}' to choose its model: {e}")))?;
-    Ok(auto::choose(&ds))
+    Ok(choose_model(&ds))
 }
 
 /// The job's `masks`: one of the names of [`MaskUse`], `auto` when absent.
@@ -250,7 +248,7 @@ pub async fn create(
         Some(scene) => {
             let threads = rayon::current_num_threads();
             let data = limits::scene_data(&scene, spec.masks);
-            let e = estimate::training(&spec.config, data, threads);
+            let e = estimate_training(&spec.config, data, threads);
             limits::check(&e, &s.config, s.artifacts.free_space().await?)?;
             if let Some(after) = &spec.bake {
                 // The bake it asks for must fit as well.

@@ -6,9 +6,8 @@
 use serde_json::json;
 
 use super::{ApiError, Code, ServiceConfig};
-use crate::engine::dataset::{DatasetFormat, MaskUse};
-use crate::engine::train::estimate::{DataSize, Estimate, mib};
-use crate::storage::SceneInfo;
+use crate::engine::front::{DataSize, DatasetFormat, Estimate, MaskUse, mib};
+use crate::records::SceneInfo;
 
 /// The dataset a training job will load with `masks`: every frame of every
 /// split at the scene's resolution (formats without a split hold their

@@ -8,7 +8,7 @@
 //! (`web`), the node's role (`role`), the shared stores and worker of
 //! distributed mode (`deploy`) and the tower-http layers around it all
 //! (`layers`). Handlers reach jobs, records and stored files only through
-//! the stores (`crate::store`: the job store and the artifact store; the
+//! the stores (`crate::backend`: the job store and the artifact store; the
 //! embedded pair runs the job scheduler beside the router). Handlers never
 //! block the runtime: extraction, dataset validation and rendering run under
 //! `spawn_blocking`, training on the scheduler's threads; the numeric work of
@@ -25,9 +25,9 @@ use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
 
-use crate::engine::models::Model;
+use crate::backend::{Artifact, ArtifactStore, JobStore, embedded};
+use crate::engine::front::Model;
 use crate::jobs::SchedulerConfig;
-use crate::store::{Artifact, ArtifactStore, JobStore, embedded};
 
 pub mod archive;
 pub mod camera_path;

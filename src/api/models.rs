@@ -14,16 +14,12 @@ use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
 
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel, site};
-use crate::engine::geometry::camera::Camera;
-use crate::engine::io::checkpoint::CheckpointError;
-use crate::engine::models::Model;
-use crate::engine::models::splats::export;
-use crate::engine::train::persist;
-use crate::engine::view::appearance::Appearance;
-use crate::engine::view::render_view_until;
+use crate::backend::Artifact;
+use crate::engine::front::{
+    Appearance, Camera, CheckpointError, Model, SplatsFormat, load_model, render_view_until, splats_of, write_splats,
+};
 use crate::media::png::{self, ViewImage};
-use crate::storage::{ModelInfo, VideoInfo, ViewDefaults};
-use crate::store::Artifact;
+use crate::records::{ModelInfo, VideoInfo, ViewDefaults};
 
 /// A model as the API shows it: its record and the disk use of its videos.
 #[derive(Debug, Serialize)]
@@ -278,16 +274,16 @@ pub async fn export(
     let name = q.format.as_deref().unwrap_or("splat");
     let format = match name {
         "html" => None,
-        f => Some(export::Format::parse(f).ok_or_else(|| {
+        f => Some(SplatsFormat::parse(f).ok_or_else(|| {
             let message = format!("unknown export format '{f}' (expected {EXPORT_FORMATS})");
             ApiError::bad_field(message, "format", f, EXPORT_FORMATS)
         })?),
     };
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
     let model = model_of(&s, &info).await?;
-    if export::splats_of(&*model).is_none() {
+    if splats_of(&*model).is_none() {
         return Err(ApiError::conflict(format!(
-            "model '{id}' is a '{}' model: only splats export as {name}; bake it first              (POST /v1/jobs {{\"kind\": \"bake\", \"model_id\": \"{id}\"}})",
+            "model '{id}' is a '{}' model: only splats export as {name}; bake it first (POST /v1/jobs {{\"kind\": \"bake\", \"model_id\": \"{id}\"}})",
             model.kind()
         )));
     }
@@ -296,13 +292,13 @@ pub async fn export(
     let folder = format!("{id}-site");
     let folder2 = folder.clone();
     let bytes = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<u8>> {
-        let splats = export::splats_of(&*model).expect("checked above");
+        let splats = splats_of(&*model).expect("checked above");
         let mut out = Vec::new();
         match format {
-            Some(f) => export::write(splats, f, &mut out)?,
+            Some(f) => write_splats(splats, f, &mut out)?,
             None => {
                 let mut splat = Vec::new();
-                export::write(splats, export::Format::Splat, &mut splat)?;
+                write_splats(splats, SplatsFormat::Splat, &mut splat)?;
                 let files = site::files(&title, &view, splat)?;
                 site::write_zip(&folder2, &files, std::io::Cursor::new(&mut out))?;
             }
@@ -338,7 +334,7 @@ pub(super) async fn model_of(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dy
         }
     }
     let ckpt = s.artifacts.checkpoint(info).await?;
-    let restored = tokio::task::spawn_blocking(move || persist::load(&ckpt.path).map(|r| r.model)).await?;
+    let restored = tokio::task::spawn_blocking(move || load_model(&ckpt.path)).await?;
     let model = restored.map_err(|e| match e {
         // Deleted since its record was read.
         CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
@@ -370,7 +366,7 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults { width: 8, height: 8, fov: 50.0, radius: 4.0, far: 6.0, ..crate::storage::sample_view() }
+        ViewDefaults { width: 8, height: 8, fov: 50.0, radius: 4.0, far: 6.0, ..crate::records::sample_view() }
     }
 
     /// The `details` of the error a render query gets.

@@ -20,13 +20,13 @@ use serde::Deserialize;
 
 use super::archive::{self, ArchiveKind, Limit, Limits};
 use super::{ApiError, ApiResult, AppState, Code};
-use crate::engine::dataset::{Dataset, LoadOptions};
-use crate::engine::dataset::{DatasetError, DatasetFormat, detect_format};
+use crate::backend::Artifact;
+use crate::backend::{ArtifactStore, NewJob};
+use crate::datadir::{ScenePart, new_id, now_ms};
+use crate::engine::front::{Dataset, DatasetError, DatasetFormat, LoadOptions, detect_format};
 use crate::jobs::{JobSpec, PosesSpec, poses as poses_job};
 use crate::poses::photos;
-use crate::storage::{SceneInfo, ScenePart, ScenePoses, SceneStatus, SplitCounts, ViewDefaults, new_id, now_ms};
-use crate::store::Artifact;
-use crate::store::{ArtifactStore, NewJob};
+use crate::records::{SceneInfo, ScenePoses, SceneStatus, SplitCounts, ViewDefaults};
 
 /// `POST /v1/scenes?name=`: what the upload is called (the archive's file
 /// name, or the folder's), shown to people; optional.

@@ -21,9 +21,8 @@ use std::path::Path;
 use serde_json::json;
 
 use super::web::ASSETS;
-use crate::engine::geometry::camera::Camera;
-use crate::engine::io::fsio::write_atomic;
-use crate::storage::ViewDefaults;
+use crate::engine::front::{Camera, write_atomic};
+use crate::records::ViewDefaults;
 
 /// The files of the site from the web app's: the viewer and what it imports.
 const VIEWER_FILES: [&str; 2] = ["splats.js", "api.js"];
@@ -154,7 +153,7 @@ mod tests {
 
     #[test]
     fn the_site_has_the_page_the_viewer_its_libraries_with_licences_and_the_splats() {
-        let view = crate::storage::sample_view();
+        let view = crate::records::sample_view();
         let files = files("a <model>", &view, vec![1, 2, 3]).unwrap();
         let names: Vec<&str> = files.iter().map(|f| f.0.as_str()).collect();
         for want in ["index.html", "splats.js", "api.js", "vendor/spark/LICENSE", "vendor/three/LICENSE", SPLAT_FILE] {

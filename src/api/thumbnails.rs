@@ -20,8 +20,9 @@ use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE};
 use axum::response::IntoResponse;
 
 use super::{ApiError, ApiResult, AppState, Code};
+use crate::datadir::ScenePart;
 use crate::poses::photos;
-use crate::storage::{SceneInfo, ScenePart, SceneStatus};
+use crate::records::{SceneInfo, SceneStatus};
 
 /// The long side of a thumbnail, in pixels.
 pub const SIZE: u32 = 192;

@@ -12,14 +12,12 @@ use axum::response::IntoResponse;
 use serde::Deserialize;
 
 use super::{ApiError, ApiResult, AppState, camera_path, limits, models};
-use crate::engine::geometry::path::CameraPath;
-use crate::engine::models::config::ModelConfig;
-use crate::engine::train::estimate;
+use crate::backend::Artifact;
+use crate::backend::NewJob;
+use crate::engine::front::{CameraPath, ModelConfig, estimate_video};
 use crate::jobs::{Job, JobSpec, VideoSpec};
 use crate::media::video::VideoFormat;
-use crate::storage::ViewDefaults;
-use crate::store::Artifact;
-use crate::store::NewJob;
+use crate::records::ViewDefaults;
 
 /// `POST /v1/models/{id}/videos` body; every field is optional.
 #[derive(Debug, Default, Deserialize)]
@@ -186,7 +184,7 @@ pub async fn create(
         let config = ModelConfig::preset(&info.model)
             .and_then(|preset| ModelConfig::from_kind_json(preset.kind(), info.config.clone()))
             .ok_or_else(|| ApiError::internal(format!("model '{}' has an unreadable configuration", info.id)))?;
-        let e = estimate::video(&config, spec.frames, spec.width, spec.height, rayon::current_num_threads());
+        let e = estimate_video(&config, spec.frames, spec.width, spec.height, rayon::current_num_threads());
         limits::check(&e, &s2.config, free_disk)?;
         Ok((spec, e.memory_bytes))
     })
@@ -216,7 +214,7 @@ mod tests {
     use super::*;
 
     fn view() -> ViewDefaults {
-        ViewDefaults { width: 200, height: 100, radius: 4.0, far: 6.0, ..crate::storage::sample_view() }
+        ViewDefaults { width: 200, height: 100, radius: 4.0, far: 6.0, ..crate::records::sample_view() }
     }
 
     #[test]
@@ -234,7 +232,7 @@ mod tests {
 
     #[test]
     fn forward_facing_scenes_get_a_spiral_unless_an_orbit_is_asked_for() {
-        use crate::engine::geometry::rig::Spiral;
+        use crate::engine::front::Spiral;
         let spiral = Spiral { centre: [0.0; 3], right: [1.0, 0.0, 0.0], up: [0.0, 1.0, 0.0], half_widths: [0.3, 0.2] };
         let ff = ViewDefaults { centre: [0.0, 0.0, -5.0], spiral: Some(spiral), ..view() };
         let s = to_spec(CreateVideo { frames: Some(24), ..Default::default() }, &ff, 1 << 20).unwrap();

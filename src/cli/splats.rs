@@ -158,7 +158,7 @@ fn export_site(a: &ExportArgs, splats: &crate::engine::models::splats::SplatsMod
     };
     let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
     let ds = Dataset::load(data, &opts).with_context(|| format!("loading {}", data.display()))?;
-    let view = crate::storage::ViewDefaults::from_dataset(&ds);
+    let view = crate::records::ViewDefaults::from_dataset(&ds);
     let mut splat = Vec::new();
     export::write(splats, Format::Splat, &mut splat)?;
     let stem = a.out.file_stem().and_then(|s| s.to_str()).unwrap_or("splats").to_string();

@@ -7,6 +7,7 @@
 pub mod batch;
 pub mod dataset;
 pub mod fields;
+pub mod front;
 pub mod geometry;
 pub mod io;
 pub mod metrics;

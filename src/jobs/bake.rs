@@ -17,22 +17,19 @@
 //! given when it was posted, so a training job run twice (a crash after
 //! its end) enqueues one bake.
 
-use std::sync::atomic::AtomicBool;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::host::JobHost;
 use super::train::{evaluate, load_dataset};
-use super::{BakeAfter, BakeSpec, Job, JobSpec, Outcome, SchedError};
-use crate::engine::dataset::MaskUse;
-use crate::engine::models::Model;
-use crate::engine::models::config::ModelConfig;
-use crate::engine::models::splats::SplatsConfig;
-use crate::engine::models::training::{Budget, TrainConfig};
-use crate::engine::train::bake::{BakeError, BakeSettings, bake};
-use crate::engine::train::estimate::{self, DataSize};
-use crate::engine::train::persist;
-use crate::engine::train::trainer::TrainState;
-use crate::storage::{ModelInfo, ScenePart, now_ms};
+use super::{BakeAfter, BakeSpec, Job, JobError, JobSpec, Outcome, SchedError};
+use crate::datadir::{ScenePart, now_ms};
+use crate::engine::front::{
+    BakeError, BakeProgress, BakeSettings, Budget, DataSize, Dataset, Estimate, MaskUse, Model, ModelConfig,
+    SplatsConfig, TrainConfig, TrainState, bake, estimate_bake, load_model, save_checkpoint,
+};
+use crate::records::ModelInfo;
 
 /// The preset name a bake's model record gets.
 pub const BAKED_MODEL: &str = "splats";
@@ -57,10 +54,10 @@ pub fn splats_config(spec: &BakeSpec) -> SplatsConfig {
     SplatsConfig { sh_degree: spec.sh_degree, max_gaussians: spec.max_gaussians }
 }
 
-/// Peak memory of a bake of `source` on `data` (see `estimate::bake`).
-pub fn memory_estimate(source: &ModelConfig, spec: &BakeSpec, data: DataSize) -> estimate::Estimate {
+/// Peak memory of a bake of `source` on `data` (see `engine::front::estimate_bake`).
+pub fn memory_estimate(source: &ModelConfig, spec: &BakeSpec, data: DataSize) -> Estimate {
     let splats = ModelConfig::Splats(splats_config(spec));
-    estimate::bake(source, &splats, data, rayon::current_num_threads())
+    estimate_bake(source, &splats, data, rayon::current_num_threads())
 }
 
 /// The bake a finished training job asked for: `spec` as the API checked
@@ -90,36 +87,20 @@ pub(crate) fn enqueue_after_training(
     config: &ModelConfig,
     data: DataSize,
     seed: u64,
-) -> Result<(), String> {
+) -> Result<(), JobError> {
     let spec = spec_after_training(after, &job.reserved_model_id(), scene_id, seed);
     let memory = memory_estimate(config, &spec, data).memory_bytes;
-    host.enqueue(after.job_id.clone(), JobSpec::Bake(spec), memory)
-        .map_err(|e| format!("the model is trained, but its bake could not be queued: {e}"))?;
+    host.enqueue(after.job_id.clone(), JobSpec::Bake(spec), memory).map_err(JobError::BakeNotQueued)?;
     tracing::info!(job = %job.id, bake = %after.job_id, "bake queued after training");
     Ok(())
 }
 
-pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &AtomicBool) -> Outcome {
-    match run_bake(host, job, spec, cancel) {
-        Ok(o) => o,
-        Err(e) => Outcome::Failed(e),
-    }
-}
-
-fn run_bake(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
+/// The body of a bake job (see [`super::run_body`]).
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &AtomicBool) -> Result<Outcome, JobError> {
     let started = Instant::now();
     let stage = |s: &str| host.set_progress(&job.id, &mut |j| j.progress.stage = Some(s.to_string()));
     stage("loading the model and its photos");
-    let id = &spec.source_model_id;
-    let source = host.model(id).map_err(|e| e.to_string())?.ok_or_else(|| format!("model '{id}' no longer exists"))?;
-    let scene = host
-        .scene(&source.scene_id)
-        .map_err(|e| e.to_string())?
-        .ok_or_else(|| format!("scene '{}' of model '{id}' no longer exists", source.scene_id))?;
-    let dir = host.scene_dir(&scene, ScenePart::Data).map_err(|e| e.to_string())?;
-    let ds = load_dataset(&dir.path, &scene, MaskUse::Auto)?;
-    let ckpt = host.model_checkpoint(&source).map_err(|e| format!("loading model '{id}': {e}"))?;
-    let model = persist::load(&ckpt.path).map_err(|e| format!("loading model '{id}': {e}"))?.model;
+    let (source, model, ds) = load_source(host, spec)?;
     let settings = BakeSettings {
         seconds: spec.seconds,
         steps: spec.steps,
@@ -130,77 +111,106 @@ fn run_bake(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &AtomicBool)
     stage("placing Gaussians");
     let mut last = Instant::now();
     let baked = bake(&*model, &ds, &settings, cancel, |p| {
-        if last.elapsed().as_secs_f64() < 0.1 {
-            return;
+        if last.elapsed().as_secs_f64() >= 0.1 {
+            last = Instant::now();
+            report(host, job, spec, p);
         }
-        last = Instant::now();
-        host.set_progress(&job.id, &mut |j| {
-            let g = &mut j.progress;
-            g.stage = Some("optimising".into());
-            g.step = p.step;
-            g.total_steps = spec.steps;
-            g.train_psnr = p.psnr;
-            g.elapsed = p.elapsed;
-            g.eta = (p.progress > 0.0).then(|| p.elapsed * (1.0 - p.progress) / p.progress);
-            g.gaussians = Some(p.gaussians as u64);
-        });
     });
     let (splats, adam, steps) = match baked {
         Ok(b) => b,
         Err(BakeError::Cancelled) => return Ok(Outcome::Stopped),
-        Err(e) => return Err(e.to_string()),
+        Err(e) => return Err(e.into()),
     };
-    let gaussians = splats.layout().n as u64;
     stage("measuring on held-out views");
     let metric = evaluate(&splats, &ds, host.config().eval_views, cancel);
-    if cancel.load(std::sync::atomic::Ordering::SeqCst) {
+    if cancel.load(Ordering::SeqCst) {
         return Ok(Outcome::Stopped);
     }
     let elapsed = started.elapsed().as_secs_f64();
     let model_id = job.reserved_model_id();
-    let out = host.job_checkpoint(job, &model_id).map_err(|e| e.to_string())?;
+    let out = host.job_checkpoint(job, &model_id)?;
     let train = TrainConfig {
         seed: spec.seed,
         budget: Budget { steps: spec.steps, seconds: spec.seconds },
         ..Default::default()
     };
     let state = TrainState { step: steps, elapsed, ..Default::default() };
-    persist::save(&out, &splats, &adam, &train, &state).map_err(|e| format!("saving the splats: {e}"))?;
-    let now = now_ms();
-    let info = ModelInfo {
-        id: model_id.clone(),
-        scene_id: source.scene_id.clone(),
-        job_id: job.id.clone(),
-        model: BAKED_MODEL.into(),
-        model_reason: Some(format!("baked from model '{id}' ({})", source.model)),
-        config: splats.config_json(),
-        steps,
-        training_seconds: elapsed,
-        test_psnr: metric.map(|m| m.0),
-        test_views: metric.map_or(0, |m| m.1),
-        size_bytes: std::fs::metadata(&out).map_or(0, |m| m.len()),
-        created_at: now,
-        updated_at: now,
-        complete: true,
-        training_state: true,
-        view: source.view.clone(),
-        poses: None,
-    };
-    host.publish_model(job, &info, &out).map_err(|e| e.to_string())?;
+    save_checkpoint(&out, &splats, &adam, &train, &state).map_err(JobError::SaveSplats)?;
+    let baked = Baked { model: &splats, steps, elapsed, metric };
+    host.publish_model(job, &baked.record(job, &source, &out), &out)?;
+    let gaussians = splats.layout().n as u64;
     host.set_progress(&job.id, &mut |j| {
         j.model_id = Some(model_id.clone());
         let g = &mut j.progress;
-        g.stage = None;
-        g.step = steps;
-        g.elapsed = elapsed;
-        g.eta = Some(0.0);
-        g.gaussians = Some(gaussians);
+        (g.stage, g.step, g.elapsed, g.eta, g.gaussians) = (None, steps, elapsed, Some(0.0), Some(gaussians));
         if let Some(m) = metric {
             (g.test_psnr, g.test_psnr_step) = (Some(m.0), Some(steps));
         }
     });
     tracing::info!(job = %job.id, model = %model_id, gaussians, steps, "baked");
     Ok(Outcome::Succeeded)
+}
+
+/// The bake's source: its model record, the model (from its checkpoint)
+/// and the training photos of its scene.
+fn load_source(host: &dyn JobHost, spec: &BakeSpec) -> Result<(ModelInfo, Box<dyn Model>, Dataset), JobError> {
+    let id = &spec.source_model_id;
+    let source = host.model(id)?.ok_or_else(|| JobError::ModelGone(id.clone()))?;
+    let scene = host.scene(&source.scene_id)?.ok_or_else(|| JobError::SceneGone(source.scene_id.clone()))?;
+    let dir = host.scene_dir(&scene, ScenePart::Data)?;
+    let ds = load_dataset(&dir.path, &scene, MaskUse::Auto)?;
+    let ckpt = host.model_checkpoint(&source).map_err(JobError::ModelFile)?;
+    let model = load_model(&ckpt.path)?;
+    Ok((source, model, ds))
+}
+
+/// The job's progress while optimising.
+fn report(host: &dyn JobHost, job: &Job, spec: &BakeSpec, p: &BakeProgress) {
+    host.set_progress(&job.id, &mut |j| {
+        let g = &mut j.progress;
+        g.stage = Some("optimising".into());
+        g.step = p.step;
+        g.total_steps = spec.steps;
+        g.train_psnr = p.psnr;
+        g.elapsed = p.elapsed;
+        g.eta = (p.progress > 0.0).then(|| p.elapsed * (1.0 - p.progress) / p.progress);
+        g.gaussians = Some(p.gaussians as u64);
+    });
+}
+
+/// What a bake made, for its model's record.
+struct Baked<'a> {
+    model: &'a dyn Model,
+    steps: u64,
+    elapsed: f64,
+    /// The held-out PSNR and the views it was measured on.
+    metric: Option<(f64, usize)>,
+}
+
+impl Baked<'_> {
+    /// The record of the baked model (checkpoint `out`) of `source`.
+    fn record(&self, job: &Job, source: &ModelInfo, out: &Path) -> ModelInfo {
+        let now = now_ms();
+        ModelInfo {
+            id: job.reserved_model_id(),
+            scene_id: source.scene_id.clone(),
+            job_id: job.id.clone(),
+            model: BAKED_MODEL.into(),
+            model_reason: Some(format!("baked from model '{}' ({})", source.id, source.model)),
+            config: self.model.config_json(),
+            steps: self.steps,
+            training_seconds: self.elapsed,
+            test_psnr: self.metric.map(|m| m.0),
+            test_views: self.metric.map_or(0, |m| m.1),
+            size_bytes: std::fs::metadata(out).map_or(0, |m| m.len()),
+            created_at: now,
+            updated_at: now,
+            complete: true,
+            training_state: true,
+            view: source.view.clone(),
+            poses: None,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -1,20 +1,22 @@
 //! What a job body (`train`, `video`, `poses`) needs from the place it
 //! runs in: settings, progress reporting, the records it reads, the files
 //! it works on, and where its results go. The bodies run on std threads,
-//! so the interface is synchronous; they reach storage only through it.
+//! so the interface is synchronous; they reach the records and files only
+//! through it.
 //!
 //! The embedded scheduler's [`Shared`] implements it over the data
-//! directory, with the code the bodies used to call directly. A worker of a
-//! distributed deployment (docs/design/scale-out.md) will implement it over
-//! the shared stores, fetching what a job reads into a local cache and
-//! fencing what it publishes with its lease.
+//! directory. A worker of a distributed deployment implements it over the
+//! shared backends (`worker::host::RemoteHost`: PostgreSQL and the object
+//! store), fetching what a job reads into a local cache and fencing what it
+//! publishes with its lease.
 
 use std::io;
 use std::path::{Path, PathBuf};
 
-use super::{Counters, Enqueuer, Job, JobSpec, SchedulerConfig, Shared};
-use crate::engine::io::fsio::write_atomic;
-use crate::storage::{Local, ModelInfo, SceneInfo, ScenePart, VideoInfo, write_json};
+use super::{Counters, Job, JobSpec, SchedulerConfig, Shared};
+use crate::datadir::{Local, ScenePart, write_json};
+use crate::engine::front::write_atomic;
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// A job body's view of the service (see the module comment).
 pub(crate) trait JobHost: Send + Sync {
@@ -140,7 +142,7 @@ impl JobHost for Shared {
         if self.lock().jobs.contains_key(&id) {
             return Ok(());
         }
-        Enqueuer { shared: self }.enqueue_as(id, spec, None, memory_estimate).map(|_| ()).map_err(|e| e.to_string())
+        self.enqueue_as(id, spec, None, memory_estimate).map(|_| ()).map_err(|e| e.to_string())
     }
 }
 
@@ -152,13 +154,14 @@ fn context(e: io::Error, doing: &str) -> io::Error {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::datadir::{DataDir, now_ms};
     use crate::jobs::{JobProgress, JobSpec, PosesSpec, Scheduler, Status, VideoSpec};
     use crate::media::video::VideoFormat;
-    use crate::storage::{SceneStatus, Storage, now_ms, sample_scene};
+    use crate::records::{SceneStatus, sample_scene};
 
     /// A scheduler that starts no jobs, over a fresh data directory.
     fn scheduler(dir: &Path) -> Scheduler {
-        let storage = Storage::open(dir).unwrap();
+        let storage = DataDir::open(dir).unwrap();
         Scheduler::open(storage, SchedulerConfig { run_jobs: false, ..Default::default() }).unwrap()
     }
 
@@ -202,7 +205,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let sched = scheduler(dir.path());
         let host: &dyn JobHost = &*sched.shared;
-        let (job, storage) = (video_job(), Storage { root: dir.path().to_path_buf() });
+        let (job, storage) = (video_job(), DataDir { root: dir.path().to_path_buf() });
         let info = VideoInfo {
             id: job.reserved_video_id(),
             model_id: "mdl_a".into(),
@@ -234,7 +237,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let sched = scheduler(dir.path());
         let host: &dyn JobHost = &*sched.shared;
-        let storage = Storage { root: dir.path().to_path_buf() };
+        let storage = DataDir { root: dir.path().to_path_buf() };
         let posing = SceneInfo { status: SceneStatus::Posing, ..sample_scene("scn_a") };
         let upload = storage.scene_dir("scn_a").join(ScenePart::Upload.dir_name());
         std::fs::create_dir_all(&upload).unwrap();

@@ -2,11 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::engine::dataset::MaskUse;
-use crate::engine::geometry::path::CameraPath;
-use crate::engine::models::config::ModelConfig;
-use crate::engine::models::training::Budget;
-use crate::engine::view::appearance::Appearance;
+use crate::engine::front::{Appearance, Budget, CameraPath, MaskUse, ModelConfig};
 use crate::media::video::VideoFormat;
 
 /// A job's state.

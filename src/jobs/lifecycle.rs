@@ -25,7 +25,7 @@ impl Scheduler {
             let job = job.clone();
             st.record(job).rev
         };
-        self.shared.store.remove(id, rev)?;
+        self.shared.journal.remove(id, rev)?;
         self.shared.lock().jobs.remove(id);
         Ok(())
     }

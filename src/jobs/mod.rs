@@ -1,12 +1,12 @@
-//! Jobs: their records and states (`job`), the persisted store (`store`),
+//! Jobs: their records and states (`job`), their journal in the job database (`journal`),
 //! and the scheduler that runs at most `max_concurrent` of them at once.
-//! The job bodies (`train`, `video`, `poses`) reach the service only
+//! The job bodies (`train`, `video`, `poses`, `bake`) reach the service only
 //! through [`host::JobHost`], which the scheduler's shared state implements.
 //!
 //! Only the enqueued, started, interrupted (written back as queued by a
 //! clean shutdown) and final states are written to disk (the job database,
 //! one committed transaction each, written outside the scheduler's lock:
-//! see `store`): progress lives in memory. On start-up a
+//! see `journal`): progress lives in memory. On start-up a
 //! job found `queued` or `running` is queued again in its original order; a
 //! training job whose checkpoint exists resumes from it. One found `running`
 //! was cut short by the process dying: see [`MAX_CRASHES`].
@@ -18,20 +18,25 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::storage::{SceneInfo, SceneStatus, Storage, new_id, now_ms};
+use crate::datadir::{DataDir, new_id, now_ms};
+use crate::poses::PoseError;
+use crate::records::{SceneInfo, SceneStatus};
+pub use error::JobError;
+use host::JobHost;
 pub use job::{
     BakeAfter, BakeSpec, Job, JobBudget, JobProgress, JobSpec, PosesSpec, Status, TrainSpec, VideoSpec,
     reserved_model_id,
 };
-use store::{JobStore, Record};
+use journal::{Journal, Record};
 
 pub mod bake;
+mod error;
 pub(crate) mod host;
 mod job;
+mod journal;
 mod lifecycle;
 pub mod poses;
 mod retention;
-mod store;
 pub mod train;
 pub mod video;
 
@@ -154,7 +159,7 @@ struct State {
     running: HashMap<String, Running>,
     threads: Vec<JoinHandle<()>>,
     next_seq: u64,
-    /// The revision of the last record handed out (see `store`).
+    /// The revision of the last record handed out (see `journal`).
     rev: u64,
     shutting_down: bool,
 }
@@ -175,9 +180,9 @@ impl State {
 pub(crate) struct Shared {
     state: Mutex<State>,
     wake: Condvar,
-    storage: Storage,
+    storage: DataDir,
     /// The job database, written outside `state`'s lock.
-    store: JobStore,
+    journal: Journal,
     config: SchedulerConfig,
     pub counters: Counters,
     /// Held while a model's files change outside its training job (deleted,
@@ -195,7 +200,7 @@ impl Shared {
     /// Writes a record where a failure cannot be answered to a client:
     /// logged, and the job goes on (as before a restart would show).
     fn persist_logged(&self, record: &Record, what: &str) {
-        if let Err(e) = self.store.put(record) {
+        if let Err(e) = self.journal.put(record) {
             tracing::error!(job = %record.job.id, error = %e, "cannot persist the job's {what}");
         }
     }
@@ -212,19 +217,19 @@ impl Scheduler {
     /// Loads the job records, removes checkpoints and videos that have no
     /// record and no job to write them (`retention`), and starts the
     /// scheduler thread.
-    pub fn open(storage: Storage, config: SchedulerConfig) -> io::Result<Self> {
+    pub fn open(storage: DataDir, config: SchedulerConfig) -> io::Result<Self> {
         let mut st = State::default();
         let (killed, removed) = poses::clean_up_after_crash(&storage);
         if killed + removed > 0 {
             tracing::info!(processes = killed, folders = removed, "cleaned up after a pose estimation cut short");
         }
-        let (store, mut jobs) = JobStore::open(&storage)?;
+        let (journal, mut jobs) = Journal::open(&storage)?;
         jobs.sort_by_key(|j| j.seq);
         for mut j in jobs {
             st.next_seq = st.next_seq.max(j.seq + 1);
             if j.status == Status::Running {
                 count_crash(&storage, &mut j);
-                store.put(&st.record(j.clone()))?;
+                journal.put(&st.record(j.clone()))?;
             }
             if !j.status.is_final() {
                 // It was waiting or interrupted: run it again, in order.
@@ -247,7 +252,7 @@ impl Scheduler {
             state: Mutex::new(st),
             wake: Condvar::new(),
             storage,
-            store,
+            journal,
             config,
             counters: Counters::default(),
             model_files: Mutex::new(()),
@@ -270,7 +275,7 @@ impl Scheduler {
     }
 
     /// [`Self::enqueue`] with the job's id chosen by the caller (from
-    /// `storage::new_id("job")`), for records that must name the job before
+    /// `datadir::new_id("job")`), for records that must name the job before
     /// it can start.
     pub fn enqueue_as(
         &self,
@@ -279,17 +284,13 @@ impl Scheduler {
         model_id: Option<String>,
         memory_estimate: u64,
     ) -> Result<Job, SchedError> {
-        Enqueuer { shared: &self.shared }.enqueue_as(id, spec, model_id, memory_estimate)
+        self.shared.enqueue_as(id, spec, model_id, memory_estimate)
     }
 }
 
-/// The enqueueing of [`Scheduler::enqueue_as`] over the shared state, which
-/// job bodies reach too (a training job enqueues its bake: `JobHost::enqueue`).
-pub(crate) struct Enqueuer<'a> {
-    pub(crate) shared: &'a Shared,
-}
-
-impl Enqueuer<'_> {
+/// The enqueueing of [`Scheduler::enqueue_as`], on the shared state: job
+/// bodies enqueue too (a training job its bake: `JobHost::enqueue`).
+impl Shared {
     pub(crate) fn enqueue_as(
         &self,
         id: String,
@@ -300,8 +301,8 @@ impl Enqueuer<'_> {
         let record = self.reserve(id, spec, model_id, memory_estimate)?;
         // Outside the lock; the job is `enqueuing` meanwhile, so deleting its
         // scene or model is refused as when it is queued.
-        let written = self.shared.store.put(&record);
-        let mut st = self.shared.lock();
+        let written = self.journal.put(&record);
+        let mut st = self.lock();
         let job = st.enqueuing.remove(&record.job.id).unwrap_or(record.job);
         written?;
         // In enqueue order, should a later enqueue have committed first.
@@ -310,7 +311,7 @@ impl Enqueuer<'_> {
         st.queue.insert(at, job.id.clone());
         st.jobs.insert(job.id.clone(), job.clone());
         drop(st);
-        self.shared.wake.notify_all();
+        self.wake.notify_all();
         Ok(job)
     }
 
@@ -323,8 +324,8 @@ impl Enqueuer<'_> {
         model_id: Option<String>,
         memory_estimate: u64,
     ) -> Result<Record, SchedError> {
-        let mut st = self.shared.lock();
-        let storage = &self.shared.storage;
+        let mut st = self.lock();
+        let storage = &self.storage;
         match &spec {
             JobSpec::Train(t) => {
                 let scene =
@@ -345,7 +346,7 @@ impl Enqueuer<'_> {
             JobSpec::Bake(b) => bake::check_source(&storage.load_model(&b.source_model_id)?, b)?,
         }
         let waiting = st.queue.len() + st.enqueuing.len();
-        if waiting >= self.shared.config.max_queued {
+        if waiting >= self.config.max_queued {
             return Err(SchedError::QueueFull(waiting));
         }
         if st.jobs.contains_key(&id) || st.enqueuing.contains_key(&id) {
@@ -423,7 +424,7 @@ impl Scheduler {
                 }
             }
         };
-        self.shared.store.put(&record)?;
+        self.shared.journal.put(&record)?;
         settle_scene(&self.shared, &record.job);
         Ok(record.job)
     }
@@ -444,7 +445,7 @@ impl Scheduler {
     /// probes): an error once it is closed at shutdown, or when redb cannot
     /// start a read.
     pub fn check_database(&self) -> io::Result<()> {
-        self.shared.store.check()
+        self.shared.journal.check()
     }
 
     /// Stops the scheduler: running jobs checkpoint and stay `running` on
@@ -466,7 +467,7 @@ impl Scheduler {
             let _ = t.join();
         }
         // Every job thread has written its last record.
-        self.shared.store.close();
+        self.shared.journal.close();
     }
 }
 
@@ -480,7 +481,7 @@ pub const MAX_CRASHES: u32 = 2;
 /// progress (a restart then resumes it); fails it at [`MAX_CRASHES`], so a
 /// job that takes the process down (out of memory) cannot do so at every
 /// start.
-fn count_crash(storage: &Storage, j: &mut Job) {
+fn count_crash(storage: &DataDir, j: &mut Job) {
     let saved_since_start = match &j.spec {
         JobSpec::Train(_) | JobSpec::Bake(_) => storage
             .load_model(&j.reserved_model_id())
@@ -603,6 +604,24 @@ pub(crate) enum Outcome {
     Stopped,
 }
 
+/// Runs `job`'s body over `host` until it ends or `cancel` is set: the one
+/// place a job's kind chooses its body, for the embedded scheduler's
+/// threads and a distributed worker's alike. A failure's message is what
+/// clients read as the job's `error`.
+pub(crate) fn run_body(host: &dyn JobHost, job: &Job, cancel: &AtomicBool) -> Outcome {
+    let ended = match &job.spec {
+        JobSpec::Train(spec) => train::run(host, job, spec, cancel),
+        JobSpec::Video(spec) => video::run(host, job, spec, cancel),
+        JobSpec::Poses(spec) => poses::run(host, job, spec, cancel),
+        JobSpec::Bake(spec) => bake::run(host, job, spec, cancel),
+    };
+    match ended {
+        Ok(outcome) => outcome,
+        Err(JobError::Poses(PoseError::Cancelled)) => Outcome::Stopped,
+        Err(e) => Outcome::Failed(e.to_string()),
+    }
+}
+
 /// A job's thread: persists its start (`started`, handed out by `tick`),
 /// runs it, records its end.
 fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
@@ -610,14 +629,9 @@ fn run_job(shared: &Arc<Shared>, started: Record, cancel: Arc<AtomicBool>) {
     let job = started.job;
     let id = job.id.clone();
     tracing::info!(job = %id, kind = job.spec.name(), "job started");
-    let host: &dyn host::JobHost = &**shared;
-    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &job.spec {
-        JobSpec::Train(spec) => train::run(host, &job, spec, &cancel),
-        JobSpec::Video(spec) => video::run(host, &job, spec, &cancel),
-        JobSpec::Poses(spec) => poses::run(host, &job, spec, &cancel),
-        JobSpec::Bake(spec) => bake::run(host, &job, spec, &cancel),
-    }))
-    .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
+    let host: &dyn JobHost = &**shared;
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_body(host, &job, &cancel)))
+        .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the server log)".into()));
     // Recorded and its scene settled before the lock is released: a client
     // that sees the job's end also sees its scene's (and, before the thread
     // ends, since shutdown joins it and then closes the database).

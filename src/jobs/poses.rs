@@ -15,10 +15,11 @@ use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
 use super::host::JobHost;
-use super::{Job, Outcome, PosesSpec, Status};
-use crate::engine::dataset::{Dataset, LoadOptions};
+use super::{Job, JobError, Outcome, PosesSpec, Status};
+use crate::datadir::{DataDir, ScenePart, read_json_opt, tree_bytes, write_json};
+use crate::engine::front::{Dataset, LoadOptions};
 use crate::poses::{self, PoseError, PoseOptions, PoseReport, Tools};
-use crate::storage::{SceneInfo, ScenePart, SceneStatus, Storage, read_json_opt, tree_bytes, write_json};
+use crate::records::{SceneInfo, SceneStatus};
 
 /// The folder of a posing scene holding the photos as uploaded.
 pub const UPLOAD_DIR: &str = ScenePart::Upload.dir_name();
@@ -47,12 +48,11 @@ pub struct PosesSetup {
     pub time_limit: Duration,
 }
 
-pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Outcome {
-    match pose(host, job, spec, cancel) {
-        Ok(()) => Outcome::Succeeded,
-        Err(PoseError::Cancelled) => Outcome::Stopped,
-        Err(e) => Outcome::Failed(e.to_string()),
-    }
+/// The body of a pose estimation job (see [`super::run_body`], which
+/// answers a [`PoseError::Cancelled`] as stopped).
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Result<Outcome, JobError> {
+    pose(host, job, spec, cancel)?;
+    Ok(Outcome::Succeeded)
 }
 
 fn pose(host: &dyn JobHost, job: &Job, spec: &PosesSpec, cancel: &AtomicBool) -> Result<(), PoseError> {
@@ -121,7 +121,7 @@ fn posed(
     let mut ready = SceneInfo::from_dataset(&scene.id, &ds, size, DATA_DIR.into());
     ready.created_at = scene.created_at;
     ready.warnings.extend(report.warnings.iter().cloned());
-    ready.poses = scene.poses.clone().map(|p| crate::storage::ScenePoses { report: Some(report), ..p });
+    ready.poses = scene.poses.clone().map(|p| crate::records::ScenePoses { report: Some(report), ..p });
     host.publish_posed_scene(job, &ready, dir).map_err(|e| fail(e.to_string()))?;
     tracing::info!(scene = %scene.id, registered = ready.images.train + ready.images.test, "scene posed");
     Ok(())
@@ -136,7 +136,7 @@ pub const RESUME_DIR: &str = ".data.posing";
 /// stage) after `since` (ms since the epoch): the crash rule's "progress in
 /// between" for a `poses` job, so two kills cost two stages, and only two
 /// crashes in the same stage fail the job.
-pub(crate) fn saved_progress_since(storage: &Storage, scene_id: &str, since: Option<u64>) -> bool {
+pub(crate) fn saved_progress_since(storage: &DataDir, scene_id: &str, since: Option<u64>) -> bool {
     let file = storage.scene_dir(scene_id).join(RESUME_DIR).join(poses::PROGRESS_FILE);
     let modified = std::fs::metadata(file).and_then(|m| m.modified()).ok();
     let ms = modified.and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_millis() as u64);
@@ -152,7 +152,7 @@ pub const PROCESS_DIR: &str = ".processes";
 /// the parent-death signal stops them already, this catches what escaped
 /// it), and removes the working folders of estimations cut short, whatever
 /// becomes of their jobs. Returns the groups killed and folders removed.
-pub(crate) fn clean_up_after_crash(storage: &Storage) -> (usize, usize) {
+pub(crate) fn clean_up_after_crash(storage: &DataDir) -> (usize, usize) {
     let (mut killed, mut removed) = (0, 0);
     for e in std::fs::read_dir(storage.scenes_dir()).into_iter().flatten().flatten() {
         let dir = e.path();
@@ -202,7 +202,7 @@ pub(crate) fn settle_reason(job: Option<&Job>) -> Option<String> {
 /// without success (`job` is `None` when the scene's job does not exist:
 /// the server stopped between storing the scene and queueing its job).
 /// Does nothing to scenes that are not posing by this job.
-pub(crate) fn settle(storage: &Storage, scene_id: &str, job: Option<&Job>) {
+pub(crate) fn settle(storage: &DataDir, scene_id: &str, job: Option<&Job>) {
     let Some(reason) = settle_reason(job) else { return };
     let Ok(Some(mut scene)) = storage.load_scene(scene_id) else { return };
     let job_id = scene.poses.as_ref().map(|p| p.job_id.as_str());

@@ -15,8 +15,9 @@ use std::time::{Duration, Instant};
 
 use super::lifecycle::writes_model;
 use super::{Job, JobSpec, Shared};
-use crate::engine::train::persist;
-use crate::storage::{ModelInfo, Storage, now_ms, remove_file_if_exists, valid_id, write_json};
+use crate::datadir::{DataDir, now_ms, remove_file_if_exists, valid_id, write_json};
+use crate::engine::front::strip_training_state;
+use crate::records::ModelInfo;
 
 /// Longest pause between two sweeps.
 pub(crate) const SWEEP_EVERY: Duration = Duration::from_secs(60);
@@ -32,7 +33,7 @@ pub(crate) fn sweep_due(shared: &Shared, last: Option<Instant>) -> bool {
 /// before its record, and resumes from it after a crash), and
 /// `videos/ID.bin` files without a record that no queued or running video
 /// job reserves. Returns the paths removed.
-pub(crate) fn remove_orphans(storage: &Storage, jobs: &BTreeMap<String, Job>) -> io::Result<Vec<String>> {
+pub(crate) fn remove_orphans(storage: &DataDir, jobs: &BTreeMap<String, Job>) -> io::Result<Vec<String>> {
     let active: Vec<&Job> = jobs.values().filter(|j| !j.status.is_final()).collect();
     let mut removed = Vec::new();
     for id in ids_with_extension(&storage.models_dir(), "ckpt")? {
@@ -128,7 +129,7 @@ fn strip_model(shared: &Shared, id: &str) -> Result<Option<u64>, String> {
     let path = storage.checkpoint(id);
     // A crash after this rewrite but before the record's leaves the record
     // claiming the state: the next sweep finds the file stripped and fixes it.
-    persist::strip_training_state(&path).map_err(|e| e.to_string())?;
+    strip_training_state(&path).map_err(|e| e.to_string())?;
     info.size_bytes = std::fs::metadata(&path).map_err(|e| e.to_string())?.len();
     info.training_state = false;
     info.updated_at = now_ms();
@@ -139,10 +140,10 @@ fn strip_model(shared: &Shared, id: &str) -> Result<Option<u64>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::models::config::ModelConfig;
+    use crate::engine::front::ModelConfig;
     use crate::jobs::{JobBudget, JobProgress, Status, TrainSpec, VideoSpec};
     use crate::media::video::VideoFormat;
-    use crate::storage::ViewDefaults;
+    use crate::records::ViewDefaults;
 
     fn job(id: &str, status: Status, train: bool, model_id: Option<&str>) -> Job {
         let spec = if train {
@@ -195,7 +196,7 @@ mod tests {
     }
 
     fn model(id: &str, updated_at: u64, training_state: bool) -> ModelInfo {
-        let view = ViewDefaults { width: 1, height: 1, ..crate::storage::sample_view() };
+        let view = ViewDefaults { width: 1, height: 1, ..crate::records::sample_view() };
         ModelInfo {
             id: id.into(),
             scene_id: "scn_a".into(),
@@ -227,7 +228,7 @@ mod tests {
     #[test]
     fn orphans_go_and_what_a_job_will_write_stays() {
         let dir = tempfile::tempdir().unwrap();
-        let s = Storage::open(dir.path()).unwrap();
+        let s = DataDir::open(dir.path()).unwrap();
         let touch = |p: std::path::PathBuf| std::fs::write(p, b"x").unwrap();
         // A running training job's checkpoint before its first record, and
         // one of a queued job that already checkpointed (model_id set).

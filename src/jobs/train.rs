@@ -3,56 +3,43 @@
 //! and keep the model record beside the checkpoint, then measure the result
 //! on held-out views.
 
+use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::host::JobHost;
-use super::{Job, Outcome, TrainSpec};
-use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
-use crate::engine::metrics::psnr;
-use crate::engine::models::Model;
-use crate::engine::models::auto::ModelChoice;
-use crate::engine::models::training::TrainConfig;
-use crate::engine::nn::pose_report::PoseReport;
-use crate::engine::train::session::{Event, HeldOut, Session, SessionConfig, Start, Stop};
-use crate::engine::train::trainer::{Progress, TrainState};
-use crate::engine::view::appearance::held_out_options;
-use crate::engine::view::render_heldout_view;
-use crate::storage::{ModelInfo, SceneInfo, ScenePart, now_ms};
+use super::{Job, JobError, Outcome, TrainSpec};
+use crate::datadir::{ScenePart, now_ms};
+use crate::engine::front::{
+    DataSize, Dataset, DatasetError, Event, HeldOut, LoadOptions, MaskUse, Model, ModelChoice, PoseReport, Progress,
+    Session, SessionConfig, Split, Start, Stop, TrainConfig, TrainState, held_out_options, psnr, render_heldout_view,
+};
+use crate::records::{ModelInfo, SceneInfo};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.
 const HELD_OUT_PIXELS: usize = 1024;
 
 /// Loads a stored scene's dataset (all splits) from the scene's folder, its
 /// masks read as `masks` asks.
-pub fn load_dataset(scene_dir: &Path, scene: &SceneInfo, masks: MaskUse) -> Result<Dataset, String> {
+pub fn load_dataset(scene_dir: &Path, scene: &SceneInfo, masks: MaskUse) -> Result<Dataset, DatasetError> {
     let root = scene_dir.join(&scene.root);
-    Dataset::load(&root, &LoadOptions { masks, ..Default::default() }).map_err(|e| e.to_string())
+    Dataset::load(&root, &LoadOptions { masks, ..Default::default() })
 }
 
-pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Outcome {
-    match train(host, job, spec, cancel) {
-        Ok(o) => o,
-        Err(e) => Outcome::Failed(e),
-    }
-}
-
-fn train(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
-    let scene = host
-        .scene(&spec.scene_id)
-        .map_err(|e| e.to_string())?
-        .ok_or_else(|| format!("scene '{}' no longer exists", spec.scene_id))?;
-    let dir = host.scene_dir(&scene, ScenePart::Data).map_err(|e| e.to_string())?;
+/// The body of a training job (see [`super::run_body`]).
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Result<Outcome, JobError> {
+    let scene = host.scene(&spec.scene_id)?.ok_or_else(|| JobError::SceneGone(spec.scene_id.clone()))?;
+    let dir = host.scene_dir(&scene, ScenePart::Data)?;
     let ds = load_dataset(&dir.path, &scene, spec.masks)?;
     if ds.train.is_empty() {
-        return Err("the scene has no training views".into());
+        return Err(JobError::NoTrainingViews);
     }
     if let Some(reason) = &spec.model_reason {
         tracing::info!(job = %job.id, model = %spec.model, reason = %reason, "model chosen automatically");
     }
     let model_id = job.reserved_model_id();
-    let ckpt = host.job_checkpoint(job, &model_id).map_err(|e| e.to_string())?;
+    let ckpt = host.job_checkpoint(job, &model_id)?;
     let mut session = open_session(host, job, spec, &ds, ckpt.clone())?;
     let record = ModelRecord {
         host,
@@ -75,9 +62,9 @@ fn train(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -
             record.write(&progress, false, None, None).map_err(|e| record_error = Some(e)).is_ok()
         }
     });
-    let stop = stop.map_err(|e| e.to_string())?;
+    let stop = stop?;
     if let Some(e) = record_error {
-        return Err(e);
+        return Err(JobError::Io(e));
     }
     finish(host, &session, &record, &ds, stop, cancel)
 }
@@ -90,12 +77,12 @@ fn open_session<'a>(
     spec: &TrainSpec,
     ds: &'a Dataset,
     ckpt: PathBuf,
-) -> Result<Session<'a>, String> {
+) -> Result<Session<'a>, JobError> {
     let resume = ckpt.is_file();
     let start = if resume {
         Start::Resume { from: ckpt.clone(), kind: None }
     } else {
-        let (model, adam) = spec.config.build_with_adam(ds.scene(), spec.seed, None).map_err(|e| e.to_string())?;
+        let (model, adam) = spec.config.build_with_adam(ds.scene(), spec.seed, None)?;
         Start::Fresh { model, adam }
     };
     let choice =
@@ -113,7 +100,7 @@ fn open_session<'a>(
             target_psnr: spec.budget.target_psnr,
         }),
     };
-    let session = Session::new(start, config, ds).map_err(|e| e.to_string())?;
+    let session = Session::new(start, config, ds)?;
     if resume {
         tracing::info!(job = %job.id, step = session.started().step, "resuming from checkpoint");
     }
@@ -129,11 +116,11 @@ fn finish(
     ds: &Dataset,
     stop: Stop,
     cancel: &AtomicBool,
-) -> Result<Outcome, String> {
+) -> Result<Outcome, JobError> {
     let job = record.job;
     match stop {
         // Repeated divergence fails the job; the last periodic checkpoint stays.
-        Stop::Diverged { .. } => return Err(stop.to_string()),
+        Stop::Diverged { .. } => return Err(JobError::Diverged(stop)),
         Stop::TargetReached { psnr } => {
             tracing::info!(job = %job.id, step = session.trainer().state.step, psnr, "target PSNR reached");
         }
@@ -168,7 +155,7 @@ fn finish(
     });
     record.write(&p, true, metric, poses)?;
     if let Some(after) = &record.spec.bake {
-        let data = crate::engine::train::estimate::DataSize::of(ds);
+        let data = DataSize::of(ds);
         let config = &record.spec.config;
         super::bake::enqueue_after_training(host, job, after, &record.scene.id, config, data, record.spec.seed)?;
     }
@@ -271,7 +258,7 @@ impl ModelRecord<'_> {
         complete: bool,
         metric: Option<(f64, usize)>,
         poses: Option<PoseReport>,
-    ) -> Result<(), String> {
+    ) -> io::Result<()> {
         let previous = self.host.model(self.model_id).ok().flatten();
         let info = ModelInfo {
             id: self.model_id.to_string(),
@@ -292,7 +279,7 @@ impl ModelRecord<'_> {
             view: self.scene.view.clone(),
             poses,
         };
-        self.host.publish_model(self.job, &info, &self.ckpt).map_err(|e| e.to_string())?;
+        self.host.publish_model(self.job, &info, &self.ckpt)?;
         self.host.set_progress(&self.job.id, &mut |j| j.model_id = Some(info.id.clone()));
         Ok(())
     }

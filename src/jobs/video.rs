@@ -10,16 +10,14 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::host::JobHost;
-use super::{Job, Outcome, VideoSpec};
-use crate::engine::geometry::camera::Camera;
-use crate::engine::io::fsio::write_atomic;
-use crate::engine::train::persist;
-use crate::engine::view::render_view_with;
+use super::{Job, JobError, Outcome, VideoSpec};
+use crate::datadir::{DataDir, now_ms};
+use crate::engine::front::{Camera, load_model, render_view_with, write_atomic};
 use crate::media::{png, video};
-use crate::storage::{Storage, VideoInfo, now_ms};
+use crate::records::VideoInfo;
 
 /// The folder of a video job's saved frames in the data directory.
-pub(crate) fn frames_dir(storage: &Storage, job_id: &str) -> PathBuf {
+pub(crate) fn frames_dir(storage: &DataDir, job_id: &str) -> PathBuf {
     storage.videos_dir().join(format!("{FRAMES_PREFIX}{job_id}"))
 }
 
@@ -28,7 +26,7 @@ pub(crate) const FRAMES_PREFIX: &str = ".frames-";
 
 /// Whether the video job `job_id` saved a frame after `since` (ms since
 /// the epoch): the crash rule's "progress in between" for video jobs.
-pub(crate) fn saved_frames_since(storage: &Storage, job_id: &str, since: Option<u64>) -> bool {
+pub(crate) fn saved_frames_since(storage: &DataDir, job_id: &str, since: Option<u64>) -> bool {
     let modified = std::fs::metadata(frames_dir(storage, job_id)).and_then(|m| m.modified()).ok();
     let ms = modified.and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_millis() as u64);
     matches!((ms, since), (Some(m), Some(s)) if m > s)
@@ -40,20 +38,18 @@ fn saved_frame(path: &Path, width: u32, height: u32) -> Option<image::RgbImage> 
     Some(img.to_rgb8()).filter(|i| i.dimensions() == (width, height))
 }
 
-fn save_frame(path: &Path, img: &image::RgbImage) -> Result<(), String> {
+fn save_frame(path: &Path, img: &image::RgbImage) -> Result<(), JobError> {
     let mut png = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png).map_err(|e| e.to_string())?;
-    write_atomic(path, &png).map_err(|e| format!("saving a frame: {e}"))
+    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png).map_err(JobError::PngEncode)?;
+    write_atomic(path, &png).map_err(JobError::SaveFrame)
 }
 
-pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Outcome {
-    let outcome = match render(host, job, spec, cancel) {
-        Ok(o) => o,
-        Err(e) => Outcome::Failed(e),
-    };
+/// The body of a video job (see [`super::run_body`]).
+pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Result<Outcome, JobError> {
+    let outcome = render(host, job, spec, cancel);
     // Kept only for a run to come (stopped by a shutdown; a canceled job's
     // go when its end is recorded).
-    if !matches!(outcome, Outcome::Stopped)
+    if !matches!(outcome, Ok(Outcome::Stopped))
         && let Some(dir) = host.video_frames_dir(job)
     {
         let _ = std::fs::remove_dir_all(dir);
@@ -61,20 +57,17 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &Atom
     outcome
 }
 
-fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Result<Outcome, String> {
+fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) -> Result<Outcome, JobError> {
     let model_id = job.model_id.clone().unwrap_or_default();
-    let info = host
-        .model(&model_id)
-        .map_err(|e| e.to_string())?
-        .ok_or_else(|| format!("model '{model_id}' no longer exists"))?;
-    let ckpt = host.model_checkpoint(&info).map_err(|e| format!("loading the model: {e}"))?;
-    let model = persist::load(&ckpt.path).map_err(|e| format!("loading the model: {e}"))?.model;
+    let info = host.model(&model_id)?.ok_or_else(|| JobError::ModelGone(model_id.clone()))?;
+    let ckpt = host.model_checkpoint(&info).map_err(JobError::ModelFile)?;
+    let model = load_model(&ckpt.path)?;
     let orbit = info.view.orbit(spec.elevation, spec.radius);
     let started = Instant::now();
     let mut frames = Vec::with_capacity(spec.frames as usize);
     let saved = host.video_frames_dir(job);
     if let Some(dir) = &saved {
-        std::fs::create_dir_all(dir).map_err(|e| format!("making the frames folder: {e}"))?;
+        std::fs::create_dir_all(dir).map_err(JobError::FramesFolder)?;
     }
     for k in 0..spec.frames {
         if cancel.load(Ordering::Relaxed) {
@@ -91,11 +84,11 @@ fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) 
                     }
                     None => orbit
                         .camera(360.0 * k as f32 / spec.frames as f32, spec.width, spec.height, spec.fov)
-                        .ok_or("this orbit gives no well-defined camera (elevation of +-90 degrees?)")?,
+                        .ok_or(JobError::NoOrbitCamera)?,
                 };
-                let options = spec.appearance.resolve(&*model, &camera).map_err(|e| e.to_string())?;
+                let options = spec.appearance.resolve(&*model, &camera)?;
                 let view = render_view_with(&*model, &camera, [1.0; 3], &options);
-                let img = png::rgb_image(&view).map_err(|e| e.to_string())?;
+                let img = png::rgb_image(&view).map_err(JobError::Frame)?;
                 if let Some(f) = &file {
                     save_frame(f, &img)?;
                 }
@@ -112,7 +105,7 @@ fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) 
             j.progress.eta = Some(elapsed / done as f64 * (spec.frames as u64 - done) as f64);
         });
     }
-    let bytes = video::encode(spec.format, &frames, spec.fps).map_err(|e| format!("encoding the video: {e}"))?;
+    let bytes = video::encode(spec.format, &frames, spec.fps)?;
     let id = job.reserved_video_id();
     let record = VideoInfo {
         id: id.clone(),
@@ -126,7 +119,7 @@ fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) 
         size_bytes: bytes.len() as u64,
         created_at: now_ms(),
     };
-    host.publish_video(job, &record, &bytes).map_err(|e| e.to_string())?;
+    host.publish_video(job, &record, &bytes)?;
     let elapsed = started.elapsed().as_secs_f64();
     host.set_progress(&job.id, &mut |j| {
         j.video_id = Some(id.clone());

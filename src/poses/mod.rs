@@ -280,7 +280,6 @@ fn estimate_in(
     let started = Instant::now();
     let deadline = started + opts.time_limit;
     let dataset = work.dir.join("dataset");
-    let images = dataset.join("images");
     // Fractions never go back, even when COLMAP's counts do (the mapper
     // starts over from another image pair when a start fails).
     let mut last = Progress { stage: Stage::Photos, stage_fraction: 0.0, fraction: 0.0 };
@@ -294,50 +293,23 @@ fn estimate_in(
 
     // What a run before a crash finished here (kept folders only).
     let progress_file = work.dir.join(PROGRESS_FILE);
-    let mut saved: Saved = match &opts.resume_in {
-        Some(_) => std::fs::read(&progress_file).ok().and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default(),
-        None => Saved::default(),
-    };
-    let save = |saved: &Saved| -> Result<(), PoseError> {
-        if opts.resume_in.is_none() {
-            return Ok(());
-        }
-        let json = serde_json::to_vec(saved).map_err(|e| PoseError::io(&progress_file, e.into()))?;
-        write_atomic(&progress_file, &json).map_err(|e| PoseError::io(&progress_file, e))
-    };
-    if dataset.join("sparse").exists() {
-        // Cut short while the model kept was moved into the dataset: map again.
-        let _ = std::fs::remove_dir_all(dataset.join("sparse"));
-        saved.done.retain(|s| *s != Stage::Mapping);
-    }
+    let mut saved = saved_progress(opts, &progress_file, &dataset);
+    let save = |saved: &Saved| save_progress(opts, &progress_file, saved);
 
     // 1. Photos, or a video's frames, into dataset/images.
-    let Gathered { source, names, size } = match saved.gathered.clone() {
-        Some(g) if images.is_dir() => {
-            report_stage(if g.source == "video" { Stage::Frames } else { Stage::Photos }, 1.0);
-            Gathered { source: if g.source == "video" { "video" } else { "photos" }, names: g.names, size: g.size }
-        }
-        _ => {
-            for d in [dataset.clone(), work.dir.join("candidates"), work.dir.join("colmap")] {
-                let _ = std::fs::remove_dir_all(d);
-            }
-            saved = Saved::default();
-            let g = gather(input, &work.dir, &images, tools, opts, deadline, cancel, &mut report_stage)?;
-            saved.gathered = Some(SavedGather { source: g.source.into(), names: g.names.clone(), size: g.size });
-            save(&saved)?;
-            g
-        }
-    };
+    let step = GatherStep { work, input, dataset: &dataset, tools, opts, deadline, cancel };
+    let gathered = step.gather_or_resume(&mut saved, &save, &mut report_stage)?;
     let mut seconds = StageSeconds { prepare: started.elapsed().as_secs_f64(), ..Default::default() };
 
     // 2. COLMAP.
-    let matcher = opts.matcher.unwrap_or(if source == "video" || names.len() > EXHAUSTIVE_UP_TO {
+    let matcher = opts.matcher.unwrap_or(if gathered.source == "video" || gathered.names.len() > EXHAUSTIVE_UP_TO {
         Matcher::Sequential
     } else {
         Matcher::Exhaustive
     });
-    let mut sorted_names = names.clone();
+    let mut sorted_names = gathered.names.clone();
     sorted_names.sort();
+    let images = dataset.join("images");
     let run = colmap::Run {
         colmap: &tools.colmap,
         work: &work.dir.join("colmap"),
@@ -351,10 +323,94 @@ fn estimate_in(
     std::fs::create_dir_all(run.work).map_err(|e| PoseError::io(run.work, e))?;
     run_steps(&run, started, &mut seconds, &mut report_stage, &mut saved, &save)?;
 
-    // 3. The model to keep.
+    // 3. and 4. The model to keep, and the dataset it makes.
+    let report = keep_model(&run, &dataset, &gathered, tools, started, seconds, &mut report_stage)?;
+    Work::finish(&dataset, out)?;
+    Ok(report)
+}
+
+/// What a run before a crash finished in the work folder (`opts.resume_in`
+/// only; nothing otherwise). A run cut short while the model it kept was
+/// moved into the dataset maps again.
+fn saved_progress(opts: &PoseOptions, progress_file: &Path, dataset: &Path) -> Saved {
+    let mut saved: Saved = match &opts.resume_in {
+        Some(_) => std::fs::read(progress_file).ok().and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default(),
+        None => Saved::default(),
+    };
+    if dataset.join("sparse").exists() {
+        let _ = std::fs::remove_dir_all(dataset.join("sparse"));
+        saved.done.retain(|s| *s != Stage::Mapping);
+    }
+    saved
+}
+
+/// Saves what is finished, for a run after a crash (`opts.resume_in` only).
+fn save_progress(opts: &PoseOptions, progress_file: &Path, saved: &Saved) -> Result<(), PoseError> {
+    if opts.resume_in.is_none() {
+        return Ok(());
+    }
+    let json = serde_json::to_vec(saved).map_err(|e| PoseError::io(progress_file, e.into()))?;
+    write_atomic(progress_file, &json).map_err(|e| PoseError::io(progress_file, e))
+}
+
+/// What gathering the photos (or a video's frames) into the dataset's
+/// `images` folder works with.
+struct GatherStep<'a> {
+    work: &'a Work,
+    input: &'a Path,
+    dataset: &'a Path,
+    tools: &'a Tools,
+    opts: &'a PoseOptions,
+    deadline: Instant,
+    cancel: &'a AtomicBool,
+}
+
+impl GatherStep<'_> {
+    /// The photos or frames in `dataset/images`: those a run before a crash
+    /// gathered, when `saved` says they are all there, else gathered anew
+    /// (what an earlier run left is removed first) and saved as done.
+    fn gather_or_resume(
+        &self,
+        saved: &mut Saved,
+        save: &dyn Fn(&Saved) -> Result<(), PoseError>,
+        report_stage: &mut dyn FnMut(Stage, f32),
+    ) -> Result<Gathered, PoseError> {
+        let images = self.dataset.join("images");
+        if let Some(g) = saved.gathered.clone()
+            && images.is_dir()
+        {
+            report_stage(if g.source == "video" { Stage::Frames } else { Stage::Photos }, 1.0);
+            let source = if g.source == "video" { "video" } else { "photos" };
+            return Ok(Gathered { source, names: g.names, size: g.size });
+        }
+        let work = &self.work.dir;
+        for d in [self.dataset.to_path_buf(), work.join("candidates"), work.join("colmap")] {
+            let _ = std::fs::remove_dir_all(d);
+        }
+        *saved = Saved::default();
+        let (input, tools, opts) = (self.input, self.tools, self.opts);
+        let g = gather(input, work, &images, tools, opts, self.deadline, self.cancel, report_stage)?;
+        saved.gathered = Some(SavedGather { source: g.source.into(), names: g.names.clone(), size: g.size });
+        save(saved)?;
+        Ok(g)
+    }
+}
+
+/// Steps 3 and 4: the model to keep (`outcome::judge`), moved into the
+/// dataset as `sparse/0`, COLMAP's other files removed; then the dataset
+/// checked to load as `train` will load it, and the report written beside it.
+fn keep_model(
+    run: &colmap::Run<'_>,
+    dataset: &Path,
+    gathered: &Gathered,
+    tools: &Tools,
+    started: Instant,
+    mut seconds: StageSeconds,
+    report_stage: &mut dyn FnMut(Stage, f32),
+) -> Result<PoseReport, PoseError> {
     report_stage(Stage::Checking, 0.0);
-    let candidates = read_models(&run)?;
-    let verdict = outcome::judge(&names, &candidates)?;
+    let candidates = read_models(run)?;
+    let verdict = outcome::judge(&gathered.names, &candidates)?;
     let best = &candidates[verdict.chosen];
     let mean_error = run.mean_reprojection_error(&best.dir);
     let sparse = dataset.join("sparse");
@@ -363,29 +419,27 @@ fn estimate_in(
     // The database and other models go now: the dataset is what remains.
     let _ = std::fs::remove_dir_all(run.work);
 
-    // 4. The dataset must load as `train` will load it.
-    Dataset::load(&dataset, &LoadOptions::default())
+    Dataset::load(dataset, &LoadOptions::default())
         .map_err(|e| PoseError::Reconstruction(format!("the posed photos do not make a usable dataset: {e}")))?;
     seconds.total = started.elapsed().as_secs_f64();
     let report = PoseReport {
-        source: source.to_string(),
-        images: names.len(),
+        source: gathered.source.to_string(),
+        images: gathered.names.len(),
         registered: best.images.len(),
         unregistered: verdict.unregistered,
         points: best.points,
         mean_reprojection_error_px: mean_error,
         models: candidates.len(),
-        matcher,
-        width: size.0,
-        height: size.1,
+        matcher: run.matcher,
+        width: gathered.size.0,
+        height: gathered.size.1,
         seconds,
         colmap_version: tools.colmap.version.clone(),
         warnings: verdict.warnings,
     };
-    let json = serde_json::to_vec_pretty(&report).map_err(|e| PoseError::io(&dataset, e.into()))?;
-    write_atomic(&dataset.join(REPORT_FILE), &json).map_err(|e| PoseError::io(&dataset, e))?;
+    let json = serde_json::to_vec_pretty(&report).map_err(|e| PoseError::io(dataset, e.into()))?;
+    write_atomic(&dataset.join(REPORT_FILE), &json).map_err(|e| PoseError::io(dataset, e))?;
     report_stage(Stage::Checking, 1.0);
-    Work::finish(&dataset, out)?;
     Ok(report)
 }
 

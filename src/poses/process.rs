@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 /// How many of the last output lines a failure quotes.
@@ -152,40 +153,12 @@ pub fn run(
     on_line: &mut dyn FnMut(&str),
 ) -> Result<(), RunError> {
     let program = Path::new(cmd.get_program()).file_name().unwrap_or_default().to_string_lossy().into_owned();
-    cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped()).process_group(0);
-    // SAFETY: getpid(2) before the fork, prctl(2) and getppid(2) in the
-    // child between fork and exec: async-signal-safe calls on no memory.
-    let parent = unsafe { libc::getpid() };
-    unsafe {
-        cmd.pre_exec(move || {
-            // Killed when the thread that started it dies (with the server).
-            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL as libc::c_ulong, 0, 0, 0) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            // The parent died before the line above: exit at once.
-            if libc::getppid() != parent {
-                libc::_exit(137);
-            }
-            Ok(())
-        });
-    }
+    in_own_group(&mut cmd);
     let started = Instant::now();
     let child = cmd.spawn().map_err(|source| RunError::Spawn { program: program.clone(), source })?;
     let listed = list(child.id());
     let mut running = Running { child, listed, reaped: false };
-    let (tx, rx) = mpsc::channel::<String>();
-    let readers: Vec<_> = [
-        running.child.stdout.take().map(|s| Box::new(s) as Box<dyn Read + Send>),
-        running.child.stderr.take().map(|s| Box::new(s) as Box<dyn Read + Send>),
-    ]
-    .into_iter()
-    .flatten()
-    .map(|stream| {
-        let tx = tx.clone();
-        std::thread::spawn(move || read_lines(stream, &tx))
-    })
-    .collect();
-    drop(tx);
+    let (readers, rx) = read_output(&mut running.child);
     let mut tail = VecDeque::with_capacity(TAIL_LINES);
     let mut take = |line: String, on_line: &mut dyn FnMut(&str)| {
         on_line(&line);
@@ -235,12 +208,56 @@ pub fn run(
     if status.success() {
         return Ok(());
     }
-    let failure = match (status.code(), status.signal()) {
+    Err(RunError::Failed { program, failure: failure(status), tail: tail.into() })
+}
+
+/// Sets `cmd` up to run in a process group of its own, with no input and
+/// its output piped, killed when the thread that starts it dies.
+fn in_own_group(cmd: &mut Command) {
+    cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped()).process_group(0);
+    // SAFETY: getpid(2) before the fork, prctl(2) and getppid(2) in the
+    // child between fork and exec: async-signal-safe calls on no memory.
+    let parent = unsafe { libc::getpid() };
+    unsafe {
+        cmd.pre_exec(move || {
+            // Killed when the thread that started it dies (with the server).
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL as libc::c_ulong, 0, 0, 0) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent died before the line above: exit at once.
+            if libc::getppid() != parent {
+                libc::_exit(137);
+            }
+            Ok(())
+        });
+    }
+}
+
+/// A thread for each of the child's output streams, sending its lines to
+/// the receiver returned, which disconnects once both streams are closed.
+fn read_output(child: &mut Child) -> (Vec<JoinHandle<()>>, mpsc::Receiver<String>) {
+    let (tx, rx) = mpsc::channel::<String>();
+    let readers: Vec<_> = [
+        child.stdout.take().map(|s| Box::new(s) as Box<dyn Read + Send>),
+        child.stderr.take().map(|s| Box::new(s) as Box<dyn Read + Send>),
+    ]
+    .into_iter()
+    .flatten()
+    .map(|stream| {
+        let tx = tx.clone();
+        std::thread::spawn(move || read_lines(stream, &tx))
+    })
+    .collect();
+    (readers, rx)
+}
+
+/// How a run that did not succeed ended, as a clause ("exited with status 1").
+fn failure(status: ExitStatus) -> String {
+    match (status.code(), status.signal()) {
         (Some(code), _) => format!("exited with status {code}"),
         (None, Some(sig)) => format!("was killed by signal {sig} ({})", signal_name(sig)),
         _ => "failed".to_string(),
-    };
-    Err(RunError::Failed { program, failure, tail: tail.into() })
+    }
 }
 
 /// Runs `cmd` to the end within `timeout` and returns its first

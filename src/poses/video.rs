@@ -204,19 +204,7 @@ pub fn probe(tools: &Ffmpeg, video: &Path, shown: &str, deadline: Instant) -> Re
     {
         return Err(bad(format!("is cut short: its index lists {listed} frames, the file holds {frames}")));
     }
-    let pixels = width as u64 * height as u64;
-    if pixels == 0 || pixels > super::photos::MAX_PIXELS {
-        return Err(bad(format!(
-            "has frames of {width}x{height} pixels; a video's frames may have at most {} megapixels",
-            super::photos::MAX_PIXELS / 1_000_000
-        )));
-    }
-    if width.min(height) < super::photos::MIN_SIDE {
-        return Err(bad(format!(
-            "has frames of {width}x{height} pixels; pose estimation needs frames at least {} pixels on each side",
-            super::photos::MIN_SIDE
-        )));
-    }
+    check_frame_size(width, height).map_err(bad)?;
     let duration = num("duration").filter(|d| *d > 0.0).unwrap_or(0.0);
     if frames < super::photos::MIN_PHOTOS as u64 {
         return Err(too_few(shown, frames, frames));
@@ -249,6 +237,24 @@ pub fn probe(tools: &Ffmpeg, video: &Path, shown: &str, deadline: Instant) -> Re
         return Err(too_few(shown, frames, d));
     }
     Ok(Probe { width, height, duration, frames, distinct })
+}
+
+/// Refuses frames too large to decode safely or too small to pose.
+fn check_frame_size(width: u32, height: u32) -> Result<(), String> {
+    let pixels = width as u64 * height as u64;
+    if pixels == 0 || pixels > super::photos::MAX_PIXELS {
+        return Err(format!(
+            "has frames of {width}x{height} pixels; a video's frames may have at most {} megapixels",
+            super::photos::MAX_PIXELS / 1_000_000
+        ));
+    }
+    if width.min(height) < super::photos::MIN_SIDE {
+        return Err(format!(
+            "has frames of {width}x{height} pixels; pose estimation needs frames at least {} pixels on each side",
+            super::photos::MIN_SIDE
+        ));
+    }
+    Ok(())
 }
 
 /// A video with fewer distinct frames than pose estimation needs.

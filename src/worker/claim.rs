@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::watch;
 
 use super::Ctx;
-use crate::store::pg::{Database, Listener, Notice};
+use crate::backend::pg::{Database, Listener, Notice};
 
 /// The longest a worker sleeps without looking at the queue.
 pub const POLL: Duration = Duration::from_secs(1);

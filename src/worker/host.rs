@@ -21,11 +21,12 @@ use std::sync::Arc;
 
 use super::Ctx;
 use super::keeper::Run;
+use crate::backend::pg::PgError;
+use crate::backend::{ArtifactStore, NewJob};
+use crate::datadir::{Local, ScenePart};
 use crate::jobs::host::JobHost;
 use crate::jobs::{Counters, Job, JobSpec, SchedulerConfig};
-use crate::storage::{Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
-use crate::store::pg::PgError;
-use crate::store::{ArtifactStore, NewJob};
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// The host of one running job (see the module comment).
 pub struct RemoteHost {

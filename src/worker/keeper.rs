@@ -18,8 +18,8 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 
+use crate::backend::pg::{Heartbeat, Lease, PgQueue, RunState};
 use crate::jobs::Job;
-use crate::store::pg::{Heartbeat, Lease, PgQueue, RunState};
 
 /// The part of the lease after which a worker whose heartbeats all failed
 /// stops its job: the rest is its margin against the database's clock.

@@ -25,9 +25,9 @@ use std::time::Duration;
 
 use tokio::sync::{Notify, watch};
 
+use crate::backend::object::ObjectArtifacts;
+use crate::backend::pg::{Admission, Claimed, Database, PgQueue};
 use crate::jobs::SchedulerConfig;
-use crate::store::object::ObjectArtifacts;
-use crate::store::pg::{Admission, Claimed, Database, PgQueue};
 
 mod claim;
 mod host;

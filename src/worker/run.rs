@@ -1,5 +1,5 @@
 //! One claimed job on a thread of its own: its heartbeat started, its body
-//! run (`jobs::train`, `jobs::video`) over a [`RemoteHost`], its end
+//! run (`jobs::run_body`) over a [`RemoteHost`], its end
 //! recorded under the lease, its scratch folder removed.
 //!
 //! The end is recorded only while the lease holds: a worker that lost its
@@ -15,8 +15,8 @@ use std::time::Duration;
 use super::Ctx;
 use super::host::RemoteHost;
 use super::keeper::{self, Run};
-use crate::jobs::{JobSpec, Outcome, bake, poses, train, video};
-use crate::store::pg::{Claimed, RunEnd};
+use crate::backend::pg::{Claimed, RunEnd};
+use crate::jobs::{Outcome, run_body};
 
 /// Attempts at recording a run's end while the database does not answer.
 const FINISH_ATTEMPTS: u32 = 5;
@@ -31,13 +31,8 @@ pub fn run_claimed(ctx: Arc<Ctx>, claimed: Claimed, run: Arc<Run>) {
     let (stop_heartbeat, stopped) = tokio::sync::oneshot::channel();
     let heartbeat = ctx.rt.spawn(keeper::keep(ctx.queue.clone(), run.clone(), stopped));
     let host = RemoteHost { ctx: ctx.clone(), run: run.clone() };
-    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &job.spec {
-        JobSpec::Train(spec) => train::run(&host, &job, spec, &run.cancel),
-        JobSpec::Video(spec) => video::run(&host, &job, spec, &run.cancel),
-        JobSpec::Poses(spec) => poses::run(&host, &job, spec, &run.cancel),
-        JobSpec::Bake(spec) => bake::run(&host, &job, spec, &run.cancel),
-    }))
-    .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the worker's log)".into()));
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_body(&host, &job, &run.cancel)))
+        .unwrap_or_else(|_| Outcome::Failed("the job panicked (see the worker's log)".into()));
     let _ = stop_heartbeat.send(());
     let _ = ctx.rt.block_on(heartbeat);
     record_end(&ctx, &run, outcome);
@@ -69,7 +64,7 @@ fn record_end(ctx: &Ctx, run: &Run, outcome: Outcome) {
                 tracing::info!(status = job.status.name(), step = job.progress.step, error, "job ended");
                 return;
             }
-            Err(crate::store::pg::PgError::LeaseLost(_)) => {
+            Err(crate::backend::pg::PgError::LeaseLost(_)) => {
                 run.fence("recording the end was refused: the lease is lost");
                 ctx.stats.leases_lost.fetch_add(1, Ordering::Relaxed);
                 return;

@@ -25,7 +25,7 @@ use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
 use object_store::{ObjectStore, ObjectStoreExt};
-use radiance::store::object::{S3Keys, S3Options, open_url};
+use radiance::backend::object::{S3Keys, S3Options, open_url};
 
 /// The s3s-fs release `scripts/setup` installs.
 pub const S3S_FS_VERSION: &str = "0.14.1";

@@ -409,7 +409,7 @@ async fn auto_chooses_the_model_by_the_scene_and_says_why() {
     let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
     assert_eq!((&m["model"], &m["model_reason"]), (&json!("instant"), &json!(object)), "{m}");
     svc.stop().await;
-    let ckpt = radiance::storage::Storage::open(data.path()).unwrap().checkpoint(&model);
+    let ckpt = radiance::datadir::DataDir::open(data.path()).unwrap().checkpoint(&model);
     let restored = radiance::engine::train::persist::load(&ckpt).unwrap();
     let choice = restored.train.model_choice.expect("the checkpoint keeps the choice");
     assert_eq!((choice.preset.as_str(), choice.reason), ("instant", object));

@@ -26,7 +26,7 @@ async fn restart_runs_queued_jobs_and_resumes_interrupted_ones() {
     let seen =
         svc.wait_job(&long, 60.0, |v| v["model_id"].is_string() && v["progress"]["step"].as_u64() >= Some(10)).await;
     svc.stop().await;
-    let store = radiance::storage::Storage::open(data.path()).unwrap();
+    let store = radiance::datadir::DataDir::open(data.path()).unwrap();
     let on_disk: Value = store.get_job(&long).unwrap().expect("the job is recorded");
     drop(store);
     // Not final: a clean shutdown writes it back as queued (a job found

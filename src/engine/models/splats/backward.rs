@@ -55,8 +55,11 @@ pub fn backward(
             grads[6 * n + 4 * i + c] += g.rotation[c];
         }
         grads[10 * n + i] += g.opacity_logit;
-        let sh = &mut grads[11 * n + k3 * i..11 * n + k3 * (i + 1)];
-        for (s, v) in sh.iter_mut().zip(&g.sh[..k3]) {
+        for c in 0..3 {
+            grads[11 * n + 3 * i + c] += g.sh[c];
+        }
+        let rest = &mut grads[14 * n + (k3 - 3) * i..14 * n + (k3 - 3) * (i + 1)];
+        for (s, v) in rest.iter_mut().zip(&g.sh[3..k3]) {
             *s += v;
         }
     }
@@ -227,7 +230,7 @@ fn gaussian_backward(
 ) -> GaussianGrad {
     let g = layout.get(params, i);
     let mut out = GaussianGrad::default();
-    let d_dir = colour_backward(layout.k, g.sh, p, [s[6], s[7], s[8]], g.mean, cam.origin, &mut out.sh, basis);
+    let d_dir = colour_backward(layout.k, g.sh_rest, p, [s[6], s[7], s[8]], g.mean, cam.origin, &mut out.sh, basis);
     out.opacity_logit = s[5] * p.opacity * (1.0 - p.opacity);
     let d_cov = conic_backward(p.cov, [s[2], s[3], s[4]]);
     let (sigma, m) = covariance(g.log_scale, g.rotation);
@@ -252,12 +255,14 @@ fn gaussian_backward(
 }
 
 /// The colour's backward: writes the SH coefficients' gradient into
-/// `d_sh` and returns the position's (through the viewing direction).
+/// `d_sh` (`[k x 3]`, the DC terms first) and returns the position's
+/// (through the viewing direction); `sh_rest` are the coefficients beyond
+/// DC.
 /// Clamped channels pass nothing.
 #[allow(clippy::too_many_arguments)]
 fn colour_backward(
     k: usize,
-    sh_coeffs: &[f32],
+    sh_rest: &[f32],
     p: &Projected,
     mut d_rgb: [f32; 3],
     mean: [f32; 3],
@@ -282,7 +287,7 @@ fn colour_backward(
     for j in 1..k {
         for c in 0..3 {
             d_sh[3 * j + c] = basis[j] * d_rgb[c];
-            d_basis[j] += sh_coeffs[3 * j + c] * d_rgb[c];
+            d_basis[j] += sh_rest[3 * (j - 1) + c] * d_rgb[c];
         }
     }
     sh::encode_backward_one(dir, &d_basis)

@@ -54,10 +54,9 @@ impl ModelSpec for SplatsConfig {
         false
     }
 
-    /// The 3DGS paper's rates are per block (`train::bake` scales them);
-    /// this is the base the blocks' scales multiply.
+    /// The base rate `train::bake` scales block by block (its `BASE_LR`).
     fn adam(&self) -> AdamConfig {
-        AdamConfig { lr: 1e-3, lr_end: 1e-4, beta1: 0.9, beta2: 0.999, eps: 1e-15 }
+        AdamConfig { lr: 4e-3, lr_end: 4e-3, beta1: 0.9, beta2: 0.999, eps: 1e-15 }
     }
 
     fn random_background(&self) -> bool {

@@ -90,13 +90,13 @@ pub fn write_ply(model: &SplatsModel, mut out: impl Write) -> io::Result<()> {
     let mut row: Vec<f32> = Vec::with_capacity(14 + 3 * l.k);
     for i in 0..l.n {
         let w = world(model, i);
-        let sh = l.get(model.params(), i).sh;
+        let g = l.get(model.params(), i);
         row.clear();
         row.extend_from_slice(&w.mean);
         row.extend_from_slice(&[0.0; 3]);
-        row.extend_from_slice(&sh[..3]);
+        row.extend_from_slice(&g.sh_dc);
         for c in 0..3 {
-            row.extend((1..l.k).map(|j| sh[3 * j + c]));
+            row.extend((1..l.k).map(|j| g.sh_rest[3 * (j - 1) + c]));
         }
         row.push(w.opacity_logit);
         row.extend_from_slice(&w.log_scale);
@@ -125,12 +125,12 @@ pub fn write_splat(model: &SplatsModel, mut out: impl Write) -> io::Result<()> {
     let mut buf = Vec::with_capacity(32 * 4096);
     for i in order {
         let w = &all[i];
-        let sh = l.get(model.params(), i).sh;
+        let dc = l.get(model.params(), i).sh_dc;
         for v in w.mean.iter().chain(&w.log_scale.map(f32::exp)) {
             buf.extend_from_slice(&v.to_le_bytes());
         }
         for c in 0..3 {
-            buf.push(byte(0.5 + SH_C0 * sh[c]));
+            buf.push(byte(0.5 + SH_C0 * dc[c]));
         }
         buf.push(byte(sigmoid(w.opacity_logit)));
         for q in unit_quat(w.rotation) {
@@ -192,10 +192,10 @@ mod tests {
             for c in 0..3 {
                 assert!((r[c] - (g.mean[c] / s.scale + s.centre[c])).abs() < 1e-6);
                 assert!((r[19 + c] - (g.log_scale[c] - s.scale.ln())).abs() < 1e-6);
-                assert_eq!(r[6 + c], g.sh[c]);
+                assert_eq!(r[6 + c], g.sh_dc[c]);
                 // f_rest: channel c's three coefficients of degree 1.
                 for j in 1..4 {
-                    assert_eq!(r[9 + 3 * c + (j - 1)], g.sh[3 * j + c]);
+                    assert_eq!(r[9 + 3 * c + (j - 1)], g.sh_rest[3 * (j - 1) + c]);
                 }
             }
             assert_eq!(r[18], g.opacity_logit);

@@ -2,12 +2,13 @@
 //! flat parameter vector, and the values a renderer derives from them
 //! (scales, rotation, opacity, colour).
 //!
-//! The parameters are five blocks, one value kind each, Gaussian by
+//! The parameters are six blocks, one value kind each, Gaussian by
 //! Gaussian (so a block is a slice an optimiser or a densifier can treat
-//! alike): positions `[n x 3]` (model units), log scales `[n x 3]`,
-//! rotations `[n x 4]` (quaternions `w x y z`, not necessarily of unit
-//! length: they are normalised where used), opacity logits `[n]`, and
-//! spherical-harmonic colour coefficients `[n x k x 3]` (`k = (degree+1)^2`
+//! alike, at its own learning rate): positions `[n x 3]` (model units), log
+//! scales `[n x 3]`, rotations `[n x 4]` (quaternions `w x y z`, not
+//! necessarily of unit length: they are normalised where used), opacity
+//! logits `[n]`, and the spherical-harmonic colour coefficients: the DC
+//! terms `[n x 3]` and the rest `[n x (k-1) x 3]` (`k = (degree+1)^2`
 //! coefficients, each an RGB triple; the colour is `0.5 + sum_k c_k Y_k(d)`
 //! with `d` the unit direction from the camera to the Gaussian, as in the
 //! 3DGS paper's code).
@@ -68,14 +69,17 @@ impl Layout {
     pub fn opacities(&self) -> std::ops::Range<usize> {
         10 * self.n..11 * self.n
     }
-    pub fn sh(&self) -> std::ops::Range<usize> {
-        11 * self.n..self.len()
+    pub fn sh_dc(&self) -> std::ops::Range<usize> {
+        11 * self.n..14 * self.n
+    }
+    pub fn sh_rest(&self) -> std::ops::Range<usize> {
+        14 * self.n..self.len()
     }
 
     /// Gaussian `i`'s parameters in `params`.
     pub fn get<'a>(&self, params: &'a [f32], i: usize) -> Gaussian<'a> {
         let n = self.n;
-        let k3 = 3 * self.k;
+        let r3 = 3 * (self.k - 1);
         Gaussian {
             mean: three(&params[3 * i..]),
             log_scale: three(&params[3 * n + 3 * i..]),
@@ -86,7 +90,8 @@ impl Layout {
                 params[6 * n + 4 * i + 3],
             ],
             opacity_logit: params[10 * n + i],
-            sh: &params[11 * n + k3 * i..11 * n + k3 * (i + 1)],
+            sh_dc: three(&params[11 * n + 3 * i..]),
+            sh_rest: &params[14 * n + r3 * i..14 * n + r3 * (i + 1)],
         }
     }
 
@@ -95,16 +100,11 @@ impl Layout {
     pub fn select(&self, params: &[f32], keep: &[usize]) -> Vec<f32> {
         let to = Layout { n: keep.len(), k: self.k };
         let mut out = vec![0.0; to.len()];
-        for (block, width) in [(0, 3), (3, 3), (6, 4), (10, 1)] {
+        for (block, width) in [(0, 3), (3, 3), (6, 4), (10, 1), (11, 3), (14, 3 * (self.k - 1))] {
             let (src, dst) = (&params[block * self.n..], &mut out[block * to.n..]);
             for (j, &i) in keep.iter().enumerate() {
                 dst[width * j..width * (j + 1)].copy_from_slice(&src[width * i..width * (i + 1)]);
             }
-        }
-        let k3 = 3 * self.k;
-        let (src, dst) = (&params[11 * self.n..], &mut out[11 * to.n..]);
-        for (j, &i) in keep.iter().enumerate() {
-            dst[k3 * j..k3 * (j + 1)].copy_from_slice(&src[k3 * i..k3 * (i + 1)]);
         }
         out
     }
@@ -121,8 +121,10 @@ pub struct Gaussian<'a> {
     pub log_scale: [f32; 3],
     pub rotation: [f32; 4],
     pub opacity_logit: f32,
-    /// `[k x 3]`.
-    pub sh: &'a [f32],
+    /// The SH DC term of each channel.
+    pub sh_dc: [f32; 3],
+    /// The other coefficients, `[(k-1) x 3]`.
+    pub sh_rest: &'a [f32],
 }
 
 pub fn sigmoid(x: f32) -> f32 {
@@ -188,16 +190,17 @@ pub fn covariance(log_scale: [f32; 3], rotation: [f32; 4]) -> ([f32; 6], [[f32; 
     ([dot(0, 0), dot(0, 1), dot(0, 2), dot(1, 1), dot(1, 2), dot(2, 2)], m)
 }
 
-/// The colour of SH coefficients `sh` (`[k x 3]`) seen along `dir` (from
-/// the camera to the Gaussian; any length), before clamping:
-/// `0.5 + sum_k c_k Y_k`.
-pub fn sh_colour(sh: &[f32], k: usize, dir: [f32; 3], basis: &mut [f32; sh::WIDTH]) -> [f32; 3] {
-    let mut rgb = [0.5 + SH_C0 * sh[0], 0.5 + SH_C0 * sh[1], 0.5 + SH_C0 * sh[2]];
+/// The colour of Gaussian `g`'s SH coefficients (`k` per channel) seen
+/// along `dir` (from the camera to the Gaussian; any length), before
+/// clamping: `0.5 + sum_k c_k Y_k`.
+pub fn sh_colour(g: &Gaussian<'_>, k: usize, dir: [f32; 3], basis: &mut [f32; sh::WIDTH]) -> [f32; 3] {
+    let dc = g.sh_dc;
+    let mut rgb = [0.5 + SH_C0 * dc[0], 0.5 + SH_C0 * dc[1], 0.5 + SH_C0 * dc[2]];
     if k > 1 {
         sh::encode_one(dir, basis);
         for j in 1..k {
             for c in 0..3 {
-                rgb[c] += basis[j] * sh[3 * j + c];
+                rgb[c] += basis[j] * g.sh_rest[3 * (j - 1) + c];
             }
         }
     }
@@ -216,8 +219,9 @@ mod tests {
             assert_eq!(l.means().end, l.log_scales().start);
             assert_eq!(l.log_scales().end, l.rotations().start);
             assert_eq!(l.rotations().end, l.opacities().start);
-            assert_eq!(l.opacities().end, l.sh().start);
-            assert_eq!(l.sh().len(), 5 * 3 * l.k);
+            assert_eq!(l.opacities().end, l.sh_dc().start);
+            assert_eq!(l.sh_dc().end, l.sh_rest().start);
+            assert_eq!(l.sh_rest().len(), 5 * 3 * (l.k - 1));
             assert_eq!(Layout::of_len(l.len(), degree), Some(l));
             assert_eq!(Layout::of_len(l.len() + 1, degree), None);
         }
@@ -235,7 +239,7 @@ mod tests {
                 (a.mean, a.log_scale, a.rotation, a.opacity_logit),
                 (b.mean, b.log_scale, b.rotation, b.opacity_logit)
             );
-            assert_eq!(a.sh, b.sh);
+            assert_eq!((a.sh_dc, a.sh_rest), (b.sh_dc, b.sh_rest));
         }
     }
 

@@ -135,7 +135,7 @@ impl Model for SplatsModel {
             *o = RayOutput::default();
             for &(t, a, i) in &hits {
                 let g = self.layout.get(&self.params, i);
-                let c = sh_colour(g.sh, self.layout.k, rd, &mut basis);
+                let c = sh_colour(&g, self.layout.k, rd, &mut basis);
                 for k in 0..3 {
                     o.rgb[k] += a * tr * c[k].max(0.0);
                 }

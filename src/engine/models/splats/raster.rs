@@ -190,7 +190,7 @@ pub fn project(
     p.extent = [r * cov[0].sqrt(), r * cov[2].sqrt()];
     let dir = [g.mean[0] - cam.origin[0], g.mean[1] - cam.origin[1], g.mean[2] - cam.origin[2]];
     p.dist = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
-    let rgb = sh_colour(g.sh, layout.k, dir, basis);
+    let rgb = sh_colour(&g, layout.k, dir, basis);
     p.clamped = clamp;
     for c in 0..3 {
         if rgb[c] < 0.0 {

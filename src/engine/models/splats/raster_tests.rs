@@ -87,7 +87,12 @@ fn reference(layout: &Layout, params: &[f64], cam: &RasterCamera, opt: &RasterOp
         let mut rgb = [0.5; 3];
         for jj in 0..k {
             for c in 0..3 {
-                rgb[c] += b64[jj] * params[11 * n + 3 * k * i + 3 * jj + c];
+                let v = if jj == 0 {
+                    params[11 * n + 3 * i + c]
+                } else {
+                    params[14 * n + 3 * (k - 1) * i + 3 * (jj - 1) + c]
+                };
+                rgb[c] += b64[jj] * v;
             }
         }
         ps.push(P {
@@ -185,10 +190,12 @@ fn random_gaussians(n: usize, degree: u32, seed: u64, max_opacity: f32) -> (Layo
         }
         let o = 0.2 + (max_opacity - 0.2) * rng.f32();
         p[10 * n + i] = (o / (1.0 - o)).ln();
-        for j in 0..l.k {
+        for c in 0..3 {
+            p[11 * n + 3 * i + c] = 1.5 * (rng.f32() - 0.3);
+        }
+        for j in 1..l.k {
             for c in 0..3 {
-                p[11 * n + 3 * l.k * i + 3 * j + c] =
-                    if j == 0 { 1.5 * (rng.f32() - 0.3) } else { 0.25 * rng.normal() };
+                p[14 * n + 3 * (l.k - 1) * i + 3 * (j - 1) + c] = 0.25 * rng.normal();
             }
         }
     }
@@ -331,7 +338,8 @@ fn backward_matches_finite_differences_for_every_parameter() {
             ("log_scale", l.log_scales()),
             ("rotation", l.rotations()),
             ("opacity", l.opacities()),
-            ("sh", l.sh()),
+            ("sh_dc", l.sh_dc()),
+            ("sh_rest", l.sh_rest()),
         ];
         for (name, range) in names {
             for i in range {

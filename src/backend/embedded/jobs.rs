@@ -6,9 +6,10 @@ use std::io;
 use std::time::Duration;
 
 use super::{blocking, invalid};
+use crate::backend::{Fut, JobStore, NewJob, QueueStats};
+use crate::datadir::{DataDir, valid_id, write_json};
 use crate::jobs::{Counters, Job, JobSpec, SchedError, Scheduler, Status};
-use crate::storage::{ModelInfo, SceneInfo, Storage, VideoInfo, valid_id, write_json};
-use crate::store::{Fut, JobStore, NewJob, QueueStats};
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// How often a job's followers look at it again: the scheduler's progress
 /// lives in memory, so a look costs a lock.
@@ -17,11 +18,11 @@ const CHANGE_POLL: Duration = Duration::from_millis(50);
 /// The scheduler and the data directory's records.
 pub struct EmbeddedJobs {
     scheduler: Scheduler,
-    storage: Storage,
+    storage: DataDir,
 }
 
 impl EmbeddedJobs {
-    pub fn new(scheduler: Scheduler, storage: Storage) -> Self {
+    pub fn new(scheduler: Scheduler, storage: DataDir) -> Self {
         Self { scheduler, storage }
     }
 }
@@ -44,7 +45,7 @@ fn enqueue(scheduler: &Scheduler, new: NewJob) -> Result<Job, SchedError> {
 /// marks failed. If the job cannot be queued, the scene is removed again.
 fn insert_scene(
     scheduler: &Scheduler,
-    storage: &Storage,
+    storage: &DataDir,
     scene: &SceneInfo,
     poses_job: Option<NewJob>,
 ) -> Result<Option<Job>, SchedError> {
@@ -76,7 +77,7 @@ fn insert_scene(
 /// Removes a scene unless a queued or running job uses it: one rename
 /// (checked under the scheduler's lock) makes it disappear, then its files
 /// go.
-fn delete_scene(scheduler: &Scheduler, storage: &Storage, id: &str) -> Result<(), SchedError> {
+fn delete_scene(scheduler: &Scheduler, storage: &DataDir, id: &str) -> Result<(), SchedError> {
     if storage.load_scene(id)?.is_none() {
         return Err(SchedError::SceneNotFound(id.into()));
     }
@@ -202,16 +203,16 @@ impl JobStore for EmbeddedJobs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::embedded;
     use crate::jobs::{PosesSpec, SchedulerConfig};
-    use crate::storage::{SceneStatus, sample_scene};
-    use crate::store::embedded;
+    use crate::records::{SceneStatus, sample_scene};
 
     #[tokio::test]
     async fn a_photo_upload_whose_job_is_refused_leaves_nothing_on_disk() {
         let dir = tempfile::tempdir().unwrap();
         let config = SchedulerConfig { max_queued: 0, run_jobs: false, ..Default::default() };
         let (jobs, _artifacts) = embedded::open(dir.path(), config).unwrap();
-        let storage = Storage { root: dir.path().to_path_buf() };
+        let storage = DataDir { root: dir.path().to_path_buf() };
         let upload = storage.staging_dir("scn_a").join("upload");
         std::fs::create_dir_all(&upload).unwrap();
         std::fs::write(upload.join("a.jpg"), b"jpeg").unwrap();
@@ -236,7 +237,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let config = SchedulerConfig { run_jobs: false, ..Default::default() };
         let (jobs, _artifacts) = embedded::open(dir.path(), config).unwrap();
-        let storage = Storage { root: dir.path().to_path_buf() };
+        let storage = DataDir { root: dir.path().to_path_buf() };
         let data = storage.staging_dir("scn_a").join("data");
         std::fs::create_dir_all(&data).unwrap();
         std::fs::write(data.join("transforms_train.json"), b"{}").unwrap();

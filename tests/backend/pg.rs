@@ -21,10 +21,11 @@ use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use radiance::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, Storage, VideoInfo};
-use radiance::store::embedded::EmbeddedArtifacts;
-use radiance::store::pg::{Database, PgJobStore, PgStoreConfig, QueueConfig};
-use radiance::store::{Artifact, ArtifactStore, Fut};
+use radiance::backend::embedded::EmbeddedArtifacts;
+use radiance::backend::pg::{Database, PgJobStore, PgStoreConfig, QueueConfig};
+use radiance::backend::{Artifact, ArtifactStore, Fut};
+use radiance::datadir::{DataDir, DiskUsage, Local, ScenePart};
+use radiance::records::{ModelInfo, SceneInfo, VideoInfo};
 
 use crate::common::pg::Pg;
 use crate::contract::{Opening, Settings, Stores};
@@ -33,12 +34,12 @@ use crate::contract::{Opening, Settings, Stores};
 /// when it is put (see the module comment).
 pub struct PublishingArtifacts {
     inner: EmbeddedArtifacts,
-    storage: Storage,
+    storage: DataDir,
 }
 
 impl PublishingArtifacts {
     pub fn open(data_dir: &Path) -> io::Result<Self> {
-        let storage = Storage::open(data_dir)?;
+        let storage = DataDir::open(data_dir)?;
         Ok(Self { inner: EmbeddedArtifacts::new(storage.clone()), storage })
     }
 }

@@ -11,9 +11,10 @@ use std::time::{Duration, Instant};
 use futures_util::StreamExt;
 use object_store::path::Path as Key;
 use object_store::{ObjectStore, ObjectStoreExt};
-use radiance::storage::{ModelInfo, ScenePart, VideoInfo};
-use radiance::store::object::{ObjectArtifacts, Stored, scene_key, upload};
-use radiance::store::{Artifact, ArtifactStore};
+use radiance::backend::object::{ObjectArtifacts, Stored, scene_key, upload};
+use radiance::backend::{Artifact, ArtifactStore};
+use radiance::datadir::ScenePart;
+use radiance::records::{ModelInfo, VideoInfo};
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 

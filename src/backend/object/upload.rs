@@ -173,7 +173,7 @@ mod tests {
     use object_store::memory::InMemory;
 
     // The uploads themselves are checked on a folder and on a real S3
-    // server by tests/store/objects.rs.
+    // server by tests/backend/objects.rs.
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn an_abandoned_bridge_refuses_to_write() {

@@ -8,13 +8,14 @@
 
 use std::time::{Duration, Instant};
 
+use radiance::backend::pg::migrate;
+use radiance::backend::pg::{Admission, CHANGE_FALLBACK, Claimed, Heartbeat, PgJobStore, RunEnd, RunState};
+use radiance::backend::{JobStore, NewJob};
+use radiance::datadir::{new_id, now_ms};
 use radiance::engine::dataset::{Dataset, LoadOptions};
 use radiance::engine::models::config::ModelConfig;
 use radiance::jobs::{Job, JobProgress, SchedError, Status};
-use radiance::storage::{ModelInfo, SceneInfo, new_id, now_ms};
-use radiance::store::pg::migrate;
-use radiance::store::pg::{Admission, CHANGE_FALLBACK, Claimed, Heartbeat, PgJobStore, RunEnd, RunState};
-use radiance::store::{JobStore, NewJob};
+use radiance::records::{ModelInfo, SceneInfo};
 
 use crate::contract::{new_job, train, video};
 use crate::pg::open_pg;

@@ -1,5 +1,5 @@
 //! The contract of the job store and the artifact store
-//! (`radiance::store`): what every pair of stores does alike, written once
+//! (`radiance::backend`): what every pair of stores does alike, written once
 //! as async checks over how a pair is opened (`contract`), and run here on
 //! the embedded pair (`embedded`) and on the PostgreSQL job store with the
 //! embedded artifact store (`pg`; `pg_jobs` checks what it does beyond the

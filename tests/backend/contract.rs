@@ -18,16 +18,15 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use radiance::backend::{ArtifactStore, JobStore, NewJob};
+use radiance::datadir::{ScenePart, new_id, now_ms, tree_bytes, valid_id};
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::dataset::{Dataset, LoadOptions};
 use radiance::engine::models::config::ModelConfig;
 use radiance::engine::train::persist;
 use radiance::jobs::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, SchedError, Status, TrainSpec, VideoSpec};
 use radiance::media::video::VideoFormat;
-use radiance::storage::{
-    SceneInfo, ScenePart, ScenePoses, SceneStatus, SplitCounts, new_id, now_ms, tree_bytes, valid_id,
-};
-use radiance::store::{ArtifactStore, JobStore, NewJob};
+use radiance::records::{SceneInfo, ScenePoses, SceneStatus, SplitCounts};
 use serde_json::Value;
 
 /// What a check needs of a fresh pair.

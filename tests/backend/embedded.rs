@@ -3,8 +3,8 @@
 
 use std::sync::Arc;
 
+use radiance::backend::embedded;
 use radiance::jobs::SchedulerConfig;
-use radiance::store::embedded;
 
 use crate::contract::{Opening, Settings, Stores};
 

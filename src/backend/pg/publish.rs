@@ -11,7 +11,7 @@ use super::lease::{Lease, fenced_spec};
 use super::queue::PgQueue;
 use super::rows::bigint;
 use crate::jobs::JobSpec;
-use crate::storage::VideoInfo;
+use crate::records::VideoInfo;
 
 impl PgQueue {
     /// The sha256 of model `id`'s published checkpoint (the object

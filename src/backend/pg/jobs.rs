@@ -6,9 +6,9 @@
 //! Where it differs from the embedded store, and why:
 //!
 //! - Deleting a scene, model or video removes its record only. The files
-//!   belong to the artifact store, which this store cannot reach; removing
-//!   them is the object store's `orphans` task's job
-//!   (docs/design/scale-out.md, sections 2.3 and 2.4; not built yet).
+//!   belong to the artifact store, which this store cannot reach: the API's
+//!   delete handlers remove them once the record is gone
+//!   (`ArtifactStore::remove`).
 //! - Canceling a running job sets `cancel_requested` and answers the job
 //!   still `running`; its worker sees the request at its next heartbeat (or
 //!   at once from the NOTIFY), stops, and records it `canceled`.
@@ -27,9 +27,9 @@ use super::connect::Database;
 use super::error::PgError;
 use super::migrate;
 use super::queue::{PgQueue, QueueConfig};
+use crate::backend::{Fut, JobStore, NewJob, QueueStats};
 use crate::jobs::{Counters, Job, SchedError, Status};
-use crate::storage::{ModelInfo, SceneInfo, VideoInfo};
-use crate::store::{Fut, JobStore, NewJob, QueueStats};
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// How long a follower of a job waits for a notice of its change before it
 /// reads the job again anyway (notices can be lost; see `changes`).

@@ -7,7 +7,7 @@
 //! the job and a revision, numbered in the order the changes were made),
 //! and the record is written after the lock is released. Two writes of one
 //! job can then commit in either order (a job's start, written by its own
-//! thread, and its end); the store skips a record older than one already
+//! thread, and its end); the journal skips a record older than one already
 //! committed for that job, so the newer state is what stays on disk.
 //!
 //! What is durable is what it was before: a job is answered as queued only
@@ -21,7 +21,7 @@ use std::io;
 use std::sync::{Mutex, MutexGuard};
 
 use super::Job;
-use crate::storage::{JobDb, Storage};
+use crate::datadir::{DataDir, JobDb};
 
 /// A job record to write, and its revision (see the module comment).
 pub(crate) struct Record {
@@ -29,7 +29,7 @@ pub(crate) struct Record {
     pub job: Job,
 }
 
-pub(crate) struct JobStore {
+pub(crate) struct Journal {
     inner: Mutex<Inner>,
     /// Test hook: the next write waits here (see [`WriteGate`]).
     #[cfg(test)]
@@ -43,17 +43,17 @@ struct Inner {
     committed: HashMap<String, u64>,
 }
 
-impl JobStore {
+impl Journal {
     /// Opens the database and reads every record.
-    pub fn open(storage: &Storage) -> io::Result<(Self, Vec<Job>)> {
+    pub fn open(storage: &DataDir) -> io::Result<(Self, Vec<Job>)> {
         let db = storage.open_jobs()?;
         let jobs = db.list()?;
         let inner = Inner { db: Some(db), committed: HashMap::new() };
         #[cfg(test)]
-        let store = Self { inner: Mutex::new(inner), gate: Mutex::new(None) };
+        let journal = Self { inner: Mutex::new(inner), gate: Mutex::new(None) };
         #[cfg(not(test))]
-        let store = Self { inner: Mutex::new(inner) };
-        Ok((store, jobs))
+        let journal = Self { inner: Mutex::new(inner) };
+        Ok((journal, jobs))
     }
 
     fn lock(&self) -> MutexGuard<'_, Inner> {
@@ -125,15 +125,15 @@ mod tests {
     use std::time::Duration;
 
     use super::*;
-    use crate::engine::models::config::ModelConfig;
+    use crate::datadir::write_json;
+    use crate::engine::front::ModelConfig;
     use crate::jobs::{JobBudget, JobSpec, Scheduler, SchedulerConfig, Status, TrainSpec};
-    use crate::storage::write_json;
 
     /// A data directory with the record of scene `scn_a` (enough to enqueue
     /// a training job on it) and a scheduler that does not start jobs.
     fn scheduler(dir: &std::path::Path) -> Scheduler {
-        let storage = Storage::open(dir).unwrap();
-        let scene = crate::storage::sample_scene("scn_a");
+        let storage = DataDir::open(dir).unwrap();
+        let scene = crate::records::sample_scene("scn_a");
         std::fs::create_dir_all(storage.scene_dir("scn_a")).unwrap();
         write_json(&storage.scene_record("scn_a"), &scene).unwrap();
         Scheduler::open(storage, SchedulerConfig { run_jobs: false, ..Default::default() }).unwrap()
@@ -168,7 +168,7 @@ mod tests {
         let queued = sched.enqueue(train_spec(), None, 0).unwrap();
         let (entered_tx, entered) = mpsc::channel();
         let (release, release_rx) = mpsc::channel();
-        *sched.shared.store.gate.lock().unwrap() = Some(WriteGate { entered: entered_tx, release: release_rx });
+        *sched.shared.journal.gate.lock().unwrap() = Some(WriteGate { entered: entered_tx, release: release_rx });
 
         // The cancel's write of the canceled record is held mid-way...
         let s2 = sched.clone();
@@ -186,7 +186,7 @@ mod tests {
         release.send(()).unwrap();
         assert_eq!(cancel.join().unwrap().unwrap().status, Status::Canceled);
         sched.shutdown();
-        let storage = Storage::open(dir.path()).unwrap();
+        let storage = DataDir::open(dir.path()).unwrap();
         let on_disk: Job = storage.get_job(&queued.id).unwrap().unwrap();
         assert_eq!(on_disk.status, Status::Canceled);
         assert_eq!(storage.open_jobs().unwrap().list::<Job>().unwrap().len(), 2);
@@ -198,24 +198,24 @@ mod tests {
         let sched = scheduler(dir.path());
         let job = sched.enqueue(train_spec(), None, 0).unwrap();
         sched.shutdown();
-        let storage = Storage::open(dir.path()).unwrap();
-        let (store, loaded) = JobStore::open(&storage).unwrap();
+        let storage = DataDir::open(dir.path()).unwrap();
+        let (journal, loaded) = Journal::open(&storage).unwrap();
         assert_eq!(loaded.len(), 1);
-        let status_on_disk = |store: &JobStore| {
-            let db = store.lock();
+        let status_on_disk = |journal: &Journal| {
+            let db = journal.lock();
             db.db().unwrap().get::<Job>(&job.id).unwrap().map(|j| j.status)
         };
         let with = |status| Job { status, ..job.clone() };
         // The end of a run (revision 3) commits before its start (2).
-        store.put(&Record { rev: 3, job: with(Status::Succeeded) }).unwrap();
-        store.put(&Record { rev: 2, job: with(Status::Running) }).unwrap();
-        assert_eq!(status_on_disk(&store), Some(Status::Succeeded));
+        journal.put(&Record { rev: 3, job: with(Status::Succeeded) }).unwrap();
+        journal.put(&Record { rev: 2, job: with(Status::Running) }).unwrap();
+        assert_eq!(status_on_disk(&journal), Some(Status::Succeeded));
         // Deleted (4): a late final record (3) does not bring it back.
-        assert!(store.remove(&job.id, 4).unwrap());
-        store.put(&Record { rev: 3, job: with(Status::Succeeded) }).unwrap();
-        assert_eq!(status_on_disk(&store), None);
+        assert!(journal.remove(&job.id, 4).unwrap());
+        journal.put(&Record { rev: 3, job: with(Status::Succeeded) }).unwrap();
+        assert_eq!(status_on_disk(&journal), None);
         // Once closed, writes fail rather than vanish.
-        store.close();
-        assert!(store.put(&Record { rev: 5, job: with(Status::Failed) }).is_err());
+        journal.close();
+        assert!(journal.put(&Record { rev: 5, job: with(Status::Failed) }).is_err());
     }
 }

@@ -5,19 +5,20 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use super::{blocking, invalid};
-use crate::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, Storage, VideoInfo, valid_id};
-use crate::store::{Artifact, ArtifactStore, Fut};
+use crate::backend::{Artifact, ArtifactStore, Fut};
+use crate::datadir::{DataDir, DiskUsage, Local, ScenePart, valid_id};
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// The data directory's files.
 pub struct EmbeddedArtifacts {
-    storage: Storage,
+    storage: DataDir,
     /// Numbers the files the readiness probe writes (two probes at once
     /// write two files).
     probes: AtomicU64,
 }
 
 impl EmbeddedArtifacts {
-    pub fn new(storage: Storage) -> Self {
+    pub fn new(storage: DataDir) -> Self {
         Self { storage, probes: AtomicU64::new(0) }
     }
 }
@@ -25,7 +26,7 @@ impl EmbeddedArtifacts {
 /// Moves an upload's files to the `part` folder of its staging folder
 /// (`tmp/ID/data` or `tmp/ID/upload`), where the scene's insert finds them;
 /// files already there stay.
-fn put_scene_files(storage: &Storage, id: &str, part: ScenePart, files: &Path) -> io::Result<()> {
+fn put_scene_files(storage: &DataDir, id: &str, part: ScenePart, files: &Path) -> io::Result<()> {
     if !valid_id(id) {
         return Err(invalid(format!("'{id}' is not a valid scene id")));
     }
@@ -38,7 +39,7 @@ fn put_scene_files(storage: &Storage, id: &str, part: ScenePart, files: &Path) -
 
 /// The data directory's folders are there, and a file can be made (and
 /// removed) in `tmp/`: what uploads and jobs need.
-fn check_writable(storage: &Storage, probe: u64) -> io::Result<()> {
+fn check_writable(storage: &DataDir, probe: u64) -> io::Result<()> {
     let dirs = [storage.scenes_dir(), storage.models_dir(), storage.videos_dir(), storage.tmp_dir()];
     for dir in &dirs {
         if !std::fs::metadata(dir).map_err(|e| at(dir, e))?.is_dir() {
@@ -111,8 +112,8 @@ impl ArtifactStore for EmbeddedArtifacts {
 mod tests {
     use super::*;
 
-    fn store(dir: &Path) -> (EmbeddedArtifacts, Storage) {
-        let storage = Storage::open(dir).unwrap();
+    fn store(dir: &Path) -> (EmbeddedArtifacts, DataDir) {
+        let storage = DataDir::open(dir).unwrap();
         (EmbeddedArtifacts::new(storage.clone()), storage)
     }
 

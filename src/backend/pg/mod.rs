@@ -18,7 +18,7 @@
 //!   job shares, connecting again when its connection ends;
 //! - `records`: the records of scenes, models and videos (read, list,
 //!   delete unless in use);
-//! - `jobs`: [`PgJobStore`], the [`JobStore`](crate::store::JobStore) over
+//! - `jobs`: [`PgJobStore`], the [`JobStore`](crate::backend::JobStore) over
 //!   all of these (records only: files are the artifact store's).
 //!
 //! Every write a worker makes for a job is fenced by its lease's token: once

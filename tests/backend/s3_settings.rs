@@ -10,9 +10,9 @@ use std::time::{Duration, Instant};
 
 use object_store::ObjectStoreExt;
 use object_store::path::Path as Key;
-use radiance::storage::VideoInfo;
-use radiance::store::ArtifactStore;
-use radiance::store::object::{ObjectArtifacts, ObjectConfig, S3Keys};
+use radiance::backend::ArtifactStore;
+use radiance::backend::object::{ObjectArtifacts, ObjectConfig, S3Keys};
+use radiance::records::VideoInfo;
 
 use crate::common::s3::{INSTALL, S3, find_s3s_fs};
 

@@ -32,8 +32,9 @@ use object_store::path::Path as Key;
 use object_store::{ObjectStore, ObjectStoreExt};
 use tokio::io::AsyncWriteExt;
 
-use crate::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInfo, valid_id};
-use crate::store::{Artifact, ArtifactStore, Fut};
+use crate::backend::{Artifact, ArtifactStore, Fut};
+use crate::datadir::{DiskUsage, Local, ScenePart, valid_id};
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 pub mod cache;
 pub mod s3;
@@ -425,5 +426,5 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> 
     tokio::task::spawn_blocking(f).await.map_err(|e| io::Error::other(format!("worker task failed: {e}")))
 }
 
-// Tested on a folder and on a real S3 server by tests/store/objects.rs
-// (and the contract, tests/store/object.rs).
+// Tested on a folder and on a real S3 server by tests/backend/objects.rs
+// (and the contract, tests/backend/object.rs).

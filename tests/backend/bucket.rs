@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use object_store::ObjectStore;
-use radiance::store::object::{ObjectArtifacts, ObjectConfig, open_url};
+use radiance::backend::object::{ObjectArtifacts, ObjectConfig, open_url};
 
 use crate::common::s3::S3;
 

@@ -23,7 +23,7 @@ use super::error::PgError;
 use super::queue::{PgQueue, settle_scene};
 use super::rows::{JOB_COLUMNS, bigint, job};
 use crate::jobs::{Job, JobProgress, JobSpec, MAX_CRASHES, Status, crashes_after};
-use crate::storage::ModelInfo;
+use crate::records::ModelInfo;
 
 /// What a worker can take now: its limits, and what it runs already.
 #[derive(Clone, Debug)]

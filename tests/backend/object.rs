@@ -22,10 +22,11 @@ use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use radiance::backend::object::ObjectArtifacts;
+use radiance::backend::{Artifact, ArtifactStore, Fut, embedded};
+use radiance::datadir::{DiskUsage, Local, ScenePart};
 use radiance::jobs::SchedulerConfig;
-use radiance::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
-use radiance::store::object::ObjectArtifacts;
-use radiance::store::{Artifact, ArtifactStore, Fut, embedded};
+use radiance::records::{ModelInfo, SceneInfo, VideoInfo};
 
 use crate::bucket::{Backend, Bucket};
 use crate::contract::{Opening, Settings, Stores};

@@ -11,8 +11,8 @@
 //!
 //! Only records are deleted here: the files (a scene's dataset, a model's
 //! checkpoint, a video) are the artifact store's, which this store cannot
-//! reach; removing them is left to it (the object store's `orphans` task,
-//! docs/design/scale-out.md, section 2.3).
+//! reach: the API's delete handlers remove them once the record is gone
+//! (`ArtifactStore::remove`).
 
 use deadpool_postgres::Transaction;
 use serde::de::DeserializeOwned;
@@ -22,7 +22,7 @@ use tokio_postgres::types::Json;
 use super::error::PgError;
 use super::queue::PgQueue;
 use crate::jobs::{SchedError, Status};
-use crate::storage::{ModelInfo, SceneInfo, VideoInfo};
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// The job statuses a record's user can have to keep it from being deleted.
 const ACTIVE: &str = "status IN ('queued', 'running')";

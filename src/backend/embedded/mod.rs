@@ -9,13 +9,13 @@
 //! together, when [`EmbeddedJobs::insert_scene`] renames it into
 //! `scenes/ID/`.
 //!
-//! [`EmbeddedJobs::insert_scene`]: crate::store::JobStore::insert_scene
+//! [`EmbeddedJobs::insert_scene`]: crate::backend::JobStore::insert_scene
 
 use std::io;
 use std::path::Path;
 
+use crate::datadir::DataDir;
 use crate::jobs::{Scheduler, SchedulerConfig};
-use crate::storage::Storage;
 
 mod artifacts;
 mod jobs;
@@ -27,7 +27,7 @@ pub use jobs::EmbeddedJobs;
 /// interrupted upload or deletion left), resumes the job queue and starts
 /// the scheduler: the job store and the artifact store over it.
 pub fn open(data_dir: &Path, config: SchedulerConfig) -> io::Result<(EmbeddedJobs, EmbeddedArtifacts)> {
-    let storage = Storage::open(data_dir)?;
+    let storage = DataDir::open(data_dir)?;
     let scheduler = Scheduler::open(storage.clone(), config)?;
     Ok((EmbeddedJobs::new(scheduler, storage.clone()), EmbeddedArtifacts::new(storage)))
 }

@@ -16,9 +16,10 @@ use tokio_postgres::types::Json;
 
 use super::error::PgError;
 use super::rows::{JOB_COLUMNS, bigint, job};
+use crate::backend::NewJob;
+use crate::datadir::{new_id, valid_id};
 use crate::jobs::{Job, JobProgress, JobSpec, SchedError, Status, check_trainable, poses, reserved_model_id};
-use crate::storage::{ModelInfo, SceneInfo, new_id, valid_id};
-use crate::store::NewJob;
+use crate::records::{ModelInfo, SceneInfo};
 
 /// The transaction advisory lock enqueues take: "radiqueu" in ASCII.
 pub const ENQUEUE_LOCK_KEY: i64 = 0x7261_6469_7175_6575;

@@ -23,8 +23,9 @@ use std::collections::HashMap;
 use std::io;
 use std::path::{Path, PathBuf};
 
+use crate::datadir::{DiskUsage, Local, ScenePart};
 use crate::jobs::{Counters, Job, JobSpec, SchedError, Status};
-use crate::storage::{DiskUsage, Local, ModelInfo, SceneInfo, ScenePart, VideoInfo};
+use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 pub mod embedded;
 pub mod object;
@@ -37,7 +38,7 @@ pub type Fut<'a, T> = futures_util::future::BoxFuture<'a, T>;
 /// A job to enqueue: what the API hands a job store.
 #[derive(Clone, Debug)]
 pub struct NewJob {
-    /// The job's id, chosen by the caller (from `storage::new_id("job")`)
+    /// The job's id, chosen by the caller (from `datadir::new_id("job")`)
     /// when a record must name the job first; `None`: a fresh one.
     pub id: Option<String>,
     pub spec: JobSpec,

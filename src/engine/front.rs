@@ -1,0 +1,41 @@
+//! The engine's front door: what the service (`api`, `jobs`, `worker`)
+//! uses of the engine, in one place. Load a model from a checkpoint, render
+//! a view of it, run a training session on a dataset, bake a model into
+//! splats and export them, estimate a job's memory, and the types these
+//! take and give. `tests/layering.rs` checks that the service reaches the
+//! engine through nothing else, so what it depends on is this page, and the
+//! folders behind it can move.
+
+use std::path::Path;
+
+pub use super::dataset::synthetic::BallScene;
+pub use super::dataset::{Dataset, DatasetError, DatasetFormat, LoadOptions, MaskUse, Split, detect_format};
+pub use super::geometry::camera::Camera;
+pub use super::geometry::path::{CameraPath, Keyframe, MAX_KEYFRAMES};
+pub use super::geometry::rig::Spiral;
+pub use super::io::checkpoint::CheckpointError;
+pub use super::io::fsio::write_atomic;
+pub use super::metrics::psnr;
+pub use super::models::auto::{AUTO, ModelChoice, SceneKind, choose as choose_model};
+pub use super::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, presets, trainable_presets};
+pub use super::models::splats::SplatsConfig;
+pub use super::models::splats::export::{Format as SplatsFormat, splats_of, write as write_splats};
+pub use super::models::training::{Budget, TrainConfig};
+pub use super::models::{Model, ModelError};
+pub use super::nn::pose_report::PoseReport;
+pub use super::train::bake::{BakeError, BakeProgress, BakeSettings, bake};
+pub use super::train::estimate::{
+    DataSize, Estimate, bake as estimate_bake, mib, training as estimate_training, video as estimate_video,
+};
+pub use super::train::persist::{save as save_checkpoint, strip_training_state};
+pub use super::train::session::{Event, HeldOut, Session, SessionConfig, SessionError, Start, Stop};
+pub use super::train::trainer::{Progress, TrainState};
+pub use super::view::appearance::{Appearance, AppearanceError, held_out_options};
+pub use super::view::{render_heldout_view, render_view_until, render_view_with};
+
+/// The model a checkpoint holds, ready to render (its optimiser state, if
+/// the checkpoint has one, is dropped; a training session resumes from the
+/// checkpoint itself: [`Start::Resume`]).
+pub fn load_model(path: &Path) -> Result<Box<dyn Model>, CheckpointError> {
+    Ok(super::train::persist::load(path)?.model)
+}
