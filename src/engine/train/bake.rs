@@ -465,8 +465,9 @@ fn densify(
                 params[3 * j + c] = g.mean[c] + off;
                 params[3 * tn + 3 * j + c] = g.log_scale[c] - 1.6f32.ln();
             }
-            // The original (kept at its index in `keep`) shrinks too.
-            let i = keep.iter().position(|&k| k == src).expect("grown from kept");
+            // The original (kept at its index in `keep`, which is in
+            // ascending order) shrinks too.
+            let i = keep.binary_search(&src).expect("grown from kept");
             for c in 0..3 {
                 params[3 * tn + 3 * i + c] = g.log_scale[c] - 1.6f32.ln();
                 params[3 * i + c] = g.mean[c] - (params[3 * j + c] - g.mean[c]);
