@@ -354,6 +354,7 @@ pub fn check_sizes(sizes: &[(&str, u32, u32)]) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::dataset::testutil::bomb_png;
 
     fn write_png(path: &Path, w: u32, h: u32) {
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
@@ -447,30 +448,6 @@ mod tests {
         assert_eq!(e, "2 videos found (a.mp4, b.mov); send one video, or photos");
         let e = found(&["a.jpg"], &["v.mp4"]).source().unwrap_err().to_string();
         assert!(e.starts_with("found both photos and a video"), "{e}");
-    }
-
-    /// A PNG of a few kilobytes whose header declares `w`x`h` RGB pixels
-    /// (its data, zeros, ends long before that).
-    fn bomb_png(w: u32, h: u32) -> Vec<u8> {
-        fn chunk(out: &mut Vec<u8>, kind: &[u8], data: &[u8]) {
-            out.extend((data.len() as u32).to_be_bytes());
-            let start = out.len();
-            out.extend(kind);
-            out.extend(data);
-            let crc = crc32fast::hash(&out[start..]);
-            out.extend(crc.to_be_bytes());
-        }
-        let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
-        let mut ihdr = Vec::new();
-        ihdr.extend(w.to_be_bytes());
-        ihdr.extend(h.to_be_bytes());
-        ihdr.extend([8, 2, 0, 0, 0]);
-        chunk(&mut png, b"IHDR", &ihdr);
-        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
-        std::io::Write::write_all(&mut z, &vec![0u8; 4 << 20]).unwrap();
-        chunk(&mut png, b"IDAT", &z.finish().unwrap());
-        chunk(&mut png, b"IEND", &[]);
-        png
     }
 
     #[test]

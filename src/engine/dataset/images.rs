@@ -84,6 +84,7 @@ pub(super) fn decode_all(paths: &[(PathBuf, PathBuf)]) -> Result<Vec<Image>, Dat
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::dataset::testutil::bomb_png;
 
     #[test]
     fn decodes_rgb_rgba_and_16_bit() {
@@ -143,30 +144,6 @@ mod tests {
         }
         assert!(matches!(decode_image(&garbage, &by), Err(DatasetError::BadImage { .. })));
         assert!(matches!(decode_image(&truncated, &by), Err(DatasetError::BadImage { .. })));
-    }
-
-    /// A PNG of a few kilobytes whose header declares `w`x`h` 8-bit RGB
-    /// pixels; its compressed data (zeros) ends long before that.
-    fn bomb_png(w: u32, h: u32) -> Vec<u8> {
-        fn chunk(out: &mut Vec<u8>, kind: &[u8], data: &[u8]) {
-            out.extend((data.len() as u32).to_be_bytes());
-            let start = out.len();
-            out.extend(kind);
-            out.extend(data);
-            let crc = crc32fast::hash(&out[start..]);
-            out.extend(crc.to_be_bytes());
-        }
-        let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
-        let mut ihdr = Vec::new();
-        ihdr.extend(w.to_be_bytes());
-        ihdr.extend(h.to_be_bytes());
-        ihdr.extend([8, 2, 0, 0, 0]);
-        chunk(&mut png, b"IHDR", &ihdr);
-        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
-        std::io::Write::write_all(&mut z, &vec![0u8; 4 << 20]).unwrap();
-        chunk(&mut png, b"IDAT", &z.finish().unwrap());
-        chunk(&mut png, b"IEND", &[]);
-        png
     }
 
     #[test]

@@ -21,7 +21,7 @@ pub mod npy;
 mod scene;
 pub mod synthetic;
 #[cfg(test)]
-mod testutil;
+pub(crate) mod testutil;
 pub mod textured;
 mod validate;
 
