@@ -30,11 +30,13 @@ pub struct BakeArgs {
     /// The splats' checkpoint to write.
     #[arg(long)]
     pub out: PathBuf,
-    /// Time budget in seconds (placing and optimising).
-    #[arg(long, default_value_t = 60.0)]
-    pub seconds: f64,
-    /// Stop after this many optimisation steps (one photo each) instead,
-    /// if reached first.
+    /// Time budget in seconds (placing and optimising); 60 when neither
+    /// this nor `--steps` is given.
+    #[arg(long)]
+    pub seconds: Option<f64>,
+    /// Optimisation steps (one photo each). Alone, the bake follows no
+    /// clock, so it is reproducible; with `--seconds`, the first budget
+    /// reached ends it.
     #[arg(long)]
     pub steps: Option<u64>,
     /// Gaussians placed from the field before optimising.
@@ -54,27 +56,32 @@ pub struct BakeArgs {
 
 pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
     let threads = a.common.init_threads()?;
-    anyhow::ensure!(a.seconds.is_finite() && a.seconds > 0.0, "--seconds must be a positive number");
+    let seconds = match (a.seconds, a.steps) {
+        (None, None) => Some(60.0),
+        (s, _) => s,
+    };
+    if let Some(s) = seconds {
+        anyhow::ensure!(s.is_finite() && s > 0.0, "--seconds must be a positive number");
+    }
+    anyhow::ensure!(a.steps != Some(0), "--steps must be at least 1");
     let source = persist::load(&a.model)?;
     let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
     let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
-    let mut settings = BakeSettings {
-        seconds: Some(a.seconds),
-        steps: a.steps,
-        initial: a.initial,
-        seed: a.seed,
-        ..Default::default()
-    };
+    let mut settings = BakeSettings { seconds, steps: a.steps, initial: a.initial, seed: a.seed, ..Default::default() };
     settings.splats.sh_degree = a.sh_degree;
     settings.splats.max_gaussians = a.max_gaussians;
     crate::engine::models::config::ModelConfig::Splats(settings.splats.clone())
         .check()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     eprintln!(
-        "baking {} ({}) into splats on {threads} threads, {} s",
+        "baking {} ({}) into splats on {threads} threads, {}",
         a.model.display(),
         source.model.kind(),
-        a.seconds
+        match (seconds, a.steps) {
+            (Some(s), None) => format!("{s} s"),
+            (None, Some(n)) => format!("{n} steps"),
+            (s, n) => format!("{} s or {} steps", s.unwrap_or_default(), n.unwrap_or_default()),
+        }
     );
     let started = Instant::now();
     let mut last = 0.0;
@@ -88,8 +95,7 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
         }
     })?;
     let elapsed = started.elapsed().as_secs_f64();
-    let train =
-        TrainConfig { seed: a.seed, budget: Budget { steps: a.steps, seconds: Some(a.seconds) }, ..Default::default() };
+    let train = TrainConfig { seed: a.seed, budget: Budget { steps: a.steps, seconds }, ..Default::default() };
     let state = TrainState { step: steps, elapsed, ..Default::default() };
     persist::save(&a.out, &model, &adam, &train, &state)?;
     eprintln!("wrote {}: {} Gaussians, {steps} steps in {elapsed:.1} s", a.out.display(), model.layout().n);

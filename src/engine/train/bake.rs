@@ -5,13 +5,18 @@
 //!    pixels are rendered by the field; where a ray's opacity says it hit
 //!    something, a Gaussian goes at its expected depth, a fifth as wide as
 //!    the spacing of its neighbours (of all photos), with the field's
-//!    colour (as the SH DC term) and half opacity. The unbounded background of a capture is carried over
-//!    the same way: its rays end far away, so Gaussians go there, as large
-//!    as their distance makes a pixel. The field is rendered with the mean
-//!    appearance of its training photos (`RenderOptions::default()`), the
-//!    appearance a held-out view takes by default; splats have one
-//!    appearance, which optimising against the photos keeps near their
-//!    mean.
+//!    colour (as the SH DC term) and half opacity. Then every photo's rays
+//!    carve: a Gaussian well in front of what another photo saw along it
+//!    is a floater in that photo's free space, and goes (a ray through an
+//!    object's edge has an expected depth between the object and what is
+//!    behind it). The unbounded background of a capture is carried over
+//!    the same way, but within three times the cameras' distance from the
+//!    centre (the field puts much of it at the far plane, where the photos
+//!    disagree about it), each Gaussian as wide as half its grid cell
+//!    there. The field is rendered with the mean appearance of its
+//!    training photos (`RenderOptions::default()`), the appearance a
+//!    held-out view takes by default; splats have one appearance, which
+//!    optimising against the photos keeps near their mean.
 //! 2. **Optimising** against the training photos with the differentiable
 //!    rasteriser (`splats::raster`, `splats::backward`): one whole photo a
 //!    step, mean squared error, Adam with the 3DGS paper's per-block rates
@@ -24,10 +29,12 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use crate::engine::batch::RayOutput;
 use crate::engine::dataset::{Dataset, Split};
 use crate::engine::geometry::math::Ray;
 use crate::engine::models::splats::backward::backward;
 use crate::engine::models::splats::gaussians::{Layout, SH_C0};
+use crate::engine::models::splats::lens;
 use crate::engine::models::splats::raster::{RasterCamera, RasterOptions, forward};
 use crate::engine::models::splats::{SplatsConfig, SplatsModel};
 use crate::engine::models::{Model, RenderOptions};
@@ -66,6 +73,8 @@ pub enum BakeError {
     Cancelled,
     #[error("a {0} model cannot be baked: bake an instant, nerf or capture model")]
     Kind(&'static str),
+    #[error("a bake needs a budget: seconds, steps or both")]
+    NoBudget,
 }
 
 /// Progress of a bake, reported after each step.
@@ -84,6 +93,23 @@ pub struct BakeProgress {
 /// it ends: a ray through an object's edge, or through a thin haze, has an
 /// expected depth between surfaces, where a Gaussian would float.
 const MIN_HIT_OPACITY: f32 = 0.9;
+/// The opacity below which a field's ray saw nothing (free space all
+/// along it, for [`carve`]); between the two, it is not trusted either way.
+const MISS_OPACITY: f32 = 0.1;
+/// Carving's margin: a Gaussian nearer than this fraction of the distance
+/// a photo's ray saw is in its free space. (gold_cape, a 120 s
+/// `capture-360` model, 130 steps: carving lifts the held-out PSNR inside
+/// the object's masks from 18.33 to 18.87 dB.)
+const CARVE_MARGIN: f32 = 0.8;
+/// Gaussians are placed within this many times the farthest camera's
+/// distance from the centre: a capture's field puts much of its background
+/// at the far plane, where no two photos agree on it (gold_cape as above:
+/// 19.06 dB inside the masks at 3, 18.81 at 2, 18.87 with no limit).
+const FAR_RADIUS: f32 = 3.0;
+/// A placed Gaussian with no neighbours' spacing (the background, seen by
+/// few photos) gets this fraction of its grid cell's width (gold_cape as
+/// above, no carving: 16.74 dB held out at 0.5, 15.58 at 0.2).
+const ISOLATED_SCALE: f32 = 0.5;
 /// A placed Gaussian's scale, as a fraction of the spacing of its
 /// neighbours (lego, 30 s instant model, placement alone: 15.8 dB at 1,
 /// 18.3 at 0.5, 19.5 at 0.3, 20.0 at 0.2).
@@ -134,6 +160,9 @@ pub fn bake(
 ) -> Result<(SplatsModel, Adam, u64), BakeError> {
     if source.rasteriser().is_some() {
         return Err(BakeError::Kind(source.kind()));
+    }
+    if settings.seconds.is_none() && settings.steps.is_none() {
+        return Err(BakeError::NoBudget);
     }
     let started = Instant::now();
     let frames = ds.split(Split::Train).to_vec();
@@ -191,6 +220,7 @@ struct Baker<'a> {
     rng: Rng,
     step: u64,
     smoothed_psnr: f64,
+    grads: Vec<f32>,
 }
 
 impl<'a> Baker<'a> {
@@ -213,7 +243,13 @@ impl<'a> Baker<'a> {
             .iter()
             .map(|&f| {
                 let im = &ds.frames[f].image;
-                (0..im.height).flat_map(|j| (0..im.width).flat_map(move |i| im.rgb_on(i, j, bg))).collect()
+                let rgb: Vec<f32> =
+                    (0..im.height).flat_map(|j| (0..im.width).flat_map(move |i| im.rgb_on(i, j, bg))).collect();
+                // The rasteriser draws the pinhole part of a camera: a
+                // distorted photo is fitted as that camera would have
+                // taken it (NaN where it does not reach: no loss there).
+                let camera = &ds.frames[f].camera;
+                if camera.distortion.is_identity() { rgb } else { lens::undistort_photo(camera, &rgb) }
             })
             .collect();
         let n = model.layout().n;
@@ -229,6 +265,7 @@ impl<'a> Baker<'a> {
             rng: Rng::new(settings.seed ^ 0xBA4E),
             step: 0,
             smoothed_psnr: 0.0,
+            grads: Vec::new(),
         })
     }
 
@@ -247,13 +284,16 @@ impl<'a> Baker<'a> {
         let opt = RasterOptions::default();
         let f = forward(&l, self.model.params(), &cam, &opt, self.ds.background);
         let target = &self.targets[which];
-        let n = target.len() as f32;
+        let n = target.iter().filter(|t| !t.is_nan()).count().max(1) as f32;
         let mut sq = 0.0f64;
         let d_rgb: Vec<f32> = f
             .rgb
             .iter()
             .zip(target)
             .map(|(r, t)| {
+                if t.is_nan() {
+                    return 0.0;
+                }
                 let e = r - t;
                 sq += (e * e) as f64;
                 2.0 * e / n
@@ -261,7 +301,11 @@ impl<'a> Baker<'a> {
             .collect();
         let psnr = -10.0 * (sq / n as f64).max(1e-10).log10();
         self.smoothed_psnr = if self.step == 0 { psnr } else { 0.9 * self.smoothed_psnr + 0.1 * psnr };
-        let mut grads = vec![0.0f32; l.len()];
+        // The gradient buffer is kept between steps (zeroing it is cheaper
+        // than the page faults of a fresh one of the parameters' size).
+        let mut grads = std::mem::take(&mut self.grads);
+        grads.clear();
+        grads.resize(l.len(), 0.0);
         let screen = backward(&l, self.model.params(), &cam, &opt, &f, &d_rgb, &mut grads);
         let (hw, hh) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);
         for (acc, s) in self.grad_accum.iter_mut().zip(&screen) {
@@ -272,6 +316,7 @@ impl<'a> Baker<'a> {
         }
         let groups = groups(&l, progress);
         self.adam.step_groups(self.model.params_mut(), &mut grads, BASE_LR, &groups);
+        self.grads = grads;
         self.step += 1;
     }
 
@@ -286,6 +331,9 @@ impl<'a> Baker<'a> {
     }
 }
 
+/// A Gaussian placed from the field: position (model units), scale, colour.
+type Placed = ([f32; 3], f32, [f32; 3]);
+
 /// Places Gaussians where the field's rays end (module docs, stage 1).
 fn place(
     source: &dyn Model,
@@ -297,42 +345,19 @@ fn place(
     let per_frame = settings.initial.div_ceil(frames.len()).max(1);
     let mut rng = Rng::new(settings.seed);
     let scene = source.scene();
-    let bg = ds.background;
-    // (position, scale, colour) of each placed Gaussian, model units.
-    let mut placed: Vec<([f32; 3], f32, [f32; 3])> = Vec::new();
-    for &f in frames {
+    let cams: Vec<RasterCamera> = frames.iter().map(|&f| RasterCamera::new(&ds.frames[f].camera, scene)).collect();
+    let far = FAR_RADIUS * cams.iter().map(|c| norm(c.origin)).fold(0.0f32, f32::max);
+    let (mut placed, mut owners, mut grids) = (Vec::new(), Vec::new(), Vec::new());
+    for (k, &f) in frames.iter().enumerate() {
         if cancel.load(Ordering::Relaxed) {
             return Err(BakeError::Cancelled);
         }
-        let cam = &ds.frames[f].camera;
-        let (w, h) = (cam.width as f32, cam.height as f32);
-        let spacing = (w * h / per_frame as f32).sqrt().max(1.0);
-        let (nx, ny) = ((w / spacing).ceil() as usize, (h / spacing).ceil() as usize);
-        let mut rays: Vec<Ray> = Vec::with_capacity(nx * ny);
-        for y in 0..ny {
-            for x in 0..nx {
-                let u = ((x as f32 + rng.f32()) * spacing).min(w - 1e-3);
-                let v = ((y as f32 + rng.f32()) * spacing).min(h - 1e-3);
-                rays.push(cam.ray(u, v));
-            }
-        }
-        let (out, _) = render_rays_with(source, &rays, bg, &RenderOptions::default());
-        for (ray, o) in rays.iter().zip(&out) {
-            if o.opacity < MIN_HIT_OPACITY || !o.depth.is_finite() {
-                continue;
-            }
-            let r = scene.to_model(ray);
-            let t = o.depth / o.opacity;
-            let p = r.at(t).to_array();
-            if !p.iter().all(|v| v.is_finite()) {
-                continue;
-            }
-            let colour = [0, 1, 2].map(|c| ((o.rgb[c] - (1.0 - o.opacity) * bg[c]) / o.opacity).clamp(0.0, 1.0));
-            // A pixel's width at that distance, times the grid's spacing.
-            let size = t * spacing / cam.fx.max(1e-6);
-            placed.push((p, size, colour));
-        }
+        let (grid, points) = sample_photo(source, ds, f, per_frame, far, &mut rng);
+        owners.extend(std::iter::repeat_n(k as u32, points.len()));
+        placed.extend(points);
+        grids.push(grid);
     }
+    let mut placed = carve(placed, &owners, &grids, &cams);
     if placed.is_empty() {
         return Err(BakeError::Empty);
     }
@@ -342,31 +367,160 @@ fn place(
     let near = neighbour_spacing(&placed);
     for (p, s) in placed.iter_mut().zip(near) {
         // Samples of many photos land on one surface: their own spacing
-        // is finer than one photo's grid.
-        if let Some(d) = s {
-            p.1 = p.1.min(d);
+        // is finer than one photo's grid. One with no neighbours (the
+        // background, which few photos see) covers its grid cell.
+        p.1 = match s {
+            Some(d) => INITIAL_SCALE * d.min(p.1),
+            None => ISOLATED_SCALE * p.1,
+        };
+    }
+    Ok(parameters(&placed, settings.splats.sh_degree))
+}
+
+fn norm(v: [f32; 3]) -> f32 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+/// Renders the field's rays through a jittered grid of photo `f`'s pixels
+/// (about `count` of them): what they saw, and a Gaussian where each that
+/// hit something ends (its scale: the grid cell's width there), brought
+/// within `far` of the centre.
+fn sample_photo(
+    source: &dyn Model,
+    ds: &Dataset,
+    f: usize,
+    count: usize,
+    far: f32,
+    rng: &mut Rng,
+) -> (DepthGrid, Vec<Placed>) {
+    let (scene, bg) = (source.scene(), ds.background);
+    let cam = &ds.frames[f].camera;
+    let (w, h) = (cam.width as f32, cam.height as f32);
+    let spacing = (w * h / count as f32).sqrt().max(1.0);
+    let (nx, ny) = ((w / spacing).ceil() as usize, (h / spacing).ceil() as usize);
+    let mut rays: Vec<Ray> = Vec::with_capacity(nx * ny);
+    for y in 0..ny {
+        for x in 0..nx {
+            let u = ((x as f32 + rng.f32()) * spacing).min(w - 1e-3);
+            let v = ((y as f32 + rng.f32()) * spacing).min(h - 1e-3);
+            rays.push(cam.ray(u, v));
         }
     }
-    let l = Layout::new(placed.len(), settings.splats.sh_degree);
+    let (out, _) = render_rays_with(source, &rays, bg, &RenderOptions::default());
+    let hit = |o: &RayOutput| o.opacity >= MIN_HIT_OPACITY && o.depth.is_finite();
+    let depth = out
+        .iter()
+        .map(|o| match (hit(o), o.opacity < MISS_OPACITY) {
+            (true, _) => o.depth / o.opacity,
+            (false, true) => f32::INFINITY,
+            (false, false) => f32::NAN,
+        })
+        .collect();
+    let mut placed = Vec::new();
+    for (ray, o) in rays.iter().zip(&out).filter(|(_, o)| hit(o)) {
+        let r = scene.to_model(ray);
+        let t = (o.depth / o.opacity).min(exit_distance(&r, far));
+        let p = r.at(t).to_array();
+        if !p.iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        let colour = [0, 1, 2].map(|c| ((o.rgb[c] - (1.0 - o.opacity) * bg[c]) / o.opacity).clamp(0.0, 1.0));
+        // A pixel's width at that distance, times the grid's spacing.
+        placed.push((p, t * spacing / cam.fx.max(1e-6), colour));
+    }
+    (DepthGrid { nx, ny, spacing, depth }, placed)
+}
+
+/// Where model-space ray `r` leaves the sphere of radius `radius` around
+/// the centre (infinite for a ray starting outside it).
+fn exit_distance(r: &Ray, radius: f32) -> f32 {
+    let (o, d) = (r.origin.to_array(), r.dir.to_array());
+    let b = o[0] * d[0] + o[1] * d[1] + o[2] * d[2];
+    let dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    let c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - radius * radius;
+    if c >= 0.0 || dd == 0.0 {
+        return f32::INFINITY;
+    }
+    (-b + (b * b - dd * c).sqrt()) / dd
+}
+
+/// The parameters of the placed Gaussians: round, half opaque, coloured
+/// by their SH DC term.
+fn parameters(placed: &[Placed], sh_degree: u32) -> Vec<f32> {
+    let l = Layout::new(placed.len(), sh_degree);
     let n = l.n;
     let mut params = vec![0.0f32; l.len()];
     for (i, (p, size, colour)) in placed.iter().enumerate() {
         params[3 * i..3 * i + 3].copy_from_slice(p);
-        params[3 * n + 3 * i..3 * n + 3 * i + 3].fill((INITIAL_SCALE * size).max(1e-6).ln());
+        params[3 * n + 3 * i..3 * n + 3 * i + 3].fill(size.max(1e-6).ln());
         params[6 * n + 4 * i] = 1.0;
         params[10 * n + i] = 0.0; // opacity 0.5
         for c in 0..3 {
             params[11 * n + 3 * i + c] = (colour[c] - 0.5) / SH_C0;
         }
     }
-    Ok(params)
+    params
+}
+
+/// What a photo's placement rays saw: the distance along each ray of a
+/// jittered grid (`spacing` pixels a cell) to what it hit (infinite where
+/// it hit nothing, NaN where it is unsure).
+struct DepthGrid {
+    nx: usize,
+    ny: usize,
+    spacing: f32,
+    depth: Vec<f32>,
+}
+
+/// Drops the placed Gaussians that another photo sees through (free-space
+/// carving): one that lies well in front (nearer than [`CARVE_MARGIN`]
+/// times) of what photo `b` saw in each grid cell around its pixel there
+/// is a floater in `b`'s free space. `owners`: the photo each was placed
+/// from, whose own rays are not asked.
+fn carve(placed: Vec<Placed>, owners: &[u32], grids: &[DepthGrid], cams: &[RasterCamera]) -> Vec<Placed> {
+    use rayon::prelude::*;
+    let keep: Vec<bool> = placed
+        .par_iter()
+        .zip(owners)
+        .map(|(p, &owner)| {
+            for (b, (cam, g)) in cams.iter().zip(grids).enumerate() {
+                if b == owner as usize {
+                    continue;
+                }
+                let t = cam.to_camera(p.0);
+                if t[2] <= 0.0 {
+                    continue;
+                }
+                let (u, v) = (cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy);
+                if !(u >= 0.0 && v >= 0.0 && u < cam.width as f32 && v < cam.height as f32) {
+                    continue;
+                }
+                let (gx, gy) = ((u / g.spacing) as usize, (v / g.spacing) as usize);
+                let mut nearest = f32::INFINITY;
+                let mut known = true;
+                for y in gy.saturating_sub(1)..(gy + 2).min(g.ny) {
+                    for x in gx.saturating_sub(1)..(gx + 2).min(g.nx) {
+                        let d = g.depth[y * g.nx + x];
+                        known &= !d.is_nan();
+                        nearest = nearest.min(d);
+                    }
+                }
+                let dist = (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt();
+                if known && dist < CARVE_MARGIN * nearest {
+                    return false;
+                }
+            }
+            true
+        })
+        .collect();
+    placed.into_iter().zip(keep).filter_map(|(p, k)| k.then_some(p)).collect()
 }
 
 /// Each point's root-mean-square distance to its three nearest neighbours
 /// (the 3DGS paper's initial scale), found in a hash of cells as wide as
 /// the median of the points' own sizes; `None` for a point with fewer than
 /// three neighbours in its cell and the 26 around it.
-fn neighbour_spacing(points: &[([f32; 3], f32, [f32; 3])]) -> Vec<Option<f32>> {
+fn neighbour_spacing(points: &[Placed]) -> Vec<Option<f32>> {
     let mut sizes: Vec<f32> = points.iter().map(|p| p.1).collect();
     let mid = sizes.len() / 2;
     let cell = *sizes.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
@@ -475,4 +629,48 @@ fn densify(
         }
     }
     (params, m, v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::geometry::camera::{Camera, look_at};
+    use crate::engine::geometry::math::Vec3;
+    use crate::engine::geometry::scene::Scene;
+
+    #[test]
+    fn a_ray_leaves_a_sphere_where_the_analytic_root_says() {
+        let r = Ray { origin: Vec3::new(0.5, 0.0, 0.0), dir: Vec3::new(0.6, 0.8, 0.0) };
+        // |o + t d| = 2: t² + 0.6 t + 0.25 - 4 = 0.
+        let want = (-0.6 + (0.36f32 + 4.0 * 3.75).sqrt()) / 2.0;
+        assert!((exit_distance(&r, 2.0) - want).abs() < 1e-6);
+        assert!(exit_distance(&Ray { origin: Vec3::new(3.0, 0.0, 0.0), ..r }, 2.0).is_infinite());
+    }
+
+    #[test]
+    fn carving_drops_what_another_photo_sees_through_and_keeps_what_it_sees() {
+        let scene = Scene::from_bounds(
+            crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) },
+            0.0,
+            10.0,
+        );
+        // Both photos look at the origin from 4 units away along -y; photo
+        // 1 saw a wall 4 units away everywhere (3x3 cells of 10 px), photo
+        // 0 is unsure of all its depths.
+        let c2w = look_at(Vec3::new(0.0, -4.0, 0.0), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap();
+        let cams = vec![RasterCamera::new(&Camera::from_fov(30, 30, 1.0, c2w), &scene); 2];
+        let grid = |d: f32| DepthGrid { nx: 3, ny: 3, spacing: 10.0, depth: vec![d; 9] };
+        let grids = [grid(f32::NAN), grid(4.0)];
+        let placed: Vec<Placed> = vec![
+            ([0.0, -2.0, 0.0], 0.1, [1.0; 3]), // halfway: photo 1's free space
+            ([0.0, 0.0, 0.0], 0.1, [1.0; 3]),  // on the wall
+            ([0.0, 1.0, 0.0], 0.1, [1.0; 3]),  // behind it
+            ([0.0, -2.0, 0.0], 0.1, [1.0; 3]), // halfway, but photo 1's own
+        ];
+        let kept = carve(placed.clone(), &[0, 0, 0, 1], &grids, &cams);
+        assert_eq!(kept, vec![placed[1], placed[2], placed[3]]);
+        // One that saw nothing (infinitely far) carves all it sees.
+        let empty = [grid(f32::INFINITY), grid(f32::INFINITY)];
+        assert_eq!(carve(placed.clone(), &[1, 1, 1, 1], &empty, &cams), vec![]);
+    }
 }

@@ -9,7 +9,8 @@
 use rayon::prelude::*;
 
 use super::gaussians::{Layout, SH_C0, covariance, rotation_backward, rotation_matrix, unit_quat};
-use super::raster::{Frame, MAX_ALPHA, Projected, RasterCamera, RasterOptions, TILE, jacobian, jw, sym};
+use super::raster::{Frame, Projected, RasterCamera, RasterOptions, jacobian, jw, sym};
+use super::tile;
 use crate::engine::nn::sh;
 
 /// The gradient of a loss with respect to one Gaussian's projection:
@@ -78,128 +79,15 @@ fn screen_grads(cam: &RasterCamera, opt: &RasterOptions, frame: &Frame, d_rgb: &
         slices.push(a);
         rest = b;
     }
-    slices.into_par_iter().enumerate().for_each(|(t, out)| tile_backward(cam, opt, frame, d_rgb, t, out));
+    slices.into_par_iter().enumerate().for_each(|(t, out)| tile::tile_backward(cam, opt, frame, d_rgb, t, out));
     let mut screen = vec![[0.0f32; 9]; n];
-    for (&g, e) in frame.list.iter().zip(&entries) {
-        let s = &mut screen[g as usize];
+    for (&k, e) in frame.list.iter().zip(&entries) {
+        let s = &mut screen[frame.order[k as usize] as usize];
         for c in 0..9 {
             s[c] += e[c];
         }
     }
     screen
-}
-
-/// One pixel's state, walking its Gaussians back to front: the loss's
-/// gradient there, how many of its tile's list it took, the transmittance
-/// in front of the current Gaussian, the colour behind it, and the last
-/// alpha and colour seen.
-struct Px {
-    g: [f32; 3],
-    last: usize,
-    t_final: f32,
-    bg_dot: f32,
-    tr: f32,
-    accum: [f32; 3],
-    last_a: f32,
-    last_c: [f32; 3],
-}
-
-/// The states of the pixels `[x0, x1) x [y0, y1)` before the walk, and the
-/// deepest position of the tile's list any of them took.
-fn pixel_states(frame: &Frame, d_rgb: &[f32], [x0, x1, y0, y1]: [usize; 4]) -> (Vec<Px>, usize) {
-    let bg = frame.background;
-    let mut px = Vec::with_capacity((x1 - x0) * (y1 - y0));
-    let mut deepest = 0;
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let i = y * frame.width + x;
-            let g = [d_rgb[3 * i], d_rgb[3 * i + 1], d_rgb[3 * i + 2]];
-            let last = if g == [0.0; 3] { 0 } else { frame.last[i] as usize };
-            deepest = deepest.max(last);
-            let t_final = frame.final_t[i];
-            px.push(Px {
-                g,
-                last,
-                t_final,
-                bg_dot: bg[0] * g[0] + bg[1] * g[1] + bg[2] * g[2],
-                tr: t_final,
-                accum: [0.0; 3],
-                last_a: 0.0,
-                last_c: [0.0; 3],
-            });
-        }
-    }
-    (px, deepest)
-}
-
-fn tile_backward(
-    cam: &RasterCamera,
-    opt: &RasterOptions,
-    frame: &Frame,
-    d_rgb: &[f32],
-    t: usize,
-    out: &mut [ScreenGrad],
-) {
-    let tx = cam.tiles_x();
-    let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
-    let (x1, y1) = ((x0 + TILE).min(frame.width), (y0 + TILE).min(frame.height));
-    let w = x1 - x0;
-    let list = &frame.list[frame.tile_ranges[t].clone()];
-    let (mut px, deepest) = pixel_states(frame, d_rgb, [x0, x1, y0, y1]);
-    for pos in (0..deepest).rev() {
-        let p = &frame.projected[list[pos] as usize];
-        let [gx0, gx1, gy0, gy1] = p.pixel_rect(frame.width, frame.height);
-        let e = &mut out[pos];
-        for y in gy0.max(y0)..gy1.min(y1) {
-            for x in gx0.max(x0)..gx1.min(x1) {
-                let q = &mut px[(y - y0) * w + (x - x0)];
-                if pos >= q.last {
-                    continue;
-                }
-                let Some((a, raw, [dx, dy])) = alpha_parts(p, x as f32 + 0.5, y as f32 + 0.5, opt.min_alpha) else {
-                    continue;
-                };
-                q.tr /= 1.0 - a;
-                let tr = q.tr;
-                let mut d_a = 0.0;
-                for c in 0..3 {
-                    e[6 + c] += a * tr * q.g[c];
-                    q.accum[c] = q.last_a * q.last_c[c] + (1.0 - q.last_a) * q.accum[c];
-                    d_a += (p.rgb[c] - q.accum[c]) * q.g[c];
-                }
-                d_a *= tr;
-                d_a -= q.t_final / (1.0 - a) * q.bg_dot;
-                q.last_a = a;
-                q.last_c = p.rgb;
-                if raw >= MAX_ALPHA {
-                    continue; // alpha is held at its maximum: no gradient
-                }
-                // a = o exp(power): da/do = a / o, da/dpower = a.
-                e[5] += d_a * a / p.opacity;
-                let gp = d_a * a;
-                e[2] += -0.5 * dx * dx * gp;
-                e[3] += -dx * dy * gp;
-                e[4] += -0.5 * dy * dy * gp;
-                let c = &p.conic;
-                e[0] += gp * (c[0] * dx + c[1] * dy);
-                e[1] += gp * (c[2] * dy + c[1] * dx);
-            }
-        }
-    }
-}
-
-/// Gaussian `p`'s alpha at the pixel centre `(px, py)` as the forward takes
-/// it (`None` where it adds nothing), its value before the cap, and the
-/// offset `(dx, dy)` from the mean.
-#[inline]
-fn alpha_parts(p: &Projected, px: f32, py: f32, min_alpha: f32) -> Option<(f32, f32, [f32; 2])> {
-    let a = super::raster::alpha_at(p, px, py, min_alpha);
-    if a == 0.0 {
-        return None;
-    }
-    let (dx, dy) = (px - p.mean[0], py - p.mean[1]);
-    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
-    Some((a, p.opacity * power.exp(), [dx, dy]))
 }
 
 /// One Gaussian's parameter gradients (`sh`: the first `3 k`).

@@ -9,7 +9,9 @@ pub mod backward;
 pub mod config;
 pub mod export;
 pub mod gaussians;
+pub mod lens;
 pub mod raster;
+pub mod tile;
 
 pub use config::SplatsConfig;
 
@@ -59,11 +61,27 @@ impl SplatsModel {
         self.layout
     }
 
-    /// Renders `camera` (world units; a distorted camera is rendered
-    /// through its pinhole part, then resampled).
+    /// Renders `camera` (world units).
     pub fn rasterise(&self, camera: &Camera, background: [f32; 3]) -> raster::Frame {
         let cam = RasterCamera::new(camera, &self.scene);
         raster::forward(&self.layout, &self.params, &cam, &RasterOptions::default(), background)
+    }
+
+    /// Renders `camera`'s colours, distances and opacities; a distorted
+    /// camera through a pinhole camera around it, resampled
+    /// ([`lens`]).
+    pub fn render_view(&self, camera: &Camera, background: [f32; 3]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        if camera.distortion.is_identity() {
+            let f = self.rasterise(camera, background);
+            return (f.rgb, f.depth, f.opacity);
+        }
+        let pin = lens::pinhole_around(camera);
+        let f = self.rasterise(&pin, background);
+        (
+            lens::distort_image(camera, &pin, &f.rgb, 3, &background),
+            lens::distort_image(camera, &pin, &f.depth, 1, &[0.0]),
+            lens::distort_image(camera, &pin, &f.opacity, 1, &[0.0]),
+        )
     }
 }
 
@@ -77,8 +95,7 @@ pub trait Rasteriser {
 
 impl Rasteriser for SplatsModel {
     fn render_view(&self, camera: &Camera, background: [f32; 3]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        let f = self.rasterise(camera, background);
-        (f.rgb, f.depth, f.opacity)
+        SplatsModel::render_view(self, camera, background)
     }
 }
 

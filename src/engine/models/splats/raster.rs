@@ -25,6 +25,7 @@
 use rayon::prelude::*;
 
 use super::gaussians::{Layout, covariance, sh_colour, sigmoid};
+use super::tile::{self, TileOut};
 use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::nn::sh;
@@ -150,12 +151,41 @@ pub struct Projected {
 impl Projected {
     /// The pixels `[x0, x1) x [y0, y1)` whose centres lie in the box.
     pub fn pixel_rect(&self, width: usize, height: usize) -> [usize; 4] {
-        // Pixel i's centre is i + 0.5: inside when |i + 0.5 - m| <= e.
-        let lo = |m: f32, e: f32| (m - e - 0.5).ceil().max(0.0) as usize;
-        let hi = |m: f32, e: f32, n: usize| (((m + e - 0.5).floor() + 1.0).max(0.0) as usize).min(n);
-        let [mx, my] = self.mean;
-        let [ex, ey] = self.extent;
-        [lo(mx, ex), hi(mx, ex, width), lo(my, ey), hi(my, ey, height)]
+        pixel_rect(self.mean, self.extent, width, height)
+    }
+}
+
+/// The pixels `[x0, x1) x [y0, y1)` whose centres lie in the box of
+/// half-widths `extent` around `mean`.
+#[inline]
+pub fn pixel_rect(mean: [f32; 2], extent: [f32; 2], width: usize, height: usize) -> [usize; 4] {
+    // Pixel i's centre is i + 0.5: inside when |i + 0.5 - m| <= e.
+    let lo = |m: f32, e: f32| (m - e - 0.5).ceil().max(0.0) as usize;
+    let hi = |m: f32, e: f32, n: usize| (((m + e - 0.5).floor() + 1.0).max(0.0) as usize).min(n);
+    let [mx, my] = mean;
+    let [ex, ey] = extent;
+    [lo(mx, ex), hi(mx, ex, width), lo(my, ey), hi(my, ey, height)]
+}
+
+/// What the tiles read of a drawn Gaussian's projection, packed and kept
+/// in drawing order so that a tile's walk reads memory in one direction.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Splat2D {
+    pub mean: [f32; 2],
+    pub conic: [f32; 3],
+    pub opacity: f32,
+    pub rgb: [f32; 3],
+    pub dist: f32,
+    pub extent: [f32; 2],
+}
+
+impl Splat2D {
+    fn of(p: &Projected) -> Self {
+        Self { mean: p.mean, conic: p.conic, opacity: p.opacity, rgb: p.rgb, dist: p.dist, extent: p.extent }
+    }
+
+    pub fn pixel_rect(&self, width: usize, height: usize) -> [usize; 4] {
+        pixel_rect(self.mean, self.extent, width, height)
     }
 }
 
@@ -267,9 +297,13 @@ pub struct Frame {
     pub opacity: Vec<f32>,
     /// Each Gaussian's projection.
     pub projected: Vec<Projected>,
+    /// The drawn Gaussians, front to back.
+    pub order: Vec<u32>,
+    /// Their projections, in that order.
+    pub drawn: Vec<Splat2D>,
     /// Each tile's range of `list`.
     pub tile_ranges: Vec<std::ops::Range<usize>>,
-    /// The Gaussians of each tile, front to back.
+    /// The Gaussians of each tile, front to back, as positions in `order`.
     pub list: Vec<u32>,
     /// Per pixel: the position in its tile's list after the last Gaussian
     /// it took (relative to the tile's range start).
@@ -288,7 +322,8 @@ pub fn forward(
     background: [f32; 3],
 ) -> Frame {
     let projected = project_all(layout, params, cam, opt);
-    let (tile_ranges, list) = bin(&projected, cam);
+    let (order, tile_ranges, list) = bin(&projected, cam);
+    let drawn = order.iter().map(|&i| Splat2D::of(&projected[i as usize])).collect();
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut frame = Frame {
         width: w,
@@ -299,12 +334,14 @@ pub fn forward(
         last: vec![0; w * h],
         final_t: vec![1.0; w * h],
         projected,
+        order,
+        drawn,
         tile_ranges,
         list,
         background,
     };
     let tiles: Vec<TileOut> =
-        (0..frame.tile_ranges.len()).into_par_iter().map(|t| composite_tile(&frame, cam, opt, t)).collect();
+        (0..frame.tile_ranges.len()).into_par_iter().map(|t| tile::composite_tile(&frame, cam, opt, t)).collect();
     let tx = cam.tiles_x();
     for (t, out) in tiles.iter().enumerate() {
         let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
@@ -332,8 +369,10 @@ pub fn project_all(layout: &Layout, params: &[f32], cam: &RasterCamera, opt: &Ra
 }
 
 /// Sorts the visible Gaussians by depth (ties by index) and lists them per
-/// tile, front to back: the tiles' ranges of the list, and the list.
-pub fn bin(projected: &[Projected], cam: &RasterCamera) -> (Vec<std::ops::Range<usize>>, Vec<u32>) {
+/// tile, front to back: the sorted Gaussians, the tiles' ranges of the
+/// list, and the list (of positions in the sorted Gaussians).
+#[allow(clippy::type_complexity)]
+pub fn bin(projected: &[Projected], cam: &RasterCamera) -> (Vec<u32>, Vec<std::ops::Range<usize>>, Vec<u32>) {
     let mut order: Vec<u32> = (0..projected.len() as u32).filter(|&i| projected[i as usize].visible).collect();
     // Depths are positive, so their bits sort as the numbers do.
     order.par_sort_unstable_by_key(|&i| (projected[i as usize].t[2].to_bits(), i));
@@ -360,94 +399,14 @@ pub fn bin(projected: &[Projected], cam: &RasterCamera) -> (Vec<std::ops::Range<
     let ranges: Vec<_> = (0..tx * ty).map(|t| count[t]..count[t + 1]).collect();
     let mut next = count;
     let mut list = vec![0u32; ranges.last().map_or(0, |r| r.end)];
-    for (&i, r) in order.iter().zip(&rects) {
+    for (k, r) in rects.iter().enumerate() {
         for y in r[2]..r[3] {
             for x in r[0]..r[1] {
                 let t = y * tx + x;
-                list[next[t]] = i;
+                list[next[t]] = k as u32;
                 next[t] += 1;
             }
         }
     }
-    (ranges, list)
-}
-
-/// One pixel's result.
-#[derive(Clone, Copy, Debug, Default)]
-struct PixelOut {
-    rgb: [f32; 3],
-    depth: f32,
-    t: f32,
-    last: u32,
-}
-
-struct TileOut {
-    w: usize,
-    pixels: Vec<PixelOut>,
-}
-
-/// The pixel rectangle of tile `t`: `[x0, x1, y0, y1]`.
-fn tile_rect(cam: &RasterCamera, t: usize) -> [usize; 4] {
-    let tx = cam.tiles_x();
-    let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
-    [x0, (x0 + TILE).min(cam.width as usize), y0, (y0 + TILE).min(cam.height as usize)]
-}
-
-/// The alpha Gaussian `p` gives the pixel centred at `(px, py)`, or 0 when
-/// it adds nothing there (outside its box, or below `min_alpha`).
-#[inline]
-pub fn alpha_at(p: &Projected, px: f32, py: f32, min_alpha: f32) -> f32 {
-    let (dx, dy) = (px - p.mean[0], py - p.mean[1]);
-    if dx.abs() > p.extent[0] || dy.abs() > p.extent[1] {
-        return 0.0;
-    }
-    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
-    if power > 0.0 {
-        return 0.0;
-    }
-    let a = (p.opacity * power.exp()).min(MAX_ALPHA);
-    if a < min_alpha { 0.0 } else { a }
-}
-
-fn composite_tile(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
-    let [x0, x1, y0, y1] = tile_rect(cam, t);
-    let w = x1 - x0;
-    let mut px = vec![PixelOut { t: 1.0, ..Default::default() }; w * (y1 - y0)];
-    let mut live = vec![true; px.len()];
-    let mut n_live = px.len();
-    let range = frame.tile_ranges[t].clone();
-    for (pos, &g) in frame.list[range].iter().enumerate() {
-        if n_live == 0 {
-            break;
-        }
-        let p = &frame.projected[g as usize];
-        let [gx0, gx1, gy0, gy1] = p.pixel_rect(cam.width as usize, cam.height as usize);
-        for y in gy0.max(y0)..gy1.min(y1) {
-            for x in gx0.max(x0)..gx1.min(x1) {
-                let k = (y - y0) * w + (x - x0);
-                if !live[k] {
-                    continue;
-                }
-                let a = alpha_at(p, x as f32 + 0.5, y as f32 + 0.5, opt.min_alpha);
-                if a == 0.0 {
-                    continue;
-                }
-                let o = &mut px[k];
-                let next_t = o.t * (1.0 - a);
-                if next_t < opt.min_transmittance {
-                    live[k] = false;
-                    n_live -= 1;
-                    continue;
-                }
-                let wgt = a * o.t;
-                for c in 0..3 {
-                    o.rgb[c] += wgt * p.rgb[c];
-                }
-                o.depth += wgt * p.dist;
-                o.t = next_t;
-                o.last = pos as u32 + 1;
-            }
-        }
-    }
-    TileOut { w, pixels: px }
+    (order, ranges, list)
 }

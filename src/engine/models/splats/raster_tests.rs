@@ -397,3 +397,50 @@ fn a_rotated_camera_sees_a_rotated_scene_alike() {
     assert!(mean < 1e-4 && max < 0.02, "mean {mean}, max {max}");
     assert!(base.opacity.iter().filter(|&&o| o > 0.1).count() > 100);
 }
+
+#[test]
+fn the_polynomial_exp_is_within_two_ulp_of_f64s() {
+    let mut worst = 0.0f64;
+    let mut x = -87.0f32;
+    while x <= 0.0 {
+        let want = (x as f64).exp();
+        let got = super::tile::exp_neg(x) as f64;
+        worst = worst.max((got - want).abs() / want);
+        x += 0.000_731;
+    }
+    assert!(worst < 2.5e-7, "relative error {worst}");
+    assert_eq!(super::tile::exp_neg(0.0), 1.0);
+    assert!(super::tile::exp_neg(-1e30) < 1e-37 && super::tile::exp_neg(-1e30) >= 0.0);
+    assert_eq!(super::tile::exp_neg(f32::NEG_INFINITY), super::tile::exp_neg(-87.0));
+}
+
+#[test]
+fn the_vector_tile_loops_give_the_portable_ones_bits() {
+    // `composite_tile` and `tile_backward` pick the AVX2 build where the
+    // CPU has it; `*_any` called from here is the portable build.
+    use super::backward::ScreenGrad;
+    use super::tile;
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 53, 41, 40.0), &scene);
+    let opt = RasterOptions::default();
+    let (l, p) = random_gaussians(200, 3, 7, 0.99);
+    let f = forward(&l, &p, &cam, &opt, [0.2, 0.5, 0.9]);
+    let mut rng = Rng::new(3);
+    let d_rgb: Vec<f32> = f.rgb.iter().map(|_| rng.normal()).collect();
+    let mut drawn = 0;
+    for t in 0..f.tile_ranges.len() {
+        let (a, b) = (tile::composite_tile(&f, &cam, &opt, t), tile::composite_tile_any(&f, &cam, &opt, t));
+        for (x, y) in a.pixels.iter().zip(&b.pixels) {
+            let bits = |p: &tile::PixelOut| (p.rgb.map(f32::to_bits), p.depth.to_bits(), p.t.to_bits(), p.last);
+            assert_eq!(bits(x), bits(y), "tile {t}");
+            drawn += usize::from(x.last > 0);
+        }
+        let n = f.tile_ranges[t].len();
+        let (mut ga, mut gb) = (vec![[0.0f32; 9]; n], vec![[0.0f32; 9]; n]);
+        tile::tile_backward(&cam, &opt, &f, &d_rgb, t, &mut ga);
+        tile::tile_backward_any(&cam, &opt, &f, &d_rgb, t, &mut gb);
+        let bits = |g: &Vec<ScreenGrad>| g.iter().flat_map(|e| e.map(f32::to_bits)).collect::<Vec<_>>();
+        assert_eq!(bits(&ga), bits(&gb), "tile {t}");
+    }
+    assert!(drawn > 500, "the scene is in view: {drawn} pixels drawn");
+}
