@@ -160,3 +160,28 @@ fn bench_auto_capture_rows_have_the_mean_column() {
     let want = (&*format!("{mean:.2}"), &*format!("{fit:.2}"), &*format!("{cross:.2}"));
     assert_eq!((cells[10], cells[11], cells[12]), want, "{stdout}");
 }
+
+/// `--bake`: after the last budget the model is baked into splats and
+/// scored on the same views, a `splats` row with the bake's time, steps
+/// and Gaussians.
+#[test]
+fn bench_bakes_and_scores_the_splats() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 24, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let json = dir.path().join("bench.json");
+    let d = data.to_str().unwrap();
+    let args = ["bench", "--data", d, "--model", "instant-tiny", "--budgets", "4", "--test-views", "2", "--bake", "3"];
+    let out = radiance(&[&args[..], &["--json", json.to_str().unwrap()]].concat());
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "stdout: {stdout}\nstderr: {}", String::from_utf8_lossy(&out.stderr));
+    let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let [source, splats] = &report.rows[..] else { panic!("two rows: {:?}", report.rows) };
+    assert_eq!((source.model.as_str(), splats.model.as_str()), ("instant-tiny", "splats"));
+    let n = splats.gaussians.expect("the Gaussians are counted");
+    assert!(n > 0 && splats.steps > 0 && splats.budget_seconds == 3.0, "{splats:?}");
+    assert!(splats.train_seconds >= 3.0 && splats.train_seconds < 30.0, "the bake's own time: {splats:?}");
+    // Scored: a baked ball is recognisably the ball.
+    assert!(splats.psnr > 15.0 && splats.render_ms > 0.0, "{splats:?}");
+    assert!(stdout.contains(&format!("{n} Gaussians")), "{stdout}");
+}

@@ -16,8 +16,10 @@ use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, res
 use super::{AppearanceArgs, Common, MaskArgs};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::io::fsio;
+use crate::engine::models::Model;
 use crate::engine::models::auto::ModelChoice;
 use crate::engine::models::training::Budget;
+use crate::engine::train::bake::{BakeSettings, bake};
 use crate::engine::train::trainer::{Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
 
@@ -54,6 +56,11 @@ pub struct BenchArgs {
     /// Also draw test PSNR against training time (log scale) to this PNG.
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// Also bake each model, after its last budget, into splats for this
+    /// many seconds and score them on the same views (a `splats` row: its
+    /// seconds and steps are the bake's).
+    #[arg(long)]
+    pub bake: Option<f64>,
     #[command(flatten)]
     pub masks: MaskArgs,
     #[command(flatten)]
@@ -121,6 +128,9 @@ pub struct BenchRow {
     /// Peak resident memory (VmHWM) in MiB since this model's run started;
     /// `None` where /proc/self/status is unavailable.
     pub peak_memory_mib: Option<f64>,
+    /// A baked row's Gaussians (its `.splat` is 32 bytes each).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gaussians: Option<usize>,
 }
 
 /// What `--json` writes.
@@ -198,8 +208,84 @@ fn format_row(r: &BenchRow, masked: bool, mean: bool) -> String {
     )
 }
 
-/// Renders and scores the test views with the trainer's current model,
-/// as `eval` does (`render_and_score`).
+/// The test views' scores summed ([`score_views`]).
+#[derive(Default)]
+struct ViewScores {
+    psnr: f64,
+    ssim: f64,
+    secs: f64,
+    mask_p: Vec<f64>,
+    mask_s: Vec<f64>,
+    mean_p: Vec<f64>,
+    fit_p: Vec<f64>,
+    fit_whole: Vec<f64>,
+    rays: u64,
+    samples: u64,
+    proposal: u64,
+}
+
+/// Renders and scores the test views `views` with `model` (trained `step`
+/// steps), as `eval` does (`render_and_score`).
+fn score_views(
+    model: &dyn Model,
+    step: u64,
+    ds: &Dataset,
+    views: &[usize],
+    args: &BenchArgs,
+) -> anyhow::Result<ViewScores> {
+    let mut fit = appearance_fit(model, step, args.fit.fit_steps)?;
+    let mut v = ViewScores::default();
+    for &i in views {
+        let f = &ds.frames[i];
+        let Scored { view, secs, scores: sc, psnr_mean, fit: fitted } =
+            render_and_score(model, f, ds.background, &args.appearance, fit.as_mut())?;
+        v.secs += secs;
+        v.rays += view.stats.rays;
+        v.samples += view.stats.samples;
+        v.proposal += view.stats.proposal_samples;
+        v.psnr += sc.psnr;
+        v.ssim += sc.ssim;
+        v.mask_p.extend(sc.psnr_mask);
+        v.mask_s.extend(sc.ssim_mask);
+        v.mean_p.extend(psnr_mean);
+        v.fit_p.extend(fitted.as_ref().map(|f| f.right_half));
+        v.fit_whole.extend(fitted.map(|f| f.whole));
+    }
+    Ok(v)
+}
+
+/// A row of `v`'s scores over `n` views; the training columns are the
+/// caller's.
+fn scored_row(model: &str, budget: f64, v: &ViewScores, n: usize) -> BenchRow {
+    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    let n = n as f64;
+    BenchRow {
+        model: model.to_string(),
+        budget_seconds: budget,
+        train_seconds: 0.0,
+        steps: 0,
+        rays: 0,
+        samples: 0,
+        samples_per_ray: 0.0,
+        skipped_per_ray: 0.0,
+        proposal_samples: 0,
+        proposal_samples_per_ray: 0.0,
+        psnr: v.psnr / n,
+        ssim: v.ssim / n,
+        psnr_mean: mean(&v.mean_p),
+        psnr_fit: mean(&v.fit_p),
+        psnr_fit_whole: mean(&v.fit_whole),
+        psnr_mask: mean(&v.mask_p),
+        ssim_mask: mean(&v.mask_s),
+        render_ms: v.secs / n * 1000.0,
+        render_samples_per_ray: v.samples as f64 / v.rays.max(1) as f64,
+        render_proposal_samples_per_ray: v.proposal as f64 / v.rays.max(1) as f64,
+        peak_memory_mib: peak_memory().map(|b| b as f64 / (1024.0 * 1024.0)),
+        gaussians: None,
+    }
+}
+
+/// Renders and scores the test views with the trainer's current model.
 fn measure(
     t: &Trainer<'_>,
     p: &Progress,
@@ -209,34 +295,9 @@ fn measure(
     args: &BenchArgs,
     budget: f64,
 ) -> anyhow::Result<BenchRow> {
-    let (appearance, fit_steps) = (&args.appearance, args.fit.fit_steps);
-    let (mut sum_p, mut sum_s, mut secs) = (0.0, 0.0, 0.0);
-    let (mut mask_p, mut mask_s, mut mean_p, mut fit_p) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    let mut fit_whole = Vec::new();
-    let mut fit = appearance_fit(&*t.model, p.step, fit_steps)?;
-    let (mut rays, mut samples, mut proposal) = (0u64, 0u64, 0u64);
-    for &i in views {
-        let f = &ds.frames[i];
-        let Scored { view: v, secs: s, scores: sc, psnr_mean, fit: fitted } =
-            render_and_score(&*t.model, f, ds.background, appearance, fit.as_mut())?;
-        secs += s;
-        rays += v.stats.rays;
-        samples += v.stats.samples;
-        proposal += v.stats.proposal_samples;
-        sum_p += sc.psnr;
-        sum_s += sc.ssim;
-        mask_p.extend(sc.psnr_mask);
-        mask_s.extend(sc.ssim_mask);
-        mean_p.extend(psnr_mean);
-        fit_p.extend(fitted.as_ref().map(|f| f.right_half));
-        fit_whole.extend(fitted.map(|f| f.whole));
-    }
-    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
-    let n = views.len() as f64;
+    let v = score_views(&*t.model, p.step, ds, views, args)?;
     let per_ray = |x: u64| x as f64 / p.rays.max(1) as f64;
     Ok(BenchRow {
-        model: kind.to_string(),
-        budget_seconds: budget,
         train_seconds: p.elapsed,
         steps: p.step,
         rays: p.rays,
@@ -245,19 +306,35 @@ fn measure(
         skipped_per_ray: per_ray(p.skipped),
         proposal_samples: p.proposal_samples,
         proposal_samples_per_ray: per_ray(p.proposal_samples),
-        psnr: sum_p / n,
-        ssim: sum_s / n,
-        psnr_mean: mean(&mean_p),
-        psnr_fit: mean(&fit_p),
-        psnr_fit_whole: mean(&fit_whole),
-        psnr_mask: mean(&mask_p),
-        ssim_mask: mean(&mask_s),
-        render_ms: secs / n * 1000.0,
-        render_samples_per_ray: samples as f64 / rays.max(1) as f64,
-        render_proposal_samples_per_ray: proposal as f64 / rays.max(1) as f64,
-        peak_memory_mib: peak_memory().map(|b| b as f64 / (1024.0 * 1024.0)),
+        ..scored_row(kind, budget, &v, views.len())
     })
 }
+
+/// Bakes `source` (`kind`, trained) into splats for `seconds` and scores
+/// them: a row labelled `splats`, its budget the bake's, its time and
+/// steps the bake's own.
+fn measure_bake(
+    source: &dyn Model,
+    ds: &Dataset,
+    views: &[usize],
+    args: &BenchArgs,
+    seconds: f64,
+) -> anyhow::Result<BenchRow> {
+    let settings = BakeSettings { seconds: Some(seconds), seed: args.seed, ..Default::default() };
+    let started = std::time::Instant::now();
+    let (model, _, steps) = bake(source, ds, &settings, &AtomicBool::new(false), |_| {})?;
+    let elapsed = started.elapsed().as_secs_f64();
+    let v = score_views(&model, steps, ds, views, args)?;
+    Ok(BenchRow {
+        train_seconds: elapsed,
+        steps,
+        gaussians: Some(model.layout().n),
+        ..scored_row(SPLATS_LABEL, seconds, &v, views.len())
+    })
+}
+
+/// The model column of a baked row.
+const SPLATS_LABEL: &str = "splats";
 
 fn write_json(path: &Path, report: &BenchReport) -> anyhow::Result<()> {
     let mut bytes = serde_json::to_vec_pretty(report)?;
@@ -277,6 +354,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         check_model_name(m)?;
     }
     anyhow::ensure!(a.test_views > 0, "--test-views must be at least 1");
+    if let Some(b) = a.bake {
+        anyhow::ensure!(b.is_finite() && b > 0.0, "--bake must be a positive number of seconds");
+    }
 
     let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3], masks: a.masks.masks };
     let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
@@ -401,6 +481,18 @@ impl Run<'_> {
         });
         if let Some(e) = error {
             return Err(e.context(format!("benchmarking '{kind}'")));
+        }
+        if let (Some(seconds), StopReason::Budget | StopReason::Callback) = (a.bake, &reason) {
+            eprintln!("baking '{kind}' into splats for {seconds} s");
+            let row = measure_bake(&*trainer.model, ds, self.views, a, seconds)
+                .with_context(|| format!("baking '{kind}'"))?;
+            println!("{}", format_row(&row, ds.masks != MaskUse::Off, self.with_mean));
+            let n = row.gaussians.unwrap_or(0);
+            println!("{SPLATS_LABEL:<8} {n} Gaussians, .splat {:.2} MB", (32 * n) as f64 / 1e6);
+            report.rows.push(row);
+            if let Some(path) = &a.json {
+                write_json(path, report)?;
+            }
         }
         match reason {
             StopReason::Budget | StopReason::Callback => {}
@@ -555,6 +647,7 @@ mod tests {
             render_samples_per_ray: 30.0,
             render_proposal_samples_per_ray: 24.0,
             peak_memory_mib: Some(512.0),
+            gaussians: None,
         }
     }
 
