@@ -1,176 +1,18 @@
-//! The fast model's field (Instant-NGP): a multiresolution hash grid over
-//! the scene box, a tiny density MLP whose first output is log-density and
-//! the rest geometry features, and a tiny colour MLP on those features and
-//! the spherical-harmonics encoding of the direction.
+//! The fast model's field (Instant-NGP): the hash-grid networks (`nets`: a
+//! multiresolution hash grid, a tiny density MLP whose first output is
+//! log-density and the rest geometry features, and a tiny colour MLP on those
+//! features and the spherical-harmonics encoding of the direction) over a box
+//! of model space, mapped to the unit cube the grid covers. Its density is
+//! `exp(clamp(raw))`; its last colour layer is the GEMM one
+//! (`ColorHead::Gemm`).
 
-use super::size;
+pub use super::nets::Ctx;
+use super::nets::{ColorHead, Nets};
 use super::{Field, Points};
 use crate::engine::geometry::math::Vec3;
-use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};
-use crate::engine::nn::linear::{Linear, ParamLayout, relu, relu_backward, sigmoid};
-use crate::engine::nn::move_rows;
-use crate::engine::nn::sh;
+use crate::engine::nn::hashgrid::HashGridConfig;
+use crate::engine::nn::linear::ParamLayout;
 use crate::engine::rng::Rng;
-
-/// Density activation: `exp` of the clamped input (its derivative is the
-/// density itself, which stays finite).
-#[inline]
-fn density(raw: f32) -> f32 {
-    raw.clamp(-15.0, 15.0).exp()
-}
-
-/// The networks over a flat parameter buffer.
-struct Nets {
-    grid: HashGrid,
-    d1: Linear,
-    d2: Linear,
-    c1: Linear,
-    c2: Linear,
-    c3: Linear,
-}
-
-/// Activations of a forward pass over `n` samples.
-#[derive(Default)]
-pub struct Ctx {
-    n: usize,
-    unit: Vec<f32>,
-    enc: Vec<f32>,
-    h1: Vec<f32>,
-    geo: Vec<f32>,
-    sigma: Vec<f32>,
-    shd: Vec<f32>,
-    a1: Vec<f32>,
-    a2: Vec<f32>,
-    rgb: Vec<f32>,
-    // backward scratch
-    d_a: Vec<f32>,
-    d_b: Vec<f32>,
-    d_geo: Vec<f32>,
-    d_enc: Vec<f32>,
-    // input gradients (`HashGridField::backward_with_input_grads` only)
-    d_shd: Vec<f32>,
-    d_pos: Vec<f32>,
-    d_dirs: Vec<f32>,
-}
-
-impl Ctx {
-    /// Drops the density-pass activations of samples not in `keep`.
-    fn compact(&mut self, keep: &[usize], grid_width: usize, hidden: usize, geo: usize) {
-        move_rows(&mut self.unit, 3, keep);
-        move_rows(&mut self.enc, grid_width, keep);
-        move_rows(&mut self.h1, hidden, keep);
-        move_rows(&mut self.geo, geo, keep);
-        move_rows(&mut self.sigma, 1, keep);
-        self.n = keep.len();
-    }
-}
-
-impl Nets {
-    fn new(layout: &mut ParamLayout, grid: HashGridConfig, hidden: usize, geo: usize) -> Self {
-        let grid = HashGrid::new(layout, grid);
-        let d1 = Linear::new(layout, "density.0", grid.width(), hidden);
-        let d2 = Linear::new(layout, "density.1", hidden, geo);
-        let c1 = Linear::new(layout, "color.0", geo + sh::WIDTH, hidden);
-        let c2 = Linear::new(layout, "color.1", hidden, hidden);
-        let c3 = Linear::new(layout, "color.2", hidden, 3);
-        Self { grid, d1, d2, c1, c2, c3 }
-    }
-
-    /// Density of `n` unit-cube points; keeps what backward needs.
-    fn forward_density(&self, p: &[f32], ctx: &mut Ctx) {
-        let n = ctx.n;
-        let (gw, h, g) = (self.grid.width(), self.d1.outputs, self.d2.outputs);
-        size(&mut ctx.enc, n * gw);
-        self.grid.forward(p, &ctx.unit[..n * 3], &mut ctx.enc);
-        size(&mut ctx.h1, n * h);
-        self.d1.forward(p, &[(&ctx.enc, gw)], n, &mut ctx.h1);
-        relu(&mut ctx.h1[..n * h]);
-        size(&mut ctx.geo, n * g);
-        self.d2.forward(p, &[(&ctx.h1, h)], n, &mut ctx.geo);
-        size(&mut ctx.sigma, n);
-        for (s, row) in ctx.sigma[..n].iter_mut().zip(ctx.geo.chunks_exact(g)) {
-            *s = density(row[0]);
-        }
-    }
-
-    /// Colour of the first `n` samples of the last density pass, seen along
-    /// `dirs` (`[n x 3]`).
-    fn forward_color(&self, p: &[f32], dirs: &[f32], ctx: &mut Ctx) {
-        let n = ctx.n;
-        let (h, g) = (self.c1.outputs, self.d2.outputs);
-        size(&mut ctx.shd, n * sh::WIDTH);
-        sh::encode(&dirs[..n * 3], &mut ctx.shd);
-        size(&mut ctx.a1, n * h);
-        self.c1.forward(p, &[(&ctx.geo, g), (&ctx.shd, sh::WIDTH)], n, &mut ctx.a1);
-        relu(&mut ctx.a1[..n * h]);
-        size(&mut ctx.a2, n * h);
-        self.c2.forward(p, &[(&ctx.a1, h)], n, &mut ctx.a2);
-        relu(&mut ctx.a2[..n * h]);
-        size(&mut ctx.rgb, n * 3);
-        self.c3.forward(p, &[(&ctx.a2, h)], n, &mut ctx.rgb);
-        for v in &mut ctx.rgb[..n * 3] {
-            *v = sigmoid(*v);
-        }
-    }
-
-    /// Backward of both passes given dL/dsigma and dL/drgb. Given `dirs`
-    /// (`[n x 3]`, the directions of the colour pass), also the input
-    /// gradients: dL/du of the unit-cube points into `ctx.d_pos` and
-    /// dL/d(direction) into `ctx.d_dirs`. Without, it makes exactly the calls
-    /// it always made; with, the parameter gradients are the same.
-    fn backward(
-        &self,
-        p: &[f32],
-        ctx: &mut Ctx,
-        dsigma: &[f32],
-        drgb: &[f32],
-        grads: &mut [f32],
-        dirs: Option<&[f32]>,
-    ) {
-        let n = ctx.n;
-        let (h, g, gw) = (self.c1.outputs, self.d2.outputs, self.grid.width());
-        let draw: Vec<f32> = drgb[..n * 3].iter().zip(&ctx.rgb).map(|(&d, &s)| d * s * (1.0 - s)).collect();
-        size(&mut ctx.d_a, n * h);
-        self.c3.backward(p, &[(&ctx.a2, h)], &draw, n, grads, &mut [Some(&mut ctx.d_a)]);
-        relu_backward(&ctx.a2[..n * h], &mut ctx.d_a[..n * h]);
-        size(&mut ctx.d_b, n * h);
-        self.c2.backward(p, &[(&ctx.a1, h)], &ctx.d_a, n, grads, &mut [Some(&mut ctx.d_b)]);
-        relu_backward(&ctx.a1[..n * h], &mut ctx.d_b[..n * h]);
-        size(&mut ctx.d_geo, n * g);
-        let d_shd = match dirs {
-            Some(_) => {
-                size(&mut ctx.d_shd, n * sh::WIDTH);
-                Some(&mut ctx.d_shd[..])
-            }
-            None => None,
-        };
-        self.c1.backward(
-            p,
-            &[(&ctx.geo, g), (&ctx.shd, sh::WIDTH)],
-            &ctx.d_b,
-            n,
-            grads,
-            &mut [Some(&mut ctx.d_geo), d_shd],
-        );
-        for ((row, &ds), &s) in ctx.d_geo.chunks_exact_mut(g).zip(dsigma).zip(&ctx.sigma) {
-            row[0] += ds * s;
-        }
-        size(&mut ctx.d_a, n * h);
-        self.d2.backward(p, &[(&ctx.h1, h)], &ctx.d_geo, n, grads, &mut [Some(&mut ctx.d_a)]);
-        relu_backward(&ctx.h1[..n * h], &mut ctx.d_a[..n * h]);
-        size(&mut ctx.d_enc, n * gw);
-        self.d1.backward(p, &[(&ctx.enc, gw)], &ctx.d_a, n, grads, &mut [Some(&mut ctx.d_enc)]);
-        let Some(dirs) = dirs else {
-            self.grid.backward(&ctx.unit[..n * 3], &ctx.d_enc, grads);
-            return;
-        };
-        size(&mut ctx.d_pos, n * 3);
-        self.grid.backward_with_input_grad(p, &ctx.unit[..n * 3], &ctx.d_enc, grads, &mut ctx.d_pos);
-        ctx.d_dirs.clear();
-        ctx.d_dirs.resize(n * 3, 0.0);
-        sh::encode_backward(&dirs[..n * 3], &ctx.d_shd[..n * sh::WIDTH], &mut ctx.d_dirs);
-    }
-}
 
 /// The hash-grid field over a box of model space (mapped to the unit cube
 /// the grid covers).
@@ -190,7 +32,7 @@ impl HashGridField {
         geo_features: usize,
         aabb: (Vec3, Vec3),
     ) -> Self {
-        let nets = Nets::new(layout, grid, hidden, geo_features);
+        let nets = Nets::new(layout, grid, hidden, geo_features, ColorHead::Gemm, 1.0);
         let (lo, hi) = aabb;
         let ext = hi - lo;
         Self { nets, lo, inv: Vec3::new(1.0 / ext.x, 1.0 / ext.y, 1.0 / ext.z) }
@@ -198,11 +40,7 @@ impl HashGridField {
 
     /// Initialises the field's ranges of `params`.
     pub fn init(&self, params: &mut [f32], rng: &mut Rng) {
-        let n = &self.nets;
-        n.grid.init(params, rng);
-        for l in [&n.d1, &n.d2, &n.c1, &n.c2, &n.c3] {
-            l.init(params, rng);
-        }
+        self.nets.init(params, rng);
     }
 
     /// [`Field::backward`] (the same parameter gradients), and also the
@@ -214,9 +52,10 @@ impl HashGridField {
     ///
     /// The positions' gradient flows through both outputs: the density and
     /// the colour's geometry features both come from the hash grid
-    /// ([`HashGrid::backward_with_input_grad`]), then through the box map
-    /// `u = (x - lo) / (hi - lo)`. The directions' gradient comes from the
-    /// colour network's spherical-harmonics input ([`sh::encode_backward`]).
+    /// ([`HashGrid::backward_with_input_grad`](crate::engine::nn::hashgrid::HashGrid::backward_with_input_grad)),
+    /// then through the box map `u = (x - lo) / (hi - lo)`. The directions'
+    /// gradient comes from the colour network's spherical-harmonics input
+    /// ([`sh::encode_backward`](crate::engine::nn::sh::encode_backward)).
     pub fn backward_with_input_grads(
         &self,
         params: &[f32],
@@ -228,17 +67,13 @@ impl HashGridField {
     ) {
         self.nets.backward(params, ctx, dsigma, drgb, grads, Some(dirs));
         let inv = self.inv;
-        for d in ctx.d_pos[..3 * ctx.n].chunks_exact_mut(3) {
-            d[0] *= inv.x;
-            d[1] *= inv.y;
-            d[2] *= inv.z;
-        }
+        self.nets.position_grads(ctx, |_, du| [du[0] * inv.x, du[1] * inv.y, du[2] * inv.z]);
     }
 
     /// dL/d(position) (model space) and dL/d(direction), `[n x 3]` each, of
     /// the last [`HashGridField::backward_with_input_grads`].
     pub fn input_grads<'c>(&self, ctx: &'c Ctx) -> (&'c [f32], &'c [f32]) {
-        (&ctx.d_pos[..3 * ctx.n], &ctx.d_dirs[..3 * ctx.n])
+        self.nets.input_grads(ctx)
     }
 }
 
@@ -257,31 +92,27 @@ impl Field for HashGridField {
     }
 
     fn compact(&self, ctx: &mut Ctx, keep: &[usize]) {
-        let n = &self.nets;
-        ctx.compact(keep, n.grid.width(), n.d1.outputs, n.d2.outputs);
+        self.nets.compact(ctx, keep);
     }
 
     fn color(&self, params: &[f32], dirs: &[f32], ctx: &mut Ctx) {
-        self.nets.forward_color(params, dirs, ctx);
+        self.nets.forward_color(params, dirs, ctx, |_| {});
     }
 
     fn sigma<'c>(&self, ctx: &'c Ctx) -> &'c [f32] {
-        &ctx.sigma[..ctx.n]
+        self.nets.sigma(ctx)
     }
 
     fn rgb<'c>(&self, ctx: &'c Ctx) -> &'c [f32] {
-        &ctx.rgb[..3 * ctx.n]
+        self.nets.rgb(ctx)
     }
 
     fn save_row(&self, ctx: &Ctx, i: usize, rows: &mut Vec<f32>) {
-        let g = self.nets.d2.outputs;
-        rows.extend_from_slice(&ctx.geo[i * g..(i + 1) * g]);
+        self.nets.save_row(ctx, i, rows);
     }
 
     fn color_rows(&self, params: &[f32], rows: Vec<f32>, dirs: &[f32], ctx: &mut Ctx) {
-        ctx.n = dirs.len() / 3;
-        ctx.geo = rows;
-        self.nets.forward_color(params, dirs, ctx);
+        self.nets.color_rows(params, rows, dirs, ctx, |_| {});
     }
 
     fn backward(&self, params: &[f32], ctx: &mut Ctx, dsigma: &[f32], drgb: &[f32], grads: &mut [f32]) {
@@ -292,57 +123,6 @@ impl Field for HashGridField {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn network_gradients_match_finite_differences_in_f64() {
-        // Compare the analytic gradient of sum(sigma*gs + rgb*gc) with central
-        // differences of the same f32 forward evaluated in f64 accumulation:
-        // the network is evaluated with tiny perturbations on a small config,
-        // so we use a relative tolerance suited to f32 forward passes.
-        let grid = HashGridConfig { levels: 3, log2_table: 6, base_resolution: 2, finest_resolution: 8 };
-        let mut layout = ParamLayout::default();
-        let nets = Nets::new(&mut layout, grid, 8, 4);
-        let mut rng = Rng::new(5);
-        let mut params = vec![0.0f32; layout.len];
-        for l in [&nets.d1, &nets.d2, &nets.c1, &nets.c2, &nets.c3] {
-            l.init(&mut params, &mut rng);
-        }
-        for p in params.iter_mut() {
-            *p += 0.3 * rng.normal();
-        }
-        let n = 4;
-        let unit: Vec<f32> = (0..n * 3).map(|_| rng.f32()).collect();
-        let dirs: Vec<f32> = (0..n).flat_map(|i| [0.6f32, 0.1 * i as f32, 0.8]).collect();
-        let gs: Vec<f32> = (0..n).map(|_| rng.normal() * 0.1).collect();
-        let gc: Vec<f32> = (0..n * 3).map(|_| rng.normal()).collect();
-        let run = |p: &[f32]| -> (f64, Ctx) {
-            let mut c = Ctx { n, unit: unit.clone(), ..Default::default() };
-            nets.forward_density(p, &mut c);
-            nets.forward_color(p, &dirs, &mut c);
-            let v = c.sigma.iter().zip(&gs).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>()
-                + c.rgb.iter().zip(&gc).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>();
-            (v, c)
-        };
-        let (_, mut c) = run(&params);
-        let mut grads = vec![0.0f32; layout.len];
-        nets.backward(&params, &mut c, &gs, &gc, &mut grads, None);
-        let mut checked = 0;
-        for (name, range) in &layout.names {
-            for i in range.clone() {
-                let h = 1e-3f32 * (1.0 + params[i].abs());
-                let mut p = params.clone();
-                p[i] += h;
-                let fp = run(&p).0;
-                p[i] -= 2.0 * h;
-                let fm = run(&p).0;
-                let num = (fp - fm) / (2.0 * h as f64);
-                let ana = grads[i] as f64;
-                assert!((num - ana).abs() < 2e-3 + 2e-2 * num.abs(), "{name}[{i}]: numeric {num}, analytic {ana}");
-                checked += 1;
-            }
-        }
-        assert!(checked > 200);
-    }
 
     /// Random points of the box `lo..hi` whose unit-cube coordinates keep
     /// `margin` cells clear of the cell faces of every resolution up to

@@ -16,11 +16,15 @@
 //! scenes that do not fit a box (contraction, NDC), with their gradients.
 //! The real-capture model's fields work in that mapped space: `capture`
 //! (the hash-grid field with a per-image appearance) and `proposal` (the
-//! small density-only networks that place its samples).
+//! small density-only networks that place its samples). `hash_grid` and
+//! `capture` are built on the same networks (`nets`: hash grid, density
+//! MLP, colour MLP), each with its own map into the grid's cube and its
+//! own additions.
 
 pub mod capture;
 pub mod hash_grid;
 pub mod mlp;
+mod nets;
 pub mod proposal;
 pub mod space;
 

@@ -10,7 +10,8 @@
 //! field's (nerfacto's `average_init_density · trunc_exp`), with the same
 //! straight-through derivative `dσ/draw = σ`; zero outside an NDC frustum.
 
-use super::capture::{density_activation, to_grid};
+use super::capture::to_grid;
+use super::nets::density_activation;
 use super::size;
 use super::space::SpaceMap;
 use crate::engine::nn::hashgrid::{HalfTable, HashGrid, HashGridConfig};
