@@ -79,7 +79,10 @@ fn screen_grads(cam: &RasterCamera, opt: &RasterOptions, frame: &Frame, d_rgb: &
         slices.push(a);
         rest = b;
     }
-    slices.into_par_iter().enumerate().for_each(|(t, out)| tile::tile_backward(cam, opt, frame, d_rgb, t, out));
+    slices
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(t, out)| tile::tile_backward(tile::BackwardTile { cam, opt, frame, d_rgb, t }, out));
     let mut screen = vec![[0.0f32; 9]; n];
     for (&k, e) in frame.list.iter().zip(&entries) {
         let s = &mut screen[frame.order[k as usize] as usize];

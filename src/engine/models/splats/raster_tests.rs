@@ -415,11 +415,11 @@ fn the_polynomial_exp_is_within_two_ulp_of_f64s() {
 }
 
 #[test]
-fn the_vector_tile_loops_give_the_portable_ones_bits() {
-    // `composite_tile` and `tile_backward` pick the AVX2 build where the
-    // CPU has it; `*_any` called from here is the portable build.
+fn the_vector_backward_gives_the_portable_ones_bits() {
+    // `tile_backward` picks the AVX2 build where the CPU has it;
+    // `tile_backward_any` called from here is the portable build.
     use super::backward::ScreenGrad;
-    use super::tile;
+    use super::tile::{self, BackwardTile};
     let scene = unit_scene();
     let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 53, 41, 40.0), &scene);
     let opt = RasterOptions::default();
@@ -427,20 +427,16 @@ fn the_vector_tile_loops_give_the_portable_ones_bits() {
     let f = forward(&l, &p, &cam, &opt, [0.2, 0.5, 0.9]);
     let mut rng = Rng::new(3);
     let d_rgb: Vec<f32> = f.rgb.iter().map(|_| rng.normal()).collect();
-    let mut drawn = 0;
+    let mut nonzero = 0;
     for t in 0..f.tile_ranges.len() {
-        let (a, b) = (tile::composite_tile(&f, &cam, &opt, t), tile::composite_tile_any(&f, &cam, &opt, t));
-        for (x, y) in a.pixels.iter().zip(&b.pixels) {
-            let bits = |p: &tile::PixelOut| (p.rgb.map(f32::to_bits), p.depth.to_bits(), p.t.to_bits(), p.last);
-            assert_eq!(bits(x), bits(y), "tile {t}");
-            drawn += usize::from(x.last > 0);
-        }
         let n = f.tile_ranges[t].len();
         let (mut ga, mut gb) = (vec![[0.0f32; 9]; n], vec![[0.0f32; 9]; n]);
-        tile::tile_backward(&cam, &opt, &f, &d_rgb, t, &mut ga);
-        tile::tile_backward_any(&cam, &opt, &f, &d_rgb, t, &mut gb);
+        let job = BackwardTile { cam: &cam, opt: &opt, frame: &f, d_rgb: &d_rgb, t };
+        tile::tile_backward(job, &mut ga);
+        tile::tile_backward_any(job, &mut gb);
         let bits = |g: &Vec<ScreenGrad>| g.iter().flat_map(|e| e.map(f32::to_bits)).collect::<Vec<_>>();
         assert_eq!(bits(&ga), bits(&gb), "tile {t}");
+        nonzero += ga.iter().filter(|e| e.iter().any(|&v| v != 0.0)).count();
     }
-    assert!(drawn > 500, "the scene is in view: {drawn} pixels drawn");
+    assert!(nonzero > 100, "the scene is in view: {nonzero} entries with a gradient");
 }

@@ -6,9 +6,11 @@
 //! stop the vectorising), and a mask says which pixels take it. The rule of
 //! what a Gaussian adds to a pixel is the module docs' of `raster`, exactly.
 //!
-//! On x86-64 with AVX2 and FMA the same code is compiled a second time for
-//! those instructions and chosen at run time (as `nn::gemm` does); a test
-//! checks that both give the same bits.
+//! On x86-64 with AVX2 and FMA the backward's code is compiled a second
+//! time for those instructions and chosen at run time (as `nn::gemm`
+//! does); a test checks that both give the same bits. The forward walks
+//! each Gaussian's box pixel by pixel instead (most boxes are a few pixels
+//! wide, where a row of lanes would mostly compute nothing).
 
 use super::backward::ScreenGrad;
 use super::raster::{Frame, MAX_ALPHA, RasterCamera, RasterOptions, Splat2D, TILE};
@@ -104,22 +106,6 @@ fn centres(x0: usize) -> [[f32; L]; CHUNKS] {
 
 /// The forward of tile `t`: its pixels, composited front to back.
 pub fn composite_tile(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
-    #[cfg(target_arch = "x86_64")]
-    if crate::engine::nn::gemm::has_avx2_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { composite_tile_avx2(frame, cam, opt, t) };
-    }
-    composite_tile_any(frame, cam, opt, t)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn composite_tile_avx2(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
-    composite_tile_any(frame, cam, opt, t)
-}
-
-#[inline(always)]
-pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
     // Pixel by pixel over each Gaussian's box: most boxes are a few pixels
     // wide, where a row of lanes would mostly compute nothing (lego, 81k
     // Gaussians at 200x200: 30-40 ms a view so, 58-62 ms by lanes).
@@ -214,47 +200,38 @@ fn back_lanes(frame: &Frame, d_rgb: &[f32], [x0, x1, y0, y1]: [usize; 4]) -> (Ve
     (lanes, deepest)
 }
 
-/// The backward of tile `t`: each entry of its list gets its screen
+/// What a tile's backward reads: the view, its rules, the loss's gradient
+/// with respect to its colours (`[h x w x 3]`) and the tile's number.
+#[derive(Clone, Copy)]
+pub struct BackwardTile<'a> {
+    pub cam: &'a RasterCamera,
+    pub opt: &'a RasterOptions,
+    pub frame: &'a Frame,
+    pub d_rgb: &'a [f32],
+    pub t: usize,
+}
+
+/// The backward of a tile: each entry of its list gets its screen
 /// gradient in `out` (the 3DGS paper's walk back to front, which divides
 /// the transmittance back out instead of storing it).
-pub fn tile_backward(
-    cam: &RasterCamera,
-    opt: &RasterOptions,
-    frame: &Frame,
-    d_rgb: &[f32],
-    t: usize,
-    out: &mut [ScreenGrad],
-) {
+pub fn tile_backward(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
     #[cfg(target_arch = "x86_64")]
     if crate::engine::nn::gemm::has_avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { tile_backward_avx2(cam, opt, frame, d_rgb, t, out) };
+        return unsafe { tile_backward_avx2(job, out) };
     }
-    tile_backward_any(cam, opt, frame, d_rgb, t, out)
+    tile_backward_any(job, out)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn tile_backward_avx2(
-    cam: &RasterCamera,
-    opt: &RasterOptions,
-    frame: &Frame,
-    d_rgb: &[f32],
-    t: usize,
-    out: &mut [ScreenGrad],
-) {
-    tile_backward_any(cam, opt, frame, d_rgb, t, out)
+unsafe fn tile_backward_avx2(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
+    tile_backward_any(job, out)
 }
 
 #[inline(always)]
-pub(super) fn tile_backward_any(
-    cam: &RasterCamera,
-    opt: &RasterOptions,
-    frame: &Frame,
-    d_rgb: &[f32],
-    t: usize,
-    out: &mut [ScreenGrad],
-) {
+pub(super) fn tile_backward_any(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
+    let BackwardTile { cam, opt, frame, d_rgb, t } = job;
     let rect @ [x0, x1, y0, y1] = tile_rect(cam, t);
     let list = &frame.list[frame.tile_ranges[t].clone()];
     let (mut lanes, deepest) = back_lanes(frame, d_rgb, rect);
