@@ -31,7 +31,7 @@ use std::time::Instant;
 
 use crate::engine::batch::RayOutput;
 use crate::engine::dataset::{Dataset, Split};
-use crate::engine::geometry::math::Ray;
+use crate::engine::geometry::math::{Ray, Vec3};
 use crate::engine::models::splats::backward::backward;
 use crate::engine::models::splats::gaussians::{Layout, SH_C0};
 use crate::engine::models::splats::lens;
@@ -212,6 +212,8 @@ struct Baker<'a> {
     adam: Adam,
     /// Each training photo's colours on the dataset's background.
     targets: Vec<Vec<f32>>,
+    /// How many values of each target are not NaN (the loss's divisor).
+    valid: Vec<usize>,
     /// The photos left in this epoch (shuffled).
     order: Vec<usize>,
     /// Per Gaussian: the sum of its screen-space gradient norms and the
@@ -239,7 +241,7 @@ impl<'a> Baker<'a> {
         let adam_config = AdamConfig { lr: BASE_LR, lr_end: BASE_LR, beta1: 0.9, beta2: 0.999, eps: 1e-15 };
         let adam = Adam::new(adam_config, model.params().len());
         let bg = ds.background;
-        let targets = frames
+        let targets: Vec<Vec<f32>> = frames
             .iter()
             .map(|&f| {
                 let im = &ds.frames[f].image;
@@ -259,6 +261,7 @@ impl<'a> Baker<'a> {
             settings,
             model,
             adam,
+            valid: targets.iter().map(|t| t.iter().filter(|v| !v.is_nan()).count()).collect(),
             targets,
             order: Vec::new(),
             grad_accum: vec![(0.0, 0); n],
@@ -284,7 +287,7 @@ impl<'a> Baker<'a> {
         let opt = RasterOptions::default();
         let f = forward(&l, self.model.params(), &cam, &opt, self.ds.background);
         let target = &self.targets[which];
-        let n = target.iter().filter(|t| !t.is_nan()).count().max(1) as f32;
+        let n = self.valid[which].max(1) as f32;
         let mut sq = 0.0f64;
         let d_rgb: Vec<f32> = f
             .rgb
@@ -346,7 +349,7 @@ fn place(
     let mut rng = Rng::new(settings.seed);
     let scene = source.scene();
     let cams: Vec<RasterCamera> = frames.iter().map(|&f| RasterCamera::new(&ds.frames[f].camera, scene)).collect();
-    let far = FAR_RADIUS * cams.iter().map(|c| norm(c.origin)).fold(0.0f32, f32::max);
+    let far = FAR_RADIUS * cams.iter().map(|c| Vec3::from_array(c.origin).norm()).fold(0.0f32, f32::max);
     let (mut placed, mut owners, mut grids) = (Vec::new(), Vec::new(), Vec::new());
     for (k, &f) in frames.iter().enumerate() {
         if cancel.load(Ordering::Relaxed) {
@@ -375,10 +378,6 @@ fn place(
         };
     }
     Ok(parameters(&placed, settings.splats.sh_degree))
-}
-
-fn norm(v: [f32; 3]) -> f32 {
-    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
 }
 
 /// Renders the field's rays through a jittered grid of photo `f`'s pixels
@@ -434,10 +433,8 @@ fn sample_photo(
 /// Where model-space ray `r` leaves the sphere of radius `radius` around
 /// the centre (infinite for a ray starting outside it).
 fn exit_distance(r: &Ray, radius: f32) -> f32 {
-    let (o, d) = (r.origin.to_array(), r.dir.to_array());
-    let b = o[0] * d[0] + o[1] * d[1] + o[2] * d[2];
-    let dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-    let c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - radius * radius;
+    let (b, dd) = (r.origin.dot(r.dir), r.dir.dot(r.dir));
+    let c = r.origin.dot(r.origin) - radius * radius;
     if c >= 0.0 || dd == 0.0 {
         return f32::INFINITY;
     }
@@ -505,7 +502,7 @@ fn carve(placed: Vec<Placed>, owners: &[u32], grids: &[DepthGrid], cams: &[Raste
                         nearest = nearest.min(d);
                     }
                 }
-                let dist = (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt();
+                let dist = Vec3::from_array(t).norm();
                 if known && dist < CARVE_MARGIN * nearest {
                     return false;
                 }
@@ -635,7 +632,6 @@ fn densify(
 mod tests {
     use super::*;
     use crate::engine::geometry::camera::{Camera, look_at};
-    use crate::engine::geometry::math::Vec3;
     use crate::engine::geometry::scene::Scene;
 
     #[test]
