@@ -120,7 +120,7 @@ pub(crate) struct WriteGate {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use std::sync::mpsc;
     use std::time::Duration;
 
@@ -139,7 +139,9 @@ mod tests {
         Scheduler::open(storage, SchedulerConfig { run_jobs: false, ..Default::default() }).unwrap()
     }
 
-    fn train_spec() -> JobSpec {
+    /// A one-step training job of the tiny classic model (also the
+    /// retention tests').
+    pub(in crate::jobs) fn train_spec() -> JobSpec {
         JobSpec::Train(Box::new(TrainSpec {
             scene_id: "scn_a".into(),
             model: "nerf-tiny".into(),

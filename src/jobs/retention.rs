@@ -140,24 +140,13 @@ fn strip_model(shared: &Shared, id: &str) -> Result<Option<u64>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::front::ModelConfig;
-    use crate::jobs::{JobBudget, JobProgress, Status, TrainSpec, VideoSpec};
+    use crate::jobs::{JobProgress, Status, VideoSpec};
     use crate::media::video::VideoFormat;
     use crate::records::ViewDefaults;
 
     fn job(id: &str, status: Status, train: bool, model_id: Option<&str>) -> Job {
         let spec = if train {
-            JobSpec::Train(Box::new(TrainSpec {
-                scene_id: "scn_a".into(),
-                model: "nerf-tiny".into(),
-                config: ModelConfig::preset("nerf-tiny").unwrap(),
-                budget: JobBudget { steps: Some(1), ..Default::default() },
-                seed: 0,
-                batch_rays: 64,
-                masks: Default::default(),
-                model_reason: None,
-                bake: None,
-            }))
+            crate::jobs::journal::tests::train_spec()
         } else {
             let format = VideoFormat::Gif;
             JobSpec::Video(VideoSpec {
