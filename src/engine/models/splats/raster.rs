@@ -177,11 +177,55 @@ pub struct Splat2D {
     pub rgb: [f32; 3],
     pub dist: f32,
     pub extent: [f32; 2],
+    /// Where the rows' spans lie: on the row `dy` below the mean, the
+    /// pixels whose alpha reaches `min_alpha` are those `dx` with `(dx -
+    /// shift dy)² <= spread (reach - dy² / Σ'yy)`, the 2D Gaussian's
+    /// conditional mean and variance of x given y (`shift = Σ'xy / Σ'yy`,
+    /// `spread = det Σ' / Σ'yy`) and `reach = 2 ln(o / min_alpha)`; the
+    /// last is kept as `reach - dy² / Σ'yy` at `dy = 0` and `1 / Σ'yy`.
+    pub shift: f32,
+    pub spread: f32,
+    pub reach: f32,
+    pub inv_yy: f32,
 }
 
 impl Splat2D {
-    fn of(p: &Projected) -> Self {
-        Self { mean: p.mean, conic: p.conic, opacity: p.opacity, rgb: p.rgb, dist: p.dist, extent: p.extent }
+    fn of(p: &Projected, min_alpha: f32) -> Self {
+        let [xx, xy, yy] = p.cov;
+        Self {
+            mean: p.mean,
+            conic: p.conic,
+            opacity: p.opacity,
+            rgb: p.rgb,
+            dist: p.dist,
+            extent: p.extent,
+            shift: xy / yy,
+            spread: (xx * yy - xy * xy) / yy,
+            reach: 2.0 * (p.opacity / min_alpha).ln(),
+            inv_yy: 1.0 / yy,
+        }
+    }
+
+    /// The columns `[x0, x1)` of the row whose centres lie `dy` below the
+    /// mean that may take this Gaussian: a superset, by at least a pixel,
+    /// of those whose alpha reaches `min_alpha` (f32's rounding of the
+    /// span is far below that), within `[lo, hi)`.
+    #[inline(always)]
+    pub fn row_span(&self, dy: f32, lo: usize, hi: usize) -> (usize, usize) {
+        let room = self.reach - dy * dy * self.inv_yy;
+        if room.is_nan() {
+            // Take the whole row, whose pixels the exact rule then judges.
+            return (lo, hi);
+        }
+        if room < 0.0 {
+            // No pixel of the row reaches min_alpha.
+            return (lo, lo);
+        }
+        let half = (self.spread * room).sqrt() * 1.001 + 1.0;
+        let c = self.mean[0] + self.shift * dy - 0.5;
+        let x0 = (c - half).ceil().max(lo as f32) as usize;
+        let x1 = ((c + half).floor() + 1.0).max(0.0) as usize;
+        (x0.max(lo), x1.min(hi))
     }
 
     pub fn pixel_rect(&self, width: usize, height: usize) -> [usize; 4] {
@@ -218,6 +262,13 @@ pub fn project(
     p.cov = cov;
     p.mean = [cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy];
     p.extent = [r * cov[0].sqrt(), r * cov[2].sqrt()];
+    let rect = p.pixel_rect(cam.width as usize, cam.height as usize);
+    p.visible = rect[0] < rect[1] && rect[2] < rect[3] && p.mean.iter().all(|m| m.is_finite());
+    if !p.visible {
+        // Nothing is drawn of it: its colour (the spherical harmonics, the
+        // dearest part of a projection) is not needed.
+        return p;
+    }
     let dir = [g.mean[0] - cam.origin[0], g.mean[1] - cam.origin[1], g.mean[2] - cam.origin[2]];
     p.dist = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
     let rgb = sh_colour(&g, layout.k, dir, basis);
@@ -228,8 +279,6 @@ pub fn project(
         }
         p.rgb[c] = rgb[c].max(0.0);
     }
-    let rect = p.pixel_rect(cam.width as usize, cam.height as usize);
-    p.visible = rect[0] < rect[1] && rect[2] < rect[3] && p.mean.iter().all(|m| m.is_finite());
     p
 }
 
@@ -322,8 +371,7 @@ pub fn forward(
     background: [f32; 3],
 ) -> Frame {
     let projected = project_all(layout, params, cam, opt);
-    let (order, tile_ranges, list) = bin(&projected, cam);
-    let drawn = order.iter().map(|&i| Splat2D::of(&projected[i as usize])).collect();
+    let Binned { order, drawn, tile_ranges, list } = bin(&projected, cam, opt);
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut frame = Frame {
         width: w,
@@ -342,21 +390,29 @@ pub fn forward(
     };
     let tiles: Vec<TileOut> =
         (0..frame.tile_ranges.len()).into_par_iter().map(|t| tile::composite_tile(&frame, cam, opt, t)).collect();
-    let tx = cam.tiles_x();
-    for (t, out) in tiles.iter().enumerate() {
-        let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
-        for (k, p) in out.pixels.iter().enumerate() {
-            let (x, y) = (x0 + k % out.w, y0 + k / out.w);
-            let i = y * w + x;
-            for c in 0..3 {
-                frame.rgb[3 * i + c] = p.rgb[c] + p.t * background[c];
+    // Each row of tiles writes its own band of the image.
+    let (tx, band) = (cam.tiles_x(), TILE * w);
+    let Frame { rgb, depth, opacity, last, final_t, .. } = &mut frame;
+    rgb.par_chunks_mut(3 * band)
+        .zip(depth.par_chunks_mut(band))
+        .zip(opacity.par_chunks_mut(band))
+        .zip(last.par_chunks_mut(band))
+        .zip(final_t.par_chunks_mut(band))
+        .zip(tiles.par_chunks(tx))
+        .for_each(|(((((rgb, depth), opacity), last), final_t), row)| {
+            for (j, out) in row.iter().enumerate() {
+                for (k, p) in out.pixels.iter().enumerate() {
+                    let i = (k / out.w) * w + j * TILE + k % out.w;
+                    for c in 0..3 {
+                        rgb[3 * i + c] = p.rgb[c] + p.t * background[c];
+                    }
+                    depth[i] = p.depth;
+                    opacity[i] = 1.0 - p.t;
+                    final_t[i] = p.t;
+                    last[i] = p.last;
+                }
             }
-            frame.depth[i] = p.depth;
-            frame.opacity[i] = 1.0 - p.t;
-            frame.final_t[i] = p.t;
-            frame.last[i] = p.last;
-        }
-    }
+        });
     frame
 }
 
@@ -368,20 +424,38 @@ pub fn project_all(layout: &Layout, params: &[f32], cam: &RasterCamera, opt: &Ra
         .collect()
 }
 
+/// A view's drawn Gaussians, sorted and binned into tiles ([`bin`]).
+pub struct Binned {
+    /// The visible Gaussians, front to back.
+    pub order: Vec<u32>,
+    /// Their projections, in that order.
+    pub drawn: Vec<Splat2D>,
+    /// Each tile's range of `list`.
+    pub tile_ranges: Vec<std::ops::Range<usize>>,
+    /// The Gaussians of each tile, front to back, as positions in `order`.
+    pub list: Vec<u32>,
+}
+
 /// Sorts the visible Gaussians by depth (ties by index) and lists them per
-/// tile, front to back: the sorted Gaussians, the tiles' ranges of the
-/// list, and the list (of positions in the sorted Gaussians).
-#[allow(clippy::type_complexity)]
-pub fn bin(projected: &[Projected], cam: &RasterCamera) -> (Vec<u32>, Vec<std::ops::Range<usize>>, Vec<u32>) {
-    let mut order: Vec<u32> = (0..projected.len() as u32).filter(|&i| projected[i as usize].visible).collect();
-    // Depths are positive, so their bits sort as the numbers do.
-    order.par_sort_unstable_by_key(|&i| (projected[i as usize].t[2].to_bits(), i));
+/// tile, front to back.
+pub fn bin(projected: &[Projected], cam: &RasterCamera, opt: &RasterOptions) -> Binned {
+    // Depths are positive, so their bits sort as the numbers do: a key of
+    // the depth's bits over the index sorts by depth, ties by index.
+    let mut keys: Vec<u64> = projected
+        .par_iter()
+        .enumerate()
+        .filter(|(_, p)| p.visible)
+        .map(|(i, p)| (u64::from(p.t[2].to_bits()) << 32) | i as u64)
+        .collect();
+    keys.par_sort_unstable();
+    let order: Vec<u32> = keys.par_iter().map(|&k| k as u32).collect();
+    let drawn: Vec<Splat2D> = order.par_iter().map(|&i| Splat2D::of(&projected[i as usize], opt.min_alpha)).collect();
     let (tx, ty) = (cam.tiles_x(), cam.tiles_y());
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let rects: Vec<[usize; 4]> = order
-        .iter()
-        .map(|&i| {
-            let [x0, x1, y0, y1] = projected[i as usize].pixel_rect(w, h);
+    let rects: Vec<[usize; 4]> = drawn
+        .par_iter()
+        .map(|p| {
+            let [x0, x1, y0, y1] = p.pixel_rect(w, h);
             [x0 / TILE, (x1 - 1) / TILE + 1, y0 / TILE, (y1 - 1) / TILE + 1]
         })
         .collect();
@@ -396,9 +470,9 @@ pub fn bin(projected: &[Projected], cam: &RasterCamera) -> (Vec<u32>, Vec<std::o
     for t in 0..tx * ty {
         count[t + 1] += count[t];
     }
-    let ranges: Vec<_> = (0..tx * ty).map(|t| count[t]..count[t + 1]).collect();
+    let tile_ranges: Vec<_> = (0..tx * ty).map(|t| count[t]..count[t + 1]).collect();
     let mut next = count;
-    let mut list = vec![0u32; ranges.last().map_or(0, |r| r.end)];
+    let mut list = vec![0u32; tile_ranges.last().map_or(0, |r| r.end)];
     for (k, r) in rects.iter().enumerate() {
         for y in r[2]..r[3] {
             for x in r[0]..r[1] {
@@ -408,5 +482,5 @@ pub fn bin(projected: &[Projected], cam: &RasterCamera) -> (Vec<u32>, Vec<std::o
             }
         }
     }
-    (order, ranges, list)
+    Binned { order, drawn, tile_ranges, list }
 }

@@ -440,3 +440,66 @@ fn the_vector_backward_gives_the_portable_ones_bits() {
     }
     assert!(nonzero > 100, "the scene is in view: {nonzero} entries with a gradient");
 }
+
+#[test]
+fn the_vector_forward_gives_the_portable_ones_bits() {
+    // `composite_tile` picks the AVX2 build where the CPU has it;
+    // `composite_tile_any` called from here is the portable build.
+    use super::tile;
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 53, 41, 40.0), &scene);
+    let opt = RasterOptions::default();
+    let (l, p) = random_gaussians(200, 3, 7, 0.99);
+    let f = forward(&l, &p, &cam, &opt, [0.2, 0.5, 0.9]);
+    let mut taken = 0;
+    for t in 0..f.tile_ranges.len() {
+        let (a, b) = (tile::composite_tile(&f, &cam, &opt, t), tile::composite_tile_any(&f, &cam, &opt, t));
+        let bits = |o: &tile::TileOut| {
+            o.pixels
+                .iter()
+                .flat_map(|p| [p.rgb[0], p.rgb[1], p.rgb[2], p.depth, p.t].map(f32::to_bits))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(bits(&a), bits(&b), "tile {t}");
+        assert_eq!(
+            a.pixels.iter().map(|p| p.last).collect::<Vec<_>>(),
+            b.pixels.iter().map(|p| p.last).collect::<Vec<_>>()
+        );
+        taken += a.pixels.iter().filter(|p| p.last > 0).count();
+    }
+    assert!(taken > 500, "the scene is in view: {taken} pixels took a Gaussian");
+}
+
+#[test]
+fn a_rows_span_holds_every_pixel_whose_alpha_reaches_the_cut() {
+    // Against the rule itself, pixel by pixel over each drawn Gaussian's
+    // box, for Gaussians of every opacity, size and tilt, some far off
+    // the view's centre.
+    let scene = unit_scene();
+    let opt = RasterOptions::default();
+    let mut inside = 0;
+    for seed in 0..4 {
+        let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8 + seed as f32], 61, 47, 45.0), &scene);
+        let (l, p) = random_gaussians(300, 1, seed, 0.99);
+        let f = forward(&l, &p, &cam, &opt, [0.0; 3]);
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        for g in &f.drawn {
+            let [x0, x1, y0, y1] = g.pixel_rect(w, h);
+            let [c0, c1, c2] = g.conic;
+            for y in y0..y1 {
+                let dy = y as f32 + 0.5 - g.mean[1];
+                let (s0, s1) = g.row_span(dy, x0, x1);
+                for x in x0..x1 {
+                    let dx = x as f32 + 0.5 - g.mean[0];
+                    let power = -0.5 * (c0 * dx * dx + c2 * dy * dy) - c1 * dx * dy;
+                    let a = (g.opacity * (power as f64).exp() as f32).min(super::raster::MAX_ALPHA);
+                    if power <= 0.0 && a >= opt.min_alpha * 0.999 {
+                        inside += 1;
+                        assert!((s0..s1).contains(&x), "pixel ({x}, {y}), alpha {a}, outside the span {s0}..{s1}");
+                    }
+                }
+            }
+        }
+    }
+    assert!(inside > 2000, "{inside} pixels checked");
+}

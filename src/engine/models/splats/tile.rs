@@ -1,16 +1,18 @@
 //! The per-tile inner loops of the rasteriser (`raster::forward`) and of
-//! its backward (`backward::backward`), written a row of [`TILE`] pixels
-//! at a time with no branches inside a row, so that the compiler turns each
-//! row into a few vector instructions: every pixel of the row computes its
-//! alpha (with [`exp_neg`], a polynomial `exp`, where `libm`'s call would
-//! stop the vectorising), and a mask says which pixels take it. The rule of
-//! what a Gaussian adds to a pixel is the module docs' of `raster`, exactly.
+//! its backward (`backward::backward`), written in chunks of [`L`] pixels
+//! of a row with no branches inside a chunk, so that the compiler turns
+//! each into a few vector instructions: every pixel of the chunk computes
+//! its alpha (with [`exp_neg`], a polynomial `exp`, where `libm`'s call
+//! would stop the vectorising), and a mask says which pixels take it. The
+//! rule of what a Gaussian adds to a pixel is the module docs' of
+//! `raster`, exactly.
 //!
-//! On x86-64 with AVX2 and FMA the backward's code is compiled a second
-//! time for those instructions and chosen at run time (as `nn::gemm`
-//! does); a test checks that both give the same bits. The forward walks
-//! each Gaussian's box pixel by pixel instead (most boxes are a few pixels
-//! wide, where a row of lanes would mostly compute nothing).
+//! Both walk, on each row a Gaussian reaches, only the span of columns
+//! whose alpha may reach `min_alpha` ([`Splat2D::row_span`]): most
+//! Gaussians are a few pixels wide, and a chunk then holds the whole span.
+//! On x86-64 with AVX2 and FMA the code is compiled a second time for
+//! those instructions and chosen at run time (as `nn::gemm` does); tests
+//! check that both builds give the same bits.
 
 use super::backward::ScreenGrad;
 use super::raster::{Frame, MAX_ALPHA, RasterCamera, RasterOptions, Splat2D, TILE};
@@ -104,58 +106,165 @@ fn centres(x0: usize) -> [[f32; L]; CHUNKS] {
     std::array::from_fn(|h| std::array::from_fn(|k| (x0 + h * L + k) as f32 + 0.5))
 }
 
+/// Columns a row of the forward's tile state holds: a chunk of [`L`]
+/// lanes may start at any of the tile's columns.
+const ROW: usize = TILE + L;
+
+/// The forward's state of a tile's pixels, row by row ([`ROW`] apart; the
+/// columns past the tile's are never taken): transmittance, colour, depth,
+/// how many of the tile's list the pixel took, and whether it still takes
+/// any (1.0) or its transmittance would have fallen too low (0.0).
+struct Composite {
+    t: [f32; TILE * ROW],
+    rgb: [[f32; TILE * ROW]; 3],
+    depth: [f32; TILE * ROW],
+    last: [u32; TILE * ROW],
+    live: [f32; TILE * ROW],
+}
+
 /// The forward of tile `t`: its pixels, composited front to back.
 pub fn composite_tile(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
-    // Pixel by pixel over each Gaussian's box: most boxes are a few pixels
-    // wide, where a row of lanes would mostly compute nothing (lego, 81k
-    // Gaussians at 200x200: 30-40 ms a view so, 58-62 ms by lanes).
+    #[cfg(target_arch = "x86_64")]
+    if crate::engine::nn::gemm::has_avx2_fma() {
+        // SAFETY: the CPU has the features the function is compiled for.
+        return unsafe { composite_tile_avx2(frame, cam, opt, t) };
+    }
+    composite_tile_any(frame, cam, opt, t)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn composite_tile_avx2(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
+    composite_tile_any(frame, cam, opt, t)
+}
+
+/// The forward of tile `t`, walked a Gaussian at a time over the rows it
+/// reaches; on each row, only the span whose alpha may reach `min_alpha`
+/// ([`Splat2D::row_span`]), in chunks of [`L`] lanes from its first column.
+#[inline(always)]
+pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
     let [x0, x1, y0, y1] = tile_rect(cam, t);
     let w = x1 - x0;
-    let mut px = vec![PixelOut { t: 1.0, ..Default::default() }; w * (y1 - y0)];
-    let mut live = vec![true; px.len()];
-    let mut n_live = px.len();
+    let mut st = Box::new(Composite {
+        t: [1.0; TILE * ROW],
+        rgb: [[0.0; TILE * ROW]; 3],
+        depth: [0.0; TILE * ROW],
+        last: [0; TILE * ROW],
+        live: [1.0; TILE * ROW],
+    });
+    let mut n_live = w * (y1 - y0);
     let (width, height) = (cam.width as usize, cam.height as usize);
-    for (pos, &g) in frame.list[frame.tile_ranges[t].clone()].iter().enumerate() {
+    let half: [f32; L] = std::array::from_fn(|k| k as f32 + 0.5);
+    let list = &frame.list[frame.tile_ranges[t].clone()];
+    for (pos, &g) in list.iter().enumerate() {
         if n_live == 0 {
             break;
         }
+        // The list's Gaussians lie far apart in `drawn`: ask for one a few
+        // places ahead while this one is drawn.
+        if let Some(&ahead) = list.get(pos + PREFETCH) {
+            prefetch(&frame.drawn[ahead as usize]);
+        }
         let p = &frame.drawn[g as usize];
         let [gx0, gx1, gy0, gy1] = p.pixel_rect(width, height);
-        let [c0, c1, c2] = p.conic;
         for y in gy0.max(y0)..gy1.min(y1) {
             let dy = y as f32 + 0.5 - p.mean[1];
             if dy.abs() > p.extent[1] {
                 continue;
             }
-            for x in gx0.max(x0)..gx1.min(x1) {
-                let k = (y - y0) * w + (x - x0);
-                let dx = x as f32 + 0.5 - p.mean[0];
-                let power = -0.5 * (c0 * dx * dx + c2 * dy * dy) - c1 * dx * dy;
-                if !live[k] || dx.abs() > p.extent[0] || power > 0.0 {
-                    continue;
-                }
-                let a = (p.opacity * exp_neg(power)).min(MAX_ALPHA);
-                if a < opt.min_alpha {
-                    continue;
-                }
-                let o = &mut px[k];
-                let next_t = o.t * (1.0 - a);
-                if next_t < opt.min_transmittance {
-                    live[k] = false;
-                    n_live -= 1;
-                    continue;
-                }
-                let wgt = a * o.t;
-                for c in 0..3 {
-                    o.rgb[c] += wgt * p.rgb[c];
-                }
-                o.depth += wgt * p.dist;
-                o.t = next_t;
-                o.last = pos as u32 + 1;
+            let (sx0, sx1) = p.row_span(dy, gx0.max(x0), gx1.min(x1));
+            let mut x = sx0;
+            while x < sx1 {
+                let base = (y - y0) * ROW + (x - x0);
+                let xs: [f32; L] = std::array::from_fn(|k| x as f32 + half[k]);
+                n_live -= composite_lanes(p, &mut st, base, &xs, sx1 - x, dy, pos as u32 + 1, opt);
+                x += L;
             }
         }
     }
-    TileOut { w, pixels: px }
+    let mut pixels = Vec::with_capacity(w * (y1 - y0));
+    for r in 0..y1 - y0 {
+        for k in r * ROW..r * ROW + w {
+            let rgb = [st.rgb[0][k], st.rgb[1][k], st.rgb[2][k]];
+            pixels.push(PixelOut { rgb, depth: st.depth[k], t: st.t[k], last: st.last[k] });
+        }
+    }
+    TileOut { w, pixels }
+}
+
+/// How many places of a tile's list ahead the forward asks for a
+/// Gaussian's projection.
+const PREFETCH: usize = 8;
+
+/// Asks the CPU to bring `p` into its cache (a hint only).
+#[inline(always)]
+fn prefetch(p: &Splat2D) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch reads nothing and changes nothing; its address is
+    // a reference's.
+    #[allow(unused_unsafe)]
+    unsafe {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        _mm_prefetch::<_MM_HINT_T0>((p as *const Splat2D).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
+/// Composites Gaussian `p` over the first `n` of the [`L`] pixels from
+/// `base` of the tile's state (centres `xs`, `dy` below its mean), with no
+/// branches: the rule of the module docs, lane by lane. `took` is what a
+/// pixel's `last` becomes where it takes `p`. Returns how many pixels
+/// stopped taking Gaussians.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn composite_lanes(
+    p: &Splat2D,
+    st: &mut Composite,
+    base: usize,
+    xs: &[f32; L],
+    n: usize,
+    dy: f32,
+    took: u32,
+    opt: &RasterOptions,
+) -> usize {
+    let lanes = base..base + L;
+    fn get<T: Copy + Default>(v: &[T]) -> [T; L] {
+        let mut out = [T::default(); L];
+        out.copy_from_slice(&v[..L]);
+        out
+    }
+    let [a, _, _] = lanes_alpha(p, xs, dy, (0, n), opt.min_alpha);
+    let (mut t, mut live, mut last) =
+        (get(&st.t[lanes.clone()]), get(&st.live[lanes.clone()]), get(&st.last[lanes.clone()]));
+    let mut depth = get(&st.depth[lanes.clone()]);
+    let mut rgb = [0, 1, 2].map(|c| get(&st.rgb[c][lanes.clone()]));
+    let mut stopped = [0.0f32; L];
+    // Arithmetic where it gives the same bits as a choice (colours and
+    // depths only grow from 0, and `x (1 - 0) = x`), so that the loop
+    // vectorises.
+    for k in 0..L {
+        let a1 = a[k] * live[k];
+        let stop = t[k] * (1.0 - a1) < opt.min_transmittance;
+        let a2 = if stop { 0.0 } else { a1 };
+        let wgt = a2 * t[k];
+        for c in 0..3 {
+            rgb[c][k] += wgt * p.rgb[c];
+        }
+        depth[k] += wgt * p.dist;
+        t[k] *= 1.0 - a2;
+        last[k] = if a2 != 0.0 { took } else { last[k] };
+        stopped[k] = if stop { 1.0 } else { 0.0 };
+        live[k] = if stop { 0.0 } else { live[k] };
+    }
+    st.t[lanes.clone()].copy_from_slice(&t);
+    st.live[lanes.clone()].copy_from_slice(&live);
+    st.last[lanes.clone()].copy_from_slice(&last);
+    st.depth[lanes.clone()].copy_from_slice(&depth);
+    for c in 0..3 {
+        st.rgb[c][lanes.clone()].copy_from_slice(&rgb[c]);
+    }
+    stopped.iter().sum::<f32>() as usize
 }
 
 /// Per-pixel state of the backward's walk, back to front (a chunk of
@@ -239,10 +348,12 @@ pub(super) fn tile_backward_any(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
     for pos in (0..deepest).rev() {
         let p = &frame.drawn[list[pos] as usize];
         let [gx0, gx1, gy0, gy1] = p.pixel_rect(frame.width, frame.height);
-        let cols = (gx0.max(x0) - x0, gx1.min(x1).saturating_sub(x0));
         let mut e = [[0.0f32; L]; 9];
         for y in gy0.max(y0)..gy1.min(y1) {
             let dy = y as f32 + 0.5 - p.mean[1];
+            // Lanes outside the row's span take nothing and add nothing.
+            let (sx0, sx1) = p.row_span(dy, gx0.max(x0), gx1.min(x1));
+            let cols = (sx0.saturating_sub(x0), sx1.saturating_sub(x0));
             for (h, on_lanes) in chunks(cols) {
                 let s = &mut lanes[(y - y0) * CHUNKS + h];
                 let [a, raw, dx] = lanes_alpha(p, &xs[h], dy, on_lanes, opt.min_alpha);
