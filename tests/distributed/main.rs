@@ -6,13 +6,15 @@
 //! mid-training (`failover`, on `file://` and on S3), what API nodes serve
 //! and a cancel reaching the worker (`api_nodes`, on `file://` and on S3),
 //! SIGTERM and a frozen worker's self-fence (`fencing`), readiness and
-//! start-up (`ready`), an API node killed mid-upload to S3 (`upload`); and,
+//! start-up (`ready`), an API node killed mid-upload to S3 (`upload`), a
+//! training job's bake run by a worker on S3 (`bake`); and,
 //! run by hand, the "Scaling out" measurements of docs/benchmarks.md (`bench`).
 
 #[path = "../common/mod.rs"]
 mod common;
 
 mod api_nodes;
+mod bake;
 mod bench;
 mod cluster;
 mod failover;

@@ -37,6 +37,7 @@ impl Migration {
 pub const MIGRATIONS: &[Migration] = &[
     Migration { version: 1, name: "init", sql: include_str!("migrations/0001_init.sql") },
     Migration { version: 2, name: "now_ms_floor", sql: include_str!("migrations/0002_now_ms_floor.sql") },
+    Migration { version: 3, name: "bake_jobs", sql: include_str!("migrations/0003_bake_jobs.sql") },
 ];
 
 /// The newest migration this binary knows: the schema it needs.
