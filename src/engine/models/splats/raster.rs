@@ -155,6 +155,8 @@ impl Projected {
     }
 }
 
+const _: () = assert!(std::mem::size_of::<Splat2D>() == 64);
+
 /// The pixels `[x0, x1) x [y0, y1)` whose centres lie in the box of
 /// half-widths `extent` around `mean`.
 #[inline]
@@ -169,7 +171,10 @@ pub fn pixel_rect(mean: [f32; 2], extent: [f32; 2], width: usize, height: usize)
 
 /// What the tiles read of a drawn Gaussian's projection, packed and kept
 /// in drawing order so that a tile's walk reads memory in one direction.
+/// Its 64 bytes are one cache line, aligned as one, so that a tile's one
+/// prefetch brings all of it.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C, align(64))]
 pub struct Splat2D {
     pub mean: [f32; 2],
     pub conic: [f32; 3],
