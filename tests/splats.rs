@@ -50,7 +50,7 @@ fn baking_a_trained_scene_keeps_its_heldout_psnr() {
             t.step();
         }
         let source = heldout_psnr(t.model.as_ref(), &ds);
-        let settings = BakeSettings { seconds: None, steps: Some(300), initial: 20_000, ..Default::default() };
+        let settings = BakeSettings { seconds: None, steps: Some(300), initial: Some(20_000), ..Default::default() };
         let mut reports = 0;
         let (splats, adam, steps) = bake(t.model.as_ref(), &ds, &settings, &AtomicBool::new(false), |p| {
             assert!(p.gaussians > 0 && p.psnr.is_finite());
@@ -74,7 +74,7 @@ fn baking_a_splats_model_or_cancelling_is_refused() {
     let ds = dataset();
     let config = ModelConfig::preset("instant-tiny").unwrap();
     let t = common::tiny::trainer(&config, &ds, 3, 1);
-    let settings = BakeSettings { seconds: None, steps: Some(2), initial: 2_000, ..Default::default() };
+    let settings = BakeSettings { seconds: None, steps: Some(2), initial: Some(2_000), ..Default::default() };
     let (splats, _, _) = bake(t.model.as_ref(), &ds, &settings, &AtomicBool::new(false), |_| {}).unwrap_or_else(|e| {
         // An untrained field may hit nothing at all; that is its own error.
         assert!(e.to_string().contains("nothing to place"), "{e}");

@@ -39,9 +39,10 @@ pub struct BakeArgs {
     /// reached ends it.
     #[arg(long)]
     pub steps: Option<u64>,
-    /// Gaussians placed from the field before optimising.
-    #[arg(long, default_value_t = BakeSettings::default().initial)]
-    pub initial: usize,
+    /// Gaussians placed from the field before optimising (default: 1500
+    /// for each training photo, at most 200,000).
+    #[arg(long)]
+    pub initial: Option<usize>,
     /// Spherical-harmonic degree of the colours (0-3).
     #[arg(long, default_value_t = 3)]
     pub sh_degree: u32,
