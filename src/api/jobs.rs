@@ -66,7 +66,7 @@ pub struct CreateBake {
     pub model_id: String,
     pub seconds: Option<f64>,
     pub steps: Option<u64>,
-    /// Spherical-harmonic degree of the colours, 0-3 (3).
+    /// Spherical-harmonic degree of the colours, 0-3 (1).
     pub sh_degree: Option<u32>,
     /// The most Gaussians (500000).
     pub max_gaussians: Option<usize>,

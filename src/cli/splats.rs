@@ -44,7 +44,7 @@ pub struct BakeArgs {
     #[arg(long)]
     pub initial: Option<usize>,
     /// Spherical-harmonic degree of the colours (0-3).
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = crate::engine::front::SplatsConfig::default().sh_degree)]
     pub sh_degree: u32,
     /// The most Gaussians.
     #[arg(long, default_value_t = 500_000)]

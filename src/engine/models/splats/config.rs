@@ -14,6 +14,11 @@ use crate::engine::nn::adam::AdamConfig;
 pub struct SplatsConfig {
     /// Degree of the colours' spherical harmonics (0 to 3): 0 is one colour
     /// in every direction, 3 the 3DGS paper's 16 coefficients per channel.
+    /// 1 by default: a minute's bake is a few hundred steps, in which the
+    /// higher degrees fit each photo's noise (60 s bakes, `eval --fit-steps
+    /// 0`, 2-core Xeon VM, degree 1 against 3: fox 28.71 against 26.87 dB,
+    /// gold_cape 17.70 against 16.92, fern 20.08 against 19.85, lego 29.71
+    /// against 30.02), and a `.splat` (one colour) then loses less.
     pub sh_degree: u32,
     /// The most Gaussians baking may make (500k).
     pub max_gaussians: usize,
@@ -21,7 +26,7 @@ pub struct SplatsConfig {
 
 impl Default for SplatsConfig {
     fn default() -> Self {
-        Self { sh_degree: 3, max_gaussians: 500_000 }
+        Self { sh_degree: 1, max_gaussians: 500_000 }
     }
 }
 
