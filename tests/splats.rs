@@ -50,7 +50,13 @@ fn baking_a_trained_scene_keeps_its_heldout_psnr() {
             t.step();
         }
         let source = heldout_psnr(t.model.as_ref(), &ds);
-        let settings = BakeSettings { seconds: None, steps: Some(300), initial: Some(20_000), ..Default::default() };
+        let mut settings =
+            BakeSettings { seconds: None, steps: Some(300), initial: Some(20_000), ..Default::default() };
+        // Degree 3, not the default 1: from this blurry source (its
+        // geometry is off) the higher degrees carry what each view sees
+        // of the texture. 300 steps on 2 threads: degree 0 20.21 dB, 1
+        // 21.40, 3 24.90.
+        settings.splats.sh_degree = 3;
         let mut reports = 0;
         let (splats, adam, steps) = bake(t.model.as_ref(), &ds, &settings, &AtomicBool::new(false), |p| {
             assert!(p.gaussians > 0 && p.psnr.is_finite());
@@ -61,7 +67,7 @@ fn baking_a_trained_scene_keeps_its_heldout_psnr() {
         assert_eq!(adam.m.len(), splats.params().len());
         let baked = heldout_psnr(&splats, &ds);
         println!("source {source:.2} dB, splats {baked:.2} dB, {} Gaussians", splats.layout().n);
-        // Measured on 2 threads: source 19.69 dB, splats 25.25 dB (10116
+        // Measured on 2 threads: source 19.69 dB, splats 24.90 dB (9938
         // Gaussians); the figures are deterministic on a thread count.
         assert!(source > 19.0, "the source trained: {source:.2} dB");
         assert!(baked >= 24.5, "splats {baked:.2} dB");
