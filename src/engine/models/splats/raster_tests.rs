@@ -5,7 +5,7 @@
 
 use super::backward::backward;
 use super::gaussians::{Layout, SH_C0};
-use super::raster::{DILATION, FRUSTUM_SLACK, MAX_ALPHA, RasterCamera, RasterOptions, forward};
+use super::raster::{DILATION, FRUSTUM_SLACK, Frame, MAX_ALPHA, RasterCamera, RasterOptions, forward};
 use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::Vec3;
 use crate::engine::geometry::scene::Scene;
@@ -414,17 +414,24 @@ fn the_polynomial_exp_is_within_two_ulp_of_f64s() {
     assert_eq!(super::tile::exp_neg(f32::NEG_INFINITY), super::tile::exp_neg(-87.0));
 }
 
+/// The view on which the AVX2 and portable builds of the tile loops are
+/// compared: 200 random Gaussians of degree 3 in front of the camera.
+fn builds_view() -> (RasterCamera, RasterOptions, Frame) {
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 53, 41, 40.0), &scene);
+    let opt = RasterOptions::default();
+    let (l, p) = random_gaussians(200, 3, 7, 0.99);
+    let f = forward(&l, &p, &cam, &opt, [0.2, 0.5, 0.9]);
+    (cam, opt, f)
+}
+
 #[test]
 fn the_vector_backward_gives_the_portable_ones_bits() {
     // `tile_backward` picks the AVX2 build where the CPU has it;
     // `tile_backward_any` called from here is the portable build.
     use super::backward::ScreenGrad;
     use super::tile::{self, BackwardTile};
-    let scene = unit_scene();
-    let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 53, 41, 40.0), &scene);
-    let opt = RasterOptions::default();
-    let (l, p) = random_gaussians(200, 3, 7, 0.99);
-    let f = forward(&l, &p, &cam, &opt, [0.2, 0.5, 0.9]);
+    let (cam, opt, f) = builds_view();
     let mut rng = Rng::new(3);
     let d_rgb: Vec<f32> = f.rgb.iter().map(|_| rng.normal()).collect();
     let mut nonzero = 0;
@@ -446,11 +453,7 @@ fn the_vector_forward_gives_the_portable_ones_bits() {
     // `composite_tile` picks the AVX2 build where the CPU has it;
     // `composite_tile_any` called from here is the portable build.
     use super::tile;
-    let scene = unit_scene();
-    let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 53, 41, 40.0), &scene);
-    let opt = RasterOptions::default();
-    let (l, p) = random_gaussians(200, 3, 7, 0.99);
-    let f = forward(&l, &p, &cam, &opt, [0.2, 0.5, 0.9]);
+    let (cam, opt, f) = builds_view();
     let mut taken = 0;
     for t in 0..f.tile_ranges.len() {
         let (a, b) = (tile::composite_tile(&f, &cam, &opt, t), tile::composite_tile_any(&f, &cam, &opt, t));
