@@ -4,6 +4,8 @@
 //! position, and a distorted photo is resampled into its own pinhole
 //! camera the same way before a bake fits splats to it.
 
+use rayon::prelude::*;
+
 use crate::engine::geometry::camera::{Camera, Distortion};
 
 /// The pinhole camera (the same focal lengths, no distortion) whose image
@@ -65,23 +67,48 @@ fn bilinear(img: &[f32], w: usize, h: usize, ch: usize, u: f32, v: f32, out: &mu
     true
 }
 
-/// `camera`'s distorted view, resampled from `image` (`ch` channels) drawn
-/// by the pinhole camera `pin` ([`pinhole_around`]); `fill` where a pixel
-/// falls outside it.
-pub fn distort_image(camera: &Camera, pin: &Camera, image: &[f32], ch: usize, fill: &[f32]) -> Vec<f32> {
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let mut out = vec![0.0f32; w * h * ch];
-    for j in 0..h {
-        for i in 0..w {
-            let (x, y) = undistorted(camera, i as f32 + 0.5, j as f32 + 0.5);
-            let (u, v) = (x * pin.fx + pin.cx, y * pin.fy + pin.cy);
-            let px = &mut out[(j * w + i) * ch..(j * w + i + 1) * ch];
-            if !bilinear(image, pin.width as usize, pin.height as usize, ch, u, v, px) {
-                px.copy_from_slice(fill);
+/// Where each of a distorted camera's pixel centres lies in the image of
+/// its pinhole camera ([`pinhole_around`]): worked out once a view, for
+/// each image the view resamples (colours, distances, opacities).
+pub struct Resampling {
+    width: usize,
+    /// The pinhole image's size.
+    pin: (usize, usize),
+    /// Per pixel, row by row: its position in the pinhole image (pixels).
+    at: Vec<[f32; 2]>,
+}
+
+impl Resampling {
+    /// `camera`'s pixels in `pin`'s image (the rows in parallel: undoing a
+    /// distortion is an iteration per pixel).
+    pub fn new(camera: &Camera, pin: &Camera) -> Self {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let mut at = vec![[0.0f32; 2]; w * h];
+        at.par_chunks_mut(w.max(1)).enumerate().for_each(|(j, row)| {
+            for (i, a) in row.iter_mut().enumerate() {
+                let (x, y) = undistorted(camera, i as f32 + 0.5, j as f32 + 0.5);
+                *a = [x * pin.fx + pin.cx, y * pin.fy + pin.cy];
             }
-        }
+        });
+        Self { width: w, pin: (pin.width as usize, pin.height as usize), at }
     }
-    out
+
+    /// The distorted view of `image` (`ch` channels), drawn by the pinhole
+    /// camera; `fill` where a pixel falls outside it.
+    pub fn apply(&self, image: &[f32], ch: usize, fill: &[f32]) -> Vec<f32> {
+        let mut out = vec![0.0f32; self.at.len() * ch];
+        let (pw, ph) = self.pin;
+        out.par_chunks_mut((self.width * ch).max(1)).zip(self.at.par_chunks(self.width.max(1))).for_each(
+            |(row, at)| {
+                for (px, &[u, v]) in row.chunks_exact_mut(ch).zip(at) {
+                    if !bilinear(image, pw, ph, ch, u, v, px) {
+                        px.copy_from_slice(fill);
+                    }
+                }
+            },
+        );
+        out
+    }
 }
 
 /// A distorted camera's photo (`rgb`, `[h x w x 3]`) as its pinhole part
@@ -143,7 +170,7 @@ mod tests {
         assert!(pin.distortion.is_identity() && pin.width >= cam.width && pin.height >= cam.height);
         // What the pinhole camera sees of a direction-coloured world,
         // resampled, is what the distorted camera sees of it.
-        let got = distort_image(&cam, &pin, &of_direction(&pin, false), 3, &[9.0; 3]);
+        let got = Resampling::new(&cam, &pin).apply(&of_direction(&pin, false), 3, &[9.0; 3]);
         let want = of_direction(&cam, true);
         let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
         assert!(worst < 2e-3, "worst difference {worst}");

@@ -77,11 +77,8 @@ impl SplatsModel {
         }
         let pin = lens::pinhole_around(camera);
         let f = self.rasterise(&pin, background);
-        (
-            lens::distort_image(camera, &pin, &f.rgb, 3, &background),
-            lens::distort_image(camera, &pin, &f.depth, 1, &[0.0]),
-            lens::distort_image(camera, &pin, &f.opacity, 1, &[0.0]),
-        )
+        let at = lens::Resampling::new(camera, &pin);
+        (at.apply(&f.rgb, 3, &background), at.apply(&f.depth, 1, &[0.0]), at.apply(&f.opacity, 1, &[0.0]))
     }
 }
 
