@@ -152,12 +152,16 @@ pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &Raster
         last: [0; TILE * ROW],
         live: [1.0; TILE * ROW],
     });
-    let mut n_live = w * (y1 - y0);
+
     let (width, height) = (cam.width as usize, cam.height as usize);
     let half: [f32; L] = std::array::from_fn(|k| k as f32 + 0.5);
     let list = &frame.list[frame.tile_ranges[t].clone()];
     for (pos, &g) in list.iter().enumerate() {
-        if n_live == 0 {
+        // Every so many Gaussians: whether any pixel still takes them (a
+        // count kept per chunk would cost a sum across its lanes each
+        // time; a stopped pixel takes nothing, so a later stop changes no
+        // bit).
+        if pos % STOP_CHECK == 0 && (0..y1 - y0).all(|r| st.live[r * ROW..r * ROW + w].iter().all(|&l| l == 0.0)) {
             break;
         }
         // The list's Gaussians lie far apart in `drawn`: ask for one a few
@@ -177,7 +181,7 @@ pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &Raster
             while x < sx1 {
                 let base = (y - y0) * ROW + (x - x0);
                 let xs: [f32; L] = std::array::from_fn(|k| x as f32 + half[k]);
-                n_live -= composite_lanes(p, &mut st, base, &xs, sx1 - x, dy, pos as u32 + 1, opt);
+                composite_lanes(p, &mut st, base, &xs, sx1 - x, dy, pos as u32 + 1, opt);
                 x += L;
             }
         }
@@ -195,6 +199,10 @@ pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &Raster
 /// How many places of a tile's list ahead the forward asks for a
 /// Gaussian's projection.
 const PREFETCH: usize = 8;
+
+/// How many Gaussians of a tile's list the forward draws between its
+/// checks of whether all its pixels stopped.
+const STOP_CHECK: usize = 16;
 
 /// Asks the CPU to bring `p` into its cache (a hint only).
 #[inline(always)]
@@ -214,8 +222,7 @@ fn prefetch(p: &Splat2D) {
 /// Composites Gaussian `p` over the first `n` of the [`L`] pixels from
 /// `base` of the tile's state (centres `xs`, `dy` below its mean), with no
 /// branches: the rule of the module docs, lane by lane. `took` is what a
-/// pixel's `last` becomes where it takes `p`. Returns how many pixels
-/// stopped taking Gaussians.
+/// pixel's `last` becomes where it takes `p`.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn composite_lanes(
@@ -227,7 +234,7 @@ fn composite_lanes(
     dy: f32,
     took: u32,
     opt: &RasterOptions,
-) -> usize {
+) {
     let lanes = base..base + L;
     fn get<T: Copy + Default>(v: &[T]) -> [T; L] {
         let mut out = [T::default(); L];
@@ -239,7 +246,6 @@ fn composite_lanes(
         (get(&st.t[lanes.clone()]), get(&st.live[lanes.clone()]), get(&st.last[lanes.clone()]));
     let mut depth = get(&st.depth[lanes.clone()]);
     let mut rgb = [0, 1, 2].map(|c| get(&st.rgb[c][lanes.clone()]));
-    let mut stopped = [0.0f32; L];
     // Arithmetic where it gives the same bits as a choice (colours and
     // depths only grow from 0, and `x (1 - 0) = x`), so that the loop
     // vectorises.
@@ -254,7 +260,6 @@ fn composite_lanes(
         depth[k] += wgt * p.dist;
         t[k] *= 1.0 - a2;
         last[k] = if a2 != 0.0 { took } else { last[k] };
-        stopped[k] = if stop { 1.0 } else { 0.0 };
         live[k] = if stop { 0.0 } else { live[k] };
     }
     st.t[lanes.clone()].copy_from_slice(&t);
@@ -264,7 +269,6 @@ fn composite_lanes(
     for c in 0..3 {
         st.rgb[c][lanes.clone()].copy_from_slice(&rgb[c]);
     }
-    stopped.iter().sum::<f32>() as usize
 }
 
 /// Per-pixel state of the backward's walk, back to front (a chunk of
