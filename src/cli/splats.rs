@@ -47,7 +47,7 @@ pub struct BakeArgs {
     #[arg(long, default_value_t = crate::engine::front::SplatsConfig::default().sh_degree)]
     pub sh_degree: u32,
     /// The most Gaussians.
-    #[arg(long, default_value_t = 500_000)]
+    #[arg(long, default_value_t = crate::engine::front::SplatsConfig::default().max_gaussians)]
     pub max_gaussians: usize,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,

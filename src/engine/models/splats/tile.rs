@@ -152,7 +152,6 @@ pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &Raster
         last: [0; TILE * ROW],
         live: [1.0; TILE * ROW],
     });
-
     let (width, height) = (cam.width as usize, cam.height as usize);
     let half: [f32; L] = std::array::from_fn(|k| k as f32 + 0.5);
     let list = &frame.list[frame.tile_ranges[t].clone()];
