@@ -254,18 +254,22 @@ pub fn project(
     if t[2].is_nan() || t[2] <= opt.near || opacity.is_nan() || opacity < opt.min_alpha {
         return p;
     }
-    let (sigma, _) = covariance(g.log_scale, g.rotation);
     let (j, clamp) = jacobian(cam, t);
+    let r = reach(opacity, opt);
+    let mean = [cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy];
+    if off_view(cam, &j, mean, r, g.log_scale) {
+        return p;
+    }
+    let (sigma, _) = covariance(g.log_scale, g.rotation);
     let cov = project_cov(&j, &cam.rot, &sigma);
     let cov = [cov[0] + DILATION, cov[1], cov[2] + DILATION];
     let det = cov[0] * cov[2] - cov[1] * cov[1];
     if det.is_nan() || det <= 0.0 || !det.is_finite() {
         return p;
     }
-    let r = reach(opacity, opt);
     p.conic = [cov[2] / det, -cov[1] / det, cov[0] / det];
     p.cov = cov;
-    p.mean = [cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy];
+    p.mean = mean;
     p.extent = [r * cov[0].sqrt(), r * cov[2].sqrt()];
     let rect = p.pixel_rect(cam.width as usize, cam.height as usize);
     p.visible = rect[0] < rect[1] && rect[2] < rect[3] && p.mean.iter().all(|m| m.is_finite());
@@ -285,6 +289,24 @@ pub fn project(
         p.rgb[c] = rgb[c].max(0.0);
     }
     p
+}
+
+/// Whether a Gaussian centred at `mean` on the image (pixels), with the
+/// projection's Jacobian `j` there, reach `r` (standard deviations) and log
+/// scales `log_scale`, surely reaches no pixel centre: its box is then
+/// beyond the view's edge even at its widest, with a pixel to spare. The
+/// box's half-width in x is `r sqrt(Σ'xx)`, and `Σ'xx = j₀ W Σ Wᵀ j₀ᵀ +
+/// DILATION` is at most `|j₀|² s² + DILATION` for the largest scale `s`
+/// (`W` is a rotation, and `Σ`'s largest eigenvalue is `s²`); so in y. A
+/// cheap test that spares an unseen Gaussian its covariance and colour.
+#[inline]
+fn off_view(cam: &RasterCamera, j: &[[f32; 3]; 2], mean: [f32; 2], r: f32, log_scale: [f32; 3]) -> bool {
+    let s = log_scale[0].max(log_scale[1]).max(log_scale[2]).exp();
+    let s2 = s * s;
+    let bx = r * ((j[0][0] * j[0][0] + j[0][2] * j[0][2]) * s2 + DILATION).sqrt() + 1.0;
+    let by = r * ((j[1][1] * j[1][1] + j[1][2] * j[1][2]) * s2 + DILATION).sqrt() + 1.0;
+    // NaNs compare false: such a Gaussian is left to the exact rule.
+    mean[0] + bx < 0.0 || mean[0] - bx > cam.width as f32 || mean[1] + by < 0.0 || mean[1] - by > cam.height as f32
 }
 
 /// How far a Gaussian of opacity `o` reaches, in standard deviations.
@@ -454,38 +476,114 @@ pub fn bin(projected: &[Projected], cam: &RasterCamera, opt: &RasterOptions) -> 
         .collect();
     keys.par_sort_unstable();
     let order: Vec<u32> = keys.par_iter().map(|&k| k as u32).collect();
-    let drawn: Vec<Splat2D> = order.par_iter().map(|&i| Splat2D::of(&projected[i as usize], opt.min_alpha)).collect();
     let (tx, ty) = (cam.tiles_x(), cam.tiles_y());
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let rects: Vec<[usize; 4]> = drawn
-        .par_iter()
-        .map(|p| {
-            let [x0, x1, y0, y1] = p.pixel_rect(w, h);
-            [x0 / TILE, (x1 - 1) / TILE + 1, y0 / TILE, (y1 - 1) / TILE + 1]
+    // Each drawn Gaussian's projection, gathered in drawing order, and the
+    // tiles it reaches. The gather reads `projected` out of order: each
+    // read is asked for a few places ahead, so that the reads overlap.
+    let mut drawn = vec![Splat2D::default(); order.len()];
+    let mut rects = vec![[0u32; 4]; order.len()];
+    drawn.par_chunks_mut(GATHER).zip(rects.par_chunks_mut(GATHER)).zip(order.par_chunks(GATHER)).for_each(
+        |((drawn, rects), order)| {
+            for (j, &i) in order.iter().enumerate() {
+                if let Some(&ahead) = order.get(j + GATHER_AHEAD) {
+                    prefetch_projected(&projected[ahead as usize]);
+                }
+                let p = Splat2D::of(&projected[i as usize], opt.min_alpha);
+                let [x0, x1, y0, y1] = p.pixel_rect(w, h);
+                rects[j] = [x0 / TILE, (x1 - 1) / TILE + 1, y0 / TILE, (y1 - 1) / TILE + 1].map(|v| v as u32);
+                drawn[j] = p;
+            }
+        },
+    );
+    // The lists: the drawn Gaussians in parts, each part counting how many
+    // of its Gaussians each tile takes, so that each part then writes its
+    // own places of each tile's list, the parts in parallel.
+    let tiles = tx * ty;
+    let part = rects.len().div_ceil(rayon::current_num_threads().max(1) * 4).max(GATHER);
+    let counts: Vec<Vec<u32>> = rects
+        .par_chunks(part)
+        .map(|rects| {
+            let mut count = vec![0u32; tiles];
+            for_each_tile(rects, tx, |t, _| count[t] += 1);
+            count
         })
         .collect();
-    let mut count = vec![0usize; tx * ty + 1];
-    for r in &rects {
-        for y in r[2]..r[3] {
-            for x in r[0]..r[1] {
-                count[y * tx + x + 1] += 1;
-            }
+    let mut tile_ranges = Vec::with_capacity(tiles);
+    // Where each part's first entry of each tile goes.
+    let mut starts: Vec<Vec<usize>> = vec![vec![0; tiles]; counts.len()];
+    let mut at = 0;
+    for t in 0..tiles {
+        let begin = at;
+        for (c, count) in counts.iter().enumerate() {
+            starts[c][t] = at;
+            at += count[t] as usize;
         }
+        tile_ranges.push(begin..at);
     }
-    for t in 0..tx * ty {
-        count[t + 1] += count[t];
-    }
-    let tile_ranges: Vec<_> = (0..tx * ty).map(|t| count[t]..count[t + 1]).collect();
-    let mut next = count;
-    let mut list = vec![0u32; tile_ranges.last().map_or(0, |r| r.end)];
-    for (k, r) in rects.iter().enumerate() {
-        for y in r[2]..r[3] {
-            for x in r[0]..r[1] {
-                let t = y * tx + x;
-                list[next[t]] = k as u32;
-                next[t] += 1;
-            }
-        }
-    }
+    let mut list = vec![0u32; at];
+    let out = SharedSlots(list.as_mut_ptr(), list.len());
+    rects.par_chunks(part).zip(starts.par_iter_mut()).enumerate().for_each(|(c, (rects, next))| {
+        for_each_tile(rects, tx, |t, j| {
+            // SAFETY: part `c`'s places of tile `t` are `starts[c][t]..` for
+            // its count of the tile, which no other part's range meets and
+            // which lie within `list` (the counts sum to its length).
+            unsafe { out.write(next[t], (c * part + j) as u32) };
+            next[t] += 1;
+        });
+    });
     Binned { order, drawn, tile_ranges, list }
+}
+
+/// Drawn Gaussians a task of [`bin`]'s gather takes.
+const GATHER: usize = 1024;
+/// How many places ahead the gather asks for a projection.
+const GATHER_AHEAD: usize = 16;
+
+/// Calls `f(tile, j)` for each tile the `j`-th of `rects` (tile
+/// rectangles `[x0, x1, y0, y1]`) reaches, row by row.
+#[inline]
+fn for_each_tile(rects: &[[u32; 4]], tx: usize, mut f: impl FnMut(usize, usize)) {
+    for (j, r) in rects.iter().enumerate() {
+        for y in r[2] as usize..r[3] as usize {
+            for x in r[0] as usize..r[1] as usize {
+                f(y * tx + x, j);
+            }
+        }
+    }
+}
+
+/// A slice's places that tasks write in parallel, each to places no other
+/// task writes.
+#[derive(Clone, Copy)]
+struct SharedSlots(*mut u32, usize);
+
+// SAFETY: the writers' places are disjoint (each `write`'s caller says so).
+unsafe impl Send for SharedSlots {}
+unsafe impl Sync for SharedSlots {}
+
+impl SharedSlots {
+    /// # Safety
+    /// No other task reads or writes place `i` meanwhile.
+    unsafe fn write(&self, i: usize, v: u32) {
+        assert!(i < self.1, "place {i} of {}", self.1);
+        // SAFETY: in bounds (checked), and the caller's.
+        unsafe { self.0.add(i).write(v) };
+    }
+}
+
+/// Asks the CPU to bring `p` into its cache (a hint only).
+#[inline(always)]
+fn prefetch_projected(p: &Projected) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch reads nothing and changes nothing; its addresses
+    // are within the reference's object or just past it.
+    unsafe {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let at: *const i8 = (p as *const Projected).cast();
+        _mm_prefetch::<_MM_HINT_T0>(at);
+        _mm_prefetch::<_MM_HINT_T0>(at.wrapping_add(std::mem::size_of::<Projected>() - 1));
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
 }

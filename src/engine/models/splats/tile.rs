@@ -33,11 +33,14 @@ pub fn exp_neg(x: f32) -> f32 {
     // where a float-to-integer cast does not).
     const ROUND: f32 = 12_582_912.0;
     let x = x.clamp(-87.0, 0.0);
-    let big = x * LOG2E + ROUND;
+    let big = x.mul_add(LOG2E, ROUND);
     let n = big - ROUND;
     let k = big.to_bits().wrapping_sub(ROUND.to_bits());
-    let r = x - n * LN2_HI - n * LN2_LO;
-    let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
+    let r = (-n).mul_add(LN2_LO, (-n).mul_add(LN2_HI, x));
+    let mut p: f32 = 1.0 / 720.0;
+    for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0] {
+        p = p.mul_add(r, c);
+    }
     p * f32::from_bits(k.wrapping_add(127) << 23)
 }
 
@@ -65,6 +68,9 @@ pub fn tile_rect(cam: &RasterCamera, t: usize) -> [usize; 4] {
 
 /// Pixels a vector of lanes holds: a tile's row is two.
 const L: usize = 8;
+/// Each lane's number, as a float.
+const LANES: [f32; L] = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0];
+
 /// Chunks of [`L`] lanes in a tile's row.
 const CHUNKS: usize = TILE / L;
 
@@ -77,13 +83,23 @@ fn lanes_alpha(p: &Splat2D, xs: &[f32; L], dy: f32, cols: (usize, usize), min_al
     let (mut a, mut raw, mut dx) = ([0.0f32; L], [0.0f32; L], [0.0f32; L]);
     let [c0, c1, c2] = p.conic;
     let y_in = dy.abs() <= p.extent[1];
+    // The lanes' bounds as floats, and each test a choice of its own:
+    // every test of a lane is then a comparison of 32-bit floats and a
+    // mask of them (a mix of tests of other widths, or their conjunction as
+    // booleans, costs conversions between mask widths). Small integers are
+    // exact in f32.
+    let (from, to) = (cols.0 as f32, cols.1 as f32);
     for k in 0..L {
         let d = xs[k] - p.mean[0];
         let power = -0.5 * (c0 * d * d + c2 * dy * dy) - c1 * d * dy;
         let r = p.opacity * exp_neg(power);
-        let v = r.min(MAX_ALPHA);
-        let inside = y_in & (k >= cols.0) & (k < cols.1) & (d.abs() <= p.extent[0]) & (power <= 0.0) & (v >= min_alpha);
-        a[k] = if inside { v } else { 0.0 };
+        let mut v = r.min(MAX_ALPHA);
+        v = if v >= min_alpha { v } else { 0.0 };
+        v = if power <= 0.0 { v } else { 0.0 };
+        v = if d.abs() <= p.extent[0] { v } else { 0.0 };
+        v = if LANES[k] >= from { v } else { 0.0 };
+        v = if LANES[k] < to { v } else { 0.0 };
+        a[k] = if y_in { v } else { 0.0 };
         raw[k] = r;
         dx[k] = d;
     }
