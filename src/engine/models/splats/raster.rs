@@ -300,7 +300,7 @@ pub fn project(
 /// (`W` is a rotation, and `Σ`'s largest eigenvalue is `s²`); so in y. A
 /// cheap test that spares an unseen Gaussian its covariance and colour.
 #[inline]
-fn off_view(cam: &RasterCamera, j: &[[f32; 3]; 2], mean: [f32; 2], r: f32, log_scale: [f32; 3]) -> bool {
+pub(super) fn off_view(cam: &RasterCamera, j: &[[f32; 3]; 2], mean: [f32; 2], r: f32, log_scale: [f32; 3]) -> bool {
     let s = log_scale[0].max(log_scale[1]).max(log_scale[2]).exp();
     let s2 = s * s;
     let bx = r * ((j[0][0] * j[0][0] + j[0][2] * j[0][2]) * s2 + DILATION).sqrt() + 1.0;

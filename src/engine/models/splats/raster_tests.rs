@@ -519,3 +519,79 @@ fn a_rows_span_holds_every_pixel_whose_alpha_reaches_the_cut() {
     }
     assert!(inside > 2000, "{inside} pixels checked");
 }
+
+#[test]
+fn a_gaussian_culled_before_its_covariance_reaches_no_pixel() {
+    // Gaussians of every size, tilt and opacity scattered far around
+    // views from several places: each one `off_view` culls, projected in
+    // full, has a box that holds no pixel centre.
+    use super::gaussians::{covariance, sigmoid};
+    use super::raster::{jacobian, off_view, pixel_rect, project_cov, reach};
+    let scene = unit_scene();
+    let opt = RasterOptions::default();
+    let (mut culled, mut kept_unseen) = (0, 0);
+    for seed in 0..4u64 {
+        let cam = RasterCamera::new(&camera([0.3 + seed as f32, -4.0, 0.8], 61, 47, 30.0 + 10.0 * seed as f32), &scene);
+        let (l, mut p) = random_gaussians(3000, 1, 10 + seed, 0.99);
+        let mut rng = Rng::new(seed);
+        for i in 0..l.n {
+            for c in 0..3 {
+                p[3 * i + c] = (rng.f32() - 0.5) * 12.0;
+                p[3 * l.n + 3 * i + c] = -4.0 + 4.5 * rng.f32();
+            }
+        }
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        for i in 0..l.n {
+            let g = l.get(&p, i);
+            let t = cam.to_camera(g.mean);
+            let o = sigmoid(g.opacity_logit);
+            if t[2] <= opt.near || o < opt.min_alpha {
+                continue;
+            }
+            let (j, _) = jacobian(&cam, t);
+            let r = reach(o, &opt);
+            let mean = [cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy];
+            let cov = project_cov(&j, &cam.rot, &covariance(g.log_scale, g.rotation).0);
+            let extent = [r * (cov[0] + DILATION).sqrt(), r * (cov[2] + DILATION).sqrt()];
+            let [x0, x1, y0, y1] = pixel_rect(mean, extent, w, h);
+            let unseen = x0 >= x1 || y0 >= y1;
+            if off_view(&cam, &j, mean, r, g.log_scale) {
+                culled += 1;
+                assert!(unseen, "Gaussian {i} culled, but its box holds pixels {x0}..{x1} x {y0}..{y1}");
+            } else if unseen {
+                kept_unseen += 1;
+            }
+        }
+    }
+    // The bound culls most of the unseen, and is not a no-op.
+    assert!(culled > 2000 && culled > 2 * kept_unseen, "{culled} culled, {kept_unseen} unseen but kept");
+}
+
+#[test]
+fn each_tiles_list_holds_the_gaussians_reaching_it_front_to_back() {
+    // Enough Gaussians that the lists are built by several parts in
+    // parallel; against a plain walk of the drawn Gaussians, tile by tile.
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.3, -4.0, 0.8], 97, 75, 40.0), &scene);
+    let opt = RasterOptions::default();
+    let (l, p) = random_gaussians(20_000, 0, 5, 0.9);
+    let f = forward(&l, &p, &cam, &opt, [0.0; 3]);
+    assert!(f.drawn.len() > 10_000, "{} drawn", f.drawn.len());
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let tx = cam.tiles_x();
+    let mut want: Vec<Vec<u32>> = vec![Vec::new(); f.tile_ranges.len()];
+    for (k, g) in f.drawn.iter().enumerate() {
+        let [x0, x1, y0, y1] = g.pixel_rect(w, h);
+        for ty in y0 / super::raster::TILE..(y1 - 1) / super::raster::TILE + 1 {
+            for txi in x0 / super::raster::TILE..(x1 - 1) / super::raster::TILE + 1 {
+                want[ty * tx + txi].push(k as u32);
+            }
+        }
+    }
+    for (t, r) in f.tile_ranges.iter().enumerate() {
+        assert_eq!(&f.list[r.clone()], &want[t][..], "tile {t}");
+    }
+    // Drawn front to back.
+    let depth = |k: usize| f.projected[f.order[k] as usize].t[2];
+    assert!((1..f.order.len()).all(|k| depth(k - 1) <= depth(k)));
+}
