@@ -439,51 +439,68 @@ fn builds_view() -> (RasterCamera, RasterOptions, Frame) {
 }
 
 #[test]
-fn the_vector_backward_gives_the_portable_ones_bits() {
-    // `tile_backward` picks the AVX2 build where the CPU has it;
+fn every_build_of_the_backward_gives_the_portable_ones_bits() {
     // `tile_backward_any` called from here is the portable build.
     use super::backward::ScreenGrad;
-    use super::tile::{self, BackwardTile};
+    use super::tile::{self, BackwardTile, Build};
     let (cam, opt, f) = builds_view();
     let mut rng = Rng::new(3);
     let d_rgb: Vec<f32> = f.rgb.iter().map(|_| rng.normal()).collect();
+    let bits = |g: &Vec<ScreenGrad>| g.iter().flat_map(|e| e.map(f32::to_bits)).collect::<Vec<_>>();
     let mut nonzero = 0;
+    let mut checked = Vec::new();
     for t in 0..f.tile_ranges.len() {
         let n = f.tile_ranges[t].len();
-        let (mut ga, mut gb) = (vec![[0.0f32; 9]; n], vec![[0.0f32; 9]; n]);
         let job = BackwardTile { cam: &cam, opt: &opt, frame: &f, d_rgb: &d_rgb, t };
-        tile::tile_backward(job, &mut ga);
-        tile::tile_backward_any(job, &mut gb);
-        let bits = |g: &Vec<ScreenGrad>| g.iter().flat_map(|e| e.map(f32::to_bits)).collect::<Vec<_>>();
-        assert_eq!(bits(&ga), bits(&gb), "tile {t}");
-        nonzero += ga.iter().filter(|e| e.iter().any(|&v| v != 0.0)).count();
+        let mut want = vec![[0.0f32; 9]; n];
+        tile::tile_backward_any(job, &mut want);
+        for build in [Build::Avx2, Build::Avx512] {
+            if build.available() {
+                let mut got = vec![[0.0f32; 9]; n];
+                tile::tile_backward_in(build, job, &mut got);
+                assert_eq!(bits(&got), bits(&want), "tile {t}, {build:?}");
+                if t == 0 {
+                    checked.push(build);
+                }
+            }
+        }
+        nonzero += want.iter().filter(|e| e.iter().any(|&v| v != 0.0)).count();
     }
     assert!(nonzero > 100, "the scene is in view: {nonzero} entries with a gradient");
+    eprintln!("vector builds checked on this CPU: {checked:?}");
 }
 
 #[test]
-fn the_vector_forward_gives_the_portable_ones_bits() {
-    // `composite_tile` picks the AVX2 build where the CPU has it;
-    // `composite_tile_any` called from here is the portable build.
-    use super::tile;
+fn every_build_of_the_forward_gives_the_portable_ones_bits() {
+    // The whole-row walk (the AVX-512 build's), compiled portably, runs
+    // on any CPU; each vector build this CPU runs is checked too.
+    use super::tile::{self, Build};
     let (cam, opt, f) = builds_view();
+    let bits = |o: &tile::TileOut| {
+        let values = o.pixels.iter().flat_map(|p| [p.rgb[0], p.rgb[1], p.rgb[2], p.depth, p.t].map(f32::to_bits));
+        values.chain(o.pixels.iter().map(|p| p.last)).collect::<Vec<_>>()
+    };
     let mut taken = 0;
+    let mut checked = Vec::new();
     for t in 0..f.tile_ranges.len() {
-        let (a, b) = (tile::composite_tile(&f, &cam, &opt, t), tile::composite_tile_any(&f, &cam, &opt, t));
-        let bits = |o: &tile::TileOut| {
-            o.pixels
-                .iter()
-                .flat_map(|p| [p.rgb[0], p.rgb[1], p.rgb[2], p.depth, p.t].map(f32::to_bits))
-                .collect::<Vec<_>>()
-        };
-        assert_eq!(bits(&a), bits(&b), "tile {t}");
-        assert_eq!(
-            a.pixels.iter().map(|p| p.last).collect::<Vec<_>>(),
-            b.pixels.iter().map(|p| p.last).collect::<Vec<_>>()
-        );
-        taken += a.pixels.iter().filter(|p| p.last > 0).count();
+        let want = tile::composite_tile_any(&f, &cam, &opt, t);
+        assert_eq!(bits(&tile::composite_tile_rows(&f, &cam, &opt, t)), bits(&want), "tile {t}, whole rows");
+        for build in [Build::Avx2, Build::Avx512] {
+            if build.available() {
+                assert_eq!(
+                    bits(&tile::composite_tile_in(build, &f, &cam, &opt, t)),
+                    bits(&want),
+                    "tile {t}, {build:?}"
+                );
+                if t == 0 {
+                    checked.push(build);
+                }
+            }
+        }
+        taken += want.pixels.iter().filter(|p| p.last > 0).count();
     }
     assert!(taken > 500, "the scene is in view: {taken} pixels took a Gaussian");
+    eprintln!("vector builds checked on this CPU: {checked:?}");
 }
 
 #[test]

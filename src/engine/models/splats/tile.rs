@@ -10,9 +10,12 @@
 //! Both walk, on each row a Gaussian reaches, only the span of columns
 //! whose alpha may reach `min_alpha` ([`Splat2D::row_span`]): most
 //! Gaussians are a few pixels wide, and a chunk then holds the whole span.
-//! On x86-64 with AVX2 and FMA the code is compiled a second time for
-//! those instructions and chosen at run time (as `nn::gemm` does); tests
-//! check that both builds give the same bits.
+//! On x86-64 the code is compiled again for AVX2 and FMA, and chosen at
+//! run time ([`Build`]). With AVX-512 a vector holds a tile's whole row of
+//! 16 pixels: each row a Gaussian reaches is then one vector, with no span
+//! to work out (a third build of the forward, the whole-row walk; a
+//! Gaussian whose box is at most [`L`] columns of the tile still takes one
+//! chunk). Tests check that every build gives the same bits.
 
 use super::backward::ScreenGrad;
 use super::raster::{Frame, MAX_ALPHA, RasterCamera, RasterOptions, Splat2D, TILE};
@@ -68,9 +71,6 @@ pub fn tile_rect(cam: &RasterCamera, t: usize) -> [usize; 4] {
 
 /// Pixels a vector of lanes holds: a tile's row is two.
 const L: usize = 8;
-/// Each lane's number, as a float.
-const LANES: [f32; L] = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0];
-
 /// Chunks of [`L`] lanes in a tile's row.
 const CHUNKS: usize = TILE / L;
 
@@ -79,8 +79,14 @@ const CHUNKS: usize = TILE / L;
 /// outside its box or the lanes `cols`, or below `min_alpha`), its value
 /// before the cap, and its offset from the mean in x.
 #[inline(always)]
-fn lanes_alpha(p: &Splat2D, xs: &[f32; L], dy: f32, cols: (usize, usize), min_alpha: f32) -> [[f32; L]; 3] {
-    let (mut a, mut raw, mut dx) = ([0.0f32; L], [0.0f32; L], [0.0f32; L]);
+fn lanes_alpha<const N: usize>(
+    p: &Splat2D,
+    xs: &[f32; N],
+    dy: f32,
+    cols: (usize, usize),
+    min_alpha: f32,
+) -> [[f32; N]; 3] {
+    let (mut a, mut raw, mut dx) = ([0.0f32; N], [0.0f32; N], [0.0f32; N]);
     let [c0, c1, c2] = p.conic;
     let y_in = dy.abs() <= p.extent[1];
     // The lanes' bounds as floats, and each test a choice of its own:
@@ -89,7 +95,8 @@ fn lanes_alpha(p: &Splat2D, xs: &[f32; L], dy: f32, cols: (usize, usize), min_al
     // booleans, costs conversions between mask widths). Small integers are
     // exact in f32.
     let (from, to) = (cols.0 as f32, cols.1 as f32);
-    for k in 0..L {
+    let lanes: [f32; N] = std::array::from_fn(|k| k as f32);
+    for k in 0..N {
         let d = xs[k] - p.mean[0];
         let power = -0.5 * (c0 * d * d + c2 * dy * dy) - c1 * d * dy;
         let r = p.opacity * exp_neg(power);
@@ -97,8 +104,8 @@ fn lanes_alpha(p: &Splat2D, xs: &[f32; L], dy: f32, cols: (usize, usize), min_al
         v = if v >= min_alpha { v } else { 0.0 };
         v = if power <= 0.0 { v } else { 0.0 };
         v = if d.abs() <= p.extent[0] { v } else { 0.0 };
-        v = if LANES[k] >= from { v } else { 0.0 };
-        v = if LANES[k] < to { v } else { 0.0 };
+        v = if lanes[k] >= from { v } else { 0.0 };
+        v = if lanes[k] < to { v } else { 0.0 };
         a[k] = if y_in { v } else { 0.0 };
         raw[k] = r;
         dx[k] = d;
@@ -138,20 +145,126 @@ struct Composite {
     live: [f32; TILE * ROW],
 }
 
+/// A build of the tile loops: the portable one, or one compiled for a
+/// CPU's vector instructions and chosen at run time (as `nn::gemm` does).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Build {
+    /// Chunks of [`L`] lanes, for any CPU.
+    Portable,
+    /// The portable code compiled for AVX2 and FMA (same bits).
+    Avx2,
+    /// The forward's whole-row walk, a tile's row of 16 pixels as one
+    /// vector of AVX-512 (F, VL) with FMA (same bits); the backward is the
+    /// AVX2 build's.
+    Avx512,
+}
+
+impl Build {
+    /// The fastest build this CPU runs.
+    pub fn best() -> Build {
+        [Build::Avx512, Build::Avx2].into_iter().find(|b| b.available()).unwrap_or(Build::Portable)
+    }
+
+    /// Whether this CPU runs it (std caches the answers).
+    pub fn available(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        let (avx2, avx512) = (
+            crate::engine::nn::gemm::has_avx2_fma(),
+            is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512vl"),
+        );
+        #[cfg(not(target_arch = "x86_64"))]
+        let (avx2, avx512) = (false, false);
+        match self {
+            Build::Portable => true,
+            Build::Avx2 => avx2,
+            Build::Avx512 => avx2 && avx512,
+        }
+    }
+}
+
 /// The forward of tile `t`: its pixels, composited front to back.
 pub fn composite_tile(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
-    #[cfg(target_arch = "x86_64")]
-    if crate::engine::nn::gemm::has_avx2_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { composite_tile_avx2(frame, cam, opt, t) };
+    composite_tile_in(Build::best(), frame, cam, opt, t)
+}
+
+/// [`composite_tile`] in the given build, which the CPU must run.
+pub fn composite_tile_in(build: Build, frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
+    assert!(build.available(), "this CPU does not run the {build:?} build");
+    match build {
+        // SAFETY (both): the CPU has the features the function is compiled
+        // for (asserted).
+        #[cfg(target_arch = "x86_64")]
+        Build::Avx512 => unsafe { composite_tile_avx512(frame, cam, opt, t) },
+        #[cfg(target_arch = "x86_64")]
+        Build::Avx2 => unsafe { composite_tile_avx2(frame, cam, opt, t) },
+        _ => composite_tile_any(frame, cam, opt, t),
     }
-    composite_tile_any(frame, cam, opt, t)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn composite_tile_avx2(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
     composite_tile_any(frame, cam, opt, t)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn composite_tile_avx512(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
+    composite_tile_rows(frame, cam, opt, t)
+}
+
+/// The forward of tile `t` a whole row of [`TILE`] lanes at a time: with
+/// vectors of 16 lanes, a Gaussian's row of the tile is one vector, and
+/// its span ([`Splat2D::row_span`]) is not worth working out. The same
+/// arithmetic per pixel as [`composite_tile_any`], so the same bits.
+#[inline(always)]
+pub(super) fn composite_tile_rows(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
+    let [x0, x1, y0, y1] = tile_rect(cam, t);
+    let w = x1 - x0;
+    let mut st = Box::new(Composite {
+        t: [1.0; TILE * ROW],
+        rgb: [[0.0; TILE * ROW]; 3],
+        depth: [0.0; TILE * ROW],
+        last: [0; TILE * ROW],
+        live: [1.0; TILE * ROW],
+    });
+    let (width, height) = (cam.width as usize, cam.height as usize);
+    let xs: [f32; TILE] = std::array::from_fn(|k| (x0 + k) as f32 + 0.5);
+    let list = &frame.list[frame.tile_ranges[t].clone()];
+    for (pos, &g) in list.iter().enumerate() {
+        if pos % STOP_CHECK == 0 && (0..y1 - y0).all(|r| st.live[r * ROW..r * ROW + w].iter().all(|&l| l == 0.0)) {
+            break;
+        }
+        if let Some(&ahead) = list.get(pos + PREFETCH) {
+            prefetch(&frame.drawn[ahead as usize]);
+        }
+        let p = &frame.drawn[g as usize];
+        let [gx0, gx1, gy0, gy1] = p.pixel_rect(width, height);
+        let cols = (gx0.max(x0) - x0, gx1.min(x1).max(x0) - x0);
+        let took = pos as u32 + 1;
+        if cols.1 - cols.0 <= L {
+            // A narrow box: its columns of the tile fit a half vector.
+            let narrow: [f32; L] = std::array::from_fn(|k| xs[cols.0] + k as f32);
+            for y in gy0.max(y0)..gy1.min(y1) {
+                let dy = y as f32 + 0.5 - p.mean[1];
+                let base = (y - y0) * ROW + cols.0;
+                composite_lanes(p, &mut st, base, &narrow, (0, cols.1 - cols.0), dy, took, opt);
+            }
+        } else {
+            for y in gy0.max(y0)..gy1.min(y1) {
+                let dy = y as f32 + 0.5 - p.mean[1];
+                composite_lanes(p, &mut st, (y - y0) * ROW, &xs, cols, dy, took, opt);
+            }
+        }
+    }
+    let mut pixels = Vec::with_capacity(w * (y1 - y0));
+    for r in 0..y1 - y0 {
+        for k in r * ROW..r * ROW + w {
+            let rgb = [st.rgb[0][k], st.rgb[1][k], st.rgb[2][k]];
+            pixels.push(PixelOut { rgb, depth: st.depth[k], t: st.t[k], last: st.last[k] });
+        }
+    }
+    TileOut { w, pixels }
 }
 
 /// The forward of tile `t`, walked a Gaussian at a time over the rows it
@@ -196,7 +309,7 @@ pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &Raster
             while x < sx1 {
                 let base = (y - y0) * ROW + (x - x0);
                 let xs: [f32; L] = std::array::from_fn(|k| x as f32 + half[k]);
-                composite_lanes(p, &mut st, base, &xs, sx1 - x, dy, pos as u32 + 1, opt);
+                composite_lanes(p, &mut st, base, &xs, (0, sx1 - x), dy, pos as u32 + 1, opt);
                 x += L;
             }
         }
@@ -240,31 +353,31 @@ fn prefetch(p: &Splat2D) {
 /// pixel's `last` becomes where it takes `p`.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn composite_lanes(
+fn composite_lanes<const N: usize>(
     p: &Splat2D,
     st: &mut Composite,
     base: usize,
-    xs: &[f32; L],
-    n: usize,
+    xs: &[f32; N],
+    cols: (usize, usize),
     dy: f32,
     took: u32,
     opt: &RasterOptions,
 ) {
-    let lanes = base..base + L;
-    fn get<T: Copy + Default>(v: &[T]) -> [T; L] {
-        let mut out = [T::default(); L];
-        out.copy_from_slice(&v[..L]);
+    let lanes = base..base + N;
+    fn get<T: Copy + Default, const N: usize>(v: &[T]) -> [T; N] {
+        let mut out = [T::default(); N];
+        out.copy_from_slice(&v[..N]);
         out
     }
-    let [a, _, _] = lanes_alpha(p, xs, dy, (0, n), opt.min_alpha);
-    let (mut t, mut live, mut last) =
+    let [a, _, _] = lanes_alpha(p, xs, dy, cols, opt.min_alpha);
+    let (mut t, mut live, mut last): ([f32; N], [f32; N], [u32; N]) =
         (get(&st.t[lanes.clone()]), get(&st.live[lanes.clone()]), get(&st.last[lanes.clone()]));
-    let mut depth = get(&st.depth[lanes.clone()]);
-    let mut rgb = [0, 1, 2].map(|c| get(&st.rgb[c][lanes.clone()]));
+    let mut depth: [f32; N] = get(&st.depth[lanes.clone()]);
+    let mut rgb: [[f32; N]; 3] = [0, 1, 2].map(|c| get(&st.rgb[c][lanes.clone()]));
     // Arithmetic where it gives the same bits as a choice (colours and
     // depths only grow from 0, and `x (1 - 0) = x`), so that the loop
     // vectorises.
-    for k in 0..L {
+    for k in 0..N {
         let a1 = a[k] * live[k];
         let stop = t[k] * (1.0 - a1) < opt.min_transmittance;
         let a2 = if stop { 0.0 } else { a1 };
@@ -343,12 +456,22 @@ pub struct BackwardTile<'a> {
 /// gradient in `out` (the 3DGS paper's walk back to front, which divides
 /// the transmittance back out instead of storing it).
 pub fn tile_backward(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
-    #[cfg(target_arch = "x86_64")]
-    if crate::engine::nn::gemm::has_avx2_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { tile_backward_avx2(job, out) };
+    // The whole-row walk does not pay here: most of a backward step is per
+    // Gaussian, and a narrow Gaussian would take a whole row of lanes.
+    tile_backward_in(if Build::Avx2.available() { Build::Avx2 } else { Build::Portable }, job, out)
+}
+
+/// [`tile_backward`] in the given build (the AVX-512 one is the AVX2 one),
+/// which the CPU must run.
+pub fn tile_backward_in(build: Build, job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
+    assert!(build.available(), "this CPU does not run the {build:?} build");
+    match build {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the CPU has the features the function is compiled for
+        // (asserted).
+        Build::Avx2 | Build::Avx512 => unsafe { tile_backward_avx2(job, out) },
+        _ => tile_backward_any(job, out),
     }
-    tile_backward_any(job, out)
 }
 
 #[cfg(target_arch = "x86_64")]
