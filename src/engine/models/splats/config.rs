@@ -84,7 +84,7 @@ impl ModelSpec for SplatsConfig {
 pub const PRESETS: &[&str] = &["splats", "splats-dc"];
 
 /// A named configuration:
-/// - `splats`: colours of SH degree 3, up to 500k Gaussians;
+/// - `splats`: colours of SH degree 1 (the default), up to 500k Gaussians;
 /// - `splats-dc`: one colour per Gaussian (a quarter of the file).
 pub fn preset(name: &str) -> Option<SplatsConfig> {
     match name {
