@@ -37,6 +37,8 @@ pub struct SplatsModel {
     /// Each Gaussian's inverse 3D covariance (`xx xy xz yy yz zz`), for
     /// [`Model::render_rays`].
     inverse: OnceLock<Vec<[f32; 6]>>,
+    /// What every view's projection derives from the parameters alone.
+    intrinsics: OnceLock<raster::Intrinsics>,
 }
 
 impl SplatsModel {
@@ -54,7 +56,7 @@ impl SplatsModel {
                 ),
             });
         };
-        Ok(Self { config, scene, params, layout, inverse: OnceLock::new() })
+        Ok(Self { config, scene, params, layout, inverse: OnceLock::new(), intrinsics: OnceLock::new() })
     }
 
     pub fn layout(&self) -> Layout {
@@ -64,7 +66,8 @@ impl SplatsModel {
     /// Renders `camera` (world units).
     pub fn rasterise(&self, camera: &Camera, background: [f32; 3]) -> raster::Frame {
         let cam = RasterCamera::new(camera, &self.scene);
-        raster::forward(&self.layout, &self.params, &cam, &RasterOptions::default(), background)
+        let pre = self.intrinsics.get_or_init(|| raster::Intrinsics::of(&self.layout, &self.params));
+        raster::forward_with(&self.layout, &self.params, Some(pre), &cam, &RasterOptions::default(), background)
     }
 
     /// Renders `camera`'s colours, distances and opacities; a distorted
@@ -97,7 +100,7 @@ impl Rasteriser for SplatsModel {
 }
 
 impl Model for SplatsModel {
-    super::model_accessors!(params_mut: inverse);
+    super::model_accessors!(params_mut: inverse, intrinsics);
 
     /// Never called: the trainer refuses a kind that does not train on
     /// rays (`ModelSpec::trains_on_rays`); splats are optimised on whole

@@ -243,13 +243,14 @@ pub fn project(
     layout: &Layout,
     params: &[f32],
     i: usize,
+    pre: Option<&Intrinsics>,
     cam: &RasterCamera,
     opt: &RasterOptions,
     basis: &mut [f32; sh::WIDTH],
 ) -> Projected {
     let g = layout.get(params, i);
     let t = cam.to_camera(g.mean);
-    let opacity = sigmoid(g.opacity_logit);
+    let opacity = pre.map_or_else(|| sigmoid(g.opacity_logit), |pre| pre.opacity[i]);
     let mut p = Projected { t, opacity, ..Default::default() };
     if t[2].is_nan() || t[2] <= opt.near || opacity.is_nan() || opacity < opt.min_alpha {
         return p;
@@ -257,10 +258,11 @@ pub fn project(
     let (j, clamp) = jacobian(cam, t);
     let r = reach(opacity, opt);
     let mean = [cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy];
-    if off_view(cam, &j, mean, r, g.log_scale) {
+    let largest = pre.map_or_else(|| largest_scale(g.log_scale), |pre| pre.largest_scale[i]);
+    if off_view(cam, &j, mean, r, largest) {
         return p;
     }
-    let (sigma, _) = covariance(g.log_scale, g.rotation);
+    let sigma = pre.map_or_else(|| covariance(g.log_scale, g.rotation).0, |pre| pre.sigma[i]);
     let cov = project_cov(&j, &cam.rot, &sigma);
     let cov = [cov[0] + DILATION, cov[1], cov[2] + DILATION];
     let det = cov[0] * cov[2] - cov[1] * cov[1];
@@ -292,21 +294,53 @@ pub fn project(
 }
 
 /// Whether a Gaussian centred at `mean` on the image (pixels), with the
-/// projection's Jacobian `j` there, reach `r` (standard deviations) and log
-/// scales `log_scale`, surely reaches no pixel centre: its box is then
+/// projection's Jacobian `j` there, reach `r` (standard deviations) and
+/// largest scale `s`, surely reaches no pixel centre: its box is then
 /// beyond the view's edge even at its widest, with a pixel to spare. The
 /// box's half-width in x is `r sqrt(Σ'xx)`, and `Σ'xx = j₀ W Σ Wᵀ j₀ᵀ +
 /// DILATION` is at most `|j₀|² s² + DILATION` for the largest scale `s`
 /// (`W` is a rotation, and `Σ`'s largest eigenvalue is `s²`); so in y. A
 /// cheap test that spares an unseen Gaussian its covariance and colour.
 #[inline]
-pub(super) fn off_view(cam: &RasterCamera, j: &[[f32; 3]; 2], mean: [f32; 2], r: f32, log_scale: [f32; 3]) -> bool {
-    let s = log_scale[0].max(log_scale[1]).max(log_scale[2]).exp();
+pub(super) fn off_view(cam: &RasterCamera, j: &[[f32; 3]; 2], mean: [f32; 2], r: f32, s: f32) -> bool {
     let s2 = s * s;
     let bx = r * ((j[0][0] * j[0][0] + j[0][2] * j[0][2]) * s2 + DILATION).sqrt() + 1.0;
     let by = r * ((j[1][1] * j[1][1] + j[1][2] * j[1][2]) * s2 + DILATION).sqrt() + 1.0;
     // NaNs compare false: such a Gaussian is left to the exact rule.
     mean[0] + bx < 0.0 || mean[0] - bx > cam.width as f32 || mean[1] + by < 0.0 || mean[1] - by > cam.height as f32
+}
+
+/// A Gaussian's largest scale, from its log scales.
+pub fn largest_scale(log_scale: [f32; 3]) -> f32 {
+    log_scale[0].max(log_scale[1]).max(log_scale[2]).exp()
+}
+
+/// What a view's projection derives from each Gaussian's parameters alone
+/// (its opacity, largest scale and 3D covariance), worked out once for a
+/// model whose parameters stay as they are (a splats model's views), where
+/// each view would work it out again. The same functions give the same
+/// bits as [`project`] works them out without it.
+pub struct Intrinsics {
+    pub opacity: Vec<f32>,
+    pub largest_scale: Vec<f32>,
+    pub sigma: Vec<[f32; 6]>,
+}
+
+impl Intrinsics {
+    pub fn of(layout: &Layout, params: &[f32]) -> Self {
+        let each: Vec<(f32, f32, [f32; 6])> = (0..layout.n)
+            .into_par_iter()
+            .map(|i| {
+                let g = layout.get(params, i);
+                (sigmoid(g.opacity_logit), largest_scale(g.log_scale), covariance(g.log_scale, g.rotation).0)
+            })
+            .collect();
+        Self {
+            opacity: each.iter().map(|e| e.0).collect(),
+            largest_scale: each.iter().map(|e| e.1).collect(),
+            sigma: each.iter().map(|e| e.2).collect(),
+        }
+    }
 }
 
 /// How far a Gaussian of opacity `o` reaches, in standard deviations.
@@ -397,7 +431,20 @@ pub fn forward(
     opt: &RasterOptions,
     background: [f32; 3],
 ) -> Frame {
-    let projected = project_all(layout, params, cam, opt);
+    forward_with(layout, params, None, cam, opt, background)
+}
+
+/// [`forward`], with the Gaussians' [`Intrinsics`] if they were worked
+/// out (the same bits).
+pub fn forward_with(
+    layout: &Layout,
+    params: &[f32],
+    pre: Option<&Intrinsics>,
+    cam: &RasterCamera,
+    opt: &RasterOptions,
+    background: [f32; 3],
+) -> Frame {
+    let projected = project_all(layout, params, pre, cam, opt);
     let Binned { order, drawn, tile_ranges, list } = bin(&projected, cam, opt);
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut frame = Frame {
@@ -444,10 +491,16 @@ pub fn forward(
 }
 
 /// Every Gaussian's projection, in parallel.
-pub fn project_all(layout: &Layout, params: &[f32], cam: &RasterCamera, opt: &RasterOptions) -> Vec<Projected> {
+pub fn project_all(
+    layout: &Layout,
+    params: &[f32],
+    pre: Option<&Intrinsics>,
+    cam: &RasterCamera,
+    opt: &RasterOptions,
+) -> Vec<Projected> {
     (0..layout.n)
         .into_par_iter()
-        .map_init(|| [0.0f32; sh::WIDTH], |basis, i| project(layout, params, i, cam, opt, basis))
+        .map_init(|| [0.0f32; sh::WIDTH], |basis, i| project(layout, params, i, pre, cam, opt, basis))
         .collect()
 }
 

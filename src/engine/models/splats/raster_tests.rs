@@ -543,7 +543,7 @@ fn a_gaussian_culled_before_its_covariance_reaches_no_pixel() {
     // views from several places: each one `off_view` culls, projected in
     // full, has a box that holds no pixel centre.
     use super::gaussians::{covariance, sigmoid};
-    use super::raster::{jacobian, off_view, pixel_rect, project_cov, reach};
+    use super::raster::{jacobian, largest_scale, off_view, pixel_rect, project_cov, reach};
     let scene = unit_scene();
     let opt = RasterOptions::default();
     let (mut culled, mut kept_unseen) = (0, 0);
@@ -572,7 +572,7 @@ fn a_gaussian_culled_before_its_covariance_reaches_no_pixel() {
             let extent = [r * (cov[0] + DILATION).sqrt(), r * (cov[2] + DILATION).sqrt()];
             let [x0, x1, y0, y1] = pixel_rect(mean, extent, w, h);
             let unseen = x0 >= x1 || y0 >= y1;
-            if off_view(&cam, &j, mean, r, g.log_scale) {
+            if off_view(&cam, &j, mean, r, largest_scale(g.log_scale)) {
                 culled += 1;
                 assert!(unseen, "Gaussian {i} culled, but its box holds pixels {x0}..{x1} x {y0}..{y1}");
             } else if unseen {
@@ -611,4 +611,39 @@ fn each_tiles_list_holds_the_gaussians_reaching_it_front_to_back() {
     // Drawn front to back.
     let depth = |k: usize| f.projected[f.order[k] as usize].t[2];
     assert!((1..f.order.len()).all(|k| depth(k - 1) <= depth(k)));
+}
+
+#[test]
+fn a_models_views_with_its_intrinsics_worked_out_once_are_the_same_bits() {
+    // A splats model works out each Gaussian's opacity, largest scale and
+    // covariance once for all its views; changing its parameters must
+    // drop them.
+    use super::raster::{Intrinsics, forward_with};
+    use super::{SplatsConfig, SplatsModel};
+    use crate::engine::models::Model;
+    let scene = unit_scene();
+    let camera = camera([0.3, -4.0, 0.8], 61, 47, 40.0);
+    let cam = RasterCamera::new(&camera, &scene);
+    let opt = RasterOptions::default();
+    let (l, p) = random_gaussians(400, 1, 9, 0.95);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let plain = forward(&l, &p, &cam, &opt, [0.0; 3]);
+    let pre = Intrinsics::of(&l, &p);
+    assert_eq!(bits(&forward_with(&l, &p, Some(&pre), &cam, &opt, [0.0; 3]).rgb), bits(&plain.rgb));
+    let config = SplatsConfig { sh_degree: 1, ..SplatsConfig::default() };
+    let mut model = SplatsModel::from_parts(config.clone(), scene.clone(), p.clone()).unwrap();
+    assert_eq!(bits(&model.render_view(&camera, [0.0; 3]).0), bits(&plain.rgb));
+    // Every Gaussian twice as opaque in logit, through `params_mut`.
+    let ops = l.opacities();
+    for v in &mut model.params_mut()[ops.clone()] {
+        *v += 2.0;
+    }
+    let mut q = p.clone();
+    for v in &mut q[ops] {
+        *v += 2.0;
+    }
+    let fresh = SplatsModel::from_parts(config, scene, q).unwrap();
+    let (after, want) = (model.render_view(&camera, [0.0; 3]).0, fresh.render_view(&camera, [0.0; 3]).0);
+    assert_ne!(bits(&after), bits(&plain.rgb), "the change shows");
+    assert_eq!(bits(&after), bits(&want));
 }
