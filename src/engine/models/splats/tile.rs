@@ -222,52 +222,25 @@ unsafe fn composite_tile_avx512(frame: &Frame, cam: &RasterCamera, opt: &RasterO
 /// arithmetic per pixel as [`composite_tile_any`], so the same bits.
 #[inline(always)]
 pub(super) fn composite_tile_rows(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
-    let [x0, x1, y0, y1] = tile_rect(cam, t);
-    let w = x1 - x0;
-    let mut st = Box::new(Composite {
-        t: [1.0; TILE * ROW],
-        rgb: [[0.0; TILE * ROW]; 3],
-        depth: [0.0; TILE * ROW],
-        last: [0; TILE * ROW],
-        live: [1.0; TILE * ROW],
-    });
-    let (width, height) = (cam.width as usize, cam.height as usize);
+    let [x0, x1, y0, _] = tile_rect(cam, t);
     let xs: [f32; TILE] = std::array::from_fn(|k| (x0 + k) as f32 + 0.5);
-    let list = &frame.list[frame.tile_ranges[t].clone()];
-    for (pos, &g) in list.iter().enumerate() {
-        if pos % STOP_CHECK == 0 && (0..y1 - y0).all(|r| st.live[r * ROW..r * ROW + w].iter().all(|&l| l == 0.0)) {
-            break;
-        }
-        if let Some(&ahead) = list.get(pos + PREFETCH) {
-            prefetch(&frame.drawn[ahead as usize]);
-        }
-        let p = &frame.drawn[g as usize];
-        let [gx0, gx1, gy0, gy1] = p.pixel_rect(width, height);
+    walk_tile(frame, cam, t, |st, p, [gx0, gx1, ry0, ry1], took| {
         let cols = (gx0.max(x0) - x0, gx1.min(x1).max(x0) - x0);
-        let took = pos as u32 + 1;
         if cols.1 - cols.0 <= L {
             // A narrow box: its columns of the tile fit a half vector.
             let narrow: [f32; L] = std::array::from_fn(|k| xs[cols.0] + k as f32);
-            for y in gy0.max(y0)..gy1.min(y1) {
+            for y in ry0..ry1 {
                 let dy = y as f32 + 0.5 - p.mean[1];
                 let base = (y - y0) * ROW + cols.0;
-                composite_lanes(p, &mut st, base, &narrow, (0, cols.1 - cols.0), dy, took, opt);
+                composite_lanes(p, st, base, &narrow, (0, cols.1 - cols.0), dy, took, opt);
             }
         } else {
-            for y in gy0.max(y0)..gy1.min(y1) {
+            for y in ry0..ry1 {
                 let dy = y as f32 + 0.5 - p.mean[1];
-                composite_lanes(p, &mut st, (y - y0) * ROW, &xs, cols, dy, took, opt);
+                composite_lanes(p, st, (y - y0) * ROW, &xs, cols, dy, took, opt);
             }
         }
-    }
-    let mut pixels = Vec::with_capacity(w * (y1 - y0));
-    for r in 0..y1 - y0 {
-        for k in r * ROW..r * ROW + w {
-            let rgb = [st.rgb[0][k], st.rgb[1][k], st.rgb[2][k]];
-            pixels.push(PixelOut { rgb, depth: st.depth[k], t: st.t[k], last: st.last[k] });
-        }
-    }
-    TileOut { w, pixels }
+    })
 }
 
 /// The forward of tile `t`, walked a Gaussian at a time over the rows it
@@ -275,6 +248,37 @@ pub(super) fn composite_tile_rows(frame: &Frame, cam: &RasterCamera, opt: &Raste
 /// ([`Splat2D::row_span`]), in chunks of [`L`] lanes from its first column.
 #[inline(always)]
 pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
+    let [x0, x1, y0, _] = tile_rect(cam, t);
+    let half: [f32; L] = std::array::from_fn(|k| k as f32 + 0.5);
+    walk_tile(frame, cam, t, |st, p, [gx0, gx1, ry0, ry1], took| {
+        for y in ry0..ry1 {
+            let dy = y as f32 + 0.5 - p.mean[1];
+            if dy.abs() > p.extent[1] {
+                continue;
+            }
+            let (sx0, sx1) = p.row_span(dy, gx0.max(x0), gx1.min(x1));
+            let mut x = sx0;
+            while x < sx1 {
+                let base = (y - y0) * ROW + (x - x0);
+                let xs: [f32; L] = std::array::from_fn(|k| x as f32 + half[k]);
+                composite_lanes(p, st, base, &xs, (0, sx1 - x), dy, took, opt);
+                x += L;
+            }
+        }
+    })
+}
+
+/// The walk both forwards share: tile `t`'s list front to back, each
+/// Gaussian drawn by `draw(state, gaussian, [x0, x1, y0, y1], took)` (its
+/// box's columns in the image, the tile's rows it reaches, and what a
+/// pixel's `last` becomes where it takes it), then the tile's pixels.
+#[inline(always)]
+fn walk_tile(
+    frame: &Frame,
+    cam: &RasterCamera,
+    t: usize,
+    mut draw: impl FnMut(&mut Composite, &Splat2D, [usize; 4], u32),
+) -> TileOut {
     let [x0, x1, y0, y1] = tile_rect(cam, t);
     let w = x1 - x0;
     let mut st = Box::new(Composite {
@@ -285,7 +289,6 @@ pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &Raster
         live: [1.0; TILE * ROW],
     });
     let (width, height) = (cam.width as usize, cam.height as usize);
-    let half: [f32; L] = std::array::from_fn(|k| k as f32 + 0.5);
     let list = &frame.list[frame.tile_ranges[t].clone()];
     for (pos, &g) in list.iter().enumerate() {
         // Every so many Gaussians: whether any pixel still takes them (a
@@ -302,20 +305,7 @@ pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &Raster
         }
         let p = &frame.drawn[g as usize];
         let [gx0, gx1, gy0, gy1] = p.pixel_rect(width, height);
-        for y in gy0.max(y0)..gy1.min(y1) {
-            let dy = y as f32 + 0.5 - p.mean[1];
-            if dy.abs() > p.extent[1] {
-                continue;
-            }
-            let (sx0, sx1) = p.row_span(dy, gx0.max(x0), gx1.min(x1));
-            let mut x = sx0;
-            while x < sx1 {
-                let base = (y - y0) * ROW + (x - x0);
-                let xs: [f32; L] = std::array::from_fn(|k| x as f32 + half[k]);
-                composite_lanes(p, &mut st, base, &xs, (0, sx1 - x), dy, pos as u32 + 1, opt);
-                x += L;
-            }
-        }
+        draw(&mut st, p, [gx0, gx1, gy0.max(y0), gy1.min(y1)], pos as u32 + 1);
     }
     let mut pixels = Vec::with_capacity(w * (y1 - y0));
     for r in 0..y1 - y0 {
