@@ -32,44 +32,71 @@ pub fn backward(
     grads: &mut [f32],
 ) -> Vec<ScreenGrad> {
     let screen = screen_grads(cam, opt, frame, d_rgb, layout.n);
-    let per: Vec<GaussianGrad> = (0..layout.n)
-        .into_par_iter()
-        .map_init(
-            || [0.0f32; sh::WIDTH],
-            |basis, i| {
-                let p = &frame.projected[i];
-                if !p.visible || screen[i] == [0.0; 9] {
-                    return GaussianGrad::default();
-                }
-                gaussian_backward(layout, params, i, cam, p, &screen[i], basis)
-            },
-        )
-        .collect();
+    // Each block of the parameters (laid out as `Layout` says) in runs of
+    // `RUN` Gaussians: a task adds its run's gradients in every block.
     let n = layout.n;
-    let k3 = 3 * layout.k;
-    for (i, g) in per.iter().enumerate() {
-        for c in 0..3 {
-            grads[3 * i + c] += g.mean[c];
-            grads[3 * n + 3 * i + c] += g.log_scale[c];
-        }
-        for c in 0..4 {
-            grads[6 * n + 4 * i + c] += g.rotation[c];
-        }
-        grads[10 * n + i] += g.opacity_logit;
-        for c in 0..3 {
-            grads[11 * n + 3 * i + c] += g.sh[c];
-        }
-        let rest = &mut grads[14 * n + (k3 - 3) * i..14 * n + (k3 - 3) * (i + 1)];
-        for (s, v) in rest.iter_mut().zip(&g.sh[3..k3]) {
-            *s += v;
+    let rest_width = 3 * layout.k - 3;
+    let (means, more) = grads.split_at_mut(3 * n);
+    let (scales, more) = more.split_at_mut(3 * n);
+    let (rotations, more) = more.split_at_mut(4 * n);
+    let (opacities, more) = more.split_at_mut(n);
+    let (dc, more) = more.split_at_mut(3 * n);
+    let rest = &mut more[..rest_width * n];
+    let runs = n.div_ceil(RUN);
+    fn split(block: &mut [f32], width: usize, runs: usize) -> Vec<&mut [f32]> {
+        match width {
+            0 => (0..runs).map(|_| Default::default()).collect(),
+            w => block.chunks_mut(w * RUN).collect(),
         }
     }
+    let tasks: Vec<_> = split(means, 3, runs)
+        .into_iter()
+        .zip(split(scales, 3, runs))
+        .zip(split(rotations, 4, runs))
+        .zip(split(opacities, 1, runs))
+        .zip(split(dc, 3, runs))
+        .zip(split(rest, rest_width, runs))
+        .collect();
+    tasks.into_par_iter().enumerate().for_each_init(
+        || [0.0f32; sh::WIDTH],
+        |basis, (run, (((((mean, scale), rotation), opacity), dc), rest))| {
+            for j in 0..opacity.len() {
+                let i = run * RUN + j;
+                let p = &frame.projected[i];
+                if !p.visible || screen[i] == [0.0; 9] {
+                    continue;
+                }
+                let g = gaussian_backward(layout, params, i, cam, p, &screen[i], basis);
+                for c in 0..3 {
+                    mean[3 * j + c] += g.mean[c];
+                    scale[3 * j + c] += g.log_scale[c];
+                    dc[3 * j + c] += g.sh[c];
+                }
+                for c in 0..4 {
+                    rotation[4 * j + c] += g.rotation[c];
+                }
+                opacity[j] += g.opacity_logit;
+                for (s, v) in rest[rest_width * j..rest_width * (j + 1)].iter_mut().zip(&g.sh[3..]) {
+                    *s += v;
+                }
+            }
+        },
+    );
     screen
 }
 
+/// Gaussians a task of the parameters' backward takes.
+pub(super) const RUN: usize = 2048;
+
 /// Per tile, back to front: each list entry's screen gradient, summed per
 /// Gaussian.
-fn screen_grads(cam: &RasterCamera, opt: &RasterOptions, frame: &Frame, d_rgb: &[f32], n: usize) -> Vec<ScreenGrad> {
+pub(super) fn screen_grads(
+    cam: &RasterCamera,
+    opt: &RasterOptions,
+    frame: &Frame,
+    d_rgb: &[f32],
+    n: usize,
+) -> Vec<ScreenGrad> {
     // Each tile's slice of the per-entry gradients.
     let mut entries = vec![[0.0f32; 9]; frame.list.len()];
     let mut slices = Vec::with_capacity(frame.tile_ranges.len());
@@ -95,12 +122,12 @@ fn screen_grads(cam: &RasterCamera, opt: &RasterOptions, frame: &Frame, d_rgb: &
 
 /// One Gaussian's parameter gradients (`sh`: the first `3 k`).
 #[derive(Clone, Debug)]
-struct GaussianGrad {
-    mean: [f32; 3],
-    log_scale: [f32; 3],
-    rotation: [f32; 4],
-    opacity_logit: f32,
-    sh: [f32; 3 * sh::WIDTH],
+pub(super) struct GaussianGrad {
+    pub(super) mean: [f32; 3],
+    pub(super) log_scale: [f32; 3],
+    pub(super) rotation: [f32; 4],
+    pub(super) opacity_logit: f32,
+    pub(super) sh: [f32; 3 * sh::WIDTH],
 }
 
 impl Default for GaussianGrad {
@@ -110,7 +137,7 @@ impl Default for GaussianGrad {
 }
 
 /// Differentiates Gaussian `i`'s projection, given its screen gradient `s`.
-fn gaussian_backward(
+pub(super) fn gaussian_backward(
     layout: &Layout,
     params: &[f32],
     i: usize,

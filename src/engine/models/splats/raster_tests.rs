@@ -369,6 +369,56 @@ fn backward_matches_finite_differences_for_every_parameter() {
     }
 }
 
+/// The backward adds each Gaussian's gradients in runs of Gaussians, in
+/// parallel: the same bits as adding them one Gaussian after another,
+/// with several runs and a last one cut short.
+#[test]
+fn the_backward_in_runs_adds_each_gaussians_gradients_where_they_belong() {
+    use super::backward::{RUN, gaussian_backward, screen_grads};
+    let scene = unit_scene();
+    let cam = RasterCamera::new(&camera([0.4, -4.0, 0.6], 64, 48, 35.0), &scene);
+    let opt = RasterOptions::default();
+    for degree in [0, 1, 3] {
+        let (l, p) = random_gaussians(2 * RUN + 300, degree, 11 + degree as u64, 0.6);
+        let mut rng = Rng::new(5);
+        let weights: Vec<f32> = (0..64 * 48 * 3).map(|_| rng.normal()).collect();
+        let f = forward(&l, &p, &cam, &opt, [0.2, 0.4, 0.6]);
+        // Something there already, which the backward adds to.
+        let start: Vec<f32> = (0..l.len()).map(|_| rng.normal()).collect();
+        let mut got = start.clone();
+        backward(&l, &p, &cam, &opt, &f, &weights, &mut got);
+        let mut want = start;
+        let screen = screen_grads(&cam, &opt, &f, &weights, l.n);
+        let (n, rest) = (l.n, 3 * l.k - 3);
+        let mut basis = [0.0f32; crate::engine::nn::sh::WIDTH];
+        let mut touched = 0;
+        for i in 0..n {
+            let pr = &f.projected[i];
+            if !pr.visible || screen[i] == [0.0; 9] {
+                continue;
+            }
+            touched += 1;
+            let g = gaussian_backward(&l, &p, i, &cam, pr, &screen[i], &mut basis);
+            for c in 0..3 {
+                want[3 * i + c] += g.mean[c];
+                want[3 * n + 3 * i + c] += g.log_scale[c];
+                want[11 * n + 3 * i + c] += g.sh[c];
+            }
+            for c in 0..4 {
+                want[6 * n + 4 * i + c] += g.rotation[c];
+            }
+            want[10 * n + i] += g.opacity_logit;
+            for c in 0..rest {
+                want[14 * n + rest * i + c] += g.sh[3 + c];
+            }
+        }
+        // Most Gaussians are seen, in every run.
+        assert!(touched > n / 2, "{touched} of {n} seen");
+        let differ = got.iter().zip(&want).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+        assert_eq!(differ, 0, "degree {degree}: {differ} of {} values differ", got.len());
+    }
+}
+
 #[test]
 fn a_rotated_camera_sees_a_rotated_scene_alike() {
     // Rotating both the Gaussians and the camera about the origin leaves
