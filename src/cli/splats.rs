@@ -39,8 +39,9 @@ pub struct BakeArgs {
     /// reached ends it.
     #[arg(long)]
     pub steps: Option<u64>,
-    /// Gaussians placed from the field before optimising (default: 1500
-    /// for each training photo, at most 200,000).
+    /// Gaussians placed from the field within the photos' frames before
+    /// optimising (default: 1500 for each training photo, at most
+    /// 200,000); the margins past their edges add those no photo saw.
     #[arg(long)]
     pub initial: Option<usize>,
     /// Spherical-harmonic degree of the colours (0-3).

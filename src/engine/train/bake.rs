@@ -70,8 +70,10 @@ pub struct BakeSettings {
     /// Optimisation steps (one photo each); the first of the two budgets
     /// reached ends baking.
     pub steps: Option<u64>,
-    /// Gaussians placed from the field before optimising; `None`:
-    /// [`PER_PHOTO`] for each training photo, at most [`MOST_INITIAL`].
+    /// Gaussians placed from the field within the photos' frames before
+    /// optimising (the margins past their edges add those no photo saw);
+    /// `None`: [`PER_PHOTO`] for each training photo, at most
+    /// [`MOST_INITIAL`].
     pub initial: Option<usize>,
     pub splats: SplatsConfig,
     pub seed: u64,
