@@ -455,13 +455,13 @@ fn sample_photo(
     let origin = [-MARGIN * w, -MARGIN * h];
     let (gw, gh) = ((1.0 + 2.0 * MARGIN) * w, (1.0 + 2.0 * MARGIN) * h);
     let (nx, ny) = ((gw / spacing).ceil() as usize, (gh / spacing).ceil() as usize);
-    let (mut rays, mut at): (Vec<Ray>, Vec<[f32; 2]>) = (Vec::with_capacity(nx * ny), Vec::with_capacity(nx * ny));
+    let (mut rays, mut past): (Vec<Ray>, Vec<bool>) = (Vec::with_capacity(nx * ny), Vec::with_capacity(nx * ny));
     for y in 0..ny {
         for x in 0..nx {
             let u = origin[0] + ((x as f32 + rng.f32()) * spacing).min(gw - 1e-3);
             let v = origin[1] + ((y as f32 + rng.f32()) * spacing).min(gh - 1e-3);
             rays.push(cam.ray(u, v));
-            at.push([u, v]);
+            past.push(!in_frame(u, v, w, h));
         }
     }
     let (out, _) = render_rays_with(source, &rays, bg, &RenderOptions::default());
@@ -485,10 +485,14 @@ fn sample_photo(
         let colour = [0, 1, 2].map(|c| ((o.rgb[c] - (1.0 - o.opacity) * bg[c]) / o.opacity).clamp(0.0, 1.0));
         // A pixel's width at that distance, times the grid's spacing.
         placed.push((p, t * spacing / cam.fx.max(1e-6), colour));
-        let [u, v] = at[k];
-        outside.push(!(u >= 0.0 && v >= 0.0 && u < w && v < h));
+        outside.push(past[k]);
     }
     (DepthGrid { nx, ny, origin, spacing, depth }, placed, outside)
+}
+
+/// Whether image point `(u, v)` (pixels) is within a `w x h` frame.
+fn in_frame(u: f32, v: f32, w: f32, h: f32) -> bool {
+    u >= 0.0 && v >= 0.0 && u < w && v < h
 }
 
 /// Where model-space ray `r` leaves the sphere of radius `radius` around
@@ -581,9 +585,9 @@ fn carve(
                 if known && dist < CARVE_MARGIN * nearest {
                     return false;
                 }
-                let in_frame = u >= 0.0 && v >= 0.0 && u < cam.width as f32 && v < cam.height as f32;
-                let there = g.depth[gy * g.nx + gx];
-                seen |= outside && in_frame && dist < there / CARVE_MARGIN;
+                seen |= outside
+                    && in_frame(u, v, cam.width as f32, cam.height as f32)
+                    && dist < g.depth[gy * g.nx + gx] / CARVE_MARGIN;
             }
             !seen
         })

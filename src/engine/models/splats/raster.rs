@@ -328,18 +328,14 @@ pub struct Intrinsics {
 
 impl Intrinsics {
     pub fn of(layout: &Layout, params: &[f32]) -> Self {
-        let each: Vec<(f32, f32, [f32; 6])> = (0..layout.n)
+        let (opacity, (largest_scale, sigma)) = (0..layout.n)
             .into_par_iter()
             .map(|i| {
                 let g = layout.get(params, i);
-                (sigmoid(g.opacity_logit), largest_scale(g.log_scale), covariance(g.log_scale, g.rotation).0)
+                (sigmoid(g.opacity_logit), (largest_scale(g.log_scale), covariance(g.log_scale, g.rotation).0))
             })
-            .collect();
-        Self {
-            opacity: each.iter().map(|e| e.0).collect(),
-            largest_scale: each.iter().map(|e| e.1).collect(),
-            sigma: each.iter().map(|e| e.2).collect(),
-        }
+            .unzip();
+        Self { opacity, largest_scale, sigma }
     }
 }
 
