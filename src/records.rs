@@ -250,6 +250,9 @@ pub struct ModelInfo {
     /// (written when training ends).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub poses: Option<crate::engine::nn::pose_report::PoseReport>,
+    /// For a splats model: how many Gaussians it has.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gaussians: Option<u64>,
 }
 
 fn yes() -> bool {

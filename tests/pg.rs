@@ -162,6 +162,7 @@ fn model_of(job: &Job, scene: &SceneInfo, steps: u64) -> ModelInfo {
         training_state: true,
         view: scene.view.clone(),
         poses: None,
+        gaussians: None,
     }
 }
 

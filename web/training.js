@@ -4,7 +4,7 @@
 
 import { ApiError, api, followJob, getJson, postJson } from './api.js';
 import { refreshScenes } from './scenes.js';
-import { $, el, fail, fmtSecs, status } from './ui.js';
+import { $, bakeLine, el, fail, fmtSecs, status } from './ui.js';
 import { openViewer } from './viewer.js';
 
 const training = { id: null, abort: null, points: [], lastPreview: 0, previewBusy: false, modelId: null, lastStep: null, shown: null };
@@ -46,11 +46,8 @@ function followBake(id) {
   line.hidden = false;
   line.textContent = `baking the real-time view (job ${id})...`;
   const show = (j) => {
-    const p = j.progress;
     line.dataset.status = j.status;
-    line.textContent = `real-time view (job ${j.id}): ${j.status}` +
-      (p.gaussians ? ` · ${p.gaussians} Gaussians` : '') + ` · step ${p.step}` +
-      (p.test_psnr != null ? ` · held-out PSNR ${p.test_psnr.toFixed(2)} dB` : '') + (j.error ? ` · ${j.error}` : '');
+    line.textContent = `real-time view (job ${j.id}): ${bakeLine(j)}`;
     if (j.status === 'succeeded' && j.model_id && !$('training').hidden) openViewer(j.model_id).catch(fail);
   };
   followJob(id, show).catch(fail);
@@ -183,7 +180,7 @@ export function setupTraining() {
     const budget = { [kind]: kind === 'steps' ? Math.round(value) : value };
     try {
       const body = { scene_id: $('train-scene').value, model: $('train-model').value, budget };
-      if ($('train-bake').checked) body.bake = { seconds: 60 };
+      if ($('train-bake').checked) body.bake = { seconds: Number($('train-bake-seconds').value) || 60 };
       const job = await postJson('/v1/jobs', body);
       status(`job ${job.id} queued`);
       watchJob(job);

@@ -18,6 +18,20 @@ export function fail(e) {
 }
 
 export const fmtSecs = (s) => (s == null || !isFinite(s) ? '?' : s < 60 ? `${s.toFixed(0)} s` : `${Math.floor(s / 60)} min ${Math.round(s % 60)} s`);
+/**
+ * A bake job's progress in a line: its status, the step (of the steps
+ * asked for), the time spent and left, the Gaussians so far and, once
+ * measured, the held-out PSNR.
+ */
+export function bakeLine(j) {
+  const p = j.progress;
+  const running = j.status === 'running';
+  return `${j.status} · step ${p.step}${p.total_steps ? ' / ' + p.total_steps : ''}` +
+    (p.elapsed ? ` · ${fmtSecs(p.elapsed)} baked` : '') + (running && p.eta != null ? ` · ETA ${fmtSecs(p.eta)}` : '') +
+    (p.gaussians ? ` · ${p.gaussians.toLocaleString('en')} Gaussians` : '') +
+    (p.test_psnr != null ? ` · held-out PSNR ${p.test_psnr.toFixed(2)} dB` : '') + (j.error ? ` · ${j.error}` : '');
+}
+
 export const fmtBytes = (b) => (b > 1 << 20 ? `${(b / 1048576).toFixed(1)} MiB` : `${Math.ceil(b / 1024)} KiB`);
 
 export function el(tag, attrs = {}, ...children) {

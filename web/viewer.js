@@ -10,7 +10,7 @@
 // tests.
 
 import { api, followJob, getJson, postJson } from './api.js';
-import { $, el, fail, showTab, status } from './ui.js';
+import { $, bakeLine, el, fail, showTab, status } from './ui.js';
 import { makeVideo } from './videos.js';
 
 let models = [];
@@ -21,7 +21,8 @@ export async function refreshModels() {
     const s = $(id);
     const chosen = s.value;
     s.replaceChildren(...models.map((m) => el('option', { value: m.id },
-      `${m.id} (${m.model}, ${m.steps} steps${m.test_psnr != null ? `, ${m.test_psnr.toFixed(1)} dB` : ''}${m.complete ? '' : ', training'})`)));
+      `${m.id} (${m.model}${m.gaussians ? `, ${m.gaussians.toLocaleString('en')} Gaussians` : ''}, ${m.steps} steps` +
+      `${m.test_psnr != null ? `, ${m.test_psnr.toFixed(1)} dB` : ''}${m.complete ? '' : ', training'})`)));
     if (chosen && models.some((m) => m.id === chosen)) s.value = chosen;
   }
   if (!viewer.model && models.length && !opening) selectModel(models[0].id).catch(fail);
@@ -174,9 +175,20 @@ export function parseLink(hash) {
   return { id: m[1], camera };
 }
 
-/** Our pinhole camera for the splat canvas: the full-size render's size and the orbit's field of view. */
+/**
+ * The splat canvas's size: the photos' shape, 720 pixels on its longer
+ * side (at most 1 MP and 90% of the window's width). The browser draws it,
+ * so unlike a server render it need not stay within the photos' size.
+ */
+function splatSize() {
+  const { width, height } = viewer.model.view;
+  const s = Math.min(720 / Math.max(width, height), (0.9 * (window.innerWidth || 1000)) / width, Math.sqrt(1048576 / (width * height)));
+  return [Math.max(1, Math.round(width * s)), Math.max(1, Math.round(height * s))];
+}
+
+/** Our pinhole camera for the splat canvas: its size and the orbit's field of view. */
 function splatIntrinsics() {
-  const [width, height] = fullSize();
+  const [width, height] = splatSize();
   const f = (0.5 * width) / Math.tan((viewer.fov * Math.PI) / 360);
   return { fx: f, fy: f, cx: width / 2, cy: height / 2, width, height };
 }
@@ -227,8 +239,7 @@ async function bakeShown() {
   try {
     await followJob(job.id, (j) => {
       end = j;
-      const p = j.progress;
-      $('view-info').textContent = `baking (job ${j.id}): ${j.status} · step ${p.step}` + (p.gaussians ? ` · ${p.gaussians} Gaussians` : '');
+      $('view-info').textContent = `baking (job ${j.id}): ${bakeLine(j)}`;
     });
   } finally {
     $('view-bake').disabled = false;

@@ -136,9 +136,9 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &Atomi
     };
     let state = TrainState { step: steps, elapsed, ..Default::default() };
     save_checkpoint(&out, &splats, &adam, &train, &state).map_err(JobError::SaveSplats)?;
-    let baked = Baked { model: &splats, steps, elapsed, metric };
-    host.publish_model(job, &baked.record(job, &source, &out), &out)?;
     let gaussians = splats.layout().n as u64;
+    let baked = Baked { model: &splats, gaussians, steps, elapsed, metric };
+    host.publish_model(job, &baked.record(job, &source, &out), &out)?;
     host.set_progress(&job.id, &mut |j| {
         j.model_id = Some(model_id.clone());
         let g = &mut j.progress;
@@ -181,6 +181,7 @@ fn report(host: &dyn JobHost, job: &Job, spec: &BakeSpec, p: &BakeProgress) {
 /// What a bake made, for its model's record.
 struct Baked<'a> {
     model: &'a dyn Model,
+    gaussians: u64,
     steps: u64,
     elapsed: f64,
     /// The held-out PSNR and the views it was measured on.
@@ -209,6 +210,7 @@ impl Baked<'_> {
             training_state: true,
             view: source.view.clone(),
             poses: None,
+            gaussians: Some(self.gaussians),
         }
     }
 }

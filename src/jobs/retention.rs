@@ -204,6 +204,7 @@ mod tests {
             training_state,
             view,
             poses: None,
+            gaussians: None,
         }
     }
 

@@ -278,6 +278,7 @@ impl ModelRecord<'_> {
             training_state: true,
             view: self.scene.view.clone(),
             poses,
+            gaussians: None,
         };
         self.host.publish_model(self.job, &info, &self.ckpt)?;
         self.host.set_progress(&self.job.id, &mut |j| j.model_id = Some(info.id.clone()));

@@ -75,6 +75,7 @@ fn model_of(job: &Job, scene: &SceneInfo) -> ModelInfo {
         training_state: true,
         view: scene.view.clone(),
         poses: None,
+        gaussians: None,
     }
 }
 

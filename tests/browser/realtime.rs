@@ -152,6 +152,7 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
         let (s, model) = svc.get(&format!("/v1/models/{id}")).await;
         assert_eq!(s, 200);
         assert_eq!(model["model"].as_str(), Some("splats"), "{model}");
+        assert_eq!(model["gaussians"], bake["progress"]["gaussians"], "the model record counts its Gaussians");
         println!(
             "trained {source} ({} dB) and baked {id} ({} Gaussians, {} dB held out) in {:.1} s",
             train["progress"]["test_psnr"],
@@ -183,6 +184,21 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     page.eval("window.splatView.settled()");
     assert_eq!(page.eval("document.getElementById('viewer').hidden"), false);
     assert_eq!(page.eval("document.getElementById('view-img').hidden"), true);
+    // The model list names the splats' Gaussian count.
+    let count = model["gaussians"].as_u64().unwrap();
+    let option = page.eval(&format!("document.querySelector('#view-model option[value=\"{splats_id}\"]').textContent"));
+    let shown = format!(
+        "{} Gaussians",
+        count
+            .to_string()
+            .as_bytes()
+            .rchunks(3)
+            .rev()
+            .map(|c| std::str::from_utf8(c).unwrap())
+            .collect::<Vec<_>>()
+            .join(",")
+    );
+    assert!(option.as_str().unwrap().contains(&shown), "{option} does not say {shown}");
     let drawn = canvas_image(&mut page, "#view-splats");
     screenshot(&mut page, "realtime-viewer", false);
     save(&drawn, "realtime-canvas");
@@ -259,4 +275,59 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     drop(server);
     drop(browser);
     rt.block_on(svc.stop());
+}
+
+/// A training started on the page with "then bake a real-time view"
+/// (the default) ends on the real-time view: the bake's line names its
+/// time and what is left while it runs, then the viewer draws the splats
+/// in the browser, asking the server for no render.
+#[test]
+fn training_on_the_page_ends_on_the_real_time_view() {
+    let _ = tracing_subscriber::fmt().with_env_filter("radiance=warn").with_test_writer().try_init();
+    let rt = runtime();
+    let data = tempfile::tempdir().unwrap();
+    let svc = rt.block_on(Svc::start(config(data.path())));
+    let (s, scene) = rt.block_on(svc.post_json("/v1/demo", json!({})));
+    assert_eq!(s, 201, "{scene}");
+    let browser = Browser::launch(1200, 1000);
+    let mut page = browser.page();
+    page.record_requests();
+    page.goto(&svc.url("/"));
+    page.wait_for("document.querySelectorAll('#scene-list li').length === 1", 30.0);
+    page.click("#scene-list li button");
+    page.wait_for("!document.getElementById('training').hidden", 5.0);
+    page.fill("#train-model", "instant-tiny");
+    page.fill("#train-budget-kind", "steps");
+    page.fill("#train-budget", "200");
+    assert_eq!(page.eval("document.getElementById('train-bake').checked"), true, "baking is the default");
+    page.fill("#train-bake-seconds", "6");
+    page.click("#train-start");
+    // The bake's line while it runs: its step, time baked and time left.
+    let line = page.wait_for(
+        "(() => { const l = document.getElementById('bake-line'); \
+           return !l.hidden && l.dataset.status === 'running' && l.textContent.includes('ETA') ? l.textContent : null })()",
+        120.0,
+    );
+    let line = line.as_str().unwrap().to_string();
+    assert!(line.contains("step ") && line.contains(" baked") && line.contains("Gaussians"), "{line}");
+    // Then the real-time view, drawn by the browser.
+    page.wait_for(
+        "!document.getElementById('viewer').hidden && !!document.getElementById('view-splats').dataset.model",
+        120.0,
+    );
+    page.eval("window.splatView.settled()");
+    assert_eq!(page.eval("document.getElementById('view-img').hidden"), true);
+    let n: u64 = page.eval("document.getElementById('view-splats').dataset.count").as_str().unwrap().parse().unwrap();
+    assert!(n > 100, "{n} splats drawn");
+    let jobs = rt.block_on(svc.get("/v1/jobs")).1;
+    let bake = jobs.as_array().unwrap().iter().find(|j| j["kind"] == "bake").expect("a bake job").clone();
+    assert_eq!(bake["status"], "succeeded", "{bake}");
+    let train = jobs.as_array().unwrap().iter().find(|j| j["kind"] == "train").expect("the training job").clone();
+    assert_eq!(train["bake"]["seconds"], 6.0, "the page's bake budget: {train}");
+    screenshot(&mut page, "realtime-after-training", false);
+    let splats_id = page.eval("document.getElementById('view-splats').dataset.model").as_str().unwrap().to_string();
+    let renders: Vec<&String> =
+        page.requests.iter().filter(|u| u.contains(&format!("/v1/models/{splats_id}/render"))).collect();
+    assert!(renders.is_empty(), "renders of the splats model asked of the server: {renders:?}");
+    assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
 }
