@@ -12,8 +12,11 @@ use super::Common;
 use crate::api::site;
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::io::fsio::write_atomic;
+use crate::engine::models::Model;
+use crate::engine::models::splats::SplatsModel;
 use crate::engine::models::splats::export::{self, Format};
 use crate::engine::models::training::{Budget, TrainConfig};
+use crate::engine::nn::adam::Adam;
 use crate::engine::train::bake::{BakeSettings, bake};
 use crate::engine::train::persist;
 use crate::engine::train::trainer::TrainState;
@@ -85,9 +88,25 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
             (s, n) => format!("{} s or {} steps", s.unwrap_or_default(), n.unwrap_or_default()),
         }
     );
+    let (model, adam, steps, elapsed) = bake_with_lines(&*source.model, &ds, &settings, &AtomicBool::new(false))?;
+    let train = TrainConfig { seed: a.seed, budget: Budget { steps: a.steps, seconds }, ..Default::default() };
+    let state = TrainState { step: steps, elapsed, ..Default::default() };
+    persist::save(&a.out, &model, &adam, &train, &state)?;
+    eprintln!("wrote {}: {} Gaussians, {steps} steps in {elapsed:.1} s", a.out.display(), model.layout().n);
+    Ok(())
+}
+
+/// Bakes `source` into splats, a line on standard error every 5 s; the
+/// splats, their optimiser, the steps made and the seconds taken.
+pub fn bake_with_lines(
+    source: &dyn Model,
+    ds: &Dataset,
+    settings: &BakeSettings,
+    cancel: &AtomicBool,
+) -> anyhow::Result<(SplatsModel, Adam, u64, f64)> {
     let started = Instant::now();
     let mut last = 0.0;
-    let (model, adam, steps) = bake(&*source.model, &ds, &settings, &AtomicBool::new(false), |p| {
+    let (model, adam, steps) = bake(source, ds, settings, cancel, |p| {
         if p.elapsed - last >= 5.0 {
             last = p.elapsed;
             eprintln!(
@@ -96,12 +115,7 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
             );
         }
     })?;
-    let elapsed = started.elapsed().as_secs_f64();
-    let train = TrainConfig { seed: a.seed, budget: Budget { steps: a.steps, seconds }, ..Default::default() };
-    let state = TrainState { step: steps, elapsed, ..Default::default() };
-    persist::save(&a.out, &model, &adam, &train, &state)?;
-    eprintln!("wrote {}: {} Gaussians, {steps} steps in {elapsed:.1} s", a.out.display(), model.layout().n);
-    Ok(())
+    Ok((model, adam, steps, started.elapsed().as_secs_f64()))
 }
 
 #[derive(Args, Debug)]
