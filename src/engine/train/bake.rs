@@ -48,9 +48,10 @@
 //!    steps, 19.81 against 19.73, for 10 s more placing. One appearance
 //!    fitted to every photo already scores better on held-out photos than
 //!    the source's mean embedding does (fox 28.93 against 28.32), and what
-//!    fox's splats lose against the source is in three views, most near
-//!    their edges, which see past the photos: the squared error of their
-//!    10-pixel border is 2.3-2.5 times the source's.)
+//!    fox's splats lose against the source is mostly in three views
+//!    (0012, 0042, 0110), two of which lose most at their edges, which
+//!    see past the photos: the squared error of their 10-pixel border is
+//!    2.3 and 2.5 times the source's.)
 //! 2. **Optimising** against the training photos with the differentiable
 //!    rasteriser (`splats::raster`, `splats::backward`): one whole photo a
 //!    step, mean squared error, Adam with the 3DGS paper's per-block rates
