@@ -113,11 +113,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     }
     let mut session = open_session(&a, &kind, choice, budget, &ds)?;
     describe(&a, &session, &ds, threads);
-    let cancel = Arc::new(AtomicBool::new(false));
-    {
-        let c = cancel.clone();
-        ctrlc::set_handler(move || c.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
-    }
+    let cancel = cancel_on_ctrl_c()?;
     let wall = Instant::now();
     let stop = train_with_bar(&mut session, budget, &cancel)?;
     match stop {
@@ -173,17 +169,12 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
         eprintln!("model '{}' (auto): {}", c.preset, c.reason);
     }
     let budget = Budget { steps: None, seconds: Some(field_seconds) };
-    let config = model_config(&kind, true, &[])?;
+    let (config, model, adam) = new_model_and_adam(&kind, ds.scene(), a.seed, true, a.lr, &[])?;
     let train = TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) };
-    let (_, model, adam) = new_model_and_adam(&kind, ds.scene(), a.seed, true, a.lr, &[])?;
     let config = SessionConfig { train, out: field_out, checkpoint_every: a.checkpoint_every, held_out: None };
     let mut session = Session::new(Start::Fresh { model, adam }, config, ds)?;
     describe(a, &session, ds, threads);
-    let cancel = Arc::new(AtomicBool::new(false));
-    {
-        let c = cancel.clone();
-        ctrlc::set_handler(move || c.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
-    }
+    let cancel = cancel_on_ctrl_c()?;
     match train_with_bar(&mut session, budget, &cancel)? {
         Stop::Budget | Stop::TargetReached { .. } => {}
         Stop::Cancelled | Stop::Aborted => anyhow::bail!("interrupted while training the field; no splats were made"),
@@ -203,6 +194,14 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
     println!("splats         {} Gaussians, {steps} steps in {elapsed:.1} s", model.layout().n);
     println!("model          {}", a.out.display());
     Ok(())
+}
+
+/// A flag that Ctrl-C sets: training then stops (and saves) at its next step.
+fn cancel_on_ctrl_c() -> anyhow::Result<Arc<AtomicBool>> {
+    let cancel = Arc::new(AtomicBool::new(false));
+    let c = cancel.clone();
+    ctrlc::set_handler(move || c.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
+    Ok(cancel)
 }
 
 /// The model kind to train and, when `auto` chose it, the choice: with
