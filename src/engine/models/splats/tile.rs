@@ -481,6 +481,11 @@ pub(super) fn tile_backward_any(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
     let (mut lanes, deepest) = back_lanes(frame, d_rgb, rect);
     let xs = centres(x0);
     for pos in (0..deepest).rev() {
+        // Back to front, the walk asks for the Gaussian a few places
+        // nearer the front while this one is drawn, as the forward does.
+        if let Some(&ahead) = pos.checked_sub(PREFETCH).map(|k| &list[k]) {
+            prefetch(&frame.drawn[ahead as usize]);
+        }
         let p = &frame.drawn[list[pos] as usize];
         let [gx0, gx1, gy0, gy1] = p.pixel_rect(frame.width, frame.height);
         let mut e = [[0.0f32; L]; 9];
@@ -512,7 +517,9 @@ fn walk_back(p: &Splat2D, pos: u32, s: &mut BackLanes, [a, raw, dx]: [[f32; L]; 
     let [c0, c1, c2] = p.conic;
     for k in 0..L {
         let on = (pos < s.last[k]) & (a[k] != 0.0);
-        let tr = if on { s.tr[k] / (1.0 - a[k]) } else { s.tr[k] };
+        // One division for both transmittances divided back out.
+        let inv = 1.0 / (1.0 - a[k]);
+        let tr = if on { s.tr[k] * inv } else { s.tr[k] };
         s.tr[k] = tr;
         let mut d_a = 0.0;
         for c in 0..3 {
@@ -522,7 +529,7 @@ fn walk_back(p: &Splat2D, pos: u32, s: &mut BackLanes, [a, raw, dx]: [[f32; L]; 
             d_a += (p.rgb[c] - acc) * s.g[c][k];
             s.last_c[c][k] = if on { p.rgb[c] } else { s.last_c[c][k] };
         }
-        let d_a = d_a * tr - s.t_final[k] / (1.0 - a[k]) * s.bg_dot[k];
+        let d_a = d_a * tr - s.t_final[k] * inv * s.bg_dot[k];
         s.last_a[k] = if on { a[k] } else { s.last_a[k] };
         // Where alpha is held at its maximum, it has no gradient;
         // a = o exp(power): da/do = a / o, da/dpower = a.
