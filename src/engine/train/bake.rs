@@ -54,12 +54,14 @@
 //!    2.3 and 2.5 times the source's.)
 //! 2. **Optimising** against the training photos with the differentiable
 //!    rasteriser (`splats::raster`, `splats::backward`): one whole photo a
-//!    step, mean squared error, Adam with the 3DGS paper's per-block rates
-//!    (scaled for a budget of hundreds of steps, [`BASE_LR`]),
-//!    and, every `DENSIFY_EVERY` steps of the first half, the paper's
-//!    densification (Gaussians the loss wants to move on the image are
-//!    cloned when small and split when large) and pruning (nearly
-//!    transparent ones go), within `max_gaussians`. (From the fox source
+//!    step (at half size for the first [`COARSE_SHARE`] of the budget,
+//!    when the photos are large enough to gain by it), mean squared error,
+//!    Adam with the 3DGS paper's per-block rates (scaled for a budget of
+//!    hundreds of steps, [`BASE_LR`]), and, every `DENSIFY_EVERY` steps
+//!    of the first half, the paper's densification (Gaussians the loss
+//!    wants to move on the image are cloned when small and split when
+//!    large) and pruning (nearly transparent ones go), within
+//!    `max_gaussians`. (From the fox source
 //!    above, also tried and dropped: every rate decayed by a cosine to a
 //!    tenth over the second half, `bake --steps 380`, 28.20 dB against
 //!    28.45; half the tiles drawn and fitted each step, at random, `bake
@@ -99,13 +101,54 @@ pub struct BakeSettings {
     pub initial: Option<usize>,
     pub splats: SplatsConfig,
     pub seed: u64,
+    /// Photos of at least this many pixels are fitted at half their size
+    /// for the first [`COARSE_SHARE`] of the budget.
+    #[serde(default = "coarse_min_pixels")]
+    pub coarse_min_pixels: usize,
+}
+
+fn coarse_min_pixels() -> usize {
+    COARSE_MIN_PIXELS
 }
 
 impl Default for BakeSettings {
     fn default() -> Self {
-        Self { seconds: Some(60.0), steps: None, initial: None, splats: SplatsConfig::default(), seed: 0 }
+        Self {
+            seconds: Some(60.0),
+            steps: None,
+            initial: None,
+            splats: SplatsConfig::default(),
+            seed: 0,
+            coarse_min_pixels: COARSE_MIN_PIXELS,
+        }
     }
 }
+
+/// The share of a bake's budget (of its steps or seconds) whose steps fit
+/// a photo at half its size (each pixel the mean of two by two), when it
+/// has at least [`COARSE_MIN_PIXELS`]. A coarse step draws a quarter of
+/// the pixels, and the Gaussians' own work (projecting, their backward,
+/// Adam) stays: on the 2-core Xeon VM, one costs about 0.55 of a full one
+/// on fox and 0.5 on gold_cape. Fitted against the photos at half size
+/// first, the splats take their broad shape in more steps, and the second
+/// half sharpens them. Baked from one 120 s source each, then `eval
+/// --fit-steps 0`, with the steps either way fits in about 60 s (`bake
+/// --steps N --seed S`): fox 29.56, 29.53 and 29.60 dB held out (seeds
+/// 1-3, 620 steps) against 28.92, 28.73 and 28.73 (480 steps); gold_cape
+/// 19.06 and 20.02 dB, masks 20.53 and 21.41 (seeds 1-2, 385 steps)
+/// against 18.81 and 19.53, masks 20.19 and 20.91 (300 steps). With
+/// `--seconds 60`: fern 25.96 dB against 25.57 (764 steps against 536);
+/// fox with a share of 0.3, 0.5 (twice), 0.7 and 1: 29.26, 29.36, 28.93,
+/// 29.13 and 25.76 dB, against 29.14 and 28.84 without.
+pub const COARSE_SHARE: f64 = 0.5;
+
+/// The fewest pixels of a photo that a bake fits at half size first
+/// ([`COARSE_SHARE`]). lego's 200x200 photos lose by it: baked 60 s from a
+/// 120 s source, 32.06 dB over its 200 test views against 32.62 without
+/// (1222 steps against 1080: with few pixels, a step's cost is mostly the
+/// Gaussians', and a coarse one saves little). fox's 270x480 photos, the
+/// smallest above, gain.
+pub const COARSE_MIN_PIXELS: usize = 100_000;
 
 /// Gaussians each training photo places by default. A forward-facing
 /// capture's photos all see one wall: a fixed total there is many samples
@@ -294,6 +337,9 @@ struct Baker<'a> {
     /// Per Gaussian: the sum of its screen-space gradient norms and the
     /// number of views that saw it, since the last densification.
     grad_accum: Vec<(f32, u32)>,
+    /// Each photo at half size (and its valid values), made when a coarse
+    /// step first takes it.
+    halves: Vec<Option<(Vec<f32>, usize)>>,
     rng: Rng,
     step: u64,
     smoothed_psnr: f64,
@@ -337,6 +383,7 @@ impl<'a> Baker<'a> {
             model,
             adam,
             valid: targets.iter().map(|t| t.iter().filter(|v| !v.is_nan()).count()).collect(),
+            halves: vec![None; targets.len()],
             targets,
             order: Vec::new(),
             grad_accum: vec![(0.0, 0); n],
@@ -357,12 +404,20 @@ impl<'a> Baker<'a> {
         }
         let which = self.order.pop().expect("refilled");
         let frame = &self.ds.frames[self.frames[which]];
-        let cam = RasterCamera::new(&frame.camera, self.model.scene());
+        let full = RasterCamera::new(&frame.camera, self.model.scene());
+        let pixels = full.width as usize * full.height as usize;
+        let coarse = progress < COARSE_SHARE && pixels >= self.settings.coarse_min_pixels;
+        if coarse && self.halves[which].is_none() {
+            self.halves[which] = Some(halve(&self.targets[which], full.width as usize, full.height as usize));
+        }
+        let cam = if coarse { half_camera(&full) } else { full };
         let l = self.model.layout();
         let opt = RasterOptions::default();
         let f = forward(&l, self.model.params(), &cam, &opt, self.ds.background);
-        let target = &self.targets[which];
-        let n = self.valid[which].max(1) as f32;
+        let (target, n) = match (coarse, &self.halves[which]) {
+            (true, Some((t, valid))) => (t, (*valid).max(1) as f32),
+            _ => (&self.targets[which], self.valid[which].max(1) as f32),
+        };
         let mut sq = 0.0f64;
         let d_rgb: Vec<f32> = f
             .rgb
@@ -732,6 +787,39 @@ fn densify(
     (params, m, v)
 }
 
+/// `cam` at half its size: every pixel of it covers two by two of `cam`'s.
+fn half_camera(cam: &RasterCamera) -> RasterCamera {
+    RasterCamera {
+        width: cam.width / 2,
+        height: cam.height / 2,
+        fx: 0.5 * cam.fx,
+        fy: 0.5 * cam.fy,
+        cx: 0.5 * cam.cx,
+        cy: 0.5 * cam.cy,
+        ..*cam
+    }
+}
+
+/// A photo (`[h x w x 3]`, NaN where masked out) at half size, each pixel
+/// the mean of its two by two (NaN if any of them is), with how many of
+/// its values are valid.
+fn halve(rgb: &[f32], w: usize, h: usize) -> (Vec<f32>, usize) {
+    let (hw, hh) = (w / 2, h / 2);
+    let mut out = Vec::with_capacity(hw * hh * 3);
+    for j in 0..hh {
+        for i in 0..hw {
+            for c in 0..3 {
+                let at = |x: usize, y: usize| rgb[3 * (y * w + x) + c];
+                out.push(
+                    0.25 * (at(2 * i, 2 * j) + at(2 * i + 1, 2 * j) + at(2 * i, 2 * j + 1) + at(2 * i + 1, 2 * j + 1)),
+                );
+            }
+        }
+    }
+    let valid = out.iter().filter(|v| !v.is_nan()).count();
+    (out, valid)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -779,5 +867,51 @@ mod tests {
         let margin = vec![placed[1], beside];
         assert_eq!(carve(margin.clone(), &[0, 0], &[true, true], &grids, &cams), vec![beside]);
         assert_eq!(carve(margin.clone(), &[0, 0], &[false, false], &grids, &cams), margin);
+    }
+
+    #[test]
+    fn a_halved_photo_is_the_mean_of_each_two_by_two_and_nan_where_any_is() {
+        // 5x3 pixels, value 10 y + x in every channel; the last column and
+        // row fall outside the half-size photo's 2x1.
+        let mut rgb: Vec<f32> = (0..3).flat_map(|y| (0..5).flat_map(move |x| [(10 * y + x) as f32; 3])).collect();
+        let (half, valid) = halve(&rgb, 5, 3);
+        assert_eq!(half, [[5.5f32; 3], [7.5; 3]].concat());
+        assert_eq!(valid, 6);
+        rgb[3 * (5 + 3) + 1] = f32::NAN; // pixel (3, 1), green
+        let (half, valid) = halve(&rgb, 5, 3);
+        assert_eq!(&half[..4], &[5.5, 5.5, 5.5, 7.5]);
+        assert!(half[4].is_nan() && half[5] == 7.5);
+        assert_eq!(valid, 5);
+    }
+
+    #[test]
+    fn a_view_at_half_size_is_the_full_view_averaged_two_by_two() {
+        // One Gaussian off the axis, its standard deviation about 5 px at
+        // full size, drawn at 64x48 and at 32x24 by the half camera: the
+        // half view is the full one's two-by-two means, up to the box
+        // filter's blur and the dilation (a fixed 0.3 px² at either size).
+        // A half camera off by half of its pixel differs from them many
+        // times as much.
+        let scene = Scene::from_bounds(
+            crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) },
+            0.0,
+            10.0,
+        );
+        let c2w = look_at(Vec3::new(0.0, -4.0, 0.0), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap();
+        let full = RasterCamera::new(&Camera::from_fov(64, 48, 0.8, c2w), &scene);
+        let params = parameters(&[([0.3, 0.0, 0.2], 0.3, [0.9, 0.6, 0.3])], 0);
+        let l = Layout::new(1, 0);
+        let opt = RasterOptions::default();
+        let draw = |cam: &RasterCamera| forward(&l, &params, cam, &opt, [0.0; 3]).rgb;
+        let (want, _) = halve(&draw(&full), 64, 48);
+        let worst = |cam: &RasterCamera| draw(cam).iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let half = half_camera(&full);
+        assert_eq!((half.width, half.height), (32, 24));
+        let peak = want.iter().fold(0.0f32, |m, &v| m.max(v));
+        let (right, shifted) = (worst(&half), worst(&RasterCamera { cx: half.cx + 0.5, ..half }));
+        assert!(peak > 0.3, "the Gaussian is in view: peak {peak}");
+        // Measured: 0.0048 against a peak of 0.44, and 0.050 shifted.
+        assert!(right < 0.02 * peak, "{right} against a peak of {peak}");
+        assert!(shifted > 5.0 * right, "shifted {shifted}, right {right}");
     }
 }

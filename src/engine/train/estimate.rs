@@ -135,7 +135,8 @@ pub fn training(config: &ModelConfig, data: DataSize, threads: usize) -> Estimat
 /// with its optimiser state) into splats of `splats` against the training
 /// photos of `data` (`train::bake`): the source model, the splats at their
 /// most Gaussians with Adam's moments, one gradient and the rasteriser's
-/// buffers, the dataset and the photos as f32 targets.
+/// buffers, the dataset and the photos as f32 targets, at full and half
+/// size.
 pub fn bake(source: &ModelConfig, splats: &ModelConfig, data: DataSize, threads: usize) -> Estimate {
     let threads = threads.max(1) as u64;
     let src = source.spec().footprint(threads);
@@ -152,6 +153,7 @@ pub fn bake(source: &ModelConfig, splats: &ModelConfig, data: DataSize, threads:
         ("rasteriser buffers", f.activations * F32),
         ("dataset", data.pixels * PIXEL_BYTES),
         ("photos as targets", data.pixels * 3 * F32),
+        ("photos as targets at half size", data.pixels / 4 * 3 * F32),
     ];
     Estimate::new(f.params, 0, parts)
 }
