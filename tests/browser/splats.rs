@@ -199,7 +199,18 @@ fn the_splat_viewer_draws_where_our_camera_says_and_moves_without_the_server() {
         (camera["cx"].as_f64().unwrap() - k[2]).abs() < 1e-6 && (camera["cy"].as_f64().unwrap() - k[3]).abs() < 1e-6
     );
 
-    let before: Value = page.eval(MEASURE);
+    // Spark sorts the splats in a worker: under load, its first sorted
+    // frame can come after `settled()`'s quiet spell. Wait for it (20 s at
+    // most); the checks below then judge the picture.
+    let drawn = |m: &Value| CLUSTERS.iter().all(|(n, ..)| m[n][0].as_u64().is_some_and(|c| c >= 30));
+    let mut before: Value = page.eval(MEASURE);
+    for _ in 0..200 {
+        if drawn(&before) {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+        before = page.eval(MEASURE);
+    }
     screenshot(&mut page, "splats", false);
     assert_eq!((before["width"].as_u64(), before["height"].as_u64()), (Some(width as u64), Some(height as u64)));
     // Background where there are no splats, each cluster where our
