@@ -826,6 +826,17 @@ mod tests {
     use crate::engine::geometry::camera::{Camera, look_at};
     use crate::engine::geometry::scene::Scene;
 
+    /// The unit box's scene, and a camera 4 units from its centre along
+    /// -y, looking at it (z up).
+    fn facing_origin() -> (Scene, [[f32; 4]; 3]) {
+        let scene = Scene::from_bounds(
+            crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) },
+            0.0,
+            10.0,
+        );
+        (scene, look_at(Vec3::new(0.0, -4.0, 0.0), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap())
+    }
+
     #[test]
     fn a_ray_leaves_a_sphere_where_the_analytic_root_says() {
         let r = Ray { origin: Vec3::new(0.5, 0.0, 0.0), dir: Vec3::new(0.6, 0.8, 0.0) };
@@ -837,15 +848,10 @@ mod tests {
 
     #[test]
     fn carving_drops_what_another_photo_sees_through_and_keeps_what_it_sees() {
-        let scene = Scene::from_bounds(
-            crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) },
-            0.0,
-            10.0,
-        );
+        let (scene, c2w) = facing_origin();
         // Both photos look at the origin from 4 units away along -y; photo
         // 1 saw a wall 4 units away everywhere (3x3 cells of 10 px), photo
         // 0 is unsure of all its depths.
-        let c2w = look_at(Vec3::new(0.0, -4.0, 0.0), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap();
         let cams = vec![RasterCamera::new(&Camera::from_fov(30, 30, 1.0, c2w), &scene); 2];
         let grid = |d: f32| DepthGrid { nx: 3, ny: 3, origin: [0.0; 2], spacing: 10.0, depth: vec![d; 9] };
         let grids = [grid(f32::NAN), grid(4.0)];
@@ -892,12 +898,7 @@ mod tests {
         // filter's blur and the dilation (a fixed 0.3 px² at either size).
         // A half camera off by half of its pixel differs from them many
         // times as much.
-        let scene = Scene::from_bounds(
-            crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) },
-            0.0,
-            10.0,
-        );
-        let c2w = look_at(Vec3::new(0.0, -4.0, 0.0), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap();
+        let (scene, c2w) = facing_origin();
         let full = RasterCamera::new(&Camera::from_fov(64, 48, 0.8, c2w), &scene);
         let params = parameters(&[([0.3, 0.0, 0.2], 0.3, [0.9, 0.6, 0.3])], 0);
         let l = Layout::new(1, 0);
