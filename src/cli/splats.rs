@@ -1,7 +1,7 @@
 //! `radiance bake` (a trained model becomes Gaussian splats) and
 //! `radiance export` (splats in the files other tools read).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
@@ -89,11 +89,25 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
         }
     );
     let (model, adam, steps, elapsed) = bake_with_lines(&*source.model, &ds, &settings, &AtomicBool::new(false))?;
-    let train = TrainConfig { seed: a.seed, budget: Budget { steps: a.steps, seconds }, ..Default::default() };
-    let state = TrainState { step: steps, elapsed, ..Default::default() };
-    persist::save(&a.out, &model, &adam, &train, &state)?;
+    save_baked(&a.out, &model, &adam, a.seed, Budget { steps: a.steps, seconds }, steps, elapsed)?;
     eprintln!("wrote {}: {} Gaussians, {steps} steps in {elapsed:.1} s", a.out.display(), model.layout().n);
     Ok(())
+}
+
+/// Saves baked splats as a checkpoint: their optimiser, the seed and
+/// budget they were baked with, and the steps made in the seconds taken.
+pub fn save_baked(
+    out: &Path,
+    model: &SplatsModel,
+    adam: &Adam,
+    seed: u64,
+    budget: Budget,
+    steps: u64,
+    elapsed: f64,
+) -> anyhow::Result<()> {
+    let train = TrainConfig { seed, budget, ..Default::default() };
+    let state = TrainState { step: steps, elapsed, ..Default::default() };
+    Ok(persist::save(out, model, adam, &train, &state)?)
 }
 
 /// Bakes `source` into splats, a line on standard error every 5 s; the

@@ -18,9 +18,7 @@ use crate::engine::models::config::ModelConfig;
 use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::train::bake::BakeSettings;
 use crate::engine::train::estimate::{self, DataSize, mib};
-use crate::engine::train::persist;
 use crate::engine::train::session::{Event, Session, SessionConfig, Start, Stop};
-use crate::engine::train::trainer::TrainState;
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
@@ -187,10 +185,8 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
         super::splats::bake_with_lines(&*session.trainer().model, ds, &settings, &cancel).with_context(|| {
             format!("splats from the field trained for {field_seconds:.0} s (more --seconds gives a better one)")
         })?;
-    let train =
-        TrainConfig { seed: a.seed, budget: Budget { steps: None, seconds: Some(total) }, ..Default::default() };
-    let state = TrainState { step: steps, elapsed, ..Default::default() };
-    persist::save(&a.out, &model, &adam, &train, &state)?;
+    let budget = Budget { steps: None, seconds: Some(total) };
+    super::splats::save_baked(&a.out, &model, &adam, a.seed, budget, steps, elapsed)?;
     println!("splats         {} Gaussians, {steps} steps in {elapsed:.1} s", model.layout().n);
     println!("model          {}", a.out.display());
     Ok(())

@@ -202,15 +202,9 @@ fn the_splat_viewer_draws_where_our_camera_says_and_moves_without_the_server() {
     // Spark sorts the splats in a worker: under load, its first sorted
     // frame can come after `settled()`'s quiet spell. Wait for it (20 s at
     // most); the checks below then judge the picture.
-    let drawn = |m: &Value| CLUSTERS.iter().all(|(n, ..)| m[n][0].as_u64().is_some_and(|c| c >= 30));
-    let mut before: Value = page.eval(MEASURE);
-    for _ in 0..200 {
-        if drawn(&before) {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(100));
-        before = page.eval(MEASURE);
-    }
+    let names = serde_json::to_string(&CLUSTERS.iter().map(|(n, ..)| *n).collect::<Vec<_>>()).unwrap();
+    let drawn = format!("(() => {{ const m = {MEASURE}; return {names}.every((k) => m[k][0] >= 30) && m; }})()");
+    let before: Value = page.wait_for(&drawn, 20.0);
     screenshot(&mut page, "splats", false);
     assert_eq!((before["width"].as_u64(), before["height"].as_u64()), (Some(width as u64), Some(height as u64)));
     // Background where there are no splats, each cluster where our

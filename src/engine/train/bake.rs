@@ -382,7 +382,7 @@ impl<'a> Baker<'a> {
             settings,
             model,
             adam,
-            valid: targets.iter().map(|t| t.iter().filter(|v| !v.is_nan()).count()).collect(),
+            valid: targets.iter().map(|t| valid_values(t)).collect(),
             halves: vec![None; targets.len()],
             targets,
             order: Vec::new(),
@@ -407,17 +407,23 @@ impl<'a> Baker<'a> {
         let full = RasterCamera::new(&frame.camera, self.model.scene());
         let pixels = full.width as usize * full.height as usize;
         let coarse = progress < COARSE_SHARE && pixels >= self.settings.coarse_min_pixels;
-        if coarse && self.halves[which].is_none() {
-            self.halves[which] = Some(halve(&self.targets[which], full.width as usize, full.height as usize));
-        }
         let cam = if coarse { half_camera(&full) } else { full };
         let l = self.model.layout();
         let opt = RasterOptions::default();
         let f = forward(&l, self.model.params(), &cam, &opt, self.ds.background);
-        let (target, n) = match (coarse, &self.halves[which]) {
-            (true, Some((t, valid))) => (t, (*valid).max(1) as f32),
-            _ => (&self.targets[which], self.valid[which].max(1) as f32),
+        let (target, valid) = if coarse {
+            let targets = &self.targets;
+            let (w, h) = (full.width as usize, full.height as usize);
+            let (half, valid) = self.halves[which].get_or_insert_with(|| {
+                let half = halve(&targets[which], w, h);
+                let valid = valid_values(&half);
+                (half, valid)
+            });
+            (&half[..], *valid)
+        } else {
+            (&self.targets[which][..], self.valid[which])
         };
+        let n = valid.max(1) as f32;
         let mut sq = 0.0f64;
         let d_rgb: Vec<f32> = f
             .rgb
@@ -800,10 +806,14 @@ fn half_camera(cam: &RasterCamera) -> RasterCamera {
     }
 }
 
+/// How many of a target's values are valid (not masked out: NaN).
+fn valid_values(rgb: &[f32]) -> usize {
+    rgb.iter().filter(|v| !v.is_nan()).count()
+}
+
 /// A photo (`[h x w x 3]`, NaN where masked out) at half size, each pixel
-/// the mean of its two by two (NaN if any of them is), with how many of
-/// its values are valid.
-fn halve(rgb: &[f32], w: usize, h: usize) -> (Vec<f32>, usize) {
+/// the mean of its two by two (NaN if any of them is).
+fn halve(rgb: &[f32], w: usize, h: usize) -> Vec<f32> {
     let (hw, hh) = (w / 2, h / 2);
     let mut out = Vec::with_capacity(hw * hh * 3);
     for j in 0..hh {
@@ -816,8 +826,7 @@ fn halve(rgb: &[f32], w: usize, h: usize) -> (Vec<f32>, usize) {
             }
         }
     }
-    let valid = out.iter().filter(|v| !v.is_nan()).count();
-    (out, valid)
+    out
 }
 
 #[cfg(test)]
@@ -880,14 +889,14 @@ mod tests {
         // 5x3 pixels, value 10 y + x in every channel; the last column and
         // row fall outside the half-size photo's 2x1.
         let mut rgb: Vec<f32> = (0..3).flat_map(|y| (0..5).flat_map(move |x| [(10 * y + x) as f32; 3])).collect();
-        let (half, valid) = halve(&rgb, 5, 3);
+        let half = halve(&rgb, 5, 3);
         assert_eq!(half, [[5.5f32; 3], [7.5; 3]].concat());
-        assert_eq!(valid, 6);
+        assert_eq!(valid_values(&half), 6);
         rgb[3 * (5 + 3) + 1] = f32::NAN; // pixel (3, 1), green
-        let (half, valid) = halve(&rgb, 5, 3);
+        let half = halve(&rgb, 5, 3);
         assert_eq!(&half[..4], &[5.5, 5.5, 5.5, 7.5]);
         assert!(half[4].is_nan() && half[5] == 7.5);
-        assert_eq!(valid, 5);
+        assert_eq!(valid_values(&half), 5);
     }
 
     #[test]
@@ -904,7 +913,7 @@ mod tests {
         let l = Layout::new(1, 0);
         let opt = RasterOptions::default();
         let draw = |cam: &RasterCamera| forward(&l, &params, cam, &opt, [0.0; 3]).rgb;
-        let (want, _) = halve(&draw(&full), 64, 48);
+        let want = halve(&draw(&full), 64, 48);
         let worst = |cam: &RasterCamera| draw(cam).iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         let half = half_camera(&full);
         assert_eq!((half.width, half.height), (32, 24));
