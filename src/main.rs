@@ -20,7 +20,9 @@ fn main() {
 /// faults, against 180 steps and 83k with the thresholds fixed as here
 /// (the 2-core Xeon VM; `radiance bake` alone: 189-193 steps, 60-69k).
 /// Blocks up to 32 MiB (glibc's largest threshold) come from the heap, and
-/// up to 256 MiB of free heap is kept for the next step.
+/// up to 256 MiB of free heap is kept for the next step. The price is a
+/// fragmented heap in training, which the memory estimate counts
+/// (`engine::train::estimate`).
 fn tune_malloc() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets the allocator's parameters; it is called
