@@ -232,18 +232,18 @@ const ISOLATED_SCALE: f32 = 0.5;
 /// --seconds 60`, then `eval --fit-steps 0`, on the 2-core Xeon VM: fox
 /// from a 60 s source 28.40 dB held out without the margin, 28.91 with it,
 /// 29.19 keeping only what no photo saw within its frame; gold_cape from a
-/// 120 s source 18.20 without, 18.83 with). Tried and dropped on the
-/// same VM at `ca07950`, from a 120 s fox source (30.11 dB held out), `bake --seconds
-/// 60 --seed S`: a margin of 0.2, 29.24 and 29.30 dB (seeds 1-2) against
-/// 29.40 and 29.29; the margins' Gaussians, which no photo sees and so
-/// never move, covering their grid cell (as wide as it, opacity 0.9,
-/// where the others start at a fifth of their neighbours' spacing and
-/// half opacity): fox 29.56, 29.46 and 29.33 (seeds 1-3) against 29.40,
-/// 29.29 and 29.08, but fern from a 120 s source 25.57 and 25.66 against
-/// 25.81 and 25.93, and gold_cape 20.02 and 20.07 (masks 20.61 and 20.74)
-/// against 18.95 and 19.90 (masks 20.43 and 21.56), its held-out view
-/// IMG_5953 at 14-15 dB with both seeds: big opaque Gaussians that no
-/// photo checks stand in front of some new views.
+/// 120 s source 18.20 without, 18.83 with). Tried and dropped on the same
+/// VM at `ca07950`, from a 120 s fox source (30.11 dB held out), `bake
+/// --seconds 60 --seed S`: a margin of 0.2, 29.24 and 29.30 dB (seeds 1-2)
+/// against 29.40 and 29.29; the margins' Gaussians, which no photo sees and
+/// so never move, covering their grid cell (as wide as it, opacity 0.9,
+/// where the others start at a fifth of their neighbours' spacing and half
+/// opacity): fox 29.56, 29.46 and 29.33 (seeds 1-3) against 29.40, 29.29
+/// and 29.08, but fern from a 120 s source 25.57 and 25.66 against 25.81
+/// and 25.93, and gold_cape 20.02 and 20.07 (masks 20.61 and 20.74) against
+/// 18.95 and 19.90 (masks 20.43 and 21.56), its held-out view IMG_5953 at
+/// 14-15 dB with both seeds: big opaque Gaussians that no photo checks
+/// stand in front of some new views.
 const MARGIN: f32 = 0.1;
 /// A placed Gaussian's scale, as a fraction of the spacing of its
 /// neighbours (lego, 30 s instant model, placement alone: 15.8 dB at 1,
