@@ -13,13 +13,16 @@ use crate::api::site;
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::models::Model;
+use crate::engine::models::config::ModelConfig;
 use crate::engine::models::splats::SplatsModel;
 use crate::engine::models::splats::export::{self, Format};
 use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::nn::adam::Adam;
 use crate::engine::train::bake::{BakeSettings, bake};
+use crate::engine::train::estimate::{self, DataSize, mib};
 use crate::engine::train::persist;
 use crate::engine::train::trainer::TrainState;
+use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
 pub struct BakeArgs {
@@ -75,9 +78,7 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
     let mut settings = BakeSettings { seconds, steps: a.steps, initial: a.initial, seed: a.seed, ..Default::default() };
     settings.splats.sh_degree = a.sh_degree;
     settings.splats.max_gaussians = a.max_gaussians;
-    crate::engine::models::config::ModelConfig::Splats(settings.splats.clone())
-        .check()
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    ModelConfig::Splats(settings.splats.clone()).check().map_err(|e| anyhow::anyhow!("{e}"))?;
     eprintln!(
         "baking {} ({}) into splats on {threads} threads, {}",
         a.model.display(),
@@ -88,9 +89,18 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
             (s, n) => format!("{} s or {} steps", s.unwrap_or_default(), n.unwrap_or_default()),
         }
     );
+    if let Some(c) = ModelConfig::of_model(&*source.model) {
+        let splats = ModelConfig::Splats(settings.splats.clone());
+        let initial = settings.initial_for(ds.split(Split::Train).len());
+        let e = estimate::bake(&c, &splats, initial, DataSize::of(&ds), threads);
+        eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
+    }
     let (model, adam, steps, elapsed) = bake_with_lines(&*source.model, &ds, &settings, &AtomicBool::new(false))?;
     save_baked(&a.out, &model, &adam, a.seed, Budget { steps: a.steps, seconds }, steps, elapsed)?;
     eprintln!("wrote {}: {} Gaussians, {steps} steps in {elapsed:.1} s", a.out.display(), model.layout().n);
+    if let Some(peak) = peak_memory() {
+        println!("peak memory    {}", mib(peak));
+    }
     Ok(())
 }
 

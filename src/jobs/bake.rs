@@ -54,10 +54,13 @@ pub fn splats_config(spec: &BakeSpec) -> SplatsConfig {
     SplatsConfig { sh_degree: spec.sh_degree, max_gaussians: spec.max_gaussians }
 }
 
-/// Peak memory of a bake of `source` on `data` (see `engine::front::estimate_bake`).
+/// Peak memory of a bake of `source` on `data` (see `engine::front::estimate_bake`),
+/// placing the default number of Gaussians for its frames (every split's:
+/// at least its training photos).
 pub fn memory_estimate(source: &ModelConfig, spec: &BakeSpec, data: DataSize) -> Estimate {
     let splats = ModelConfig::Splats(splats_config(spec));
-    estimate_bake(source, &splats, data, rayon::current_num_threads())
+    let initial = BakeSettings::default().initial_for(data.frames);
+    estimate_bake(source, &splats, initial, data, rayon::current_num_threads())
 }
 
 /// The bake a finished training job asked for: `spec` as the API checked

@@ -177,6 +177,12 @@ impl BakeSettings {
     }
 }
 
+/// The field's rays that placing `initial` Gaussians within the photos'
+/// frames renders, with those of the margins past the frames ([`MARGIN`]).
+pub fn placing_rays(initial: usize) -> u64 {
+    (initial as f64 * (1.0 + 2.0 * MARGIN as f64).powi(2)).ceil() as u64
+}
+
 /// What went wrong.
 #[derive(Debug, thiserror::Error)]
 pub enum BakeError {

@@ -23,8 +23,8 @@
 //!   model with large chunks: 397 MiB with glibc's defaults, 449-468 MiB
 //!   with the heap thresholds); a quarter is counted.
 //!
-//! `tests/estimate.rs` trains small and large configurations and checks
-//! the measured peak (`VmHWM`) against this estimate.
+//! `tests/estimate.rs` trains small and large configurations, and bakes,
+//! and checks the measured peak (`VmHWM`) against this estimate.
 
 use crate::engine::dataset::{Dataset, MaskUse, masks};
 use crate::engine::models::config::ModelConfig;
@@ -138,13 +138,32 @@ pub fn training(config: &ModelConfig, data: DataSize, threads: usize) -> Estimat
     Estimate::new(f.params, f.occupancy_cells, parts)
 }
 
+/// What each of the rays that place a bake's Gaussians keeps until they are
+/// placed (`train::bake::place`): the Gaussian it places (28 bytes), its
+/// photo and whether it is in a margin (5), its cell of the photo's depth
+/// grid (4), the neighbour search's entries (its size, cell list entry
+/// and result: 16, and the hash map's cells) and carving's verdict (1),
+/// rounded up for the map's slack.
+const PLACING_RAY_BYTES: u64 = 100;
+
+/// A worker thread's buffers while it renders a tile of rays (the samples
+/// of [`crate::engine::view`]'s tiles), for any model.
+const RENDER_THREAD_BYTES: u64 = 4 << 20;
+
 /// Peak memory and checkpoint size of baking a model of `source` (loaded
 /// with its optimiser state) into splats of `splats` against the training
-/// photos of `data` (`train::bake`): the source model, the splats at their
-/// most Gaussians with Adam's moments, one gradient and the rasteriser's
+/// photos of `data` (`train::bake`), placing `initial` Gaussians
+/// (`BakeSettings::initial_for`): the source model and its rendering of
+/// the rays that place them (a tile of samples per thread, as a view's,
+/// not its training's activations), what each of those rays keeps, the
+/// splats at their most
+/// Gaussians with Adam's moments, one gradient and the rasteriser's
 /// buffers, the dataset and the photos as f32 targets, at full and half
-/// size.
-pub fn bake(source: &ModelConfig, splats: &ModelConfig, data: DataSize, threads: usize) -> Estimate {
+/// size. The most Gaussians are counted because densifying may reach
+/// them: a bake that stops short of them peaks lower (`tests/estimate.rs`
+/// holds the estimate to within 2.5 times of the peak of bakes whose
+/// placing already fills them).
+pub fn bake(source: &ModelConfig, splats: &ModelConfig, initial: usize, data: DataSize, threads: usize) -> Estimate {
     let threads = threads.max(1) as u64;
     let src = source.spec().footprint(threads);
     let f = splats.spec().footprint(threads);
@@ -152,7 +171,8 @@ pub fn bake(source: &ModelConfig, splats: &ModelConfig, data: DataSize, threads:
     let parts = vec![
         ("source model and its state", 6 * src.params * F32),
         ("source occupancy grid", src.occupancy_cells * (F32 + 2)),
-        ("source render buffers", threads * src.activations * F32),
+        ("source render buffers", threads * RENDER_THREAD_BYTES),
+        ("placing rays", super::bake::placing_rays(initial) * PLACING_RAY_BYTES),
         ("splats", p),
         ("optimiser moments", 2 * p),
         ("gradient", p),
@@ -176,7 +196,7 @@ pub fn video(config: &ModelConfig, frames: u32, width: u32, height: u32, threads
         ("model and optimiser state", 6 * params * F32),
         ("occupancy grid", occupancy * (F32 + 2)),
         // A view's colour, depth and opacity, and each thread's samples.
-        ("render buffers", pixels * 5 * F32 + threads.max(1) as u64 * (4 << 20)),
+        ("render buffers", pixels * 5 * F32 + threads.max(1) as u64 * RENDER_THREAD_BYTES),
         // Every frame as 8-bit RGB, then the encoded file.
         ("frames", 2 * frames as u64 * pixels * 3),
     ];
