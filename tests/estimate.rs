@@ -9,13 +9,8 @@ use std::process::Command;
 
 use radiance::engine::dataset::synthetic::BallScene;
 
-/// `(estimated MiB, measured MiB)` of a run of `radiance` with `args`.
-fn estimate_and_peak(args: &[&str]) -> (f64, f64) {
-    let (est, peak, _) = run(args);
-    (est, peak)
-}
-
-/// [`estimate_and_peak`], and the run's standard error.
+/// `(estimated MiB, measured MiB)` of a run of `radiance` with `args`, and
+/// its standard error.
 fn run(args: &[&str]) -> (f64, f64, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_radiance")).args(args).output().unwrap();
     let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
@@ -27,13 +22,14 @@ fn run(args: &[&str]) -> (f64, f64, String) {
     (mib(&stderr, "estimated peak memory"), mib(&stdout, "peak memory"), stderr.into_owned())
 }
 
-/// [`estimate_and_peak`] of a short training run.
-fn training(data: &str, out: &str, model: &str, sets: &[&str]) -> (f64, f64) {
-    let mut args = vec!["train", "--data", data, "--model", model, "--steps", "3", "--threads", "2", "--out", out];
+/// `(estimated MiB, measured MiB)` of training `model` for `steps` steps.
+fn training(data: &str, out: &str, model: &str, sets: &[&str], steps: &str) -> (f64, f64) {
+    let mut args = vec!["train", "--data", data, "--model", model, "--steps", steps, "--threads", "2", "--out", out];
     for s in sets {
         args.extend(["--set", s]);
     }
-    estimate_and_peak(&args)
+    let (est, peak, _) = run(&args);
+    (est, peak)
 }
 
 #[test]
@@ -58,7 +54,7 @@ fn measured_peak_is_below_the_estimate_and_within_a_factor_of_it() {
     ];
     let mut report = Vec::new();
     for (model, sets) in cases {
-        let (est, peak) = training(d, o, model, sets);
+        let (est, peak) = training(d, o, model, sets, "3");
         report.push(format!("{model} {sets:?}: estimate {est:.0} MiB, measured {peak:.0} MiB"));
         assert!(peak <= est && est <= 2.5 * peak, "{}", report.join("\n"));
     }
@@ -89,11 +85,7 @@ fn a_bakes_measured_peak_is_below_its_estimate() {
     for (model, sets, extra, full) in cases {
         if trained != Some(model) {
             // A source that has learnt the ball, so that placing has a surface.
-            let mut train =
-                vec!["train", "--data", d, "--model", model, "--steps", "300", "--threads", "2", "--out", m];
-            sets.iter().for_each(|s| train.extend(["--set", s]));
-            let o = Command::new(env!("CARGO_BIN_EXE_radiance")).args(&train).output().unwrap();
-            assert!(o.status.success(), "{train:?}\n{}", String::from_utf8_lossy(&o.stderr));
+            training(d, m, model, sets, "300");
             trained = Some(model);
         }
         let bake = ["bake", "--model", m, "--data", d, "--out", s, "--steps", "3", "--threads", "2"];

@@ -78,7 +78,8 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
     let mut settings = BakeSettings { seconds, steps: a.steps, initial: a.initial, seed: a.seed, ..Default::default() };
     settings.splats.sh_degree = a.sh_degree;
     settings.splats.max_gaussians = a.max_gaussians;
-    ModelConfig::Splats(settings.splats.clone()).check().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let splats = ModelConfig::Splats(settings.splats.clone());
+    splats.check().map_err(|e| anyhow::anyhow!("{e}"))?;
     eprintln!(
         "baking {} ({}) into splats on {threads} threads, {}",
         a.model.display(),
@@ -90,7 +91,6 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
         }
     );
     if let Some(c) = ModelConfig::of_model(&*source.model) {
-        let splats = ModelConfig::Splats(settings.splats.clone());
         let initial = settings.initial_for(ds.split(Split::Train).len());
         let e = estimate::bake(&c, &splats, initial, DataSize::of(&ds), threads);
         eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());

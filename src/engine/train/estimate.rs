@@ -156,10 +156,9 @@ const RENDER_THREAD_BYTES: u64 = 4 << 20;
 /// (`BakeSettings::initial_for`): the source model and its rendering of
 /// the rays that place them (a tile of samples per thread, as a view's,
 /// not its training's activations), what each of those rays keeps, the
-/// splats at their most
-/// Gaussians with Adam's moments, one gradient and the rasteriser's
-/// buffers, the dataset and the photos as f32 targets, at full and half
-/// size. The most Gaussians are counted because densifying may reach
+/// splats at their most Gaussians with Adam's moments, one gradient and
+/// the rasteriser's buffers, the dataset and the photos as f32 targets, at
+/// full and half size. The most Gaussians are counted because densifying may reach
 /// them: a bake that stops short of them peaks lower (`tests/estimate.rs`
 /// holds the estimate to within 2.5 times of the peak of bakes whose
 /// placing already fills them).
