@@ -159,6 +159,69 @@ fn leftovers(data: &Path, scene: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
+/// The COLMAP subcommands that run a poses job's `stage` (16 photos match
+/// exhaustively; `matches_importer` is the sequential matcher's).
+fn colmap_commands(stage: &str) -> &'static [&'static str] {
+    match stage {
+        "feature extraction" => &["feature_extractor"],
+        "matching" => &["exhaustive_matcher", "matches_importer"],
+        "mapping" => &["mapper"],
+        _ => panic!("no COLMAP step runs during {stage}"),
+    }
+}
+
+/// Waits for a COLMAP process of `stage` run by the server on `dir`, and
+/// stops it (SIGSTOP) the moment it is seen, so that the stage stays current
+/// however fast or slow the machine: the server is then killed while COLMAP
+/// is really at that stage, not after a step that ended before a poll saw it.
+/// /proc is polled every 2 ms, so a step is caught unless it is shorter
+/// than that; `job` ending first is a clear failure. Returns the pid.
+async fn freeze_colmap_at(svc: &Svc, dir: &Path, job: &str, stage: &str) -> libc::pid_t {
+    let words = colmap_commands(stage);
+    let t = std::time::Instant::now();
+    let mut polls = 0u32;
+    loop {
+        for p in processes_in(dir) {
+            let (pid, cmd) = p.split_once(':').unwrap();
+            if words.iter().any(|w| cmd.split(' ').any(|a| a == *w)) {
+                let pid: libc::pid_t = pid.parse().unwrap();
+                // Its whole group (the server starts COLMAP in a group of
+                // its own), or the process alone if it shares ours.
+                // SAFETY: getpgid(2), getpgrp(2) and kill(2) on pids just
+                // read; they touch no memory.
+                let stopped = unsafe {
+                    let group = libc::getpgid(pid);
+                    let target = if group > 0 && group != libc::getpgrp() { -group } else { pid };
+                    libc::kill(target, libc::SIGSTOP) == 0
+                };
+                if stopped {
+                    return pid;
+                }
+            }
+        }
+        // Now and then, the job's state: it must not have gone past the stage.
+        polls += 1;
+        if polls % 250 == 0 {
+            let (_, j) = svc.get(&format!("/v1/jobs/{job}")).await;
+            assert!(!is_final(&j), "the job ended before COLMAP's {stage} was seen running: {j}");
+        }
+        assert!(t.elapsed().as_secs_f64() < 180.0, "no COLMAP {words:?} process in 180 s");
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+}
+
+/// Waits for the COLMAP processes on `dir` to die with their server: they
+/// go within seconds (the kernel's parent-death signal), not when the next
+/// start reaps them; 10 s leaves room for a test thread starved on a loaded
+/// machine.
+fn wait_until_gone(dir: &Path, stage: &str) {
+    let t = std::time::Instant::now();
+    while !processes_in(dir).is_empty() {
+        assert!(t.elapsed().as_secs_f64() < 10.0, "orphans after a kill during {stage}: {:?}", processes_in(dir));
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
 fn is_final(v: &Value) -> bool {
     ["succeeded", "failed", "canceled"].contains(&v["status"].as_str().unwrap_or(""))
 }
@@ -171,19 +234,13 @@ async fn a_server_killed_at_each_stage_of_colmap_leaves_no_process_and_no_folder
         let (s, v) = server.svc.upload("application/zip", zip_of(&photos_at(16, 320, 240))).await;
         assert_eq!(s, StatusCode::CREATED, "{v}");
         let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
-        server.svc.wait_job(&job, 120.0, |j| j["status"] == "running" && j["progress"]["stage"] == stage).await;
-        assert!(!processes_in(data.path()).is_empty(), "COLMAP is not running during {stage}");
+        let pid = freeze_colmap_at(&server.svc, data.path(), &job, stage).await;
+        // COLMAP held where it is: the job reports this stage (its report is
+        // written before COLMAP starts, so this waits on nothing but the poll).
+        server.svc.wait_job(&job, 60.0, |j| j["status"] == "running" && j["progress"]["stage"] == stage).await;
+        eprintln!("killing the server with COLMAP's {stage} (pid {pid}) stopped");
         server.kill();
-        // COLMAP dies with the server, not 40 s later.
-        let t = std::time::Instant::now();
-        while !processes_in(data.path()).is_empty() {
-            assert!(
-                t.elapsed().as_secs_f64() < 3.0,
-                "orphans after a kill during {stage}: {:?}",
-                processes_in(data.path())
-            );
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
+        wait_until_gone(data.path(), stage);
         // The next start runs the job again to its end and leaves nothing
         // of the first run.
         server = Server::start(data.path());
@@ -206,11 +263,15 @@ async fn a_poses_job_failed_at_start_up_leaves_no_folder() {
     let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
     // Killed twice in the same stage: the job fails at the next start, as
     // one that takes the server down would.
+    // The matcher is held (stopped) when seen, so that the kill lands in
+    // matching and not after it saved its stage, however slow the machine.
     for attempt in 1..=2u64 {
+        freeze_colmap_at(&server.svc, data.path(), &job, "matching").await;
         let at_work = |j: &Value| j["attempts"] == attempt && j["progress"]["stage"] == "matching";
-        server.svc.wait_job(&job, 120.0, at_work).await;
+        server.svc.wait_job(&job, 60.0, at_work).await;
         assert!(!leftovers(data.path(), &id).is_empty(), "no working folder while COLMAP runs");
         server.kill();
+        wait_until_gone(data.path(), "matching");
         server = Server::start(data.path());
     }
     let (_, j) = server.svc.get(&format!("/v1/jobs/{job}")).await;
