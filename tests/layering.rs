@@ -33,6 +33,8 @@ const LAYERS: &[&[&str]] = &[
     &["models"],
     // Views of a model: tiles of rays, the appearance a view takes.
     &["view"],
+    // Baking a field into splats: placing, carving, fitting.
+    &["bake"],
     // Training: the trainer, sessions, held-out estimates, checkpoints of a run.
     &["train"],
     // The front door: what the service uses of the engine.

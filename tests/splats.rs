@@ -10,6 +10,7 @@ use std::process::Command;
 use std::sync::atomic::AtomicBool;
 
 use common::tiny::in_pool;
+use radiance::engine::bake::{BakeSettings, bake};
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::dataset::textured::TexturedScene;
@@ -17,7 +18,7 @@ use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
 use radiance::engine::models::config::ModelConfig;
 use radiance::engine::models::splats::export::{self, Format};
-use radiance::engine::train::bake::{BakeSettings, bake};
+use radiance::engine::models::training::Budget;
 use radiance::engine::view::render_view;
 
 /// A textured ball on a textured ground from a ring of 24 cameras at 64x48.
@@ -60,8 +61,11 @@ fn baking_a_trained_scene_keeps_its_heldout_psnr() {
             t.step();
         }
         let source = heldout_psnr(t.model.as_ref(), &ds);
-        let mut settings =
-            BakeSettings { seconds: None, steps: Some(300), initial: Some(20_000), ..Default::default() };
+        let mut settings = BakeSettings {
+            budget: Budget { seconds: None, steps: Some(300) },
+            initial: Some(20_000),
+            ..Default::default()
+        };
         // Degree 3, not the default 1: from this blurry source (its
         // geometry is off) the higher degrees carry what each view sees
         // of the texture. 300 steps on 2 threads: degree 0 20.16 dB, 1
@@ -99,13 +103,15 @@ fn baking_a_splats_model_or_cancelling_is_refused() {
     let _alone = alone();
     let ds = dataset();
     let config = ModelConfig::preset("instant-tiny").unwrap();
-    let t = common::tiny::trainer(&config, &ds, 3, 1);
-    let settings = BakeSettings { seconds: None, steps: Some(2), initial: Some(2_000), ..Default::default() };
-    let (splats, _, _) = bake(t.model.as_ref(), &ds, &settings, &AtomicBool::new(false), |_| {}).unwrap_or_else(|e| {
-        // An untrained field may hit nothing at all; that is its own error.
-        assert!(e.to_string().contains("nothing to place"), "{e}");
-        std::process::exit(0)
-    });
+    // Trained enough that its rays hit the ball (an untrained field may
+    // hit nothing, which is an error of its own).
+    let mut t = common::tiny::trainer(&config, &ds, 3, 100);
+    for _ in 0..100 {
+        t.step();
+    }
+    let settings =
+        BakeSettings { budget: Budget { seconds: None, steps: Some(2) }, initial: Some(2_000), ..Default::default() };
+    let (splats, _, _) = bake(t.model.as_ref(), &ds, &settings, &AtomicBool::new(false), |_| {}).unwrap();
     let e = bake(&splats, &ds, &settings, &AtomicBool::new(false), |_| {}).err().expect("refused");
     assert!(e.to_string().contains("cannot be baked"), "{e}");
     let e = bake(t.model.as_ref(), &ds, &settings, &AtomicBool::new(true), |_| {}).err().expect("cancelled");
@@ -216,7 +222,9 @@ fn train_model_splats_fits_splats_from_a_field_it_trains_first() {
         radiance::engine::train::persist::load(&field).unwrap(),
     );
     assert_eq!((splats.model.kind(), source.model.kind()), ("splats", "instant"));
-    assert!(source.state.elapsed >= 9.9 && source.state.elapsed < 11.0, "a third of 30 s: {}", source.state.elapsed);
+    // The field stops at its first step or checkpoint past 10 s; on a
+    // starved machine one can come seconds late (still well short of half).
+    assert!(source.state.elapsed >= 9.9 && source.state.elapsed < 14.0, "a third of 30 s: {}", source.state.elapsed);
     let eval = |m: &std::path::Path| {
         let o = run(&["eval", "--model", m.to_str().unwrap(), "--data", &data, "--fit-steps", "0"]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

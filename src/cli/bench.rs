@@ -14,12 +14,12 @@ use serde::{Deserialize, Serialize};
 use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{AppearanceArgs, Common, MaskArgs};
+use crate::engine::bake::{BakeSettings, bake};
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split};
 use crate::engine::io::fsio;
 use crate::engine::models::Model;
 use crate::engine::models::auto::ModelChoice;
 use crate::engine::models::training::Budget;
-use crate::engine::train::bake::{BakeSettings, bake};
 use crate::engine::train::trainer::{Progress, StopReason, TrainState, Trainer};
 use crate::system::{peak_memory, reset_peak_memory};
 
@@ -320,7 +320,8 @@ fn measure_bake(
     args: &BenchArgs,
     seconds: f64,
 ) -> anyhow::Result<BenchRow> {
-    let settings = BakeSettings { seconds: Some(seconds), seed: args.seed, ..Default::default() };
+    let settings =
+        BakeSettings { budget: Budget { seconds: Some(seconds), steps: None }, seed: args.seed, ..Default::default() };
     let started = std::time::Instant::now();
     let (model, _, steps) = bake(source, ds, &settings, &AtomicBool::new(false), |_| {})?;
     let elapsed = started.elapsed().as_secs_f64();

@@ -10,6 +10,7 @@ use clap::Args;
 
 use super::Common;
 use crate::api::site;
+use crate::engine::bake::{BakeSettings, bake};
 use crate::engine::dataset::{Dataset, LoadOptions, Split};
 use crate::engine::io::fsio::write_atomic;
 use crate::engine::models::Model;
@@ -18,7 +19,6 @@ use crate::engine::models::splats::SplatsModel;
 use crate::engine::models::splats::export::{self, Format};
 use crate::engine::models::training::{Budget, TrainConfig};
 use crate::engine::nn::adam::Adam;
-use crate::engine::train::bake::{BakeSettings, bake};
 use crate::engine::train::estimate::{self, DataSize, mib};
 use crate::engine::train::persist;
 use crate::engine::train::trainer::TrainState;
@@ -75,7 +75,12 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
     let source = persist::load(&a.model)?;
     let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
     let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
-    let mut settings = BakeSettings { seconds, steps: a.steps, initial: a.initial, seed: a.seed, ..Default::default() };
+    let mut settings = BakeSettings {
+        budget: Budget { seconds, steps: a.steps },
+        initial: a.initial,
+        seed: a.seed,
+        ..Default::default()
+    };
     settings.splats.sh_degree = a.sh_degree;
     settings.splats.max_gaussians = a.max_gaussians;
     let splats = ModelConfig::Splats(settings.splats.clone());

@@ -11,12 +11,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam, resolve_model};
 use super::{Common, MaskArgs};
+use crate::engine::bake::BakeSettings;
 use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split, masks};
 use crate::engine::io::checkpoint::Checkpoint;
 use crate::engine::models::auto::{AUTO, ModelChoice};
 use crate::engine::models::config::ModelConfig;
 use crate::engine::models::training::{Budget, TrainConfig};
-use crate::engine::train::bake::BakeSettings;
 use crate::engine::train::estimate::{self, DataSize, mib};
 use crate::engine::train::session::{Event, Session, SessionConfig, Start, Stop};
 use crate::system::peak_memory;
@@ -179,8 +179,12 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
         stop @ Stop::Diverged { .. } => anyhow::bail!("{stop}; no splats were made"),
     }
     let bake_seconds = total - field_seconds;
-    let settings =
-        BakeSettings { seconds: Some(bake_seconds), steps: None, splats, seed: a.seed, ..Default::default() };
+    let settings = BakeSettings {
+        budget: Budget { seconds: Some(bake_seconds), steps: None },
+        splats,
+        seed: a.seed,
+        ..Default::default()
+    };
     let (model, adam, steps, elapsed) =
         super::splats::bake_with_lines(&*session.trainer().model, ds, &settings, &cancel).with_context(|| {
             format!("splats from the field trained for {field_seconds:.0} s (more --seconds gives a better one)")

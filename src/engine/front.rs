@@ -8,6 +8,7 @@
 
 use std::path::Path;
 
+pub use super::bake::{BakeError, BakeProgress, BakeSettings, bake};
 pub use super::dataset::synthetic::BallScene;
 pub use super::dataset::{Dataset, DatasetError, DatasetFormat, LoadOptions, MaskUse, Split, detect_format};
 pub use super::geometry::camera::Camera;
@@ -23,7 +24,6 @@ pub use super::models::splats::export::{Format as SplatsFormat, splats_of, write
 pub use super::models::training::{Budget, TrainConfig};
 pub use super::models::{Model, ModelError};
 pub use super::nn::pose_report::PoseReport;
-pub use super::train::bake::{BakeError, BakeProgress, BakeSettings, bake};
 pub use super::train::estimate::{
     DataSize, Estimate, bake as estimate_bake, mib, training as estimate_training, video as estimate_video,
 };

@@ -4,6 +4,7 @@
 //! No async, no HTTP, no global state: progress is reported through callbacks
 //! and long work stops when a cancel flag is set.
 
+pub mod bake;
 pub mod batch;
 pub mod dataset;
 pub mod fields;

@@ -1,5 +1,5 @@
 //! A bake job: a trained model of the service (instant, nerf or capture)
-//! becomes a new model of kind `splats` (`engine::train::bake`), optimised
+//! becomes a new model of kind `splats` (`engine::bake`), optimised
 //! against the training photos of its scene, where its training job read
 //! them. Progress: optimisation steps, the Gaussians, the smoothed PSNR of
 //! the training photos; then the held-out PSNR, measured as a training
@@ -105,8 +105,7 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &Atomi
     stage("loading the model and its photos");
     let (source, model, ds) = load_source(host, spec)?;
     let settings = BakeSettings {
-        seconds: spec.seconds,
-        steps: spec.steps,
+        budget: Budget { seconds: spec.seconds, steps: spec.steps },
         seed: spec.seed,
         splats: splats_config(spec),
         ..Default::default()

@@ -32,7 +32,7 @@ pub trait ModelSpec {
     /// `Model::restore_state`).
     fn rebuild(&self, scene: Scene, params: Vec<f32>) -> Result<Box<dyn Model>, ModelError>;
     /// Whether the trainer can train the kind from rays (`Model::train_rays`);
-    /// `false` for a kind made another way (splats, by `train::bake`).
+    /// `false` for a kind made another way (splats, by `bake`).
     fn trains_on_rays(&self) -> bool {
         true
     }

@@ -139,7 +139,7 @@ pub fn training(config: &ModelConfig, data: DataSize, threads: usize) -> Estimat
 }
 
 /// What each of the rays that place a bake's Gaussians keeps until they are
-/// placed (`train::bake::place`): the Gaussian it places (28 bytes), its
+/// placed (`bake::place`): the Gaussian it places (28 bytes), its
 /// photo and whether it is in a margin (5), its cell of the photo's depth
 /// grid (4), the neighbour search's entries (its size, cell list entry
 /// and result: 16, and the hash map's cells) and carving's verdict (1),
@@ -152,7 +152,7 @@ const RENDER_THREAD_BYTES: u64 = 4 << 20;
 
 /// Peak memory and checkpoint size of baking a model of `source` (loaded
 /// with its optimiser state) into splats of `splats` against the training
-/// photos of `data` (`train::bake`), placing `initial` Gaussians
+/// photos of `data` (`bake`), placing `initial` Gaussians
 /// (`BakeSettings::initial_for`): the source model and its rendering of
 /// the rays that place them (a tile of samples per thread, as a view's,
 /// not its training's activations), what each of those rays keeps, the
@@ -171,7 +171,7 @@ pub fn bake(source: &ModelConfig, splats: &ModelConfig, initial: usize, data: Da
         ("source model and its state", 6 * src.params * F32),
         ("source occupancy grid", src.occupancy_cells * (F32 + 2)),
         ("source render buffers", threads * RENDER_THREAD_BYTES),
-        ("placing rays", super::bake::placing_rays(initial) * PLACING_RAY_BYTES),
+        ("placing rays", crate::engine::bake::placing_rays(initial) * PLACING_RAY_BYTES),
         ("splats", p),
         ("optimiser moments", 2 * p),
         ("gradient", p),

@@ -5,7 +5,6 @@
 //! it, held-out estimates and the memory and disk estimate of a run.
 
 pub mod appearance_fit;
-pub mod bake;
 pub mod estimate;
 pub mod heldout;
 pub mod persist;

@@ -61,7 +61,7 @@ impl ModelSpec for SplatsConfig {
         false
     }
 
-    /// The base rate `train::bake` scales block by block (its `BASE_LR`).
+    /// The base rate `bake` scales block by block (its `BASE_LR`).
     fn adam(&self) -> AdamConfig {
         AdamConfig { lr: 4e-3, lr_end: 4e-3, beta1: 0.9, beta2: 0.999, eps: 1e-15 }
     }

@@ -1,13 +1,14 @@
 //! 3D Gaussian splats: a model that is a few hundred thousand anisotropic
 //! Gaussians with opacities and view-dependent colours (`gaussians`),
 //! drawn by a tile rasteriser (`raster`, with its derivative in
-//! `backward`). It is made from a trained radiance field by `train::bake`,
+//! `backward`). It is made from a trained radiance field by `bake`,
 //! renders views by rasterising them whole (`Model::rasteriser`), and is
 //! written in the formats splat viewers read by `export`.
 
 pub mod backward;
 pub mod config;
 pub mod export;
+pub mod fit;
 pub mod gaussians;
 pub mod lens;
 pub mod raster;
@@ -104,7 +105,7 @@ impl Model for SplatsModel {
 
     /// Never called: the trainer refuses a kind that does not train on
     /// rays (`ModelSpec::trains_on_rays`); splats are optimised on whole
-    /// images by `train::bake`. Adds nothing.
+    /// images by `bake`. Adds nothing.
     fn train_rays(&self, _rays: &[TrainRay], _ctx: &StepCtx, _grads: &mut [f32]) -> BatchStats {
         BatchStats::default()
     }

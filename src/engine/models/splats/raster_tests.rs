@@ -165,18 +165,18 @@ fn sh_basis64(x: f64, y: f64, z: f64) -> [f64; 16] {
 }
 
 /// A camera `dist` from the origin looking at it from `eye_dir`, `w x h`.
-fn camera(eye: [f32; 3], w: u32, h: u32, fov_deg: f32) -> Camera {
+pub(super) fn camera(eye: [f32; 3], w: u32, h: u32, fov_deg: f32) -> Camera {
     let c2w = look_at(Vec3::from_array(eye), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap();
     Camera::from_fov(w, h, fov_deg.to_radians(), c2w)
 }
 
-fn unit_scene() -> Scene {
+pub(super) fn unit_scene() -> Scene {
     Scene::from_bounds(crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }, 0.0, 10.0)
 }
 
 /// `n` random Gaussians near the origin, inside the view of
 /// [`camera`]`([0, -4, 0.5], ..)`.
-fn random_gaussians(n: usize, degree: u32, seed: u64, max_opacity: f32) -> (Layout, Vec<f32>) {
+pub(super) fn random_gaussians(n: usize, degree: u32, seed: u64, max_opacity: f32) -> (Layout, Vec<f32>) {
     let l = Layout::new(n, degree);
     let mut rng = Rng::new(seed);
     let mut p = vec![0.0f32; l.len()];

@@ -1,0 +1,83 @@
+//! The 3DGS paper's densification and pruning, within a budget of
+//! Gaussians: those the loss wants to move on the image are cloned when
+//! small and split when large, and nearly transparent ones go.
+
+use crate::engine::models::Model;
+use crate::engine::models::splats::SplatsModel;
+use crate::engine::models::splats::gaussians::{Layout, rotation_matrix, unit_quat};
+use crate::engine::nn::adam::Adam;
+use crate::engine::rng::Rng;
+
+/// Screen-space gradient (per view, in units of the half image) above
+/// which a Gaussian is densified: the 3DGS paper's 0.0002 is for an L1
+/// loss; a squared error's gradients are about ten times smaller.
+const DENSIFY_GRAD: f32 = 2e-5;
+/// Opacity below which a Gaussian is pruned (the paper's 0.005).
+const PRUNE_OPACITY: f32 = 0.005;
+
+/// Densifies and prunes (the module docs of `bake`): the new parameters and Adam moments
+/// (new Gaussians start with zero moments).
+pub(super) fn densify(
+    model: &SplatsModel,
+    adam: &Adam,
+    grad_accum: &[(f32, u32)],
+    max: usize,
+    rng: &mut Rng,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let l = model.layout();
+    let p = model.params();
+    let n = l.n;
+    let sig = |x: f32| 1.0 / (1.0 + (-x).exp());
+    let keep: Vec<usize> = (0..n).filter(|&i| sig(p[10 * n + i]) >= PRUNE_OPACITY).collect();
+    let mut grow: Vec<usize> = keep
+        .iter()
+        .copied()
+        .filter(|&i| grad_accum[i].1 > 0 && grad_accum[i].0 / grad_accum[i].1 as f32 > DENSIFY_GRAD)
+        .collect();
+    let room = max.saturating_sub(keep.len());
+    if grow.len() > room {
+        // The largest gradients first.
+        let avg = |i: usize| grad_accum[i].0 / grad_accum[i].1 as f32;
+        grow.sort_by(|&a, &b| avg(b).total_cmp(&avg(a)));
+        grow.truncate(room);
+    }
+    let mut all = keep.clone();
+    all.extend_from_slice(&grow);
+    let mut params = l.select(p, &all);
+    let mut m = l.select(&adam.m, &all);
+    let mut v = l.select(&adam.v, &all);
+    let to = Layout { n: all.len(), k: l.k };
+    let tn = to.n;
+    // Zero moments for the new ones; a large one is split: both halves
+    // move to a sample of it and shrink by 1.6 (the paper's).
+    for j in keep.len()..tn {
+        for r in [to.means(), to.log_scales(), to.rotations(), to.opacities(), to.sh_dc(), to.sh_rest()] {
+            let width = r.len() / tn;
+            for c in 0..width {
+                m[r.start + width * j + c] = 0.0;
+                v[r.start + width * j + c] = 0.0;
+            }
+        }
+        let src = all[j];
+        let g = l.get(p, src);
+        let big = g.log_scale.iter().cloned().fold(f32::MIN, f32::max).exp() > 0.01;
+        if big {
+            let s = g.log_scale.map(f32::exp);
+            let r = rotation_matrix(unit_quat(g.rotation));
+            let z = [rng.normal() * s[0], rng.normal() * s[1], rng.normal() * s[2]];
+            for c in 0..3 {
+                let off = r[c][0] * z[0] + r[c][1] * z[1] + r[c][2] * z[2];
+                params[3 * j + c] = g.mean[c] + off;
+                params[3 * tn + 3 * j + c] = g.log_scale[c] - 1.6f32.ln();
+            }
+            // The original (kept at its index in `keep`, which is in
+            // ascending order) shrinks too.
+            let i = keep.binary_search(&src).expect("grown from kept");
+            for c in 0..3 {
+                params[3 * tn + 3 * i + c] = g.log_scale[c] - 1.6f32.ln();
+                params[3 * i + c] = g.mean[c] - (params[3 * j + c] - g.mean[c]);
+            }
+        }
+    }
+    (params, m, v)
+}

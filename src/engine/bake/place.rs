@@ -1,0 +1,253 @@
+//! Placing: Gaussians where the field's rays through the training photos
+//! end, with the field's colour, before any fitting (the module docs of
+//! `bake`, stage 1).
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use super::carve::{self, DepthGrid};
+use super::{BakeError, BakeSettings};
+use crate::engine::batch::RayOutput;
+use crate::engine::dataset::Dataset;
+use crate::engine::geometry::math::{Ray, Vec3};
+use crate::engine::models::splats::gaussians::{Layout, SH_C0};
+use crate::engine::models::splats::raster::RasterCamera;
+use crate::engine::models::{Model, RenderOptions};
+use crate::engine::rng::Rng;
+use crate::engine::view::render_rays_with;
+
+/// Gaussians each training photo places by default. A forward-facing
+/// capture's photos all see one wall: a fixed total there is many samples
+/// of the same surface, more Gaussians than the bake's minute can fit (each
+/// step draws them all), so the default follows the photos.
+pub const PER_PHOTO: usize = 1_500;
+
+/// The most Gaussians placed by default.
+pub const MOST_INITIAL: usize = 200_000;
+
+/// The field's rays that placing `initial` Gaussians within the photos'
+/// frames renders, with those of the margins past the frames ([`MARGIN`]).
+pub fn placing_rays(initial: usize) -> u64 {
+    (initial as f64 * (1.0 + 2.0 * MARGIN as f64).powi(2)).ceil() as u64
+}
+
+/// The opacity a field's ray must reach for a Gaussian to be placed where
+/// it ends: a ray through an object's edge, or through a thin haze, has an
+/// expected depth between surfaces, where a Gaussian would float.
+const MIN_HIT_OPACITY: f32 = 0.9;
+/// The opacity below which a field's ray saw nothing (free space all
+/// along it, for carving); between the two, it is not trusted either way.
+const MISS_OPACITY: f32 = 0.1;
+/// Gaussians are placed within this many times the farthest camera's
+/// distance from the centre: a capture's field puts much of its background
+/// at the far plane, where no two photos agree on it.
+const FAR_RADIUS: f32 = 3.0;
+/// A placed Gaussian with no neighbours' spacing (the background, seen by
+/// few photos) gets this fraction of its grid cell's width.
+const ISOLATED_SCALE: f32 = 0.5;
+/// How far past each edge of a photo (as a fraction of its width and
+/// height) the field's rays place Gaussians, at the photo's grid spacing:
+/// a view near the photos sees past their frames, where the field has
+/// filled in what it learnt nearby, and the splats would have nothing.
+/// Those placed there are kept only where no photo saw them within its
+/// frame (`carve`).
+const MARGIN: f32 = 0.1;
+/// A placed Gaussian's scale, as a fraction of the spacing of its
+/// neighbours.
+const INITIAL_SCALE: f32 = 0.2;
+
+/// A Gaussian placed from the field: position (model units), scale, colour.
+pub(super) type Placed = ([f32; 3], f32, [f32; 3]);
+
+/// Places Gaussians where the field's rays end (module docs, stage 1).
+pub(super) fn place(
+    source: &dyn Model,
+    ds: &Dataset,
+    frames: &[usize],
+    settings: &BakeSettings,
+    cancel: &AtomicBool,
+) -> Result<Vec<f32>, BakeError> {
+    let per_frame = settings.initial_for(frames.len()).div_ceil(frames.len()).max(1);
+    let mut rng = Rng::new(settings.seed);
+    let scene = source.scene();
+    let cams: Vec<RasterCamera> = frames.iter().map(|&f| RasterCamera::new(&ds.frames[f].camera, scene)).collect();
+    let far = FAR_RADIUS * cams.iter().map(|c| Vec3::from_array(c.origin).norm()).fold(0.0f32, f32::max);
+    let (mut placed, mut owners, mut outside, mut grids) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (k, &f) in frames.iter().enumerate() {
+        if cancel.load(Ordering::Relaxed) {
+            return Err(BakeError::Cancelled);
+        }
+        let (grid, points, out) = sample_photo(source, ds, f, per_frame, far, &mut rng);
+        owners.extend(std::iter::repeat_n(k as u32, points.len()));
+        outside.extend(out);
+        placed.extend(points);
+        grids.push(grid);
+    }
+    let mut placed = carve::carve(placed, &owners, &outside, &grids, &cams);
+    if placed.is_empty() {
+        return Err(BakeError::Empty);
+    }
+    if placed.len() > settings.splats.max_gaussians {
+        placed.truncate(settings.splats.max_gaussians);
+    }
+    let near = neighbour_spacing(&placed);
+    for (p, s) in placed.iter_mut().zip(near) {
+        // Samples of many photos land on one surface: their own spacing
+        // is finer than one photo's grid. One with no neighbours (the
+        // background, which few photos see) covers its grid cell.
+        p.1 = match s {
+            Some(d) => INITIAL_SCALE * d.min(p.1),
+            None => ISOLATED_SCALE * p.1,
+        };
+    }
+    Ok(parameters(&placed, settings.splats.sh_degree))
+}
+
+/// Renders the field's rays through a jittered grid of photo `f`'s pixels
+/// (about `count` of them): what they saw, and a Gaussian where each that
+/// hit something ends (its scale: the grid cell's width there), brought
+/// within `far` of the centre, and whether each of those is outside the
+/// photo's frame (in its [`MARGIN`]).
+fn sample_photo(
+    source: &dyn Model,
+    ds: &Dataset,
+    f: usize,
+    count: usize,
+    far: f32,
+    rng: &mut Rng,
+) -> (DepthGrid, Vec<Placed>, Vec<bool>) {
+    let (scene, bg) = (source.scene(), ds.background);
+    let cam = &ds.frames[f].camera;
+    let (w, h) = (cam.width as f32, cam.height as f32);
+    let spacing = (w * h / count as f32).sqrt().max(1.0);
+    // The grid reaches past the photo's edges by the margin.
+    let origin = [-MARGIN * w, -MARGIN * h];
+    let (gw, gh) = ((1.0 + 2.0 * MARGIN) * w, (1.0 + 2.0 * MARGIN) * h);
+    let (nx, ny) = ((gw / spacing).ceil() as usize, (gh / spacing).ceil() as usize);
+    let (mut rays, mut past): (Vec<Ray>, Vec<bool>) = (Vec::with_capacity(nx * ny), Vec::with_capacity(nx * ny));
+    for y in 0..ny {
+        for x in 0..nx {
+            let u = origin[0] + ((x as f32 + rng.f32()) * spacing).min(gw - 1e-3);
+            let v = origin[1] + ((y as f32 + rng.f32()) * spacing).min(gh - 1e-3);
+            rays.push(cam.ray(u, v));
+            past.push(!in_frame(u, v, w, h));
+        }
+    }
+    let (out, _) = render_rays_with(source, &rays, bg, &RenderOptions::default());
+    let hit = |o: &RayOutput| o.opacity >= MIN_HIT_OPACITY && o.depth.is_finite();
+    let depth = out
+        .iter()
+        .map(|o| match (hit(o), o.opacity < MISS_OPACITY) {
+            (true, _) => o.depth / o.opacity,
+            (false, true) => f32::INFINITY,
+            (false, false) => f32::NAN,
+        })
+        .collect();
+    let (mut placed, mut outside) = (Vec::new(), Vec::new());
+    for (k, (ray, o)) in rays.iter().zip(&out).enumerate().filter(|(_, (_, o))| hit(o)) {
+        let r = scene.to_model(ray);
+        let t = (o.depth / o.opacity).min(exit_distance(&r, far));
+        let p = r.at(t).to_array();
+        if !p.iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        let colour = [0, 1, 2].map(|c| ((o.rgb[c] - (1.0 - o.opacity) * bg[c]) / o.opacity).clamp(0.0, 1.0));
+        // A pixel's width at that distance, times the grid's spacing.
+        placed.push((p, t * spacing / cam.fx.max(1e-6), colour));
+        outside.push(past[k]);
+    }
+    (DepthGrid { nx, ny, origin, spacing, depth }, placed, outside)
+}
+
+/// Whether image point `(u, v)` (pixels) is within a `w x h` frame.
+pub(super) fn in_frame(u: f32, v: f32, w: f32, h: f32) -> bool {
+    u >= 0.0 && v >= 0.0 && u < w && v < h
+}
+
+/// Where model-space ray `r` leaves the sphere of radius `radius` around
+/// the centre (infinite for a ray starting outside it).
+fn exit_distance(r: &Ray, radius: f32) -> f32 {
+    let (b, dd) = (r.origin.dot(r.dir), r.dir.dot(r.dir));
+    let c = r.origin.dot(r.origin) - radius * radius;
+    if c >= 0.0 || dd == 0.0 {
+        return f32::INFINITY;
+    }
+    (-b + (b * b - dd * c).sqrt()) / dd
+}
+
+/// The parameters of the placed Gaussians: round, half opaque, coloured
+/// by their SH DC term.
+pub(super) fn parameters(placed: &[Placed], sh_degree: u32) -> Vec<f32> {
+    let l = Layout::new(placed.len(), sh_degree);
+    let n = l.n;
+    let mut params = vec![0.0f32; l.len()];
+    for (i, (p, size, colour)) in placed.iter().enumerate() {
+        params[3 * i..3 * i + 3].copy_from_slice(p);
+        params[3 * n + 3 * i..3 * n + 3 * i + 3].fill(size.max(1e-6).ln());
+        params[6 * n + 4 * i] = 1.0;
+        params[10 * n + i] = 0.0; // opacity 0.5
+        for c in 0..3 {
+            params[11 * n + 3 * i + c] = (colour[c] - 0.5) / SH_C0;
+        }
+    }
+    params
+}
+
+/// Each point's root-mean-square distance to its three nearest neighbours
+/// (the 3DGS paper's initial scale), found in a hash of cells as wide as
+/// the median of the points' own sizes; `None` for a point with fewer than
+/// three neighbours in its cell and the 26 around it.
+fn neighbour_spacing(points: &[Placed]) -> Vec<Option<f32>> {
+    let mut sizes: Vec<f32> = points.iter().map(|p| p.1).collect();
+    let mid = sizes.len() / 2;
+    let cell = *sizes.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+    if !(cell > 0.0 && cell.is_finite()) {
+        return vec![None; points.len()];
+    }
+    let key = |p: &[f32; 3]| p.map(|v| (v / cell).floor() as i64);
+    let mut cells: std::collections::HashMap<[i64; 3], Vec<u32>> = std::collections::HashMap::new();
+    for (i, p) in points.iter().enumerate() {
+        cells.entry(key(&p.0)).or_default().push(i as u32);
+    }
+    use rayon::prelude::*;
+    points
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let k = key(&p.0);
+            let mut best = [f32::INFINITY; 3];
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        let Some(list) = cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) else { continue };
+                        for &j in list {
+                            if j as usize == i {
+                                continue;
+                            }
+                            let q = &points[j as usize].0;
+                            let d2 = (0..3).map(|c| (q[c] - p.0[c]).powi(2)).sum::<f32>();
+                            if d2 < best[2] {
+                                best[2] = d2;
+                                best.sort_by(|a, b| a.total_cmp(b));
+                            }
+                        }
+                    }
+                }
+            }
+            best[2].is_finite().then(|| ((best[0] + best[1] + best[2]) / 3.0).sqrt().max(1e-7))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_ray_leaves_a_sphere_where_the_analytic_root_says() {
+        let r = Ray { origin: Vec3::new(0.5, 0.0, 0.0), dir: Vec3::new(0.6, 0.8, 0.0) };
+        // |o + t d| = 2: t² + 0.6 t + 0.25 - 4 = 0.
+        let want = (-0.6 + (0.36f32 + 4.0 * 3.75).sqrt()) / 2.0;
+        assert!((exit_distance(&r, 2.0) - want).abs() < 1e-6);
+        assert!(exit_distance(&Ray { origin: Vec3::new(3.0, 0.0, 0.0), ..r }, 2.0).is_infinite());
+    }
+}
