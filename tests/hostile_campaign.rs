@@ -144,18 +144,20 @@ impl Campaign {
         }
     }
 
-    /// kill -9 of the server; 3 s later no process of `data` may be left.
+    /// kill -9 of the server; 10 s later (the parent-death signal acts at
+    /// once; the rest is room for a starved test thread) no process of
+    /// `data` may be left.
     fn kill(&mut self, s: &mut Server, data: &Path, when: &str) {
         self.note_peak(s);
         s.child.kill().unwrap();
         s.child.wait().unwrap();
         self.t.kills += 1;
         let t = Instant::now();
-        while !processes_in(data, true).is_empty() && t.elapsed() < Duration::from_secs(3) {
+        while !processes_in(data, true).is_empty() && t.elapsed() < Duration::from_secs(10) {
             std::thread::sleep(Duration::from_millis(50));
         }
         for (pid, cmd) in processes_in(data, true) {
-            self.t.orphans.push(format!("3 s after the kill {when}: {pid} {cmd}"));
+            self.t.orphans.push(format!("10 s after the kill {when}: {pid} {cmd}"));
         }
     }
 
@@ -1202,6 +1204,14 @@ async fn cancel(c: &mut Campaign, base: &str, upload: &Value) {
 }
 
 impl Campaign {
+    /// Holds the program of a poses job's `stage` still once it runs
+    /// (`common::procs::freeze_at`), so that the kill after it lands in
+    /// that stage on any machine.
+    async fn hold(&self, base: &str, data: &Path, job: &str, stage: &str) {
+        let (client, url) = (self.client.clone(), format!("{base}/v1/jobs/{job}"));
+        common::procs::freeze_at(data, stage, async || is_final(&get_json(&client, &url).await.1)).await;
+    }
+
     /// The kills: at each stage of a photo-only upload's poses job, three
     /// in a row at different stages, during a video upload's frame
     /// extraction, twice during a rendered video, during training, twice
@@ -1224,6 +1234,7 @@ impl Campaign {
                 .case(&format!("16 photos (killed in {stage})"), &[201], upload(self, server, sixteen.clone()))
                 .await;
             let job = v["poses"]["job_id"].as_str().unwrap_or("none").to_string();
+            self.hold(&server.base, data, &job, stage).await;
             let at = |j: &Value| j["status"] == "running" && j["progress"]["stage"] == stage || is_final(j);
             self.wait_job(&server.base, &job, 180.0, at).await;
             self.kill(server, data, &format!("during {stage}"));
@@ -1237,6 +1248,7 @@ impl Campaign {
         let (_, v) = self.case("16 photos (killed three times)", &[201], upload(self, server, sixteen.clone())).await;
         let job = v["poses"]["job_id"].as_str().unwrap_or("none").to_string();
         for (attempt, stage) in [(1u64, "feature extraction"), (2, "matching"), (3, "mapping")] {
+            self.hold(&server.base, data, &job, stage).await;
             let at = |j: &Value| {
                 j["status"] == "running" && j["attempts"] == attempt && j["progress"]["stage"] == stage || is_final(j)
             };
@@ -1254,6 +1266,7 @@ impl Campaign {
         let req = self.client.post(format!("{}/v1/scenes", server.base)).multipart(form);
         let (_, v) = self.case("a walk video (killed extracting frames)", &[201], req).await;
         let job = v["poses"]["job_id"].as_str().unwrap_or("none").to_string();
+        self.hold(&server.base, data, &job, "extracting video frames").await;
         let at =
             |j: &Value| j["status"] == "running" && j["progress"]["stage"] == "extracting video frames" || is_final(j);
         self.wait_job(&server.base, &job, 120.0, at).await;
@@ -1312,6 +1325,7 @@ impl Campaign {
             self.case("16 photos (killed twice in matching)", &[201], upload(self, server, sixteen.clone())).await;
         let job = v["poses"]["job_id"].as_str().unwrap_or("none").to_string();
         for attempt in 1..=2u64 {
+            self.hold(&server.base, data, &job, "matching").await;
             let at = |j: &Value| j["attempts"] == attempt && j["progress"]["stage"] == "matching" || is_final(j);
             self.wait_job(&server.base, &job, 180.0, at).await;
             self.kill(server, data, &format!("twice in matching ({attempt})"));

@@ -40,7 +40,9 @@ async fn a_job_too_large_for_the_limit_is_refused_at_once_naming_its_estimate() 
     let scene = svc.upload_ball().await;
     let t0 = Instant::now();
     let (s, v) = svc.post_json("/v1/jobs", twelve_gigabyte_job(&scene)).await;
-    assert!(t0.elapsed() < Duration::from_secs(2), "refused in {:?}", t0.elapsed());
+    // The 422 itself shows it was never queued; the bound only says the
+    // answer did not wait on the job (20 s: room for a starved test thread).
+    assert!(t0.elapsed() < Duration::from_secs(20), "refused in {:?}", t0.elapsed());
     assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
     assert_error(&v, "resource_limit");
     let d = &v["error"]["details"];
@@ -81,24 +83,36 @@ async fn a_job_waits_while_running_jobs_hold_the_memory_budget() {
     c.scheduler.memory_budget_bytes = one * 3 / 2;
     c.scheduler.max_job_memory_bytes = one * 3 / 2;
     let svc = Svc::start(c).await;
-    let a = svc.job(&scene, json!({ "steps": 150 })).await;
+    // `a` runs until canceled, so `b` is seen waiting for it on any machine.
+    let a = svc.job(&scene, json!({ "seconds": 600 })).await;
     let b = svc.job(&scene, json!({ "steps": 10 })).await;
     let t0 = Instant::now();
-    let mut saw_wait = false;
-    loop {
-        let (_, ja) = svc.get(&format!("/v1/jobs/{a}")).await;
+    let mut canceled = false;
+    let (ja, jb) = loop {
+        // b read before a: b starts only once a has ended, so seeing both
+        // running is a real overlap, not a's end and b's start between reads.
         let (_, jb) = svc.get(&format!("/v1/jobs/{b}")).await;
+        let (_, ja) = svc.get(&format!("/v1/jobs/{a}")).await;
         assert_eq!(ja["memory_estimate_bytes"], one, "{ja}");
         assert!(!(ja["status"] == "running" && jb["status"] == "running"), "both run: {ja}\n{jb}");
-        saw_wait |= ja["status"] == "running" && jb["status"] == "queued";
-        if jb["status"] == "succeeded" {
-            assert_eq!(ja["status"], "succeeded", "b started before a finished: {ja}");
-            break;
+        if !canceled {
+            assert_eq!(jb["status"], "queued", "b did not wait for a: {ja}\n{jb}");
+            if ja["status"] == "running" {
+                // Held: b waits while a runs; now a frees the memory.
+                let (s, v) = svc.post_json(&format!("/v1/jobs/{a}/cancel"), json!({})).await;
+                assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+                canceled = true;
+            }
+        } else if jb["status"] != "queued" && jb["status"] != "running" {
+            break (ja, jb);
         }
         assert!(t0.elapsed() < Duration::from_secs(120), "timed out: {ja}\n{jb}");
         tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    assert!(saw_wait, "b was never seen waiting for a");
+    };
+    assert_eq!(ja["status"], "canceled", "{ja}");
+    assert_eq!(jb["status"], "succeeded", "{jb}");
+    let (a_end, b_start) = (ja["finished_at"].as_u64().unwrap(), jb["started_at"].as_u64().unwrap());
+    assert!(b_start >= a_end, "b started at {b_start}, before a ended at {a_end}");
     svc.stop().await;
 }
 
@@ -225,11 +239,34 @@ fn newest_checkpoint(data: &Path) -> u64 {
         .unwrap_or(0)
 }
 
-/// Issue 14's drill: 30 `kill -9`s at random moments while three jobs train
-/// with a checkpoint every second (some land mid-checkpoint). Each kill
-/// waits for a checkpoint of the current process first, so every job keeps
-/// making progress (two crashes in a row without one fail a job by design).
-/// After the next start: no temporary file, and every job succeeds.
+/// Enqueues one of the drill's jobs: 14 s of training.
+async fn drill_job(svc: &Svc, scene: &str) -> String {
+    let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "seconds": 14 } });
+    let (s, v) = svc.post_json("/v1/jobs", body).await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+    v["id"].as_str().unwrap().to_string()
+}
+
+/// Runs of the jobs `jobs` (the list the API answers) that a kill cut
+/// short: every start (`attempts`) but a job's current run or the one that
+/// succeeded. A job found running at start-up is queued again with its
+/// attempts, so each kill that landed while a job ran is counted once.
+fn interrupted_runs(jobs: &Value) -> u64 {
+    let runs = |j: &Value| {
+        let current = j["status"] == "running" || j["status"] == "succeeded";
+        j["attempts"].as_u64().unwrap() - current as u64
+    };
+    jobs.as_array().unwrap().iter().map(runs).sum()
+}
+
+/// Issue 14's drill: `kill -9`s at random moments while jobs train with a
+/// checkpoint every second (some land mid-checkpoint), until 30 of them
+/// have cut a running job short. Each kill waits for a checkpoint of the
+/// current process first, so every job keeps making progress (two crashes
+/// in a row without one fail a job by design). A job is added whenever all
+/// have finished, so the drill does not depend on how much training each
+/// life gets. After the next start: no temporary file, and every job
+/// succeeds.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn thirty_kills_during_training_lose_no_job_and_leave_no_temporary() {
     let data = tempfile::tempdir().unwrap();
@@ -243,20 +280,28 @@ async fn thirty_kills_during_training_lose_no_job_and_leave_no_temporary() {
     let scene = svc.upload_ball().await;
     let mut ids = Vec::new();
     for _ in 0..3 {
-        let body = json!({ "scene_id": scene, "model": "instant-tiny", "budget": { "seconds": 14 } });
-        let (s, v) = svc.post_json("/v1/jobs", body).await;
-        assert_eq!(s, StatusCode::ACCEPTED, "{v}");
-        ids.push(v["id"].as_str().unwrap().to_string());
+        ids.push(drill_job(&svc, &scene).await);
     }
     let mut kills = 0;
-    while kills < 30 {
-        let started = radiance::datadir::now_ms();
+    loop {
+        let (_, jobs) = svc.get("/v1/jobs").await;
+        let interrupted = interrupted_runs(&jobs);
+        if interrupted >= 30 {
+            eprintln!("{kills} kills cut {interrupted} runs short");
+            break;
+        }
+        // Room for kills that miss (a job ending just before its kill).
+        assert!(kills < 60, "{kills} kills cut only {interrupted} runs short: {jobs}");
+        let mut started = radiance::datadir::now_ms();
         let t0 = Instant::now();
-        // Until this process has written a checkpoint (or nothing is left to run).
+        // Until this process has written a checkpoint, with a job to cut short.
         loop {
             let (_, jobs) = svc.get("/v1/jobs").await;
             let open = jobs.as_array().unwrap().iter().any(|j| j["status"] == "queued" || j["status"] == "running");
-            if !open || newest_checkpoint(data.path()) > started {
+            if !open {
+                ids.push(drill_job(&svc, &scene).await);
+                started = radiance::datadir::now_ms();
+            } else if newest_checkpoint(data.path()) > started {
                 break;
             }
             assert!(t0.elapsed() < Duration::from_secs(60), "no checkpoint within 60 s: {jobs}");
@@ -278,8 +323,6 @@ async fn thirty_kills_during_training_lose_no_job_and_leave_no_temporary() {
         assert!(m["training_seconds"].as_f64().unwrap() >= 14.0, "{m}");
     }
     let (_, jobs) = svc.get("/v1/jobs").await;
-    assert_eq!(jobs.as_array().unwrap().len(), 3, "{jobs}");
-    let attempts: u64 = jobs.as_array().unwrap().iter().map(|j| j["attempts"].as_u64().unwrap()).sum();
-    assert!(attempts > 30, "the kills interrupted running jobs: {attempts} attempts in all");
+    assert_eq!(jobs.as_array().unwrap().len(), ids.len(), "{jobs}");
     kill(&mut child);
 }

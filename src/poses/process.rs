@@ -371,15 +371,18 @@ mod tests {
     fn a_hang_is_stopped_at_the_deadline_with_its_children() {
         let cancel = AtomicBool::new(false);
         let dir = tempfile::tempdir().unwrap();
-        let marker = dir.path().join("survived");
-        // The grandchild would write the marker after 2 s if it outlived the kill.
-        let script = format!("(sleep 2; touch {}) & sleep 60", marker.display());
+        let pid_file = dir.path().join("grandchild");
+        // The child starts a grandchild and writes its pid, then hangs.
+        let script = format!("sleep 60 & echo $! > {}; sleep 60", pid_file.display());
         let t = Instant::now();
-        let e = run(sh(&script), soon(0.5), &cancel, &mut |_| {}).unwrap_err();
+        let e = run(sh(&script), soon(3.0), &cancel, &mut |_| {}).unwrap_err();
         assert!(matches!(e, RunError::TimedOut { .. }), "{e}");
-        assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
-        std::thread::sleep(Duration::from_millis(2500));
-        assert!(!marker.exists(), "the child's own child outlived the timeout");
+        // Stopped at the deadline, not when the 60 s sleep ends (30 s: room
+        // for a starved thread).
+        assert!(t.elapsed() < Duration::from_secs(30), "{:?}", t.elapsed());
+        let pid = std::fs::read_to_string(&pid_file).expect("the child wrote its child's pid within 3 s");
+        let pid: u32 = pid.trim().parse().unwrap();
+        wait_for("the child's own child dies with it", 10.0, || !alive(pid));
     }
 
     #[test]

@@ -165,9 +165,17 @@ mod tests {
 
     #[test]
     fn a_run_holds_its_lease_until_fenced_or_too_long_unrenewed() {
-        let r = run(Duration::from_millis(250));
+        // A long lease, and the last renewal set back in time rather than
+        // waited for: no stall of this thread can pass 0.8 of it.
+        let r = run(Duration::from_secs(100));
+        let renewed_ago = |secs: u64| {
+            let at = Instant::now().checked_sub(Duration::from_secs(secs)).expect("the monotonic clock is past 90 s");
+            *r.renewed.lock().unwrap() = at;
+        };
         assert!(r.holds() && !r.cancel.load(Ordering::SeqCst));
-        std::thread::sleep(Duration::from_millis(210)); // past 0.8 of the lease
+        renewed_ago(70);
+        assert!(r.holds(), "renewed 0.7 of the lease ago");
+        renewed_ago(90); // past 0.8 of the lease
         assert!(!r.holds(), "not renewed for 0.8 of the lease");
         r.renewed_now();
         assert!(r.holds());

@@ -51,7 +51,7 @@ fn upload_train_view_and_make_videos_in_the_browser() {
 
     // Train it: the job's step and the PSNR chart move while it runs.
     page.click("#scene-list li button");
-    page.wait_for("!document.getElementById('training').hidden", 5.0);
+    page.wait_for("!document.getElementById('training').hidden", 30.0);
     page.fill("#train-model", "instant-tiny");
     page.fill("#train-budget-kind", "seconds");
     page.fill("#train-budget", "8");

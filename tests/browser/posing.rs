@@ -27,11 +27,16 @@ fn photos_without_poses_show_their_pose_estimation_in_the_page() {
     std::fs::write(&zip_path, zip_of(&files(photos.path()))).unwrap();
     page.set_files("#file-input", &[&zip_path]);
 
-    // While COLMAP runs: the card says so, and the scene cannot be trained yet.
-    page.wait_for("document.querySelector('#scene-list li[data-status=\"posing\"] [data-posing]') !== null", 30.0);
-    let line = page.eval("document.querySelector('[data-posing]').textContent");
-    assert!(line.as_str().unwrap().contains("estimating the camera poses of 16 photos with COLMAP"), "{line}");
-    assert_eq!(page.eval("document.querySelector('#scene-list li button').disabled"), true);
+    // While COLMAP runs: the card says so, and the scene cannot be trained
+    // yet (read in the same evaluation: the posing may end just after).
+    let seen = page.wait_for(
+        "(() => { const li = document.querySelector('#scene-list li[data-status=\"posing\"]');
+           const p = li && li.querySelector('[data-posing]');
+           return p ? [p.textContent, li.querySelector('button').disabled] : null; })()",
+        30.0,
+    );
+    assert!(seen[0].as_str().unwrap().contains("estimating the camera poses of 16 photos with COLMAP"), "{seen}");
+    assert_eq!(seen[1], true, "Train is disabled while posing: {seen}");
     screenshot(&mut page, "posing", false);
 
     // Then the card shows what COLMAP found, and Train is enabled.

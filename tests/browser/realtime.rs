@@ -295,26 +295,35 @@ fn training_on_the_page_ends_on_the_real_time_view() {
     page.goto(&svc.url("/"));
     page.wait_for("document.querySelectorAll('#scene-list li').length === 1", 30.0);
     page.click("#scene-list li button");
-    page.wait_for("!document.getElementById('training').hidden", 5.0);
+    page.wait_for("!document.getElementById('training').hidden", 30.0);
     page.fill("#train-model", "instant-tiny");
     page.fill("#train-budget-kind", "steps");
     page.fill("#train-budget", "200");
     assert_eq!(page.eval("document.getElementById('train-bake').checked"), true, "baking is the default");
     page.fill("#train-bake-seconds", "6");
-    page.click("#train-start");
-    // The bake's line while it runs: its step, time baked and time left.
-    let line = page.wait_for(
-        "(() => { const l = document.getElementById('bake-line'); \
-           return !l.hidden && l.dataset.status === 'running' && l.textContent.includes('ETA') ? l.textContent : null })()",
-        120.0,
+    // Every text the bake's line shows (each a new text node), recorded by
+    // the page: the bake lasts 6 s, too short for polling from here to be
+    // sure to see it running.
+    page.eval(
+        "(() => { window.bakeSeen = []; const l = document.getElementById('bake-line');
+           new MutationObserver((records) => { for (const r of records) for (const n of r.addedNodes)
+             window.bakeSeen.push([l.hidden, n.textContent]); }).observe(l, { childList: true });
+           return true; })()",
     );
-    let line = line.as_str().unwrap().to_string();
-    assert!(line.contains("step ") && line.contains(" baked") && line.contains("Gaussians"), "{line}");
+    page.click("#train-start");
     // Then the real-time view, drawn by the browser.
     page.wait_for(
         "!document.getElementById('viewer').hidden && !!document.getElementById('view-splats').dataset.model",
         120.0,
     );
+    // The bake's line while it ran: its step, time baked and time left.
+    let seen = page.eval("window.bakeSeen");
+    let running = seen.as_array().unwrap().iter().find_map(|s| {
+        let text = s[1].as_str().unwrap();
+        (s[0] == false && text.contains(": running · ") && text.contains("ETA")).then_some(text)
+    });
+    let line = running.unwrap_or_else(|| panic!("the bake's line never showed it running with an ETA: {seen}"));
+    assert!(line.contains("step ") && line.contains(" baked") && line.contains("Gaussians"), "{line}");
     page.eval("window.splatView.settled()");
     assert_eq!(page.eval("document.getElementById('view-img').hidden"), true);
     let n: u64 = page.eval("document.getElementById('view-splats').dataset.count").as_str().unwrap().parse().unwrap();

@@ -9,6 +9,7 @@ pub mod cdp;
 pub mod mp4;
 pub mod pg;
 pub mod poses;
+pub mod procs;
 pub mod psnr;
 pub mod s3;
 pub mod tiny;

@@ -102,17 +102,18 @@ async fn api_nodes_cancel_stream_render_and_serve_videos_from_the_shared_stores_
     eprintln!("renders and video checked {:.1} s in", t0.elapsed().as_secs_f64());
 
     // (b) A cancel through API node B reaches the worker: `canceled`
-    // within 2 s, its model kept.
+    // within 15 s (a notice, else the next heartbeat, then a step and the
+    // end's record, with four processes on two cores), its model kept.
     let long = svc_a.job(&scene, json!({ "steps": 1_000_000 })).await;
     svc_a.wait_job(&long, 60.0, |v| v["status"] == "running" && v["model_id"].is_string()).await;
     let asked = Instant::now();
     let (s, v) = svc_b.post_json(&format!("/v1/jobs/{long}/cancel"), json!({})).await;
     assert_eq!(s, StatusCode::ACCEPTED, "{v}");
-    let canceled = svc_a.wait_job(&long, 10.0, |v| v["status"] != "running").await;
+    let canceled = svc_a.wait_job(&long, 60.0, |v| v["status"] != "running").await;
     let took = asked.elapsed();
     assert_eq!(canceled["status"], "canceled", "{canceled}");
     eprintln!("canceled {:.2} s after the request", took.as_secs_f64());
-    assert!(took < Duration::from_secs(2), "the cancel took {took:?}");
+    assert!(took < Duration::from_secs(15), "the cancel took {took:?}");
     let kept = canceled["model_id"].as_str().unwrap();
     let (s, m) = svc_b.get(&format!("/v1/models/{kept}")).await;
     assert_eq!(s, StatusCode::OK, "{m}");
@@ -141,6 +142,16 @@ async fn an_all_node_over_the_shared_stores_serves_and_runs_jobs() {
     assert!(metrics.contains("radiance_node_info{role=\"all\",node=\"all-1\""), "{metrics}");
     assert!(node.metric("radiance_train_steps_total").await >= 30.0, "{metrics}");
     assert_eq!(node.metric("radiance_worker_claims_total").await, 1.0);
-    assert_eq!(node.metric("radiance_worker_running_jobs").await, 0.0);
+    // The gauge drops once the job's thread has recorded the end and
+    // cleaned up, just after clients see `succeeded`.
+    let t0 = Instant::now();
+    loop {
+        let running = node.metric("radiance_worker_running_jobs").await;
+        if running == 0.0 {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(10), "{running} jobs still running 10 s after the job ended");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
     assert_eq!(node.metric("radiance_worker_leases_lost_total").await, 0.0);
 }

@@ -18,9 +18,12 @@ use std::time::{Duration, Instant};
 use crate::common::pg::Pg;
 use crate::common::s3::S3;
 
-/// The lease the tests' workers take: short, so a dead worker's job moves
-/// on quickly.
-pub const LEASE_SECONDS: u64 = 3;
+/// The lease the tests' workers take: a dead worker's job moves on after
+/// about this long. Not shorter: a worker fences itself after 0.8 of it
+/// without a heartbeat (one a second, `worker::heartbeat_every`), so with
+/// several processes on two cores a starved but healthy worker must keep
+/// its job for 8 s, or the tests' exact counts of runs would break.
+pub const LEASE_SECONDS: u64 = 10;
 
 /// How long a node may take to print its address.
 const START_WITHIN: Duration = Duration::from_secs(60);

@@ -71,35 +71,41 @@ async fn a_killed_workers_job_resumes_on_the_other_from_its_checkpoint_on(backen
         jobs.push(svc.job(&scene, json!({ "steps": STEPS })).await);
     }
 
-    // The first job to save a checkpoint mid-training: kill its worker.
+    // The first job seen with a checkpoint mid-training: freeze its worker
+    // (SIGSTOP), so the job cannot move on while the test looks, check it
+    // is still mid-training under that worker's lease, and kill the worker.
+    // A job that moved on before the freeze (this thread was starved) is
+    // let go (SIGCONT), and the search goes on.
     let sql = cluster.sql().await;
     let deadline = Instant::now() + Duration::from_secs(120);
-    let (victim, seen) = loop {
-        let mut found = None;
-        for id in &jobs {
-            let (_, v) = svc.get(&format!("/v1/jobs/{id}")).await;
-            let step = v["progress"]["step"].as_u64().unwrap_or(0);
-            if v["status"] == "running" && v["model_id"].is_string() && (10..STEPS / 2).contains(&step) {
-                found = Some((id.clone(), v));
-                break;
-            }
-        }
-        if let Some(f) = found {
-            break f;
-        }
+    let state = "SELECT status, lease_owner, lease_expires_at, model_id IS NOT NULL,
+                        COALESCE((progress->>'step')::bigint, 0) FROM jobs WHERE id = $1";
+    let mid_training = |status: &str, has_model: bool, step: i64| {
+        status == "running" && has_model && (10..STEPS as i64 / 2).contains(&step)
+    };
+    let (victim, owner, index, expiry_before_kill, step) = 'search: loop {
         assert!(Instant::now() < deadline, "no job saved a checkpoint mid-training within 120 s");
+        for id in &jobs {
+            let row = sql.query_one(state, &[id]).await.unwrap();
+            let (status, owner): (String, Option<String>) = (row.get(0), row.get(1));
+            let Some(owner) = owner.filter(|_| mid_training(status.as_str(), row.get(3), row.get(4))) else { continue };
+            let index = workers.iter().position(|w| w.name == owner).expect("the job's worker is one of ours");
+            let pid = workers[index].child.id() as i32;
+            unsafe { libc::kill(pid, libc::SIGSTOP) };
+            let row = sql.query_one(state, &[id]).await.unwrap();
+            let (status, still): (String, Option<String>) = (row.get(0), row.get(1));
+            let step: i64 = row.get(4);
+            if still.as_deref() == Some(owner.as_str()) && mid_training(status.as_str(), row.get(3), step) {
+                break 'search (id.clone(), owner, index, row.get::<_, SystemTime>(2), step);
+            }
+            unsafe { libc::kill(pid, libc::SIGCONT) };
+            eprintln!("{id} moved on ({status}, step {step}) before {owner} was frozen; looking again");
+        }
         tokio::time::sleep(Duration::from_millis(50)).await;
     };
-    let row = sql.query_one("SELECT lease_owner, lease_expires_at FROM jobs WHERE id = $1", &[&victim]).await.unwrap();
-    let (owner, expiry_before_kill): (String, SystemTime) = (row.get(0), row.get(1));
-    let index = workers.iter().position(|w| w.name == owner).expect("the job's worker is one of ours");
     let killed_at = Instant::now();
     workers[index].kill9();
-    eprintln!(
-        "killed {owner} running {victim} at step {} ({:.1} s in)",
-        seen["progress"]["step"],
-        t0.elapsed().as_secs_f64()
-    );
+    eprintln!("killed {owner} running {victim} at step {step} ({:.1} s in)", t0.elapsed().as_secs_f64());
     let survivor = &workers[1 - index];
 
     // It comes back on the other worker and every job succeeds.

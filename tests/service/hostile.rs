@@ -14,6 +14,7 @@ use reqwest::StatusCode;
 use serde_json::Value;
 
 use crate::common::poses::bomb_png;
+use crate::common::procs::{freeze_at as freeze_at_stage, processes_in, wait_until_gone};
 use crate::common::*;
 
 /// The textured scene's photos (no poses) at `w`x`h`, under `photos/`.
@@ -128,24 +129,6 @@ async fn bombs_and_unposable_photos_are_refused_at_upload_from_their_headers() {
     server.assert_peak_rss();
 }
 
-/// Processes (not zombies) whose command line names `dir`: the COLMAP and
-/// ffmpeg runs of a server on that data directory.
-fn processes_in(dir: &Path) -> Vec<String> {
-    let needle = dir.display().to_string();
-    let mut found = Vec::new();
-    for e in std::fs::read_dir("/proc").unwrap().flatten() {
-        if !e.file_name().to_string_lossy().bytes().all(|b| b.is_ascii_digit()) {
-            continue;
-        }
-        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else { continue };
-        let cmd = String::from_utf8_lossy(&cmd).replace('\0', " ");
-        if cmd.contains(&needle) && !cmd.contains("radiance serve") && !cmd.contains(" serve --addr") {
-            found.push(format!("{}: {cmd}", e.file_name().to_string_lossy()));
-        }
-    }
-    found
-}
-
 /// What a scene's folder holds besides `data/`, `upload/` and `scene.json`:
 /// working folders and process lists a job left.
 fn leftovers(data: &Path, scene: &str) -> Vec<String> {
@@ -159,67 +142,10 @@ fn leftovers(data: &Path, scene: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
-/// The COLMAP subcommands that run a poses job's `stage` (16 photos match
-/// exhaustively; `matches_importer` is the sequential matcher's).
-fn colmap_commands(stage: &str) -> &'static [&'static str] {
-    match stage {
-        "feature extraction" => &["feature_extractor"],
-        "matching" => &["exhaustive_matcher", "matches_importer"],
-        "mapping" => &["mapper"],
-        _ => panic!("no COLMAP step runs during {stage}"),
-    }
-}
-
-/// Waits for a COLMAP process of `stage` run by the server on `dir`, and
-/// stops it (SIGSTOP) the moment it is seen, so that the stage stays current
-/// however fast or slow the machine: the server is then killed while COLMAP
-/// is really at that stage, not after a step that ended before a poll saw it.
-/// /proc is polled every 2 ms, so a step is caught unless it is shorter
-/// than that; `job` ending first is a clear failure. Returns the pid.
-async fn freeze_colmap_at(svc: &Svc, dir: &Path, job: &str, stage: &str) -> libc::pid_t {
-    let words = colmap_commands(stage);
-    let t = std::time::Instant::now();
-    let mut polls = 0u32;
-    loop {
-        for p in processes_in(dir) {
-            let (pid, cmd) = p.split_once(':').unwrap();
-            if words.iter().any(|w| cmd.split(' ').any(|a| a == *w)) {
-                let pid: libc::pid_t = pid.parse().unwrap();
-                // Its whole group (the server starts COLMAP in a group of
-                // its own), or the process alone if it shares ours.
-                // SAFETY: getpgid(2), getpgrp(2) and kill(2) on pids just
-                // read; they touch no memory.
-                let stopped = unsafe {
-                    let group = libc::getpgid(pid);
-                    let target = if group > 0 && group != libc::getpgrp() { -group } else { pid };
-                    libc::kill(target, libc::SIGSTOP) == 0
-                };
-                if stopped {
-                    return pid;
-                }
-            }
-        }
-        // Now and then, the job's state: it must not have gone past the stage.
-        polls += 1;
-        if polls % 250 == 0 {
-            let (_, j) = svc.get(&format!("/v1/jobs/{job}")).await;
-            assert!(!is_final(&j), "the job ended before COLMAP's {stage} was seen running: {j}");
-        }
-        assert!(t.elapsed().as_secs_f64() < 180.0, "no COLMAP {words:?} process in 180 s");
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
-}
-
-/// Waits for the COLMAP processes on `dir` to die with their server: they
-/// go within seconds (the kernel's parent-death signal), not when the next
-/// start reaps them; 10 s leaves room for a test thread starved on a loaded
-/// machine.
-fn wait_until_gone(dir: &Path, stage: &str) {
-    let t = std::time::Instant::now();
-    while !processes_in(dir).is_empty() {
-        assert!(t.elapsed().as_secs_f64() < 10.0, "orphans after a kill during {stage}: {:?}", processes_in(dir));
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
+/// Holds the program of `stage` still once it runs (`procs::freeze_at`),
+/// failing if `job` ends first.
+async fn freeze_at(svc: &Svc, dir: &Path, job: &str, stage: &str) -> i32 {
+    freeze_at_stage(dir, stage, async || is_final(&svc.get(&format!("/v1/jobs/{job}")).await.1)).await
 }
 
 fn is_final(v: &Value) -> bool {
@@ -234,13 +160,13 @@ async fn a_server_killed_at_each_stage_of_colmap_leaves_no_process_and_no_folder
         let (s, v) = server.svc.upload("application/zip", zip_of(&photos_at(16, 320, 240))).await;
         assert_eq!(s, StatusCode::CREATED, "{v}");
         let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
-        let pid = freeze_colmap_at(&server.svc, data.path(), &job, stage).await;
+        let pid = freeze_at(&server.svc, data.path(), &job, stage).await;
         // COLMAP held where it is: the job reports this stage (its report is
         // written before COLMAP starts, so this waits on nothing but the poll).
         server.svc.wait_job(&job, 60.0, |j| j["status"] == "running" && j["progress"]["stage"] == stage).await;
         eprintln!("killing the server with COLMAP's {stage} (pid {pid}) stopped");
         server.kill();
-        wait_until_gone(data.path(), stage);
+        wait_until_gone(data.path(), &format!("during {stage}"));
         // The next start runs the job again to its end and leaves nothing
         // of the first run.
         server = Server::start(data.path());
@@ -266,12 +192,12 @@ async fn a_poses_job_failed_at_start_up_leaves_no_folder() {
     // The matcher is held (stopped) when seen, so that the kill lands in
     // matching and not after it saved its stage, however slow the machine.
     for attempt in 1..=2u64 {
-        freeze_colmap_at(&server.svc, data.path(), &job, "matching").await;
+        freeze_at(&server.svc, data.path(), &job, "matching").await;
         let at_work = |j: &Value| j["attempts"] == attempt && j["progress"]["stage"] == "matching";
         server.svc.wait_job(&job, 60.0, at_work).await;
         assert!(!leftovers(data.path(), &id).is_empty(), "no working folder while COLMAP runs");
         server.kill();
-        wait_until_gone(data.path(), "matching");
+        wait_until_gone(data.path(), "during matching");
         server = Server::start(data.path());
     }
     let (_, j) = server.svc.get(&format!("/v1/jobs/{job}")).await;
@@ -419,9 +345,12 @@ async fn three_kills_in_a_row_at_different_stages_cost_a_stage_each_not_the_job(
     assert_eq!(s, StatusCode::CREATED, "{v}");
     let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
     for (attempt, stage) in [(1u64, "feature extraction"), (2, "matching"), (3, "mapping")] {
+        // COLMAP held at the stage, so the kill lands in it on any machine.
+        freeze_at(&server.svc, data.path(), &job, stage).await;
         let at = |j: &Value| j["status"] == "running" && j["attempts"] == attempt && j["progress"]["stage"] == stage;
-        server.svc.wait_job(&job, 120.0, at).await;
+        server.svc.wait_job(&job, 60.0, at).await;
         server.kill();
+        wait_until_gone(data.path(), &format!("during {stage}"));
         server = Server::start(data.path());
         let (_, j) = server.svc.get(&format!("/v1/jobs/{job}")).await;
         // A stage was finished since the last start: progress, not a crash in a row.
@@ -455,15 +384,20 @@ async fn a_video_job_killed_twice_keeps_its_frames_and_finishes() {
     assert_eq!(s, StatusCode::ACCEPTED, "{v}");
     let job = v["id"].as_str().unwrap().to_string();
     let frames_dir = data.path().join("videos").join(format!(".frames-{job}"));
-    for (attempt, at_least) in [(1u64, 10u64), (2, 50)] {
+    // The second life must render frames of its own before its kill (it
+    // starts from those the first saved, whose count a late kill raises).
+    let mut at_least = 10u64;
+    for attempt in 1..=2u64 {
         let at = |j: &Value| {
             j["status"] == "running" && j["attempts"] == attempt && j["progress"]["step"].as_u64() >= Some(at_least)
         };
         server.svc.wait_job(&job, 120.0, at).await;
         server.kill();
         // The frames rendered so far are on disk, each a whole PNG.
+        assert!(frames_dir.is_dir(), "the video finished before its kill {attempt}");
         let saved = std::fs::read_dir(&frames_dir).unwrap().count() as u64;
-        assert!(saved >= at_least, "{saved} frames saved");
+        assert!(saved >= at_least && saved + 10 < 120, "{saved} frames saved (of 120) at kill {attempt}");
+        at_least = saved + 10;
         server = Server::start(data.path());
         let (_, j) = server.svc.get(&format!("/v1/jobs/{job}")).await;
         // Frames saved since the last start: progress, not a crash in a row.
@@ -501,14 +435,13 @@ async fn a_video_upload_killed_during_frame_extraction_leaves_no_ffmpeg_and_fini
     let (s, v) = server.svc.upload_form(form_of(&[("walk.mp4".into(), std::fs::read(&clip).unwrap())], true)).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
     let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
+    // ffmpeg held while it writes the candidate frames (48 of them take
+    // well under a second), so the kill lands in that stage on any machine.
+    freeze_at(&server.svc, data.path(), &job, "extracting video frames").await;
     let extracting = |j: &Value| j["status"] == "running" && j["progress"]["stage"] == "extracting video frames";
     server.svc.wait_job(&job, 60.0, extracting).await;
     server.kill();
-    let t = std::time::Instant::now();
-    while !processes_in(data.path()).is_empty() {
-        assert!(t.elapsed().as_secs_f64() < 3.0, "orphans: {:?}", processes_in(data.path()));
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
+    wait_until_gone(data.path(), "during frame extraction");
     server = Server::start(data.path());
     let done = server.svc.wait_job(&job, 240.0, is_final).await;
     assert_eq!((done["status"].as_str(), done["crashes"].as_u64()), (Some("succeeded"), Some(1)), "{done}");

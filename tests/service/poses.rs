@@ -35,6 +35,13 @@ fn is_final(v: &Value) -> bool {
     ["succeeded", "failed", "canceled"].contains(&v["status"].as_str().unwrap_or(""))
 }
 
+/// Holds the COLMAP program of `stage` still once it runs (SIGSTOP, see
+/// `procs::freeze_at`), failing if `job` ends first.
+async fn freeze_at(svc: &Svc, dir: &std::path::Path, job: &str, stage: &str) {
+    let ended = async || is_final(&svc.get(&format!("/v1/jobs/{job}")).await.1);
+    crate::common::procs::freeze_at(dir, stage, ended).await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn photos_without_poses_are_posed_then_trained_and_rendered() {
     let data = tempfile::tempdir().unwrap();
@@ -62,8 +69,10 @@ async fn photos_without_poses_are_posed_then_trained_and_rendered() {
 
     let (s, job) = svc.get(&format!("/v1/jobs/{job_id}")).await;
     assert_eq!((s, job["kind"].as_str(), job["scene_id"].as_str()), (StatusCode::OK, Some("poses"), Some(id.as_str())));
-    // Progress moves through COLMAP's stages.
-    let mut stages = Vec::new();
+    // Progress moves through COLMAP's stages, in order (those seen: a poll
+    // may miss a short one).
+    const ORDER: [&str; 5] = ["preparing photos", "feature extraction", "matching", "mapping", "checking the result"];
+    let mut stages: Vec<String> = Vec::new();
     let done = loop {
         let (_, j) = svc.get(&format!("/v1/jobs/{job_id}")).await;
         if let Some(st) = j["progress"]["stage"].as_str()
@@ -78,11 +87,17 @@ async fn photos_without_poses_are_posed_then_trained_and_rendered() {
     };
     assert_eq!(done["status"], "succeeded", "{done}");
     assert_eq!((done["progress"]["step"].as_u64(), done["progress"]["total_steps"].as_u64()), (Some(1000), Some(1000)));
-    assert!(stages.iter().any(|s| s == "matching") && stages.iter().any(|s| s == "mapping"), "{stages:?}");
+    let at: Vec<Option<usize>> = stages.iter().map(|s| ORDER.iter().position(|o| o == s)).collect();
+    assert!(at.iter().all(Option::is_some) && at.windows(2).all(|w| w[0] < w[1]), "{stages:?}");
 
     let ready = scene(&svc, &id).await;
     assert_eq!(ready["status"], "ready", "{ready}");
     let report = &ready["poses"]["report"];
+    // Each of COLMAP's steps ran, timed in the report.
+    let secs = &report["seconds"];
+    for step in ["features", "matching", "mapping"] {
+        assert!(secs[step].as_f64().is_some_and(|s| s > 0.0), "{step}: {ready}");
+    }
     assert_eq!((report["images"].as_u64(), report["registered"].as_u64()), (Some(16), Some(16)), "{ready}");
     assert!(report["mean_reprojection_error_px"].as_f64().is_some_and(|e| e > 0.0 && e < 1.0), "{ready}");
     assert_eq!(ready["images"], json!({ "train": 14, "val": 2, "test": 2 }));
@@ -163,9 +178,12 @@ async fn a_poses_job_survives_a_restart_and_can_be_canceled() {
     let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
     svc.stop().await;
 
-    // Second life: it runs; stop the server in the middle of COLMAP.
+    // Second life: it runs; stop the server in the middle of COLMAP, held
+    // (SIGSTOP) in feature extraction so it cannot finish first.
     let svc = Svc::start(with_colmap(data.path())).await;
-    svc.wait_job(&job, 60.0, |j| j["status"] == "running" && j["progress"]["step"].as_u64() > Some(60)).await;
+    freeze_at(&svc, data.path(), &job, "feature extraction").await;
+    let at = |j: &Value| j["status"] == "running" && j["progress"]["stage"] == "feature extraction";
+    svc.wait_job(&job, 60.0, at).await;
     svc.stop().await;
     assert_eq!(scene_on_disk(data.path(), &id)["status"], "posing");
 
@@ -184,7 +202,9 @@ async fn a_poses_job_survives_a_restart_and_can_be_canceled() {
     // Cancel a running one: the job is canceled, the scene says so.
     let (_, v) = svc.upload("application/zip", zip_of(&photo_files(16))).await;
     let (id, job) = (v["id"].as_str().unwrap().to_string(), v["poses"]["job_id"].as_str().unwrap().to_string());
-    svc.wait_job(&job, 60.0, |j| j["status"] == "running" && j["progress"]["stage"].is_string()).await;
+    // Held in matching, so the cancel lands while COLMAP runs.
+    freeze_at(&svc, data.path(), &job, "matching").await;
+    svc.wait_job(&job, 60.0, |j| j["status"] == "running" && j["progress"]["stage"] == "matching").await;
     let (s, _) = svc.post_json(&format!("/v1/jobs/{job}/cancel"), json!({})).await;
     assert_eq!(s, StatusCode::ACCEPTED);
     let ended = svc.wait_job(&job, 30.0, is_final).await;

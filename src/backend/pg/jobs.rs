@@ -32,7 +32,8 @@ use crate::jobs::{Counters, Job, SchedError, Status};
 use crate::records::{ModelInfo, SceneInfo, VideoInfo};
 
 /// How long a follower of a job waits for a notice of its change before it
-/// reads the job again anyway (notices can be lost; see `changes`).
+/// reads the job again anyway (notices can be lost; see `changes`); the
+/// default of [`PgJobStore::with_change_fallback`].
 pub const CHANGE_FALLBACK: Duration = Duration::from_secs(1);
 
 /// How long the readiness probe waits for the database's answer.
@@ -58,6 +59,8 @@ impl Default for PgStoreConfig {
 pub struct PgJobStore {
     queue: PgQueue,
     changes: Changes,
+    /// How long `job_changed` waits for a notice ([`CHANGE_FALLBACK`]).
+    change_fallback: Duration,
     /// Set by `shutdown`: the store answers nothing more.
     closed: AtomicBool,
 }
@@ -71,7 +74,19 @@ impl PgJobStore {
         migrate::migrate(db).await?;
         let pool = db.pool(config.pool_size).await?;
         let changes = Changes::start(db).await?;
-        Ok(PgJobStore { queue: PgQueue::new(pool, config.queue), changes, closed: AtomicBool::new(false) })
+        Ok(PgJobStore {
+            queue: PgQueue::new(pool, config.queue),
+            changes,
+            change_fallback: CHANGE_FALLBACK,
+            closed: AtomicBool::new(false),
+        })
+    }
+
+    /// The store with followers' fallback wait set to `fallback` instead of
+    /// [`CHANGE_FALLBACK`] (tests set it long, to tell a notice from it).
+    pub fn with_change_fallback(mut self, fallback: Duration) -> Self {
+        self.change_fallback = fallback;
+        self
     }
 
     /// The queue itself, for a worker in this process (claims, leases).
@@ -156,12 +171,14 @@ impl JobStore for PgJobStore {
     }
 
     /// Resolves at the first notice of a change of job `id` after this
-    /// call, when notices were missed (a lagging follower), or after
-    /// [`CHANGE_FALLBACK`], whichever comes first.
+    /// call, when notices were missed (a lagging follower), or after the
+    /// fallback wait ([`CHANGE_FALLBACK`] unless set otherwise), whichever
+    /// comes first.
     fn job_changed<'a>(&'a self, id: &'a str) -> Fut<'a, ()> {
         // Subscribed now, not at the first poll: a change made between this
         // call and the first poll is not missed.
         let mut ids = self.changes.subscribe();
+        let fallback = self.change_fallback;
         Box::pin(async move {
             let notice = async {
                 loop {
@@ -174,7 +191,7 @@ impl JobStore for PgJobStore {
                     }
                 }
             };
-            let _ = tokio::time::timeout(CHANGE_FALLBACK, notice).await;
+            let _ = tokio::time::timeout(fallback, notice).await;
         })
     }
 
