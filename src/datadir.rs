@@ -21,13 +21,16 @@
 
 use std::io;
 use std::path::{Path, PathBuf};
-use std::time::{SystemTime, UNIX_EPOCH};
 
 use redb::{ReadableDatabase, ReadableTable};
 use serde::{Serialize, de::DeserializeOwned};
 
 use crate::engine::io::fsio::write_atomic;
 use crate::records::{ModelInfo, SceneInfo, VideoInfo};
+pub use crate::system::now_ms;
+
+/// The name of a video job's frames folder before its job's id.
+pub const VIDEO_FRAMES_PREFIX: &str = ".frames-";
 
 /// Paths of the data directory.
 #[derive(Clone, Debug)]
@@ -201,6 +204,10 @@ impl DataDir {
     pub fn videos_dir(&self) -> PathBuf {
         self.root.join("videos")
     }
+    /// The folder of a video job's saved frames (kept across a crash).
+    pub fn video_frames_dir(&self, job_id: &str) -> PathBuf {
+        self.videos_dir().join(format!("{VIDEO_FRAMES_PREFIX}{job_id}"))
+    }
     /// The video file (its record says the format).
     pub fn video_file(&self, id: &str) -> PathBuf {
         self.videos_dir().join(format!("{id}.bin"))
@@ -296,11 +303,6 @@ pub fn valid_id(id: &str) -> bool {
 /// making ids in the same millisecond do not collide.
 pub fn new_id(prefix: &str) -> String {
     format!("{prefix}_{}", uuid::Uuid::now_v7().simple())
-}
-
-/// Milliseconds since the Unix epoch.
-pub fn now_ms() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64)
 }
 
 /// Writes pretty JSON atomically.

@@ -5,12 +5,12 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::datadir::now_ms;
 use crate::engine::dataset::Dataset;
 use crate::engine::geometry::camera::Orbit;
 use crate::engine::geometry::math::Vec3;
 use crate::engine::geometry::rig::Spiral;
 use crate::engine::models::auto::SceneKind;
+use crate::system::now_ms;
 
 /// Image counts of a dataset's splits.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]

@@ -1,8 +1,14 @@
-//! What the operating system says about this process and machine: peak
-//! resident memory, physical memory, free disk space. Linux reads `/proc`;
-//! elsewhere the answers are `None`.
+//! What the operating system says about this process and machine: the
+//! time, peak resident memory, physical memory, free disk space. Linux
+//! reads `/proc`; elsewhere the answers are `None`.
 
 use std::path::Path;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64)
+}
 
 /// Peak resident memory of this process in bytes (`VmHWM`).
 pub fn peak_memory() -> Option<u64> {

@@ -548,3 +548,116 @@ fn a_long_function_is_found() {
     assert_eq!(long_functions("x.rs", &text, 80), ["x.rs:2: long (81 lines)"]);
     assert!(long_functions("x.rs", &text, 81).is_empty());
 }
+
+/// The module a file under `src/` is (`engine/bake/mod.rs` is
+/// `engine::bake`, `lib.rs` the crate's root, ``).
+fn module_of(rel: &str) -> String {
+    let stem = rel.trim_end_matches(".rs");
+    let mut parts: Vec<&str> = stem.split('/').collect();
+    if matches!(parts.last(), Some(&"mod" | &"lib" | &"main")) {
+        parts.pop();
+    }
+    parts.join("::")
+}
+
+/// The modules of the crate that the code of file `rel` (module `from`)
+/// uses, by `crate::` and `super::` paths, each the longest module of
+/// `modules` its path names, with the line; its own ancestors and
+/// descendants left out (a folder's `mod.rs` and its files share a home).
+fn module_uses(rel: &str, text: &str, modules: &BTreeSet<String>) -> Vec<(String, usize)> {
+    let from = module_of(rel);
+    let own: Vec<&str> = if from.is_empty() { Vec::new() } else { from.split("::").collect() };
+    // `super` of a folder's mod.rs is the folder's parent, of a file its folder's.
+    let parent: Vec<&str> = own[..own.len().saturating_sub(1)].to_vec();
+    let related = |m: &str| m == from || m.starts_with(&format!("{from}::")) || from.starts_with(&format!("{m}::"));
+    let mut found = Vec::new();
+    for (n, line) in code_only(text).lines().enumerate() {
+        for (base, root) in [("crate::", Vec::new()), ("super::", parent.clone())] {
+            for (at, _) in line.match_indices(base) {
+                if base == "super::" && at >= 7 && &line[at - 7..at] == "crate::" {
+                    continue;
+                }
+                let mut path: Vec<String> = root.iter().map(|s| s.to_string()).collect();
+                let mut rest = &line[at + base.len()..];
+                let mut heads = vec![];
+                loop {
+                    if let Some(group) = rest.strip_prefix('{') {
+                        heads = group_heads(group).into_iter().map(String::from).collect();
+                        break;
+                    }
+                    let id = ident_at(rest);
+                    if id.is_empty() {
+                        break;
+                    }
+                    path.push(id.to_string());
+                    match rest[id.len()..].strip_prefix("::") {
+                        Some(r) => rest = r,
+                        None => break,
+                    }
+                }
+                let candidates: Vec<Vec<String>> = if heads.is_empty() {
+                    vec![path.clone()]
+                } else {
+                    heads.iter().map(|h| [path.clone(), vec![h.clone()]].concat()).collect()
+                };
+                for c in candidates {
+                    let target = (1..=c.len()).rev().map(|k| c[..k].join("::")).find(|m| modules.contains(m));
+                    if let Some(t) = target.filter(|t| !related(t)) {
+                        found.push((t, n + 1));
+                    }
+                }
+            }
+        }
+    }
+    found
+}
+
+/// Pairs of modules that use each other, each with one line of each side.
+fn two_module_circles(files: &[(String, String)]) -> Vec<String> {
+    let modules: BTreeSet<String> = files.iter().map(|(rel, _)| module_of(rel)).collect();
+    let mut uses: BTreeMap<(String, String), String> = BTreeMap::new();
+    for (rel, text) in files {
+        for (to, line) in module_uses(rel, text, &modules) {
+            uses.entry((module_of(rel), to)).or_insert(format!("{rel}:{line}"));
+        }
+    }
+    uses.iter()
+        .filter(|((a, b), _)| a < b)
+        .filter_map(|((a, b), at)| uses.get(&(b.clone(), a.clone())).map(|back| format!("{a} ({at}) <-> {b} ({back})")))
+        .collect()
+}
+
+/// No two modules of the crate use each other: each file's dependencies
+/// point one way (a folder's files and its `mod.rs` aside). Test code may
+/// use anything.
+#[test]
+fn no_two_modules_use_each_other() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    read_rs(&src, &src, &mut files);
+    files.retain(|(rel, _)| !(rel.ends_with("/tests.rs") || rel.ends_with("_tests.rs")));
+    assert!(files.len() > 100, "found only {} files under src", files.len());
+    let modules: BTreeSet<String> = files.iter().map(|(rel, _)| module_of(rel)).collect();
+    let found: usize = files.iter().map(|(rel, text)| module_uses(rel, text, &modules).len()).sum();
+    assert!(found > 500, "the scanner found only {found} uses between modules");
+    let circles = two_module_circles(&files);
+    assert!(circles.is_empty(), "modules that use each other:\n{}", circles.join("\n"));
+}
+
+#[test]
+fn two_modules_that_use_each_other_are_found() {
+    let files = [
+        ("jobs/mod.rs".to_string(), "pub mod bake;\npub mod train;\n".to_string()),
+        ("jobs/bake.rs".to_string(), "use super::train::{evaluate, load};\nuse crate::records::X;\n".to_string()),
+        ("jobs/train.rs".to_string(), "fn f() { super::bake::enqueue(); }\nuse super::Job;\n".to_string()),
+        ("records.rs".to_string(), "use crate::{datadir::now_ms, jobs::Job};\n".to_string()),
+        ("datadir.rs".to_string(), "use crate::records::{Info};\n#[cfg(test)]\nuse crate::jobs::bake;\n".to_string()),
+    ];
+    assert_eq!(
+        two_module_circles(&files),
+        [
+            "datadir (datadir.rs:1) <-> records (records.rs:1)",
+            "jobs::bake (jobs/bake.rs:1) <-> jobs::train (jobs/train.rs:1)",
+        ]
+    );
+}

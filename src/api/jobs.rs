@@ -18,7 +18,7 @@ use crate::engine::front::{
     AUTO, ConfigError, DEFAULT_BATCH_RAYS, MaskUse, ModelChoice, ModelConfig, SplatsConfig, choose_model,
     estimate_training, trainable_presets,
 };
-use crate::jobs::train::load_dataset;
+use crate::jobs::scoring::load_dataset;
 use crate::jobs::{BakeAfter, BakeSpec, Job, JobBudget, JobSpec, SchedError, Status, TrainSpec, bake, check_trainable};
 
 /// `POST /v1/jobs` body.

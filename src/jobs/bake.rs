@@ -22,7 +22,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::host::JobHost;
-use super::train::{evaluate, load_dataset};
+use super::scoring::{evaluate, load_dataset};
 use super::{BakeAfter, BakeSpec, Job, JobError, JobSpec, Outcome, SchedError};
 use crate::datadir::{ScenePart, now_ms};
 use crate::engine::front::{

@@ -126,7 +126,7 @@ impl JobHost for Shared {
 
     /// `videos/.frames-JOB/`.
     fn video_frames_dir(&self, job: &Job) -> Option<PathBuf> {
-        Some(super::video::frames_dir(&self.storage, &job.id))
+        Some(self.storage.video_frames_dir(&job.id))
     }
 
     /// Rewrites `scenes/ID/scene.json` (the dataset is already in place in

@@ -37,6 +37,7 @@ mod journal;
 mod lifecycle;
 pub mod poses;
 mod retention;
+pub mod scoring;
 pub mod train;
 pub mod video;
 
@@ -654,7 +655,7 @@ fn settle_scene(shared: &Shared, job: &Job) {
         poses::settle(&shared.storage, &p.scene_id, Some(job));
     }
     if matches!(job.spec, JobSpec::Video(_)) && job.status.is_final() {
-        let _ = std::fs::remove_dir_all(video::frames_dir(&shared.storage, &job.id));
+        let _ = std::fs::remove_dir_all(shared.storage.video_frames_dir(&job.id));
     }
 }
 

@@ -46,7 +46,7 @@ pub(crate) fn remove_orphans(storage: &DataDir, jobs: &BTreeMap<String, Job>) ->
     // Frames saved by video jobs that are no longer running (`video.rs`).
     for e in std::fs::read_dir(storage.videos_dir())? {
         let name = e?.file_name().to_string_lossy().into_owned();
-        if let Some(job) = name.strip_prefix(super::video::FRAMES_PREFIX)
+        if let Some(job) = name.strip_prefix(crate::datadir::VIDEO_FRAMES_PREFIX)
             && !active.iter().any(|j| j.id == job)
         {
             let _ = std::fs::remove_dir_all(storage.videos_dir().join(&name));

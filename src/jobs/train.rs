@@ -4,28 +4,22 @@
 //! on held-out views.
 
 use std::io;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::host::JobHost;
+use super::scoring::{evaluate, load_dataset};
 use super::{Job, JobError, Outcome, TrainSpec};
 use crate::datadir::{ScenePart, now_ms};
 use crate::engine::front::{
-    DataSize, Dataset, DatasetError, Event, HeldOut, LoadOptions, MaskUse, Model, ModelChoice, PoseReport, Progress,
-    Session, SessionConfig, Split, Start, Stop, TrainConfig, TrainState, held_out_options, psnr, render_heldout_view,
+    DataSize, Dataset, Event, HeldOut, ModelChoice, PoseReport, Progress, Session, SessionConfig, Start, Stop,
+    TrainConfig, TrainState,
 };
 use crate::records::{ModelInfo, SceneInfo};
 
 /// Held-out pixels rendered for each estimate of the test PSNR during training.
 const HELD_OUT_PIXELS: usize = 1024;
-
-/// Loads a stored scene's dataset (all splits) from the scene's folder, its
-/// masks read as `masks` asks.
-pub fn load_dataset(scene_dir: &Path, scene: &SceneInfo, masks: MaskUse) -> Result<Dataset, DatasetError> {
-    let root = scene_dir.join(&scene.root);
-    Dataset::load(&root, &LoadOptions { masks, ..Default::default() })
-}
 
 /// The body of a training job (see [`super::run_body`]).
 pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &AtomicBool) -> Result<Outcome, JobError> {
@@ -209,29 +203,6 @@ impl<'a> Report<'a> {
             }
         });
     }
-}
-
-/// Mean PSNR over up to `max_views` held-out views (test split, else val),
-/// each rendered with the appearance `eval` scores it with by default
-/// (`held_out_options`: the nearest training camera's), as the held-out
-/// chart (`HeldOutPixels`) does.
-pub(crate) fn evaluate(model: &dyn Model, ds: &Dataset, max_views: usize, cancel: &AtomicBool) -> Option<(f64, usize)> {
-    let split = if ds.test.is_empty() { Split::Val } else { Split::Test };
-    let mut sum = 0.0;
-    let mut n = 0;
-    for f in ds.split_frames(split).take(max_views) {
-        if cancel.load(Ordering::Relaxed) {
-            return None;
-        }
-        let v = render_heldout_view(model, &f.camera, ds.background, &held_out_options(model, &f.camera));
-        let gt: Vec<f32> = (0..f.camera.height)
-            .flat_map(|j| (0..f.camera.width).map(move |i| (i, j)))
-            .flat_map(|(i, j)| f.image.rgb_on(i, j, ds.background))
-            .collect();
-        sum += psnr(&v.rgb, &gt);
-        n += 1;
-    }
-    (n > 0).then(|| (sum / n as f64, n))
 }
 
 /// The model record beside the job's checkpoint (which the session saves).

@@ -5,7 +5,7 @@
 //! frame rendered is saved (a PNG, atomically), so a job cut short by a
 //! crash renders only the frames it had not saved; they go when it ends.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
@@ -16,18 +16,10 @@ use crate::engine::front::{Camera, load_model, render_view_with, write_atomic};
 use crate::media::{png, video};
 use crate::records::VideoInfo;
 
-/// The folder of a video job's saved frames in the data directory.
-pub(crate) fn frames_dir(storage: &DataDir, job_id: &str) -> PathBuf {
-    storage.videos_dir().join(format!("{FRAMES_PREFIX}{job_id}"))
-}
-
-/// The name of a video job's frames folder before its job's id.
-pub(crate) const FRAMES_PREFIX: &str = ".frames-";
-
 /// Whether the video job `job_id` saved a frame after `since` (ms since
 /// the epoch): the crash rule's "progress in between" for video jobs.
 pub(crate) fn saved_frames_since(storage: &DataDir, job_id: &str, since: Option<u64>) -> bool {
-    let modified = std::fs::metadata(frames_dir(storage, job_id)).and_then(|m| m.modified()).ok();
+    let modified = std::fs::metadata(storage.video_frames_dir(job_id)).and_then(|m| m.modified()).ok();
     let ms = modified.and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_millis() as u64);
     matches!((ms, since), (Some(m), Some(s)) if m > s)
 }

@@ -1,7 +1,7 @@
 //! Free-space carving of the placed Gaussians (the module docs of `bake`,
 //! stage 1): what another photo sees through is a floater.
 
-use super::place::{Placed, in_frame};
+use super::{Placed, in_frame};
 use crate::engine::geometry::math::Vec3;
 use crate::engine::models::splats::raster::RasterCamera;
 

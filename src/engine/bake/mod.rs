@@ -115,6 +115,14 @@ pub struct BakeProgress {
     pub psnr: f64,
 }
 
+/// A Gaussian placed from the field: position (model units), scale, colour.
+type Placed = ([f32; 3], f32, [f32; 3]);
+
+/// Whether image point `(u, v)` (pixels) is within a `w x h` frame.
+fn in_frame(u: f32, v: f32, w: f32, h: f32) -> bool {
+    u >= 0.0 && v >= 0.0 && u < w && v < h
+}
+
 /// Steps between densifications (in the first half of the budget).
 const DENSIFY_EVERY: u64 = 100;
 

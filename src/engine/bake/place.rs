@@ -6,6 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::carve::{self, DepthGrid};
 use super::{BakeError, BakeSettings};
+use super::{Placed, in_frame};
 use crate::engine::batch::RayOutput;
 use crate::engine::dataset::Dataset;
 use crate::engine::geometry::math::{Ray, Vec3};
@@ -54,9 +55,6 @@ const MARGIN: f32 = 0.1;
 /// A placed Gaussian's scale, as a fraction of the spacing of its
 /// neighbours.
 const INITIAL_SCALE: f32 = 0.2;
-
-/// A Gaussian placed from the field: position (model units), scale, colour.
-pub(super) type Placed = ([f32; 3], f32, [f32; 3]);
 
 /// Places Gaussians where the field's rays end (module docs, stage 1).
 pub(super) fn place(
@@ -158,11 +156,6 @@ fn sample_photo(
     (DepthGrid { nx, ny, origin, spacing, depth }, placed, outside)
 }
 
-/// Whether image point `(u, v)` (pixels) is within a `w x h` frame.
-pub(super) fn in_frame(u: f32, v: f32, w: f32, h: f32) -> bool {
-    u >= 0.0 && v >= 0.0 && u < w && v < h
-}
-
 /// Where model-space ray `r` leaves the sphere of radius `radius` around
 /// the centre (infinite for a ray starting outside it).
 fn exit_distance(r: &Ray, radius: f32) -> f32 {
@@ -251,3 +244,4 @@ mod tests {
         assert!(exit_distance(&Ray { origin: Vec3::new(3.0, 0.0, 0.0), ..r }, 2.0).is_infinite());
     }
 }
+

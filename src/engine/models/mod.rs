@@ -12,6 +12,7 @@ pub mod config;
 pub mod instant;
 pub mod nerf;
 pub mod pass;
+pub mod spec;
 pub mod splats;
 pub mod training;
 

@@ -6,7 +6,7 @@
 use super::{CaptureModel, KIND, layout};
 use crate::engine::fields::space::{NdcFrame, Norm};
 use crate::engine::geometry::scene::Scene;
-use crate::engine::models::config::{Checks, FieldValue, Footprint, ModelSpec};
+use crate::engine::models::spec::{Checks, FieldValue, Footprint, ModelSpec};
 use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::AdamConfig;
 use crate::engine::nn::hashgrid::{HashGrid, HashGridConfig};

@@ -1,9 +1,9 @@
 //! The fast model's configuration and what it provides the registry
-//! (`models::config::ModelSpec`): checks, building, sizes.
+//! (`models::spec::ModelSpec`): checks, building, sizes.
 
 use super::{InstantModel, KIND, layout};
 use crate::engine::geometry::scene::Scene;
-use crate::engine::models::config::{self, Checks, Footprint, ModelSpec};
+use crate::engine::models::spec::{self, Checks, Footprint, ModelSpec};
 use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::AdamConfig;
 use crate::engine::nn::hashgrid::HashGrid;
@@ -87,7 +87,7 @@ impl ModelSpec for InstantConfig {
         c.int("grid.finest_resolution", g.finest_resolution, u64::from(g.base_resolution)..=8192);
         c.int("hidden", i.hidden, 1..=256);
         c.int("geo_features", i.geo_features, 1..=64);
-        config::check_occupancy(&i.occupancy, c);
+        spec::check_occupancy(&i.occupancy, c);
         c.int("steps_per_diagonal", i.steps_per_diagonal, 16..=8192);
         c.int("max_samples", i.max_samples, 1..=8192);
         c.int("samples_per_step", i.samples_per_step, (1 << 8)..=(1 << 20));

@@ -1,9 +1,9 @@
 //! The classic model's configuration and what it provides the registry
-//! (`models::config::ModelSpec`): checks, building, sizes.
+//! (`models::spec::ModelSpec`): checks, building, sizes.
 
 use super::{KIND, NerfModel, layout};
 use crate::engine::geometry::scene::Scene;
-use crate::engine::models::config::{self, Checks, FieldValue, Footprint, ModelSpec};
+use crate::engine::models::spec::{self, Checks, FieldValue, Footprint, ModelSpec};
 use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::AdamConfig;
 use crate::engine::nn::linear::ParamLayout;
@@ -63,7 +63,7 @@ impl ModelSpec for NerfConfig {
         c.int("chunk_rays", n.chunk_rays, 1..=4096);
         c.unit_open("min_transmittance", n.min_transmittance);
         if let Some(o) = &n.occupancy {
-            config::check_occupancy(o, c);
+            spec::check_occupancy(o, c);
             if o.dilate == Some(false) {
                 // The classic sampler steps half a cell: undilated bits would
                 // skip the edges of occupied cells.

@@ -8,14 +8,12 @@
 
 use rayon::prelude::*;
 
+pub use super::frame::ScreenGrad;
+use super::frame::{Frame, Projected, RasterCamera, RasterOptions};
 use super::gaussians::{Layout, SH_C0, covariance, rotation_backward, rotation_matrix, unit_quat};
-use super::raster::{Frame, Projected, RasterCamera, RasterOptions, jacobian, jw, sym};
+use super::raster::{jacobian, jw, sym};
 use super::tile;
 use crate::engine::nn::sh;
-
-/// The gradient of a loss with respect to one Gaussian's projection:
-/// mean (2), conic (3), opacity, colour (3).
-pub type ScreenGrad = [f32; 9];
 
 /// Adds to `grads` (laid out as the parameters) the gradient of a loss
 /// whose gradient with respect to `frame`'s colours (`[h x w x 3]`) is

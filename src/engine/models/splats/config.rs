@@ -1,10 +1,10 @@
 //! The splats model's configuration and what it provides the registry
-//! (`models::config::ModelSpec`).
+//! (`models::spec::ModelSpec`).
 
 use super::gaussians::Layout;
 use super::{KIND, SplatsModel};
 use crate::engine::geometry::scene::Scene;
-use crate::engine::models::config::{Checks, Footprint, ModelSpec};
+use crate::engine::models::spec::{Checks, Footprint, ModelSpec};
 use crate::engine::models::{Model, ModelError};
 use crate::engine::nn::adam::AdamConfig;
 

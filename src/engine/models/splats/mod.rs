@@ -9,6 +9,7 @@ pub mod backward;
 pub mod config;
 pub mod export;
 pub mod fit;
+pub mod frame;
 pub mod gaussians;
 pub mod lens;
 pub mod raster;

@@ -17,8 +17,7 @@
 //! Gaussian whose box is at most [`L`] columns of the tile still takes one
 //! chunk). Tests check that every build gives the same bits.
 
-use super::backward::ScreenGrad;
-use super::raster::{Frame, MAX_ALPHA, RasterCamera, RasterOptions, Splat2D, TILE};
+use super::frame::{Frame, MAX_ALPHA, RasterCamera, RasterOptions, ScreenGrad, Splat2D, TILE};
 
 /// `exp(x)` for `x <= 0` (larger `x` are taken as 0), within 2 units in the
 /// last place of f32 down to `x = -87`, below which it is that of `-87`
