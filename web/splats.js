@@ -1,5 +1,7 @@
-// The splat viewer: a model's 3D Gaussian splats (the 32-byte `.splat`
-// layout) drawn in the browser with WebGL2 by Spark (web/vendor/spark, on
+// The splat viewer: a model's 3D Gaussian splats (the 3DGS `.ply`, whose
+// spherical-harmonic colours Spark draws, so that the canvas is what the
+// CPU rasteriser renders; a 32-byte `.splat` too, one colour a splat)
+// drawn in the browser with WebGL2 by Spark (web/vendor/spark, on
 // three.js), turned with the mouse, the wheel, touch and the arrow keys
 // (three.js's OrbitControls). Once the file is fetched nothing more is
 // asked of the server: every frame is the browser's.
@@ -25,9 +27,9 @@
 // covariance with opacity unchanged (Spark's default instead dims it,
 // Mip-Splatting's anti-aliasing), cut off at 3 standard deviations, alpha
 // below 1/255 skipped, sorted by view depth (Spark's default is distance
-// from the eye). Spark keeps splats packed: colours and opacity in 8 bits
-// (as the .splat file), scales as 8-bit logarithms, positions as 16-bit
-// floats relative to the splat's chunk.
+// from the eye). Spark keeps splats packed: colours and opacity in 8 bits,
+// scales as 8-bit logarithms, positions as 16-bit floats relative to the
+// splat's chunk, the higher spherical-harmonic terms in a few bits each.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -95,19 +97,22 @@ export class SplatView {
     this.resize(canvas.clientWidth || canvas.width, canvas.clientHeight || canvas.height);
   }
 
-  /** Fetches a `.splat` file (with the API key) and shows it; returns the splat count. */
+  /**
+   * Fetches a splats file (with the API key) and shows it; returns the
+   * splat count. The URL says its type: `.ply` or `format=ply`, else `.splat`.
+   */
   async load(url) {
     const bytes = new Uint8Array(await (await api(url)).arrayBuffer());
-    return this.show(bytes);
+    return this.show(bytes, /(\.ply$|format=ply)/.test(url) ? 'ply' : 'splat');
   }
 
-  /** Shows the splats of a `.splat` file's bytes; returns the splat count. */
-  async show(bytes) {
+  /** Shows the splats of a file's bytes (`fileType` 'ply' or 'splat'); returns the splat count. */
+  async show(bytes, fileType = 'ply') {
     if (this.mesh) {
       this.scene.remove(this.mesh);
       this.mesh.dispose();
     }
-    this.mesh = new SplatMesh({ fileBytes: bytes, fileType: 'splat' });
+    this.mesh = new SplatMesh({ fileBytes: bytes, fileType });
     await this.mesh.initialized;
     this.scene.add(this.mesh);
     const box = new THREE.Box3();

@@ -297,9 +297,9 @@ pub async fn export(
         match format {
             Some(f) => write_splats(splats, f, &mut out)?,
             None => {
-                let mut splat = Vec::new();
-                write_splats(splats, SplatsFormat::Splat, &mut splat)?;
-                let files = site::files(&title, &view, splat)?;
+                let mut ply = Vec::new();
+                write_splats(splats, SplatsFormat::Ply, &mut ply)?;
+                let files = site::files(&title, &view, ply)?;
                 site::write_zip(&folder2, &files, std::io::Cursor::new(&mut out))?;
             }
         }

@@ -210,10 +210,10 @@ fn export_site(a: &ExportArgs, splats: &crate::engine::models::splats::SplatsMod
     let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
     let ds = Dataset::load(data, &opts).with_context(|| format!("loading {}", data.display()))?;
     let view = crate::records::ViewDefaults::from_dataset(&ds);
-    let mut splat = Vec::new();
-    export::write(splats, Format::Splat, &mut splat)?;
+    let mut ply = Vec::new();
+    export::write(splats, Format::Ply, &mut ply)?;
     let stem = a.out.file_stem().and_then(|s| s.to_str()).unwrap_or("splats").to_string();
-    let files = site::files(&stem, &view, splat)?;
+    let files = site::files(&stem, &view, ply)?;
     if a.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("zip")) {
         let mut zip = std::io::Cursor::new(Vec::new());
         site::write_zip(&stem, &files, &mut zip)?;

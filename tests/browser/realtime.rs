@@ -3,8 +3,9 @@
 //! baked into splats by a bake job, then
 //! - the web app opens the splats model from a link with the camera in it
 //!   and draws it in the browser (Spark on WebGL2, the software renderer
-//!   here); the canvas matches the server's CPU render of the same camera
-//!   (PSNR >= 25 dB); dragging changes the picture and the address, with
+//!   here) from the `.ply`, spherical-harmonic colours (degree 1) included;
+//!   the canvas matches the server's CPU render of the same camera (PSNR >=
+//!   35 dB); dragging changes the picture and the address, with
 //!   no request to the server;
 //! - the exported site (`export?format=html`), unzipped and served by a
 //!   plain static file server (`python3 -m http.server`), shows the same
@@ -215,7 +216,8 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     save(&cpu, "realtime-cpu");
     let psnr = rgb8_psnr(&drawn, &cpu);
     println!("web app canvas {w}x{h} against the CPU render: {psnr:.2} dB");
-    assert!(psnr >= 25.0, "the browser's splats differ from the CPU render: {psnr:.2} dB");
+    // Measured 48.09 dB (the software renderer, 720x720).
+    assert!(psnr >= 35.0, "the browser's splats differ from the CPU render: {psnr:.2} dB");
 
     let fps = frame_rate(&mut page, "window.splatView", 3.0);
     println!("frame rate of the splat canvas on the software renderer: {fps:.1} frames/s ({w}x{h})");
@@ -252,7 +254,7 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     let site = tempfile::tempdir().unwrap();
     zip::ZipArchive::new(std::io::Cursor::new(zip)).unwrap().extract(site.path()).unwrap();
     let folder = site.path().join(format!("{splats_id}-site"));
-    for f in ["index.html", "splats.js", "scene.splat", "vendor/spark/LICENSE", "vendor/three/LICENSE"] {
+    for f in ["index.html", "splats.js", "scene.ply", "vendor/spark/LICENSE", "vendor/three/LICENSE"] {
         assert!(folder.join(f).is_file(), "{f} missing from the site");
     }
     let server = StaticServer::start(&folder);
@@ -267,7 +269,8 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     assert_eq!(default.dimensions(), (sw, sh), "the site's canvas is the default view's size");
     let site_psnr = rgb8_psnr(&shown, &default);
     println!("exported site canvas {sw}x{sh} against the CPU render of the default view: {site_psnr:.2} dB");
-    assert!(site_psnr >= 25.0, "the exported site differs from the CPU render: {site_psnr:.2} dB");
+    // Measured 55.38 dB (64x64).
+    assert!(site_psnr >= 35.0, "the exported site differs from the CPU render: {site_psnr:.2} dB");
     // The browser asks any host for /favicon.ico; the site has none (a
     // plain static server answers 404), which is no error of the page.
     let errors: Vec<&String> = site_page.errors.iter().filter(|e| !e.contains("/favicon.ico")).collect();

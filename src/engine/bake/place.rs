@@ -244,4 +244,3 @@ mod tests {
         assert!(exit_distance(&Ray { origin: Vec3::new(3.0, 0.0, 0.0), ..r }, 2.0).is_infinite());
     }
 }
-
