@@ -20,7 +20,7 @@ pub use eval::{EvalArgs, RenderArgs};
 pub use poses::PosesArgs;
 pub use serve::ServeArgs;
 pub use splats::{BakeArgs, ExportArgs};
-pub use train::TrainArgs;
+pub use train::{SPLATS_FIELD_MIN_STEPS, TrainArgs};
 pub use video::VideoArgs;
 
 /// Train Neural Radiance Fields on CPUs and render novel views.

@@ -138,6 +138,12 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
 /// harder scene than fox.
 pub const SPLATS_FIELD_SHARE: f64 = 1.0 / 3.0;
 
+/// The fewest steps the field of `train --model splats` makes, past its
+/// share of the time if need be: on a slow machine a few seconds' field is
+/// still translucent everywhere and places no splats (the demo ball's
+/// `instant` field at 47 steps did not, on a loaded 2-core machine).
+pub const SPLATS_FIELD_MIN_STEPS: u64 = 200;
+
 /// `--model splats`: the field `auto` chooses, trained for
 /// [`SPLATS_FIELD_SHARE`] of `--seconds` and saved beside `--out`, then
 /// baked into splats for the rest.
@@ -170,13 +176,22 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
     let (config, model, adam) = new_model_and_adam(&kind, ds.scene(), a.seed, true, a.lr, &[])?;
     let train = TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) };
     let config = SessionConfig { train, out: field_out, checkpoint_every: a.checkpoint_every, held_out: None };
-    let mut session = Session::new(Start::Fresh { model, adam }, config, ds)?;
+    let mut session = Session::new(Start::Fresh { model, adam }, config.clone(), ds)?;
     describe(a, &session, ds, threads);
     let cancel = cancel_on_ctrl_c()?;
-    match train_with_bar(&mut session, budget, &cancel)? {
-        Stop::Budget | Stop::TargetReached { .. } => {}
-        Stop::Cancelled | Stop::Aborted => anyhow::bail!("interrupted while training the field; no splats were made"),
-        stop @ Stop::Diverged { .. } => anyhow::bail!("{stop}; no splats were made"),
+    field_run(&mut session, budget, &cancel)?;
+    let made = session.trainer().state.step;
+    if made < SPLATS_FIELD_MIN_STEPS {
+        // A machine too slow for the budget: a younger field places nothing.
+        eprintln!(
+            "splats: the field made {made} steps in {field_seconds:.0} s; training it on to {SPLATS_FIELD_MIN_STEPS} \
+             steps before placing the splats"
+        );
+        let budget = Budget { steps: Some(SPLATS_FIELD_MIN_STEPS), seconds: None };
+        let config = SessionConfig { train: TrainConfig { budget, ..config.train }, ..config };
+        let from = Start::Resume { from: config.out.clone(), kind: Some(kind.clone()) };
+        session = Session::new(from, config, ds)?;
+        field_run(&mut session, budget, &cancel)?;
     }
     let bake_seconds = total - field_seconds;
     let settings = BakeSettings {
@@ -194,6 +209,15 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
     println!("splats         {} Gaussians, {steps} steps in {elapsed:.1} s", model.layout().n);
     println!("model          {}", a.out.display());
     Ok(())
+}
+
+/// Trains the field of `train --model splats` on `session` to `budget`.
+fn field_run(session: &mut Session<'_>, budget: Budget, cancel: &AtomicBool) -> anyhow::Result<()> {
+    match train_with_bar(session, budget, cancel)? {
+        Stop::Budget | Stop::TargetReached { .. } => Ok(()),
+        Stop::Cancelled | Stop::Aborted => anyhow::bail!("interrupted while training the field; no splats were made"),
+        stop @ Stop::Diverged { .. } => anyhow::bail!("{stop}; no splats were made"),
+    }
 }
 
 /// A flag that Ctrl-C sets: training then stops (and saves) at its next step.

@@ -35,6 +35,11 @@ pub fn placing_rays(initial: usize) -> u64 {
 /// it ends: a ray through an object's edge, or through a thin haze, has an
 /// expected depth between surfaces, where a Gaussian would float.
 const MIN_HIT_OPACITY: f32 = 0.9;
+/// The opacity a ray must reach when no ray of any photo reaches
+/// [`MIN_HIT_OPACITY`]: a young field (a few seconds of training on a slow
+/// machine) is still translucent everywhere, and its splats start from
+/// where its rays end all the same rather than not at all.
+const YOUNG_HIT_OPACITY: f32 = 0.5;
 /// The opacity below which a field's ray saw nothing (free space all
 /// along it, for carving); between the two, it is not trusted either way.
 const MISS_OPACITY: f32 = 0.1;
@@ -56,12 +61,32 @@ const MARGIN: f32 = 0.1;
 /// neighbours.
 const INITIAL_SCALE: f32 = 0.2;
 
-/// Places Gaussians where the field's rays end (module docs, stage 1).
+/// Places Gaussians where the field's rays end (module docs, stage 1):
+/// where they reach [`MIN_HIT_OPACITY`], or [`YOUNG_HIT_OPACITY`] when none
+/// does.
 pub(super) fn place(
     source: &dyn Model,
     ds: &Dataset,
     frames: &[usize],
     settings: &BakeSettings,
+    cancel: &AtomicBool,
+) -> Result<Vec<f32>, BakeError> {
+    for hit_opacity in [MIN_HIT_OPACITY, YOUNG_HIT_OPACITY] {
+        match place_at(source, ds, frames, settings, hit_opacity, cancel) {
+            Err(BakeError::Empty) => continue,
+            placed => return placed,
+        }
+    }
+    Err(BakeError::Empty)
+}
+
+/// [`place`] with rays that reach `hit_opacity` taken as hits.
+fn place_at(
+    source: &dyn Model,
+    ds: &Dataset,
+    frames: &[usize],
+    settings: &BakeSettings,
+    hit_opacity: f32,
     cancel: &AtomicBool,
 ) -> Result<Vec<f32>, BakeError> {
     let per_frame = settings.initial_for(frames.len()).div_ceil(frames.len()).max(1);
@@ -74,7 +99,7 @@ pub(super) fn place(
         if cancel.load(Ordering::Relaxed) {
             return Err(BakeError::Cancelled);
         }
-        let (grid, points, out) = sample_photo(source, ds, f, per_frame, far, &mut rng);
+        let (grid, points, out) = sample_photo(source, ds, f, (per_frame, hit_opacity), far, &mut rng);
         owners.extend(std::iter::repeat_n(k as u32, points.len()));
         outside.extend(out);
         placed.extend(points);
@@ -109,7 +134,7 @@ fn sample_photo(
     source: &dyn Model,
     ds: &Dataset,
     f: usize,
-    count: usize,
+    (count, hit_opacity): (usize, f32),
     far: f32,
     rng: &mut Rng,
 ) -> (DepthGrid, Vec<Placed>, Vec<bool>) {
@@ -131,7 +156,7 @@ fn sample_photo(
         }
     }
     let (out, _) = render_rays_with(source, &rays, bg, &RenderOptions::default());
-    let hit = |o: &RayOutput| o.opacity >= MIN_HIT_OPACITY && o.depth.is_finite();
+    let hit = |o: &RayOutput| o.opacity >= hit_opacity && o.depth.is_finite();
     let depth = out
         .iter()
         .map(|o| match (hit(o), o.opacity < MISS_OPACITY) {
