@@ -524,15 +524,22 @@ fn long_functions(rel: &str, text: &str, max: usize) -> Vec<String> {
     found
 }
 
-/// No function in `src/` is over [`MAX_FUNCTION_LINES`] lines (test code,
-/// and the `tests.rs` / `*_tests.rs` files of unit tests, aside).
-#[test]
-fn no_function_is_over_80_lines() {
+/// Every file under `src/` but the `tests.rs` / `*_tests.rs` files of unit
+/// tests, as (path under `src/`, text).
+fn code_files() -> Vec<(String, String)> {
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
     let mut files = Vec::new();
     read_rs(&src, &src, &mut files);
     files.retain(|(rel, _)| !(rel.ends_with("/tests.rs") || rel.ends_with("_tests.rs")));
     assert!(files.len() > 100, "found only {} files under src", files.len());
+    files
+}
+
+/// No function in `src/` is over [`MAX_FUNCTION_LINES`] lines (test code,
+/// and the `tests.rs` / `*_tests.rs` files of unit tests, aside).
+#[test]
+fn no_function_is_over_80_lines() {
+    let files = code_files();
     let found: Vec<String> =
         files.iter().flat_map(|(rel, text)| long_functions(rel, text, MAX_FUNCTION_LINES)).collect();
     assert!(found.is_empty(), "functions over {MAX_FUNCTION_LINES} lines:\n{}", found.join("\n"));
@@ -632,11 +639,7 @@ fn two_module_circles(files: &[(String, String)]) -> Vec<String> {
 /// use anything.
 #[test]
 fn no_two_modules_use_each_other() {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-    let mut files = Vec::new();
-    read_rs(&src, &src, &mut files);
-    files.retain(|(rel, _)| !(rel.ends_with("/tests.rs") || rel.ends_with("_tests.rs")));
-    assert!(files.len() > 100, "found only {} files under src", files.len());
+    let files = code_files();
     let modules: BTreeSet<String> = files.iter().map(|(rel, _)| module_of(rel)).collect();
     let found: usize = files.iter().map(|(rel, text)| module_uses(rel, text, &modules).len()).sum();
     assert!(found > 500, "the scanner found only {found} uses between modules");

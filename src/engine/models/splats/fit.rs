@@ -57,6 +57,7 @@ impl SplatsModel {
 mod tests {
     use super::*;
     use crate::engine::models::splats::SplatsConfig;
+    use crate::engine::models::splats::gaussians::Layout;
     use crate::engine::models::splats::raster_tests::{camera, random_gaussians, unit_scene};
     use crate::engine::rng::Rng;
 
@@ -76,8 +77,6 @@ mod tests {
         let target = (0..24 * 18 * 3).map(|k| if k % 5 == 0 { f32::NAN } else { rng.f32() }).collect();
         (model, cam, target)
     }
-
-    use crate::engine::models::splats::gaussians::Layout;
 
     /// The mean squared error over the valid values, in f64.
     fn mse(model: &SplatsModel, cam: &RasterCamera, target: &[f32], bg: [f32; 3]) -> f64 {
