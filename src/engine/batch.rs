@@ -62,4 +62,7 @@ pub struct RayOutput {
     /// Expected distance along the ray in model units.
     pub depth: f32,
     pub opacity: f32,
+    /// Where along the ray its opacity reaches one half, in model units
+    /// (`Composite::median`); 0 when it never does.
+    pub median: f32,
 }

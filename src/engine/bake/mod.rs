@@ -4,7 +4,8 @@
 //! 1. **Placing** ([`place`], [`carve`]): rays through a jittered grid of
 //!    every training photo's pixels, and a margin past its edges, are
 //!    rendered by the field; where a ray's opacity says it hit something, a
-//!    Gaussian goes at its expected depth with the field's colour. Then
+//!    Gaussian goes where that opacity reached one half (its median depth),
+//!    with the field's colour. Then
 //!    every photo's rays carve: a Gaussian well in front of what another
 //!    photo saw along it is a floater in that photo's free space, and goes.
 //! 2. **Fitting** ([`fit`], [`densify`]) against the training photos with

@@ -47,8 +47,8 @@ const MISS_OPACITY: f32 = 0.1;
 /// distance from the centre: a capture's field puts much of its background
 /// at the far plane, where no two photos agree on it.
 const FAR_RADIUS: f32 = 3.0;
-/// A placed Gaussian with no neighbours' spacing (the background, seen by
-/// few photos) gets this fraction of its grid cell's width.
+/// A placed Gaussian with no neighbours (the background, seen by few
+/// photos) gets this fraction of its grid cell's width.
 const ISOLATED_SCALE: f32 = 0.5;
 /// How far past each edge of a photo (as a fraction of its width and
 /// height) the field's rays place Gaussians, at the photo's grid spacing:
@@ -57,9 +57,9 @@ const ISOLATED_SCALE: f32 = 0.5;
 /// Those placed there are kept only where no photo saw them within its
 /// frame (`carve`).
 const MARGIN: f32 = 0.1;
-/// A placed Gaussian's scale, as a fraction of the spacing of its
-/// neighbours.
-const INITIAL_SCALE: f32 = 0.2;
+/// A placed Gaussian's scale, as a fraction of its grid cell's width
+/// (`docs/design/splats.md`, the median termination depth).
+const INITIAL_SCALE: f32 = 0.25;
 
 /// Places Gaussians where the field's rays end (module docs, stage 1):
 /// where they reach [`MIN_HIT_OPACITY`], or [`YOUNG_HIT_OPACITY`] when none
@@ -112,15 +112,14 @@ fn place_at(
     if placed.len() > settings.splats.max_gaussians {
         placed.truncate(settings.splats.max_gaussians);
     }
-    let near = neighbour_spacing(&placed);
-    for (p, s) in placed.iter_mut().zip(near) {
-        // Samples of many photos land on one surface: their own spacing
-        // is finer than one photo's grid. One with no neighbours (the
-        // background, which few photos see) covers its grid cell.
-        p.1 = match s {
-            Some(d) => INITIAL_SCALE * d.min(p.1),
-            None => ISOLATED_SCALE * p.1,
-        };
+    let near = has_neighbours(&placed);
+    for (p, near) in placed.iter_mut().zip(near) {
+        // A photo's samples land on the surfaces the others' do (median
+        // depths), so their spacing there is finer than a grid cell and a
+        // Gaussian that wide only at it would leave holes: a part of the
+        // cell covers them. One with no neighbours (the background, which
+        // few photos see) covers more.
+        p.1 *= if near { INITIAL_SCALE } else { ISOLATED_SCALE };
     }
     Ok(parameters(&placed, settings.splats.sh_degree))
 }
@@ -156,11 +155,13 @@ fn sample_photo(
         }
     }
     let (out, _) = render_rays_with(source, &rays, bg, &RenderOptions::default());
-    let hit = |o: &RayOutput| o.opacity >= hit_opacity && o.depth.is_finite();
+    // Where a ray's opacity reaches one half: on a surface, where its
+    // expected depth through fur or across an edge lies between two.
+    let hit = |o: &RayOutput| o.opacity >= hit_opacity && o.median > 0.0 && o.median.is_finite();
     let depth = out
         .iter()
         .map(|o| match (hit(o), o.opacity < MISS_OPACITY) {
-            (true, _) => o.depth / o.opacity,
+            (true, _) => o.median,
             (false, true) => f32::INFINITY,
             (false, false) => f32::NAN,
         })
@@ -168,7 +169,7 @@ fn sample_photo(
     let (mut placed, mut outside) = (Vec::new(), Vec::new());
     for (k, (ray, o)) in rays.iter().zip(&out).enumerate().filter(|(_, (_, o))| hit(o)) {
         let r = scene.to_model(ray);
-        let t = (o.depth / o.opacity).min(exit_distance(&r, far));
+        let t = o.median.min(exit_distance(&r, far));
         let p = r.at(t).to_array();
         if !p.iter().all(|v| v.is_finite()) {
             continue;
@@ -210,48 +211,35 @@ pub(super) fn parameters(placed: &[Placed], sh_degree: u32) -> Vec<f32> {
     params
 }
 
-/// Each point's root-mean-square distance to its three nearest neighbours
-/// (the 3DGS paper's initial scale), found in a hash of cells as wide as
-/// the median of the points' own sizes; `None` for a point with fewer than
-/// three neighbours in its cell and the 26 around it.
-fn neighbour_spacing(points: &[Placed]) -> Vec<Option<f32>> {
+/// Whether each point has at least three others in its cell and the 26
+/// around it, in a hash of cells as wide as the median of the points' own
+/// sizes.
+fn has_neighbours(points: &[Placed]) -> Vec<bool> {
     let mut sizes: Vec<f32> = points.iter().map(|p| p.1).collect();
     let mid = sizes.len() / 2;
     let cell = *sizes.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
     if !(cell > 0.0 && cell.is_finite()) {
-        return vec![None; points.len()];
+        return vec![false; points.len()];
     }
     let key = |p: &[f32; 3]| p.map(|v| (v / cell).floor() as i64);
-    let mut cells: std::collections::HashMap<[i64; 3], Vec<u32>> = std::collections::HashMap::new();
-    for (i, p) in points.iter().enumerate() {
-        cells.entry(key(&p.0)).or_default().push(i as u32);
+    let mut cells: std::collections::HashMap<[i64; 3], u32> = std::collections::HashMap::new();
+    for p in points {
+        *cells.entry(key(&p.0)).or_default() += 1;
     }
-    use rayon::prelude::*;
     points
-        .par_iter()
-        .enumerate()
-        .map(|(i, p)| {
+        .iter()
+        .map(|p| {
             let k = key(&p.0);
-            let mut best = [f32::INFINITY; 3];
+            let mut around = 0;
             for dx in -1..=1 {
                 for dy in -1..=1 {
                     for dz in -1..=1 {
-                        let Some(list) = cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) else { continue };
-                        for &j in list {
-                            if j as usize == i {
-                                continue;
-                            }
-                            let q = &points[j as usize].0;
-                            let d2 = (0..3).map(|c| (q[c] - p.0[c]).powi(2)).sum::<f32>();
-                            if d2 < best[2] {
-                                best[2] = d2;
-                                best.sort_by(|a, b| a.total_cmp(b));
-                            }
-                        }
+                        around += cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]).copied().unwrap_or(0);
                     }
                 }
             }
-            best[2].is_finite().then(|| ((best[0] + best[1] + best[2]) / 3.0).sqrt().max(1e-7))
+            // The point itself is one of them.
+            around > 3
         })
         .collect()
 }
@@ -267,5 +255,15 @@ mod tests {
         let want = (-0.6 + (0.36f32 + 4.0 * 3.75).sqrt()) / 2.0;
         assert!((exit_distance(&r, 2.0) - want).abs() < 1e-6);
         assert!(exit_distance(&Ray { origin: Vec3::new(3.0, 0.0, 0.0), ..r }, 2.0).is_infinite());
+    }
+
+    #[test]
+    fn a_point_needs_three_others_within_a_cell_to_have_neighbours() {
+        let at = |x: f32| ([x, 0.0, 0.0], 1.0, [0.5; 3]);
+        // Cells of width 1 (the median size): four within reach of each
+        // other, and one alone three cells away.
+        let points = [at(0.1), at(0.5), at(0.9), at(1.5), at(5.0)];
+        assert_eq!(has_neighbours(&points), [true, true, true, true, false]);
+        assert_eq!(has_neighbours(&points[1..]), [false; 4]);
     }
 }

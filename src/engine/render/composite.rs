@@ -68,6 +68,10 @@ pub struct Composite {
     pub depth: f32,
     /// Accumulated opacity `1 - T_n`.
     pub opacity: f32,
+    /// The distance of the sample at which the opacity reaches one half
+    /// (RadSplat's median depth: on a surface where the expected depth of
+    /// a ray across an edge lies between two); 0 when it never does.
+    pub median: f32,
     /// How many samples were composited before transmittance fell below the
     /// early-termination threshold (all of them when it never did).
     pub used: usize,
@@ -154,6 +158,9 @@ pub fn composite(s: RaySamples<'_>, opts: &CompositeOptions, weights: &mut [f32]
             out.rgb[c] += w * s.rgb[3 * i + c];
         }
         out.depth += w * s.t[i];
+        if out.median == 0.0 && along.value() <= 0.5 {
+            out.median = s.t[i];
+        }
     }
     let trans = along.value();
     out.opacity = 1.0 - trans;
@@ -298,6 +305,21 @@ mod tests {
         assert!((c.rgb[2] - 0.25).abs() < 1e-6);
         assert!((c.depth - 1.0).abs() < 1e-6); // 0.5*1 + 0.25*2
         assert!((c.opacity - 0.75).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_median_is_the_sample_where_the_opacity_reaches_one_half() {
+        // alpha = 0.2 a sample: T = 0.8, 0.64, 0.512, 0.4096, ...
+        let sd = -(0.8f32).ln();
+        let t = [1.0, 2.0, 3.0, 4.0, 5.0];
+        let mut w = [0.0; 5];
+        let c = plain(&[sd; 5], &[0.5; 15], &t, &[1.0; 5], [0.0; 3], 0.0, &mut w);
+        assert_eq!(c.median, 4.0);
+        // The expected depth of the same ray lies before it.
+        assert!(c.depth / c.opacity < 3.0, "{c:?}");
+        // Three samples never reach one half.
+        let c = plain(&[sd; 3], &[0.5; 9], &t[..3], &[1.0; 3], [0.0; 3], 0.0, &mut w[..3]);
+        assert_eq!((c.median, c.opacity > 0.48), (0.0, true), "{c:?}");
     }
 
     #[test]

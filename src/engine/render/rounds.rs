@@ -31,6 +31,8 @@ struct RayState {
     along: Transmittance,
     /// Weight of the samples left uncoloured.
     dropped: f32,
+    /// Where the opacity reached one half (`Composite::median`); 0 until then.
+    median: f32,
     live: bool,
 }
 
@@ -60,7 +62,7 @@ pub fn render_in_rounds<F: Field>(
 ) -> BatchStats {
     let mut stats = BatchStats { rays: out.len() as u64, ..Default::default() };
     let mut state: Vec<RayState> = (0..out.len())
-        .map(|r| RayState { along: Transmittance::default(), dropped: 0.0, live: sampler.has_samples(r) })
+        .map(|r| RayState { along: Transmittance::default(), dropped: 0.0, median: 0.0, live: sampler.has_samples(r) })
         .collect();
     let mut kept = Kept::default();
     let mut owners = Vec::new();
@@ -125,6 +127,9 @@ fn composite_round<F: Field>(
                 break;
             }
             let w = st.along.step(sigma[i], samples.delta[i], false);
+            if st.median == 0.0 && st.along.value() <= 0.5 {
+                st.median = samples.t[i];
+            }
             if st.dropped + w <= settings.max_dropped_weight {
                 // Nearly empty space: its colour cannot matter.
                 st.dropped += w;
@@ -169,6 +174,7 @@ fn finish<F: Field>(
     for (o, st) in out.iter_mut().zip(state) {
         let trans = st.along.value();
         o.opacity = 1.0 - trans;
+        o.median = st.median;
         for ch in 0..3 {
             o.rgb[ch] += trans * background[ch];
         }
@@ -233,7 +239,7 @@ mod tests {
                 let s = RaySamples::new(Toy.sigma(&ctx), Toy.rgb(&ctx), &m.t, &m.delta).unwrap();
                 let opts = CompositeOptions { background: BG, ..Default::default() };
                 let c = composite(s, &opts, &mut w).unwrap();
-                RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity }
+                RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity, median: c.median }
             })
             .collect()
     }
@@ -249,7 +255,7 @@ mod tests {
     #[test]
     fn without_termination_or_dropping_it_is_the_compositor_bit_for_bit_in_any_rounds() {
         let want = reference();
-        assert_eq!(want[2], RayOutput { rgb: BG, depth: 0.0, opacity: 0.0 });
+        assert_eq!(want[2], RayOutput { rgb: BG, depth: 0.0, opacity: 0.0, median: 0.0 });
         assert!(want[4].opacity > 0.9, "the long ray becomes opaque: {:?}", want[4]);
         for round in [1, 3, 16, 1000] {
             let (got, stats) = render(round, 0.0, 0.0);

@@ -352,7 +352,7 @@ mod render {
                 let s = RaySamples::new(&sigma[o..o + k], &rgb[3 * o..3 * (o + k)], &m.t[o..o + k], &m.delta[o..o + k]);
                 let mut w = vec![0.0; k];
                 let c = composite(s.unwrap(), &opts, &mut w).unwrap();
-                RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity }
+                RayOutput { rgb: c.rgb, depth: c.depth, opacity: c.opacity, median: c.median }
             })
             .collect()
     }

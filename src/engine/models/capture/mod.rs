@@ -30,6 +30,7 @@
 pub mod config;
 pub mod levels;
 pub mod pass;
+mod roles;
 pub mod space;
 
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
@@ -41,13 +42,12 @@ use crate::engine::fields::capture::{CaptureField, CaptureFieldConfig};
 use crate::engine::fields::proposal::ProposalField;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
-use crate::engine::geometry::so3;
 use crate::engine::models::capture::levels::Drawn;
 use crate::engine::models::capture::pass::{
     CaptureBuffers, CaptureNets, PassSettings, RayInterval, capture_pass, samplable,
 };
 use crate::engine::nn::adam::LrGroup;
-use crate::engine::nn::hashgrid::{GridRecord, HalfTable, HashGrid};
+use crate::engine::nn::hashgrid::{GridRecord, HalfTable};
 use crate::engine::nn::linear::ParamLayout;
 use crate::engine::nn::pose::PoseRefine;
 use crate::engine::nn::pose_report::{Gauge, PoseReport};
@@ -350,7 +350,7 @@ impl CaptureModel {
     /// Renders a chunk of model-space rays over `background`.
     fn render_chunk(&self, s: &mut Scratch, rays: &[Ray], background: [f32; 3], out: &mut [RayOutput]) -> BatchStats {
         let mut stats = BatchStats { rays: rays.len() as u64, ..Default::default() };
-        let miss = RayOutput { rgb: background, depth: 0.0, opacity: 0.0 };
+        let miss = RayOutput { rgb: background, depth: 0.0, opacity: 0.0, median: 0.0 };
         s.rays.clear();
         s.warps.clear();
         s.valid.clear();
@@ -552,73 +552,6 @@ impl Model for CaptureModel {
             self.read_grids_from(s, &RenderTables::default(), 0.0);
             stats
         })
-    }
-}
-
-impl Appearance for CaptureModel {
-    fn images(&self) -> Vec<u32> {
-        self.seen_images()
-    }
-
-    fn row(&self, image: u32) -> Option<std::ops::Range<usize>> {
-        let a = self.field.appearance();
-        let start = a.embedding(&self.params, image).map(|_| a.table.start + image as usize * a.dim)?;
-        Some(start..start + a.dim)
-    }
-
-    /// An image's embedding (none beyond the table: a zero bias), or the
-    /// mean of the images trained on.
-    fn embedding(&self, options: &RenderOptions) -> Option<Vec<f32>> {
-        match options.image {
-            Some(i) => self.field.appearance().embedding(&self.params, i).map(<[f32]>::to_vec),
-            None => Some(self.mean_embedding()),
-        }
-    }
-}
-
-impl PoseRefinement for CaptureModel {
-    /// The camera moved by the training cameras' common drift (design 2.7):
-    /// its centre `c` (model space) by `ω_g × c + t_g`, its axes turned by
-    /// `exp(ω_g)`. The pose itself without pose refinement.
-    fn heldout_pose(&self, c2w: [[f32; 4]; 3]) -> [[f32; 4]; 3] {
-        let Some(_) = &self.pose else { return c2w };
-        let g = self.pose_gauge();
-        let scale = f64::from(self.scene.scale);
-        let centre: [f64; 3] =
-            std::array::from_fn(|a| (f64::from(c2w[a][3]) - f64::from(self.scene.centre[a])) * scale);
-        let shift = g.translation_at(centre);
-        let turn = so3::exp(g.omega);
-        let axes: so3::Mat3 = std::array::from_fn(|i| std::array::from_fn(|j| f64::from(c2w[i][j])));
-        let turned = so3::mul(&turn, &axes);
-        std::array::from_fn(|i| {
-            let moved = f64::from(c2w[i][3]) + shift[i] / scale;
-            [turned[i][0] as f32, turned[i][1] as f32, turned[i][2] as f32, moved as f32]
-        })
-    }
-
-    fn report(&self) -> Option<PoseReport> {
-        self.pose_report()
-    }
-}
-
-impl DeferredGrid for CaptureModel {
-    fn grid(&self) -> HashGrid {
-        self.field.grid().clone()
-    }
-
-    fn train_rays_deferred(
-        &self,
-        rays: &[TrainRay],
-        ctx: &StepCtx,
-        grads: &mut [f32],
-        record: &mut GridRecord,
-    ) -> BatchStats {
-        record.clear();
-        // A posed model records nothing (its passes need the grid's input
-        // gradient at once): it is not offered as deferring, but stays
-        // right when called all the same.
-        let record = self.defers_grid().then_some(record);
-        self.train(rays, ctx, grads, record)
     }
 }
 

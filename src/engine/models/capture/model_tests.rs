@@ -231,7 +231,7 @@ fn unsamplable_rays_render_the_background() {
     ];
     let mut out = vec![RayOutput::default(); 3];
     let stats = m.render_rays(&rays, [0.2, 0.4, 0.6], &RenderOptions::default(), &mut out);
-    let miss = RayOutput { rgb: [0.2, 0.4, 0.6], depth: 0.0, opacity: 0.0 };
+    let miss = RayOutput { rgb: [0.2, 0.4, 0.6], depth: 0.0, opacity: 0.0, median: 0.0 };
     assert_eq!((out[0], out[2]), (miss, miss));
     assert!(out[1].opacity > 0.99 && out[1].rgb.iter().all(|c| c.is_finite()), "{:?}", out[1]);
     assert_eq!(stats.rays, 3);

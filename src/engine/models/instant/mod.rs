@@ -275,7 +275,7 @@ impl InstantModel {
         let s = RaySamples::new(sigma, self.field.rgb(&c), &m.t, &m.delta).expect("one ray's samples");
         let opts = CompositeOptions { background, ..Default::default() };
         let comp = composite(s, &opts, &mut w).expect("one weight per sample");
-        r.out = RayOutput { rgb: comp.rgb, depth: comp.depth, opacity: comp.opacity };
+        r.out = RayOutput { rgb: comp.rgb, depth: comp.depth, opacity: comp.opacity, median: comp.median };
         r
     }
 }

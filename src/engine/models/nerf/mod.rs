@@ -160,7 +160,7 @@ impl NerfModel {
                     idx.push(i);
                     segs.push(h);
                 }
-                None => out[i] = RayOutput { rgb: background, depth: 0.0, opacity: 0.0 },
+                None => out[i] = RayOutput { rgb: background, depth: 0.0, opacity: 0.0, median: 0.0 },
             }
         }
         if segs.is_empty() {

@@ -160,6 +160,9 @@ impl Model for SplatsModel {
                 }
                 o.depth += a * tr * t;
                 tr *= 1.0 - a;
+                if o.median == 0.0 && tr <= 0.5 {
+                    o.median = t;
+                }
                 if tr < 1e-4 {
                     break;
                 }
