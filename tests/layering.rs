@@ -43,7 +43,7 @@ const LAYERS: &[&[&str]] = &[
 
 /// The service's folders that may reach the engine only through
 /// `engine::front`.
-const THROUGH_THE_FRONT_DOOR: &[&str] = &["api", "jobs", "worker"];
+const THROUGH_THE_FRONT_DOOR: &[&str] = &["api", "jobs", "worker", "cli"];
 
 /// Modules of the crate the engine must never use.
 const SERVICE: &[&str] = &["api", "jobs", "cli", "backend", "datadir", "records", "worker", "media", "poses"];
@@ -554,6 +554,46 @@ fn a_long_function_is_found() {
     );
     assert_eq!(long_functions("x.rs", &text, 80), ["x.rs:2: long (81 lines)"]);
     assert!(long_functions("x.rs", &text, 81).is_empty());
+}
+
+/// The most lines a file under `src/` has before its tests.
+const MAX_FILE_LINES: usize = 600;
+
+/// The lines of `text` (a file's source) before its module of tests (a
+/// `#[cfg(test)]` on a `mod`, other attributes between): all of them when
+/// it has none.
+fn lines_before_tests(text: &str) -> usize {
+    let lines: Vec<&str> = text.lines().collect();
+    let tests_at =
+        (0..lines.len()).find(|&i| {
+            lines[i].trim() == "#[cfg(test)]"
+                && lines[i + 1..].iter().map(|l| l.trim()).find(|l| !l.starts_with("#[")).is_some_and(|l| {
+                    l.starts_with("mod ") || l.starts_with("pub mod ") || l.starts_with("pub(crate) mod ")
+                })
+        });
+    tests_at.unwrap_or(lines.len())
+}
+
+/// No file in `src/` has over [`MAX_FILE_LINES`] lines before its tests: a
+/// longer one has more than one job.
+#[test]
+fn no_file_is_over_600_lines_before_its_tests() {
+    let files = code_files();
+    let found: Vec<String> = files
+        .iter()
+        .map(|(rel, text)| (rel, lines_before_tests(text)))
+        .filter(|(_, n)| *n > MAX_FILE_LINES)
+        .map(|(rel, n)| format!("{rel}: {n} lines"))
+        .collect();
+    assert!(found.is_empty(), "files over {MAX_FILE_LINES} lines before their tests:\n{}", found.join("\n"));
+}
+
+#[test]
+fn the_lines_before_a_files_tests_are_counted() {
+    let code = "use a;\n#[cfg(test)]\nuse b;\nfn f() {}\n";
+    assert_eq!(lines_before_tests(code), 4);
+    assert_eq!(lines_before_tests(&format!("{code}#[cfg(test)]\n#[path = \"x_tests.rs\"]\nmod tests;\n")), 4);
+    assert_eq!(lines_before_tests(&format!("{code}#[cfg(test)]\nmod tests {{\n    fn g() {{}}\n}}\n")), 4);
 }
 
 /// The module a file under `src/` is (`engine/bake/mod.rs` is

@@ -11,14 +11,10 @@ use clap::Args;
 
 use super::Common;
 use super::setup::new_model_and_adam;
-use crate::engine::dataset::synthetic::BallScene;
-use crate::engine::dataset::{Dataset, LoadOptions};
-use crate::engine::geometry::camera::Orbit;
-use crate::engine::geometry::math::Vec3;
-use crate::engine::io::fsio::write_atomic;
-use crate::engine::models::training::Budget;
-use crate::engine::train::session::{Session, SessionConfig, Start};
-use crate::engine::view::render_view;
+use crate::engine::front::{
+    BallScene, Budget, DEFAULT_BATCH_RAYS, Dataset, LoadOptions, Orbit, Session, SessionConfig, Start, Vec3,
+    render_view, write_atomic,
+};
 use crate::media::png;
 use crate::media::video::{self, VideoFormat};
 
@@ -70,7 +66,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     };
     let checkpoint = a.out.join("model.ckpt");
     let (config, model, adam) = new_model_and_adam("instant", ds.scene(), 0, true, None, &[])?;
-    let train = config.train_config(0, crate::engine::models::config::DEFAULT_BATCH_RAYS, budget);
+    let train = config.train_config(0, DEFAULT_BATCH_RAYS, budget);
     let session_config = SessionConfig { train, out: checkpoint.clone(), checkpoint_every: 1e9, held_out: None };
     let mut session = Session::new(Start::Fresh { model, adam }, session_config, &ds)?;
     session.run(&AtomicBool::new(false), |_| true)?;

@@ -8,13 +8,10 @@ use anyhow::Context;
 use clap::Args;
 
 use super::{AppearanceArgs, Common, DataArgs};
-use crate::engine::dataset::{Dataset, Frame, LoadOptions, masks};
-use crate::engine::geometry::camera::Camera;
-use crate::engine::metrics::{psnr, psnr_inside, ssim_map};
-use crate::engine::models::{Model, RenderOptions};
-use crate::engine::train::appearance_fit::{AppearanceFit, FitError, FitSettings, Half};
-use crate::engine::train::persist;
-use crate::engine::view::{View, render_heldout_view};
+use crate::engine::front::{
+    AppearanceFit, Camera, Dataset, FitError, FitSettings, Frame, Half, LoadOptions, Model, RenderOptions, Restored,
+    View, heldout_pose, load_checkpoint, mask_inside, psnr, psnr_inside, render_heldout_view, ssim_map,
+};
 use crate::media::png;
 
 #[derive(Args, Debug)]
@@ -72,8 +69,8 @@ pub struct FitArgs {
 }
 
 /// Loads the model and the split's frames.
-fn setup(model: &std::path::Path, data: &DataArgs) -> anyhow::Result<(persist::Restored, Dataset, Vec<usize>)> {
-    let restored = persist::load(model)?;
+fn setup(model: &std::path::Path, data: &DataArgs) -> anyhow::Result<(Restored, Dataset, Vec<usize>)> {
+    let restored = load_checkpoint(model)?;
     let opts = LoadOptions { splits: vec![data.split], masks: data.masks.masks, ..Default::default() };
     let ds = Dataset::load(&data.data, &opts).with_context(|| format!("loading {}", data.data.display()))?;
     let mut idx = ds.split(data.split).to_vec();
@@ -127,7 +124,7 @@ pub(super) fn fitted_scores(
     background: [f32; 3],
     options: &RenderOptions,
 ) -> anyhow::Result<Fitted> {
-    let camera = Camera { c2w: crate::engine::models::heldout_pose(model, f.camera.c2w), ..f.camera.clone() };
+    let camera = Camera { c2w: heldout_pose(model, f.camera.c2w), ..f.camera.clone() };
     let mut render = |half: Half| -> anyhow::Result<View> {
         let e = fit.fit(model, f, &camera, background, options, half)?;
         Ok(fit.render(&camera, background, &e))
@@ -246,7 +243,7 @@ pub(super) fn score_columns(v: &View, f: &Frame, background: [f32; 3], cols: Ran
     let (psnr_mask, ssim_mask) = match &f.mask {
         Some(m) => {
             let cropped: Vec<u8> = pixels().map(|(i, j)| m[j * w + i]).collect();
-            let inside = masks::inside(&cropped);
+            let inside = mask_inside(&cropped);
             let p = psnr_inside(&ours, &gt, 3, &inside).with_context(|| format!("PSNR of {}", f.name))?;
             (p, map.mean_inside(&inside).with_context(context)?)
         }

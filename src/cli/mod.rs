@@ -85,7 +85,7 @@ pub struct DataArgs {
     pub data: PathBuf,
     /// Which split to use.
     #[arg(long, default_value = "test")]
-    pub split: crate::engine::dataset::Split,
+    pub split: crate::engine::front::Split,
     /// Use only the first N frames of the split.
     #[arg(long)]
     pub limit: Option<usize>,
@@ -102,7 +102,7 @@ pub struct MaskArgs {
     /// masks), `ignore` (train only inside them), `composite` (the mask
     /// becomes alpha: trained on random backgrounds, scored on white), `off`.
     #[arg(long, default_value = "auto", value_name = "auto|score|ignore|composite|off")]
-    pub masks: crate::engine::dataset::MaskUse,
+    pub masks: crate::engine::front::MaskUse,
 }
 
 /// The appearance of a capture model's views (`render`, `eval`, `bench`).
@@ -115,12 +115,12 @@ pub struct AppearanceArgs {
     /// mean for a checkpoint that kept no training cameras). Other models
     /// ignore it.
     #[arg(long, value_name = "mean|N|nearest")]
-    pub appearance: Option<crate::engine::view::appearance::Appearance>,
+    pub appearance: Option<crate::engine::front::Appearance>,
 }
 
 impl AppearanceArgs {
     /// Checks the choice against `model` before any view is rendered.
-    pub fn check(&self, model: &dyn crate::engine::models::Model) -> anyhow::Result<()> {
+    pub fn check(&self, model: &dyn crate::engine::front::Model) -> anyhow::Result<()> {
         match self.appearance {
             Some(a) => a.check(model).map_err(|e| anyhow::anyhow!("--appearance {a}: {e}")),
             None => Ok(()),
@@ -130,12 +130,12 @@ impl AppearanceArgs {
     /// The options a view of `model` from `camera` renders with.
     pub fn options(
         &self,
-        model: &dyn crate::engine::models::Model,
-        camera: &crate::engine::geometry::camera::Camera,
-    ) -> anyhow::Result<crate::engine::models::RenderOptions> {
+        model: &dyn crate::engine::front::Model,
+        camera: &crate::engine::front::Camera,
+    ) -> anyhow::Result<crate::engine::front::RenderOptions> {
         match self.appearance {
             Some(a) => a.resolve(model, camera).map_err(|e| anyhow::anyhow!("--appearance {a}: {e}")),
-            None => Ok(crate::engine::view::appearance::held_out_options(model, camera)),
+            None => Ok(crate::engine::front::held_out_options(model, camera)),
         }
     }
 }

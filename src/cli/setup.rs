@@ -2,18 +2,13 @@
 //! optimiser and the training settings: through the engine's
 //! [`ModelConfig`], as the service's jobs do.
 
-use crate::engine::dataset::Dataset;
-use crate::engine::geometry::scene::Scene;
-use crate::engine::models::auto::{self, AUTO, ModelChoice};
-use crate::engine::models::config::ModelConfig;
-use crate::engine::models::{Model, ModelError};
-use crate::engine::nn::adam::Adam;
+// `presets()`: the names `--model` accepts besides `auto` (each model kind
+// is one, and `auto` may choose `capture-360`).
+use crate::engine::front::{
+    AUTO, Adam, Dataset, Model, ModelChoice, ModelConfig, ModelError, Scene, choose_model, trainable_presets as presets,
+};
 
-pub use crate::engine::models::config::DEFAULT_BATCH_RAYS;
-
-/// The names `--model` accepts besides `auto`: the presets (each model
-/// kind is one, and `auto` may choose `capture-360`).
-use crate::engine::models::config::trainable_presets as presets;
+pub use crate::engine::front::DEFAULT_BATCH_RAYS;
 
 /// Refuses a `--model` that is neither `auto` nor a preset.
 pub fn check_model_name(name: &str) -> anyhow::Result<()> {
@@ -33,7 +28,7 @@ pub fn resolve_model(name: &str, ds: &Dataset) -> anyhow::Result<(String, Option
     if name != AUTO {
         return Ok((name.to_string(), None));
     }
-    let choice = auto::choose(ds);
+    let choice = choose_model(ds);
     Ok((choice.preset.clone(), Some(choice)))
 }
 

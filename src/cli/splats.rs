@@ -10,18 +10,11 @@ use clap::Args;
 
 use super::Common;
 use crate::api::site;
-use crate::engine::bake::{BakeSettings, bake};
-use crate::engine::dataset::{Dataset, LoadOptions, Split};
-use crate::engine::io::fsio::write_atomic;
-use crate::engine::models::Model;
-use crate::engine::models::config::ModelConfig;
-use crate::engine::models::splats::SplatsModel;
-use crate::engine::models::splats::export::{self, Format};
-use crate::engine::models::training::{Budget, TrainConfig};
-use crate::engine::nn::adam::Adam;
-use crate::engine::train::estimate::{self, DataSize, mib};
-use crate::engine::train::persist;
-use crate::engine::train::trainer::TrainState;
+use crate::engine::front::{
+    Adam, BakeSettings, Budget, DataSize, Dataset, LoadOptions, Model, ModelConfig, SplatsFormat as Format,
+    SplatsModel, Split, TrainConfig, TrainState, bake, estimate_bake, load_checkpoint, mib, save_checkpoint, splats_of,
+    write_atomic, write_splats,
+};
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
@@ -72,7 +65,7 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
         anyhow::ensure!(s.is_finite() && s > 0.0, "--seconds must be a positive number");
     }
     anyhow::ensure!(a.steps != Some(0), "--steps must be at least 1");
-    let source = persist::load(&a.model)?;
+    let source = load_checkpoint(&a.model)?;
     let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
     let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
     let mut settings = BakeSettings {
@@ -97,7 +90,7 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
     );
     if let Some(c) = ModelConfig::of_model(&*source.model) {
         let initial = settings.initial_for(ds.split(Split::Train).len());
-        let e = estimate::bake(&c, &splats, initial, DataSize::of(&ds), threads);
+        let e = estimate_bake(&c, &splats, initial, DataSize::of(&ds), threads);
         eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
     }
     let (model, adam, steps, elapsed) = bake_with_lines(&*source.model, &ds, &settings, &AtomicBool::new(false))?;
@@ -122,7 +115,7 @@ pub fn save_baked(
 ) -> anyhow::Result<()> {
     let train = TrainConfig { seed, budget, ..Default::default() };
     let state = TrainState { step: steps, elapsed, ..Default::default() };
-    Ok(persist::save(out, model, adam, &train, &state)?)
+    Ok(save_checkpoint(out, model, adam, &train, &state)?)
 }
 
 /// Bakes `source` into splats, a line on standard error every 5 s; the
@@ -183,8 +176,8 @@ fn parse_format(s: &str) -> Result<ExportFormat, String> {
 }
 
 pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
-    let restored = persist::load(&a.model)?;
-    let Some(splats) = export::splats_of(&*restored.model) else {
+    let restored = load_checkpoint(&a.model)?;
+    let Some(splats) = splats_of(&*restored.model) else {
         anyhow::bail!(
             "{} holds a '{}' model: export takes splats (make them with `radiance bake`)",
             a.model.display(),
@@ -196,14 +189,14 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
         ExportFormat::Html => return export_site(&a, splats),
     };
     let mut bytes = Vec::new();
-    export::write(splats, format, &mut bytes)?;
+    write_splats(splats, format, &mut bytes)?;
     write_atomic(&a.out, &bytes).with_context(|| format!("writing {}", a.out.display()))?;
     eprintln!("wrote {} ({} Gaussians, {} bytes)", a.out.display(), splats.layout().n, bytes.len());
     Ok(())
 }
 
 /// `export --format html`: the site of `api::site`, as a folder or a zip.
-fn export_site(a: &ExportArgs, splats: &crate::engine::models::splats::SplatsModel) -> anyhow::Result<()> {
+fn export_site(a: &ExportArgs, splats: &SplatsModel) -> anyhow::Result<()> {
     let Some(data) = &a.data else {
         anyhow::bail!("--format html needs --data DIR: the dataset's training cameras give the view the page opens at");
     };
@@ -211,7 +204,7 @@ fn export_site(a: &ExportArgs, splats: &crate::engine::models::splats::SplatsMod
     let ds = Dataset::load(data, &opts).with_context(|| format!("loading {}", data.display()))?;
     let view = crate::records::ViewDefaults::from_dataset(&ds);
     let mut ply = Vec::new();
-    export::write(splats, Format::Ply, &mut ply)?;
+    write_splats(splats, Format::Ply, &mut ply)?;
     let stem = a.out.file_stem().and_then(|s| s.to_str()).unwrap_or("splats").to_string();
     let files = site::files(&stem, &view, ply)?;
     if a.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("zip")) {

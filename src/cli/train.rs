@@ -11,14 +11,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam, resolve_model};
 use super::{Common, MaskArgs};
-use crate::engine::bake::BakeSettings;
-use crate::engine::dataset::{Dataset, LoadOptions, MaskUse, Split, masks};
-use crate::engine::io::checkpoint::Checkpoint;
-use crate::engine::models::auto::{AUTO, ModelChoice};
-use crate::engine::models::config::ModelConfig;
-use crate::engine::models::training::{Budget, TrainConfig};
-use crate::engine::train::estimate::{self, DataSize, mib};
-use crate::engine::train::session::{Event, Session, SessionConfig, Start, Stop};
+use crate::engine::front::{
+    AUTO, BakeSettings, Budget, Checkpoint, DataSize, Dataset, Event, LoadOptions, MASK_INSIDE, MaskUse, ModelChoice,
+    ModelConfig, Session, SessionConfig, Split, Start, Stop, TrainConfig, estimate_training, mib,
+};
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
@@ -283,7 +279,7 @@ fn describe(a: &TrainArgs, session: &Session<'_>, ds: &Dataset, threads: usize) 
         eprintln!("{note}");
     }
     if let Some(c) = ModelConfig::of_model(model) {
-        let e = estimate::training(&c, DataSize::of(ds), threads);
+        let e = estimate_training(&c, DataSize::of(ds), threads);
         eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
     }
 }
@@ -292,8 +288,8 @@ fn describe(a: &TrainArgs, session: &Session<'_>, ds: &Dataset, threads: usize) 
 fn describe_masks(ds: &Dataset) -> Option<String> {
     let from = ds.mask_folder_name().unwrap_or_else(|| "the alpha channel".into());
     let train = || ds.train.iter().filter_map(|&i| ds.frames[i].mask.as_ref());
-    let (inside, all) = train()
-        .fold((0usize, 0usize), |(a, b), m| (a + m.iter().filter(|&&v| v >= masks::INSIDE).count(), b + m.len()));
+    let (inside, all) =
+        train().fold((0usize, 0usize), |(a, b), m| (a + m.iter().filter(|&&v| v >= MASK_INSIDE).count(), b + m.len()));
     let share = 100.0 * inside as f64 / all.max(1) as f64;
     let what = match ds.masks {
         MaskUse::Off | MaskUse::Auto => return None,

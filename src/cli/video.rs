@@ -13,11 +13,7 @@ use anyhow::Context;
 use clap::Args;
 
 use super::Common;
-use crate::engine::geometry::camera::Camera;
-use crate::engine::io::fsio::write_atomic;
-use crate::engine::train::persist;
-use crate::engine::view::appearance::Appearance;
-use crate::engine::view::render_view_with;
+use crate::engine::front::{Appearance, Camera, load_checkpoint, render_view_with, write_atomic};
 use crate::media::png;
 use crate::media::video::{self, VideoFormat};
 
@@ -72,7 +68,7 @@ pub fn run(a: VideoArgs) -> anyhow::Result<()> {
     );
     anyhow::ensure!((1..=3600).contains(&a.frames), "--frames must be in 1..=3600");
     anyhow::ensure!((1..=60).contains(&a.fps), "--fps must be in 1..=60");
-    let restored = persist::load(&a.model).with_context(|| format!("loading {}", a.model.display()))?;
+    let restored = load_checkpoint(&a.model).with_context(|| format!("loading {}", a.model.display()))?;
     a.appearance.check(&*restored.model).map_err(|e| anyhow::anyhow!("--appearance {}: {e}", a.appearance))?;
     let rig = restored.model.scene().rig.clone().with_context(|| {
         format!(

@@ -1,9 +1,10 @@
 //! The engine's front door: what the service (`api`, `jobs`, `worker`)
-//! uses of the engine, in one place. Load a model from a checkpoint, render
+//! and the command line (`cli`) use of the engine, in one place. Load a model from a checkpoint, render
 //! a view of it, run a training session on a dataset, bake a model into
 //! splats and export them, estimate a job's memory, and the types these
-//! take and give. `tests/layering.rs` checks that the service reaches the
-//! engine through nothing else, so what it depends on is this page, and the
+//! take and give; for the command line also what evaluating and
+//! benchmarking a model take. `tests/layering.rs` checks that the service
+//! and the command line reach the engine through nothing else, so what it depends on is this page, and the
 //! folders behind it can move.
 
 use std::path::Path;
@@ -32,6 +33,25 @@ pub use super::train::session::{Event, HeldOut, Session, SessionConfig, SessionE
 pub use super::train::trainer::{Progress, TrainState};
 pub use super::view::appearance::{Appearance, AppearanceError, held_out_options};
 pub use super::view::{render_heldout_view, render_view_until, render_view_with};
+
+// What the command line uses besides: a model trained, scored and fitted
+// step by step (`eval`, `bench`, `train --model splats`), the scene a
+// model is made for and the demo's orbit.
+pub use super::dataset::Frame;
+pub use super::dataset::masks::{INSIDE as MASK_INSIDE, inside as mask_inside};
+pub use super::geometry::camera::Orbit;
+pub use super::geometry::math::Vec3;
+pub use super::geometry::scene::Scene;
+pub use super::io::checkpoint::Checkpoint;
+pub use super::metrics::{psnr_inside, ssim_map};
+pub use super::models::capture::KIND as CAPTURE_KIND;
+pub use super::models::splats::SplatsModel;
+pub use super::models::{RenderOptions, heldout_pose};
+pub use super::nn::adam::Adam;
+pub use super::train::appearance_fit::{AppearanceFit, FitError, FitSettings, Half};
+pub use super::train::persist::{Restored, load as load_checkpoint};
+pub use super::train::trainer::{StopReason, Trainer};
+pub use super::view::{View, render_view};
 
 /// The model a checkpoint holds, ready to render (its optimiser state, if
 /// the checkpoint has one, is dropped; a training session resumes from the

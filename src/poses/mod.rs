@@ -22,12 +22,14 @@ use crate::engine::dataset::{Dataset, LoadOptions, colmap_model};
 use crate::engine::io::fsio::write_atomic;
 
 pub mod colmap;
+mod gather;
 pub mod outcome;
 pub mod photos;
 pub mod process;
 pub mod video;
 
 pub use colmap::{Colmap, Matcher};
+use gather::{GatherStep, Gathered};
 pub use video::Ffmpeg;
 
 /// Where the report is written in the dataset.
@@ -353,50 +355,6 @@ fn save_progress(opts: &PoseOptions, progress_file: &Path, saved: &Saved) -> Res
     write_atomic(progress_file, &json).map_err(|e| PoseError::io(progress_file, e))
 }
 
-/// What gathering the photos (or a video's frames) into the dataset's
-/// `images` folder works with.
-struct GatherStep<'a> {
-    work: &'a Work,
-    input: &'a Path,
-    dataset: &'a Path,
-    tools: &'a Tools,
-    opts: &'a PoseOptions,
-    deadline: Instant,
-    cancel: &'a AtomicBool,
-}
-
-impl GatherStep<'_> {
-    /// The photos or frames in `dataset/images`: those a run before a crash
-    /// gathered, when `saved` says they are all there, else gathered anew
-    /// (what an earlier run left is removed first) and saved as done.
-    fn gather_or_resume(
-        &self,
-        saved: &mut Saved,
-        save: &dyn Fn(&Saved) -> Result<(), PoseError>,
-        report_stage: &mut dyn FnMut(Stage, f32),
-    ) -> Result<Gathered, PoseError> {
-        let images = self.dataset.join("images");
-        if let Some(g) = saved.gathered.clone()
-            && images.is_dir()
-        {
-            report_stage(if g.source == "video" { Stage::Frames } else { Stage::Photos }, 1.0);
-            let source = if g.source == "video" { "video" } else { "photos" };
-            return Ok(Gathered { source, names: g.names, size: g.size });
-        }
-        let work = &self.work.dir;
-        for d in [self.dataset.to_path_buf(), work.join("candidates"), work.join("colmap")] {
-            let _ = std::fs::remove_dir_all(d);
-        }
-        *saved = Saved::default();
-        let (input, tools, opts) = (self.input, self.tools, self.opts);
-        let g = gather(input, work, &images, tools, opts, self.deadline, self.cancel, report_stage)?;
-        saved.gathered = Some(SavedGather { source: g.source.into(), names: g.names.clone(), size: g.size });
-        save(saved)?;
-        Ok(g)
-    }
-}
-
-/// Steps 3 and 4: the model to keep (`outcome::judge`), moved into the
 /// dataset as `sparse/0`, COLMAP's other files removed; then the dataset
 /// checked to load as `train` will load it, and the report written beside it.
 fn keep_model(
@@ -518,87 +476,6 @@ fn read_models(run: &colmap::Run<'_>) -> Result<Vec<outcome::Candidate>, PoseErr
         .collect()
 }
 
-/// What [`gather`] put into the image folder.
-struct Gathered {
-    /// `photos` or `video`.
-    source: &'static str,
-    names: Vec<String>,
-    /// The images' shared size.
-    size: (u32, u32),
-}
-
-/// Puts the photos (or the video's frames) into `images`.
-#[allow(clippy::too_many_arguments)]
-fn gather(
-    input: &Path,
-    work: &Path,
-    images: &Path,
-    tools: &Tools,
-    opts: &PoseOptions,
-    deadline: Instant,
-    cancel: &AtomicBool,
-    report: &mut dyn FnMut(Stage, f32),
-) -> Result<Gathered, PoseError> {
-    let (root, found) = if input.is_dir() {
-        (input.to_path_buf(), photos::scan(input)?)
-    } else if input.is_file() && photos::has_extension(input, &photos::VIDEO_EXTENSIONS) {
-        (
-            input.parent().unwrap_or(Path::new(".")).to_path_buf(),
-            photos::Found { videos: vec![input.to_path_buf()], ..Default::default() },
-        )
-    } else if input.exists() {
-        return Err(PoseError::Input(format!(
-            "'{}' is neither a folder of photos nor a video ({})",
-            input.display(),
-            photos::VIDEO_EXTENSIONS.join(", ")
-        )));
-    } else {
-        return Err(PoseError::Input(format!("'{}' does not exist", input.display())));
-    };
-    match found.source()? {
-        None => {
-            let ignored = if found.ignored.is_empty() {
-                String::new()
-            } else {
-                format!(" (found only: {})", outcome::list(&found.ignored))
-            };
-            Err(PoseError::Input(format!(
-                "no photos (JPEG or PNG) and no video ({}) in '{}'{ignored}",
-                photos::VIDEO_EXTENSIONS.join(", "),
-                input.display()
-            )))
-        }
-        Some(photos::Source::Video(clip)) => {
-            let ffmpeg = tools.ffmpeg.as_ref().ok_or_else(|| {
-                PoseError::Tool("a video needs ffmpeg, which was not found (apt-get install ffmpeg)".into())
-            })?;
-            report(Stage::Frames, 0.0);
-            let names = video::extract(
-                ffmpeg,
-                clip,
-                images,
-                &work.join("candidates"),
-                opts.frames,
-                opts.max_size,
-                deadline,
-                cancel,
-                &mut |f| report(Stage::Frames, f),
-            )?;
-            let first = image::image_dimensions(images.join(&names[0]))
-                .map_err(|e| PoseError::Io { path: images.join(&names[0]), message: e.to_string() })?;
-            Ok(Gathered { source: "video", names, size: first })
-        }
-        Some(photos::Source::Photos(list)) => {
-            report(Stage::Photos, 0.0);
-            let prepared = photos::prepare(&root, list, images, opts.max_size)?;
-            report(Stage::Photos, 1.0);
-            let size = (prepared[0].width, prepared[0].height);
-            Ok(Gathered { source: "photos", names: prepared.into_iter().map(|p| p.name).collect(), size })
-        }
-    }
-}
-
-/// `out` must be free: missing, or an empty folder.
 fn check_output(out: &Path) -> Result<(), PoseError> {
     match std::fs::read_dir(out).map(|mut entries| entries.next().is_none()) {
         Ok(true) => Ok(()),
