@@ -23,6 +23,10 @@ use radiance::engine::dataset::synthetic::BallScene;
 use reqwest::{Client, StatusCode};
 use serde_json::{Value, json};
 
+/// How many times its stall limit `Svc::wait_job` waits in all for a job
+/// that keeps moving (a machine several times slower, or busy).
+pub const MOVING_JOB_WAITS: f64 = 5.0;
+
 pub fn scene_dir(dir: &Path) {
     BallScene { size: 16, views: 8, ..Default::default() }.write_blender(dir).unwrap();
 }
@@ -204,16 +208,25 @@ impl Svc {
         v["id"].as_str().unwrap().to_string()
     }
 
-    /// Polls a job until `pred` holds (panics after `secs`).
+    /// Polls a job until `pred` holds. Panics once the job has not moved
+    /// (its status, attempt, stage and step all as they were) for `secs`,
+    /// or after [`MOVING_JOB_WAITS`] times `secs` in all: a job that keeps
+    /// moving on a slow or busy machine is waited for, a stuck one is not.
     pub async fn wait_job(&self, id: &str, secs: f64, pred: impl Fn(&Value) -> bool) -> Value {
         let t0 = Instant::now();
+        let (mut last, mut moved) = (Value::Null, Instant::now());
         loop {
             let (s, v) = self.get(&format!("/v1/jobs/{id}")).await;
             assert_eq!(s, StatusCode::OK);
             if pred(&v) {
                 return v;
             }
-            assert!(t0.elapsed().as_secs_f64() < secs, "timed out waiting for job: {v}");
+            let now = json!([v["status"], v["attempts"], v["progress"]["stage"], v["progress"]["step"]]);
+            if now != last {
+                (last, moved) = (now, Instant::now());
+            }
+            assert!(moved.elapsed().as_secs_f64() < secs, "the job did not move for {secs} s: {v}");
+            assert!(t0.elapsed().as_secs_f64() < MOVING_JOB_WAITS * secs, "timed out waiting for job: {v}");
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
     }
