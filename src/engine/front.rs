@@ -1,11 +1,12 @@
 //! The engine's front door: what the service (`api`, `jobs`, `worker`)
-//! and the command line (`cli`) use of the engine, in one place. Load a model from a checkpoint, render
-//! a view of it, run a training session on a dataset, bake a model into
-//! splats and export them, estimate a job's memory, and the types these
-//! take and give; for the command line also what evaluating and
-//! benchmarking a model take. `tests/layering.rs` checks that the service
-//! and the command line reach the engine through nothing else, so what it depends on is this page, and the
-//! folders behind it can move.
+//! and the command line (`cli`) use of the engine, in one place. Load a
+//! model from a checkpoint, render a view of it, run a training session on
+//! a dataset, bake a model into splats and export them, estimate a job's
+//! memory, and the types these take and give; for the command line also
+//! what evaluating and benchmarking a model take. `tests/layering.rs`
+//! checks that the service and the command line reach the engine through
+//! nothing else, so what they depend on is this page, and the folders
+//! behind it can move.
 
 use std::path::Path;
 

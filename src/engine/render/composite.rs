@@ -61,6 +61,15 @@ impl Transmittance {
     }
 }
 
+/// Records `t` as a ray's median depth (`Composite::median`) when its
+/// transmittance, after the sample at `t`, has fallen to one half for the
+/// first time (`median` is 0 until then).
+pub fn mark_median(median: &mut f32, transmittance: f32, t: f32) {
+    if *median == 0.0 && transmittance <= 0.5 {
+        *median = t;
+    }
+}
+
 /// What compositing one ray produced.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Composite {
@@ -158,9 +167,7 @@ pub fn composite(s: RaySamples<'_>, opts: &CompositeOptions, weights: &mut [f32]
             out.rgb[c] += w * s.rgb[3 * i + c];
         }
         out.depth += w * s.t[i];
-        if out.median == 0.0 && along.value() <= 0.5 {
-            out.median = s.t[i];
-        }
+        mark_median(&mut out.median, along.value(), s.t[i]);
     }
     let trans = along.value();
     out.opacity = 1.0 - trans;

@@ -7,7 +7,7 @@
 //! changes by at most that much); the rest are coloured in one pass at the
 //! end.
 
-use super::composite::Transmittance;
+use super::composite::{Transmittance, mark_median};
 use crate::engine::batch::{BatchStats, RayOutput};
 use crate::engine::fields::{Field, Points};
 use crate::engine::sampling::{RaySampler, Samples};
@@ -127,9 +127,7 @@ fn composite_round<F: Field>(
                 break;
             }
             let w = st.along.step(sigma[i], samples.delta[i], false);
-            if st.median == 0.0 && st.along.value() <= 0.5 {
-                st.median = samples.t[i];
-            }
+            mark_median(&mut st.median, st.along.value(), samples.t[i]);
             if st.dropped + w <= settings.max_dropped_weight {
                 // Nearly empty space: its colour cannot matter.
                 st.dropped += w;

@@ -24,6 +24,7 @@ use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
+use crate::engine::render::composite::mark_median;
 use gaussians::{Layout, covariance, sh_colour, sigmoid};
 use raster::{MAX_ALPHA, RasterCamera, RasterOptions};
 
@@ -160,9 +161,7 @@ impl Model for SplatsModel {
                 }
                 o.depth += a * tr * t;
                 tr *= 1.0 - a;
-                if o.median == 0.0 && tr <= 0.5 {
-                    o.median = t;
-                }
+                mark_median(&mut o.median, tr, t);
                 if tr < 1e-4 {
                     break;
                 }
