@@ -47,7 +47,7 @@ pub(super) fn carve(
                 if b == owner as usize {
                     continue;
                 }
-                let t = cam.to_camera(p.0);
+                let t = cam.to_camera(p.at);
                 if t[2] <= 0.0 {
                     continue;
                 }
@@ -96,10 +96,10 @@ mod tests {
         let grid = |d: f32| DepthGrid { nx: 3, ny: 3, origin: [0.0; 2], spacing: 10.0, depth: vec![d; 9] };
         let grids = [grid(f32::NAN), grid(4.0)];
         let placed: Vec<Placed> = vec![
-            ([0.0, -2.0, 0.0], 0.1, [1.0; 3]), // halfway: photo 1's free space
-            ([0.0, 0.0, 0.0], 0.1, [1.0; 3]),  // on the wall
-            ([0.0, 1.0, 0.0], 0.1, [1.0; 3]),  // behind it
-            ([0.0, -2.0, 0.0], 0.1, [1.0; 3]), // halfway, but photo 1's own
+            Placed::ball([0.0, -2.0, 0.0], 0.1, [1.0; 3]), // halfway: photo 1's free space
+            Placed::ball([0.0, 0.0, 0.0], 0.1, [1.0; 3]),  // on the wall
+            Placed::ball([0.0, 1.0, 0.0], 0.1, [1.0; 3]),  // behind it
+            Placed::ball([0.0, -2.0, 0.0], 0.1, [1.0; 3]), // halfway, but photo 1's own
         ];
         let kept = carve(placed.clone(), &[0, 0, 0, 1], &[false; 4], &grids, &cams);
         assert_eq!(kept, vec![placed[1], placed[2], placed[3]]);
@@ -109,7 +109,7 @@ mod tests {
         // Placed past photo 0's frame: the one on the wall, which photo 1
         // saw within its frame, goes; one beside the wall, past photo 1's
         // frame too (its half-width there is 4 tan 0.5 = 2.2), stays.
-        let beside: Placed = ([3.0, 0.0, 0.0], 0.1, [1.0; 3]);
+        let beside: Placed = Placed::ball([3.0, 0.0, 0.0], 0.1, [1.0; 3]);
         let margin = vec![placed[1], beside];
         assert_eq!(carve(margin.clone(), &[0, 0], &[true, true], &grids, &cams), vec![beside]);
         assert_eq!(carve(margin.clone(), &[0, 0], &[false, false], &grids, &cams), margin);

@@ -202,6 +202,7 @@ fn halve(rgb: &[f32], w: usize, h: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::bake::Placed;
     use crate::engine::bake::place::parameters;
     use crate::engine::bake::testutil::facing_origin;
     use crate::engine::geometry::camera::Camera;
@@ -232,7 +233,7 @@ mod tests {
         // times as much.
         let (scene, c2w) = facing_origin();
         let full = RasterCamera::new(&Camera::from_fov(64, 48, 0.8, c2w), &scene);
-        let params = parameters(&[([0.3, 0.0, 0.2], 0.3, [0.9, 0.6, 0.3])], 0);
+        let params = parameters(&[Placed::ball([0.3, 0.0, 0.2], 0.3, [0.9, 0.6, 0.3])], 0);
         let l = Layout::new(1, 0);
         let opt = RasterOptions::default();
         let draw = |cam: &RasterCamera| forward(&l, &params, cam, &opt, [0.0; 3]).rgb;

@@ -116,8 +116,22 @@ pub struct BakeProgress {
     pub psnr: f64,
 }
 
-/// A Gaussian placed from the field: position (model units), scale, colour.
-type Placed = ([f32; 3], f32, [f32; 3]);
+/// A Gaussian placed from the field.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Placed {
+    /// Position (model units).
+    at: [f32; 3],
+    /// Scale (model units).
+    size: f32,
+    colour: [f32; 3],
+}
+
+impl Placed {
+    #[cfg(test)]
+    fn ball(at: [f32; 3], size: f32, colour: [f32; 3]) -> Self {
+        Self { at, size, colour }
+    }
+}
 
 /// Whether image point `(u, v)` (pixels) is within a `w x h` frame.
 fn in_frame(u: f32, v: f32, w: f32, h: f32) -> bool {

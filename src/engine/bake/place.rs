@@ -119,7 +119,7 @@ fn place_at(
         // Gaussian that wide only at it would leave holes: a part of the
         // cell covers them. One with no neighbours (the background, which
         // few photos see) covers more.
-        p.1 *= if near { INITIAL_SCALE } else { ISOLATED_SCALE };
+        p.size *= if near { INITIAL_SCALE } else { ISOLATED_SCALE };
     }
     Ok(parameters(&placed, settings.splats.sh_degree))
 }
@@ -170,13 +170,13 @@ fn sample_photo(
     for (k, (ray, o)) in rays.iter().zip(&out).enumerate().filter(|(_, (_, o))| hit(o)) {
         let r = scene.to_model(ray);
         let t = o.median.min(exit_distance(&r, far));
-        let p = r.at(t).to_array();
-        if !p.iter().all(|v| v.is_finite()) {
+        let at = r.at(t).to_array();
+        if !at.iter().all(|v| v.is_finite()) {
             continue;
         }
         let colour = [0, 1, 2].map(|c| ((o.rgb[c] - (1.0 - o.opacity) * bg[c]) / o.opacity).clamp(0.0, 1.0));
         // A pixel's width at that distance, times the grid's spacing.
-        placed.push((p, t * spacing / cam.fx.max(1e-6), colour));
+        placed.push(Placed { at, size: t * spacing / cam.fx.max(1e-6), colour });
         outside.push(past[k]);
     }
     (DepthGrid { nx, ny, origin, spacing, depth }, placed, outside)
@@ -199,13 +199,13 @@ pub(super) fn parameters(placed: &[Placed], sh_degree: u32) -> Vec<f32> {
     let l = Layout::new(placed.len(), sh_degree);
     let n = l.n;
     let mut params = vec![0.0f32; l.len()];
-    for (i, (p, size, colour)) in placed.iter().enumerate() {
-        params[3 * i..3 * i + 3].copy_from_slice(p);
-        params[3 * n + 3 * i..3 * n + 3 * i + 3].fill(size.max(1e-6).ln());
+    for (i, g) in placed.iter().enumerate() {
+        params[3 * i..3 * i + 3].copy_from_slice(&g.at);
+        params[3 * n + 3 * i..3 * n + 3 * i + 3].fill(g.size.max(1e-6).ln());
         params[6 * n + 4 * i] = 1.0;
         params[10 * n + i] = 0.0; // opacity 0.5
         for c in 0..3 {
-            params[11 * n + 3 * i + c] = (colour[c] - 0.5) / SH_C0;
+            params[11 * n + 3 * i + c] = (g.colour[c] - 0.5) / SH_C0;
         }
     }
     params
@@ -215,7 +215,7 @@ pub(super) fn parameters(placed: &[Placed], sh_degree: u32) -> Vec<f32> {
 /// around it, in a hash of cells as wide as the median of the points' own
 /// sizes.
 fn has_neighbours(points: &[Placed]) -> Vec<bool> {
-    let mut sizes: Vec<f32> = points.iter().map(|p| p.1).collect();
+    let mut sizes: Vec<f32> = points.iter().map(|p| p.size).collect();
     let mid = sizes.len() / 2;
     let cell = *sizes.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
     if !(cell > 0.0 && cell.is_finite()) {
@@ -224,12 +224,12 @@ fn has_neighbours(points: &[Placed]) -> Vec<bool> {
     let key = |p: &[f32; 3]| p.map(|v| (v / cell).floor() as i64);
     let mut cells: std::collections::HashMap<[i64; 3], u32> = std::collections::HashMap::new();
     for p in points {
-        *cells.entry(key(&p.0)).or_default() += 1;
+        *cells.entry(key(&p.at)).or_default() += 1;
     }
     points
         .iter()
         .map(|p| {
-            let k = key(&p.0);
+            let k = key(&p.at);
             let mut around = 0;
             for dx in -1..=1 {
                 for dy in -1..=1 {
@@ -259,7 +259,7 @@ mod tests {
 
     #[test]
     fn a_point_needs_three_others_within_a_cell_to_have_neighbours() {
-        let at = |x: f32| ([x, 0.0, 0.0], 1.0, [0.5; 3]);
+        let at = |x: f32| Placed::ball([x, 0.0, 0.0], 1.0, [0.5; 3]);
         // Cells of width 1 (the median size): four within reach of each
         // other, and one alone three cells away.
         let points = [at(0.1), at(0.5), at(0.9), at(1.5), at(5.0)];
