@@ -91,6 +91,9 @@ fn bench_rejects_bad_arguments() {
         (vec!["--model", "nope"], "unknown model 'nope'"),
         (vec!["--budgets", "0"], "--budgets must be positive"),
         (vec!["--test-views", "0"], "--test-views must be at least 1"),
+        (vec!["--occlude", "1.5"], "share of occluded photos must be within 0 and 1"),
+        (vec!["--occlude", "0.3", "--occluder-area", "0.3,0.1"], "an occluder's area must be within 0 and 1"),
+        (vec!["--occlude", "0.3", "--occluder-cutouts", "/nonexistent"], "reading the cut-outs in /nonexistent"),
     ] {
         let mut all = vec!["bench", "--data", d];
         all.extend(args);
@@ -98,6 +101,31 @@ fn bench_rejects_bad_arguments() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success() && err.contains(msg), "{all:?}: {err}");
     }
+}
+
+/// `--occlude` pastes occluders into the asked share of the training
+/// photos (8 of them: 0.5 is 4), says so, lists them in the JSON, and the
+/// run still scores its (clean) test views.
+#[test]
+fn bench_occludes_a_share_of_the_training_photos() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 32, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let json = dir.path().join("bench.json");
+    let args = ["--model", "instant-tiny", "--budgets", "0.2", "--test-views", "1", "--occlude", "0.5"];
+    let out = radiance(
+        &[&["bench", "--data", data.to_str().unwrap()][..], &args[..], &["--json", json.to_str().unwrap()]].concat(),
+    );
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "stdout: {stdout}\nstderr: {stderr}");
+    assert!(stderr.contains("occluded 4 of 8 training photos"), "{stderr}");
+    let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(report.occluded.len(), 4, "{:?}", report.occluded);
+    // One or two occluders of 5-20% of the frame each, less what falls past
+    // its edges.
+    assert!(report.occluded.iter().all(|p| p.share > 0.0 && p.share <= 0.4), "{:?}", report.occluded);
+    assert_eq!(report.rows.len(), 1);
+    assert!(report.rows[0].psnr.is_finite());
 }
 
 /// `--model auto` benches the model `train` would choose (the ball's

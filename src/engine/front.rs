@@ -40,6 +40,7 @@ pub use super::view::{render_heldout_view, render_view_until, render_view_with};
 // model is made for and the demo's orbit.
 pub use super::dataset::Frame;
 pub use super::dataset::masks::{INSIDE as MASK_INSIDE, inside as mask_inside};
+pub use super::dataset::occlude::{Occluders, Pasted, load_cutouts, occlude};
 pub use super::geometry::camera::Orbit;
 pub use super::geometry::math::Vec3;
 pub use super::geometry::scene::Scene;

@@ -15,8 +15,8 @@ use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{AppearanceArgs, Common, MaskArgs};
 use crate::engine::front::{
-    BakeSettings, Budget, CAPTURE_KIND, Dataset, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig, Progress,
-    Split, StopReason, TrainState, Trainer, bake, write_atomic,
+    BakeSettings, Budget, CAPTURE_KIND, Dataset, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig, Occluders,
+    Progress, Split, StopReason, TrainState, Trainer, bake, load_cutouts, occlude, write_atomic,
 };
 use crate::system::{peak_memory, reset_peak_memory};
 
@@ -58,6 +58,20 @@ pub struct BenchArgs {
     /// seconds and steps are the bake's).
     #[arg(long)]
     pub bake: Option<f64>,
+    /// Paste occluders into this share of the training photos (0 to 1),
+    /// leaving the scored views clean: what a passer-by does to a capture.
+    #[arg(long, value_name = "SHARE")]
+    pub occlude: Option<f32>,
+    /// Each occluder's area as a share of its photo: LEAST,MOST.
+    #[arg(long, value_delimiter = ',', num_args = 1..=2, default_values_t = [0.05, 0.2])]
+    pub occluder_area: Vec<f32>,
+    /// Occluders in each occluded photo: LEAST,MOST.
+    #[arg(long, value_delimiter = ',', num_args = 1..=2, default_values_t = [1, 2])]
+    pub occluders_per_photo: Vec<u32>,
+    /// A folder of cut-outs (images with an alpha matte) to paste instead
+    /// of generated shapes.
+    #[arg(long)]
+    pub occluder_cutouts: Option<PathBuf>,
     #[command(flatten)]
     pub masks: MaskArgs,
     #[command(flatten)]
@@ -149,7 +163,18 @@ pub struct BenchReport {
     /// What `--model auto` chose, and why, when it was asked for.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model_choice: Option<ModelChoice>,
+    /// With `--occlude`: each occluded photo and the share of it covered.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub occluded: Vec<OccludedPhoto>,
     pub rows: Vec<BenchRow>,
+}
+
+/// A photo `--occlude` pasted into.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct OccludedPhoto {
+    pub name: String,
+    /// Share of its pixels covered.
+    pub share: f64,
 }
 
 const HEADER: &str = "model    budget s  train s    steps          rays        samples  smp/ray prop/ray  skip/ray  PSNR dB    \
@@ -357,8 +382,12 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
 
     let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3], masks: a.masks.masks };
-    let ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
+    let mut ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
     anyhow::ensure!(!ds.train.is_empty(), "{}: the dataset has no training views", a.data.display());
+    let occluded = match a.occlude {
+        Some(share) => occlude_photos(&mut ds, &a, share)?,
+        None => Vec::new(),
+    };
     anyhow::ensure!(!ds.test.is_empty(), "{}: the dataset has no test views", a.data.display());
     for w in &ds.warnings {
         eprintln!("warning: {w}");
@@ -388,6 +417,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         set: a.set.clone(),
         masks: (ds.masks != MaskUse::Off).then_some(ds.masks),
         model_choice,
+        occluded,
         test_views: views.len(),
         rows: Vec::new(),
     };
@@ -411,6 +441,29 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         Some(e) => Err(e),
         None => Ok(()),
     }
+}
+
+/// Pastes `--occlude`'s occluders into `ds`'s training photos and says
+/// where.
+fn occlude_photos(ds: &mut Dataset, a: &BenchArgs, share: f32) -> anyhow::Result<Vec<OccludedPhoto>> {
+    let range = |v: &[f32]| (v[0], *v.last().unwrap_or(&v[0]));
+    let cutouts = match &a.occluder_cutouts {
+        Some(dir) => load_cutouts(dir).with_context(|| format!("reading the cut-outs in {}", dir.display()))?,
+        None => Vec::new(),
+    };
+    let counts = (a.occluders_per_photo[0], *a.occluders_per_photo.last().unwrap_or(&a.occluders_per_photo[0]));
+    let o = Occluders { share, per_photo: counts, area: range(&a.occluder_area), cutouts, seed: a.seed };
+    let pasted = occlude(ds, &o).context("--occlude")?;
+    let photos: Vec<OccludedPhoto> =
+        pasted.iter().map(|p| OccludedPhoto { name: ds.frames[p.frame].name.clone(), share: p.share() }).collect();
+    let mean = photos.iter().map(|p| p.share).sum::<f64>() / photos.len().max(1) as f64;
+    eprintln!(
+        "occluded {} of {} training photos, {:.1}% of each on average",
+        photos.len(),
+        ds.train.len(),
+        100.0 * mean
+    );
+    Ok(photos)
 }
 
 /// One bench invocation's inputs.

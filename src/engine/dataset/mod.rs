@@ -18,6 +18,7 @@ mod llff;
 pub mod masks;
 mod ngp;
 pub mod npy;
+pub mod occlude;
 mod scene;
 pub mod synthetic;
 #[cfg(test)]
