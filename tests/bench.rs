@@ -94,6 +94,9 @@ fn bench_rejects_bad_arguments() {
         (vec!["--occlude", "1.5"], "share of occluded photos must be within 0 and 1"),
         (vec!["--occlude", "0.3", "--occluder-area", "0.3,0.1"], "an occluder's area must be within 0 and 1"),
         (vec!["--occlude", "0.3", "--occluder-cutouts", "/nonexistent"], "reading the cut-outs in /nonexistent"),
+        (vec!["--occlude", "0.3", "--occluder-area", "0.1,0.2,0.3"], "--occluder-area takes one number or LEAST,MOST"),
+        (vec!["--occlude", "0.3", "--occluders-per-photo", "1,1000"], "occluders per photo must be from 1 to 100"),
+        (vec!["--occluder-area", "0.1"], "--occlude"),
     ] {
         let mut all = vec!["bench", "--data", d];
         all.extend(args);

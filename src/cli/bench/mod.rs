@@ -62,15 +62,17 @@ pub struct BenchArgs {
     /// leaving the scored views clean: what a passer-by does to a capture.
     #[arg(long, value_name = "SHARE")]
     pub occlude: Option<f32>,
-    /// Each occluder's area as a share of its photo: LEAST,MOST.
-    #[arg(long, value_delimiter = ',', num_args = 1..=2, default_values_t = [0.05, 0.2])]
+    /// Each occluder's area as a share of its photo: LEAST,MOST (one
+    /// number: that area).
+    #[arg(long, value_delimiter = ',', default_values_t = [0.05, 0.2], requires = "occlude")]
     pub occluder_area: Vec<f32>,
-    /// Occluders in each occluded photo: LEAST,MOST.
-    #[arg(long, value_delimiter = ',', num_args = 1..=2, default_values_t = [1, 2])]
+    /// Occluders in each occluded photo: LEAST,MOST (one number: that
+    /// many).
+    #[arg(long, value_delimiter = ',', default_values_t = [1, 2], requires = "occlude")]
     pub occluders_per_photo: Vec<u32>,
     /// A folder of cut-outs (images with an alpha matte) to paste instead
     /// of generated shapes.
-    #[arg(long)]
+    #[arg(long, requires = "occlude")]
     pub occluder_cutouts: Option<PathBuf>,
     #[command(flatten)]
     pub masks: MaskArgs,
@@ -381,11 +383,13 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         anyhow::ensure!(b.is_finite() && b > 0.0, "--bake must be a positive number of seconds");
     }
 
+    let occluders = a.occlude.map(|share| occluders(&a, share)).transpose()?;
+
     let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3], masks: a.masks.masks };
     let mut ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
     anyhow::ensure!(!ds.train.is_empty(), "{}: the dataset has no training views", a.data.display());
-    let occluded = match a.occlude {
-        Some(share) => occlude_photos(&mut ds, &a, share)?,
+    let occluded = match &occluders {
+        Some(o) => occlude_photos(&mut ds, o)?,
         None => Vec::new(),
     };
     anyhow::ensure!(!ds.test.is_empty(), "{}: the dataset has no test views", a.data.display());
@@ -443,17 +447,34 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
 }
 
-/// Pastes `--occlude`'s occluders into `ds`'s training photos and says
-/// where.
-fn occlude_photos(ds: &mut Dataset, a: &BenchArgs, share: f32) -> anyhow::Result<Vec<OccludedPhoto>> {
-    let range = |v: &[f32]| (v[0], *v.last().unwrap_or(&v[0]));
+/// `--occlude`'s occluders, checked (and their cut-outs read) before the
+/// dataset is loaded.
+fn occluders(a: &BenchArgs, share: f32) -> anyhow::Result<Occluders> {
+    fn range<T: Copy>(v: &[T], flag: &str) -> anyhow::Result<(T, T)> {
+        match v {
+            [one] => Ok((*one, *one)),
+            [least, most] => Ok((*least, *most)),
+            _ => anyhow::bail!("{flag} takes one number or LEAST,MOST (got {} numbers)", v.len()),
+        }
+    }
     let cutouts = match &a.occluder_cutouts {
         Some(dir) => load_cutouts(dir).with_context(|| format!("reading the cut-outs in {}", dir.display()))?,
         None => Vec::new(),
     };
-    let counts = (a.occluders_per_photo[0], *a.occluders_per_photo.last().unwrap_or(&a.occluders_per_photo[0]));
-    let o = Occluders { share, per_photo: counts, area: range(&a.occluder_area), cutouts, seed: a.seed };
-    let pasted = occlude(ds, &o).context("--occlude")?;
+    let o = Occluders {
+        share,
+        per_photo: range(&a.occluders_per_photo, "--occluders-per-photo")?,
+        area: range(&a.occluder_area, "--occluder-area")?,
+        cutouts,
+        seed: a.seed,
+    };
+    o.check().context("--occlude")?;
+    Ok(o)
+}
+
+/// Pastes occluders `o` into `ds`'s training photos and says where.
+fn occlude_photos(ds: &mut Dataset, o: &Occluders) -> anyhow::Result<Vec<OccludedPhoto>> {
+    let pasted = occlude(ds, o).context("--occlude")?;
     let photos: Vec<OccludedPhoto> =
         pasted.iter().map(|p| OccludedPhoto { name: ds.frames[p.frame].name.clone(), share: p.share() }).collect();
     let mean = photos.iter().map(|p| p.share).sum::<f64>() / photos.len().max(1) as f64;

@@ -46,6 +46,9 @@ impl Pasted {
     }
 }
 
+/// The most occluders a photo may get.
+pub const MOST_PER_PHOTO: u32 = 100;
+
 /// Occluder settings that cannot be used.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum OccludeError {
@@ -53,28 +56,42 @@ pub enum OccludeError {
     Share(f32),
     #[error("an occluder's area must be within 0 and 1 of the frame, the least first (got {0} to {1})")]
     Area(f32, f32),
-    #[error("occluders per photo must be at least 1, the least first (got {0} to {1})")]
+    #[error("occluders per photo must be from 1 to {MOST_PER_PHOTO}, the least first (got {0} to {1})")]
     PerPhoto(u32, u32),
-    #[error("cut-out {0} is empty or has no opaque pixel")]
+    #[error("cut-out {0} has no pixel at least half opaque: its alpha channel must matte an object")]
     EmptyCutout(usize),
+    #[error("cut-out {0}'s matte is too sparse: scaled to cover its area it would be {1} x {2} pixels")]
+    SparseCutout(usize, u64, u64),
+}
+
+impl Occluders {
+    /// Whether the settings can be used (every error [`occlude`] can give,
+    /// before any photo is touched).
+    pub fn check(&self) -> Result<(), OccludeError> {
+        if !(0.0..=1.0).contains(&self.share) {
+            return Err(OccludeError::Share(self.share));
+        }
+        let (a0, a1) = self.area;
+        if !(a0 > 0.0 && a0 <= a1 && a1 <= 1.0) {
+            return Err(OccludeError::Area(a0, a1));
+        }
+        let (n0, n1) = self.per_photo;
+        if n0 == 0 || n0 > n1 || n1 > MOST_PER_PHOTO {
+            return Err(OccludeError::PerPhoto(n0, n1));
+        }
+        if let Some(k) = self.cutouts.iter().position(|c| !c.rgba.chunks_exact(4).any(|p| p[3] >= 128)) {
+            return Err(OccludeError::EmptyCutout(k));
+        }
+        Ok(())
+    }
 }
 
 /// Pastes occluders into a share of `ds`'s training photos (module docs);
-/// the masks of what was pasted, by frame, ascending.
+/// the masks of what was pasted, by frame, ascending. Nothing is touched
+/// when the settings are refused.
 pub fn occlude(ds: &mut Dataset, o: &Occluders) -> Result<Vec<Pasted>, OccludeError> {
-    if !(0.0..=1.0).contains(&o.share) {
-        return Err(OccludeError::Share(o.share));
-    }
-    let (a0, a1) = o.area;
-    if !(a0 > 0.0 && a0 <= a1 && a1 <= 1.0) {
-        return Err(OccludeError::Area(a0, a1));
-    }
-    if o.per_photo.0 == 0 || o.per_photo.0 > o.per_photo.1 {
-        return Err(OccludeError::PerPhoto(o.per_photo.0, o.per_photo.1));
-    }
-    if let Some(k) = o.cutouts.iter().position(|c| alpha_area(c) <= 0.0) {
-        return Err(OccludeError::EmptyCutout(k));
-    }
+    o.check()?;
+    let cutouts: Vec<Image> = o.cutouts.iter().map(crop_to_matte).collect();
     let mut rng = Rng::new(o.seed);
     // The chosen photos: a seeded shuffle of the training split, its first
     // `share` of them.
@@ -85,20 +102,32 @@ pub fn occlude(ds: &mut Dataset, o: &Occluders) -> Result<Vec<Pasted>, OccludeEr
     let chosen = (o.share * train.len() as f32).round() as usize;
     let mut frames: Vec<usize> = train[..chosen].to_vec();
     frames.sort_unstable();
-    let mut pasted = Vec::with_capacity(frames.len());
-    for f in frames {
+    // Each chosen photo's occluders, drawn first: a sparse cut-out is
+    // refused before any photo changes.
+    let mut plans = Vec::with_capacity(frames.len());
+    for &f in &frames {
+        let (w, h) = (ds.frames[f].image.width, ds.frames[f].image.height);
+        let count = o.per_photo.0 + rng.below(u64::from(o.per_photo.1 - o.per_photo.0) + 1) as u32;
+        let mut shapes = Vec::with_capacity(count as usize);
+        for _ in 0..count {
+            let area = o.area.0 + (o.area.1 - o.area.0) * rng.f32();
+            let shape = if cutouts.is_empty() {
+                Shape::ellipse(w, h, area, &mut rng)
+            } else {
+                let k = rng.below(cutouts.len() as u64) as usize;
+                Shape::cutout(k, &cutouts[k], w, h, area)?
+            };
+            let centre = [rng.f32() * w as f32, rng.f32() * h as f32];
+            shapes.push((shape, centre));
+        }
+        plans.push((f, shapes));
+    }
+    let mut pasted = Vec::with_capacity(plans.len());
+    for (f, shapes) in plans {
         let image = &mut ds.frames[f].image;
         let mut mask = vec![0u8; image.width as usize * image.height as usize];
-        let count = o.per_photo.0 + rng.below(u64::from(o.per_photo.1 - o.per_photo.0) + 1) as u32;
-        for _ in 0..count {
-            let area = a0 + (a1 - a0) * rng.f32();
-            let occluder = if o.cutouts.is_empty() {
-                generated(image.width, image.height, area, &mut rng)
-            } else {
-                let cut = &o.cutouts[rng.below(o.cutouts.len() as u64) as usize];
-                scaled_cutout(cut, image.width, image.height, area)
-            };
-            paste(image, &mut mask, &occluder, &mut rng);
+        for (shape, centre) in &shapes {
+            paste(image, &mut mask, shape, *centre, &cutouts);
         }
         pasted.push(Pasted { frame: f, mask });
     }
@@ -126,8 +155,8 @@ pub fn load_cutouts(dir: &std::path::Path) -> Result<Vec<Image>, super::DatasetE
         .iter()
         .map(|p| {
             let img = super::images::decode_image(p, dir)?;
-            if !img.has_alpha || alpha_area(&img) <= 0.0 {
-                return Err(bad(p, "a cut-out needs an alpha channel with opaque pixels (the matte)"));
+            if !img.has_alpha || !img.rgba.chunks_exact(4).any(|px| px[3] >= 128) {
+                return Err(bad(p, "a cut-out needs an alpha channel with pixels at least half opaque (the matte)"));
             }
             Ok(img)
         })
@@ -139,100 +168,149 @@ fn alpha_area(img: &Image) -> f64 {
     img.rgba.chunks_exact(4).map(|p| f64::from(p[3]) / 255.0).sum()
 }
 
-/// A generated occluder of about `area` of a `w x h` frame: an ellipse of
-/// random proportions and turn, banded in two random colours, its edge
-/// soft over about a pixel and a half.
-fn generated(w: u32, h: u32, area: f32, rng: &mut Rng) -> Image {
-    let target = area * w as f32 * h as f32;
-    let ratio = 0.5 + 1.5 * rng.f32();
-    // pi a b = target, a = ratio b.
-    let b = (target / (std::f32::consts::PI * ratio)).sqrt();
-    let a = ratio * b;
-    let turn = std::f32::consts::PI * rng.f32();
-    let (c, s) = (turn.cos(), turn.sin());
-    let colours = [0, 1].map(|_| [rng.f32(), rng.f32(), rng.f32()].map(|v| (v * 255.0) as u8));
-    let band = 4.0 + 12.0 * rng.f32();
-    let side = (2.0 * a.max(b) + 4.0).ceil() as u32;
-    let mut rgba = vec![0u8; side as usize * side as usize * 4];
-    let centre = side as f32 / 2.0;
-    for y in 0..side {
-        for x in 0..side {
-            let (dx, dy) = (x as f32 + 0.5 - centre, y as f32 + 0.5 - centre);
-            let (u, v) = (c * dx + s * dy, -s * dx + c * dy);
-            // Distance past the edge, in pixels (about).
-            let r = ((u / a).powi(2) + (v / b).powi(2)).sqrt();
-            let past = (r - 1.0) * a.min(b);
-            let alpha = (0.5 - past / 1.5).clamp(0.0, 1.0);
-            let colour = colours[((u + a) / band) as usize % 2];
-            let p = 4 * (y as usize * side as usize + x as usize);
-            rgba[p..p + 3].copy_from_slice(&colour);
-            rgba[p + 3] = (alpha * 255.0).round() as u8;
+/// `img` cropped to the box of its pixels with any alpha (a cut-out's
+/// clear margins would otherwise be scaled with it).
+fn crop_to_matte(img: &Image) -> Image {
+    let w = img.width as usize;
+    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+    for (k, p) in img.rgba.chunks_exact(4).enumerate() {
+        if p[3] > 0 {
+            let (x, y) = (k % w, k / w);
+            (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x + 1), y1.max(y + 1));
         }
     }
-    Image { width: side, height: side, rgba, has_alpha: true }
+    if x0 >= x1 {
+        return img.clone();
+    }
+    let mut rgba = Vec::with_capacity((x1 - x0) * (y1 - y0) * 4);
+    for y in y0..y1 {
+        rgba.extend_from_slice(&img.rgba[4 * (y * w + x0)..4 * (y * w + x1)]);
+    }
+    Image { width: (x1 - x0) as u32, height: (y1 - y0) as u32, rgba, has_alpha: true }
 }
 
-/// Cut-out `cut` scaled (bilinear) so that its alpha covers about `area`
-/// of a `w x h` frame.
-fn scaled_cutout(cut: &Image, w: u32, h: u32, area: f32) -> Image {
-    let scale = ((f64::from(area) * f64::from(w) * f64::from(h)) / alpha_area(cut)).sqrt() as f32;
-    let (sw, sh) =
-        (((cut.width as f32 * scale).round() as u32).max(1), ((cut.height as f32 * scale).round() as u32).max(1));
-    let mut rgba = vec![0u8; sw as usize * sh as usize * 4];
-    let at = |x: i64, y: i64, c: usize| -> f32 {
-        let (x, y) = (x.clamp(0, cut.width as i64 - 1) as usize, y.clamp(0, cut.height as i64 - 1) as usize);
-        f32::from(cut.rgba[4 * (y * cut.width as usize + x) + c])
-    };
-    for y in 0..sh {
-        for x in 0..sw {
-            let (fx, fy) = ((x as f32 + 0.5) / scale - 0.5, (y as f32 + 0.5) / scale - 0.5);
-            let (x0, y0) = (fx.floor(), fy.floor());
-            let (tx, ty) = (fx - x0, fy - y0);
-            let (x0, y0) = (x0 as i64, y0 as i64);
-            let p = 4 * (y as usize * sw as usize + x as usize);
-            // Premultiplied, so that the clear pixels' colour does not
-            // bleed into the edge.
-            let mix = |f: &dyn Fn(i64, i64) -> f32| {
-                let top = f(x0, y0) * (1.0 - tx) + f(x0 + 1, y0) * tx;
-                let bottom = f(x0, y0 + 1) * (1.0 - tx) + f(x0 + 1, y0 + 1) * tx;
-                top * (1.0 - ty) + bottom * ty
-            };
-            let alpha = mix(&|x, y| at(x, y, 3));
-            for c in 0..3 {
-                let premultiplied = mix(&|x, y| at(x, y, c) * at(x, y, 3) / 255.0);
-                rgba[p + c] = if alpha > 0.0 { (premultiplied / alpha * 255.0).round().min(255.0) as u8 } else { 0 };
+/// One occluder, drawn pixel by pixel where it lands on the frame (it is
+/// never made whole: a large one need not fit in memory).
+enum Shape {
+    /// An ellipse with half-axes `a` and `b` (pixels), turned by `turn`,
+    /// banded in two colours every `band` pixels.
+    Ellipse { a: f32, b: f32, turn: f32, colours: [[u8; 3]; 2], band: f32 },
+    /// Cut-out `k`, scaled by `scale` to `size` pixels.
+    Cutout { k: usize, scale: f32, size: [u32; 2] },
+}
+
+impl Shape {
+    /// An ellipse of about `area` of a `w x h` frame, of random proportions,
+    /// turn and colours.
+    fn ellipse(w: u32, h: u32, area: f32, rng: &mut Rng) -> Self {
+        let target = area * w as f32 * h as f32;
+        let ratio = 0.5 + 1.5 * rng.f32();
+        // pi a b = target, a = ratio b.
+        let b = (target / (std::f32::consts::PI * ratio)).sqrt();
+        let turn = std::f32::consts::PI * rng.f32();
+        let colours = [0, 1].map(|_| [rng.f32(), rng.f32(), rng.f32()].map(|v| (v * 255.0) as u8));
+        Shape::Ellipse { a: ratio * b, b, turn, colours, band: 4.0 + 12.0 * rng.f32() }
+    }
+
+    /// Cut-out `k` (`cut`) scaled so that its alpha covers about `area` of
+    /// a `w x h` frame; refused when that is more than four frames of
+    /// pixels.
+    fn cutout(k: usize, cut: &Image, w: u32, h: u32, area: f32) -> Result<Self, OccludeError> {
+        let scale = ((f64::from(area) * f64::from(w) * f64::from(h)) / alpha_area(cut)).sqrt();
+        let (sw, sh) =
+            ((f64::from(cut.width) * scale).round().max(1.0), (f64::from(cut.height) * scale).round().max(1.0));
+        if sw * sh > 4.0 * f64::from(w) * f64::from(h) {
+            return Err(OccludeError::SparseCutout(k, sw as u64, sh as u64));
+        }
+        Ok(Shape::Cutout { k, scale: scale as f32, size: [sw as u32, sh as u32] })
+    }
+
+    /// Width and height of the box the shape fills (pixels).
+    fn size(&self) -> [f32; 2] {
+        match self {
+            // The bounding box of the turned ellipse, and a margin for its
+            // soft edge.
+            Shape::Ellipse { a, b, turn, .. } => {
+                let (c, s) = (turn.cos(), turn.sin());
+                [2.0 * (a * a * c * c + b * b * s * s).sqrt() + 4.0, 2.0 * (a * a * s * s + b * b * c * c).sqrt() + 4.0]
             }
-            rgba[p + 3] = alpha.round() as u8;
+            Shape::Cutout { size, .. } => [size[0] as f32, size[1] as f32],
         }
     }
-    Image { width: sw, height: sh, rgba, has_alpha: true }
+
+    /// The shape's colour and alpha (0-1) at `(x, y)` pixels from its box's
+    /// centre.
+    fn at(&self, x: f32, y: f32, cutouts: &[Image]) -> ([f32; 3], f32) {
+        match self {
+            Shape::Ellipse { a, b, turn, colours, band } => {
+                let (c, s) = (turn.cos(), turn.sin());
+                let (u, v) = (c * x + s * y, -s * x + c * y);
+                // Distance past the edge, in pixels (about); soft over one
+                // and a half.
+                let past = (((u / a).powi(2) + (v / b).powi(2)).sqrt() - 1.0) * a.min(*b);
+                let alpha = (0.5 - past / 1.5).clamp(0.0, 1.0);
+                let colour = colours[((u + a) / band).max(0.0) as usize % 2];
+                (colour.map(f32::from), alpha)
+            }
+            Shape::Cutout { k, scale, size } => {
+                let cut = &cutouts[*k];
+                // Bilinear, premultiplied: the clear pixels' colour does not
+                // bleed into the edge.
+                let fx = (x + size[0] as f32 / 2.0) / scale - 0.5;
+                let fy = (y + size[1] as f32 / 2.0) / scale - 0.5;
+                let (x0, y0) = (fx.floor(), fy.floor());
+                let (tx, ty) = (fx - x0, fy - y0);
+                let (x0, y0) = (x0 as i64, y0 as i64);
+                let px = |x: i64, y: i64| -> [f32; 4] {
+                    let (x, y) =
+                        (x.clamp(0, cut.width as i64 - 1) as usize, y.clamp(0, cut.height as i64 - 1) as usize);
+                    let p = &cut.rgba[4 * (y * cut.width as usize + x)..][..4];
+                    let a = f32::from(p[3]) / 255.0;
+                    [f32::from(p[0]) * a, f32::from(p[1]) * a, f32::from(p[2]) * a, a]
+                };
+                let corners = [
+                    (px(x0, y0), (1.0 - tx) * (1.0 - ty)),
+                    (px(x0 + 1, y0), tx * (1.0 - ty)),
+                    (px(x0, y0 + 1), (1.0 - tx) * ty),
+                    (px(x0 + 1, y0 + 1), tx * ty),
+                ];
+                let mut sum = [0.0f32; 4];
+                for (p, wt) in corners {
+                    for c in 0..4 {
+                        sum[c] += wt * p[c];
+                    }
+                }
+                let alpha = sum[3];
+                let colour = if alpha > 0.0 { [sum[0] / alpha, sum[1] / alpha, sum[2] / alpha] } else { [0.0; 3] };
+                (colour.map(|c| c.min(255.0)), alpha.clamp(0.0, 1.0))
+            }
+        }
+    }
 }
 
-/// Pastes `occluder` over `image` (alpha over), its centre at a random
-/// point of the frame, and marks where it covers at least half in `mask`.
-fn paste(image: &mut Image, mask: &mut [u8], occluder: &Image, rng: &mut Rng) {
-    let (w, h) = (image.width as i64, image.height as i64);
-    let cx = (rng.f32() * w as f32) as i64 - occluder.width as i64 / 2;
-    let cy = (rng.f32() * h as f32) as i64 - occluder.height as i64 / 2;
-    for oy in 0..occluder.height as i64 {
-        for ox in 0..occluder.width as i64 {
-            let (x, y) = (cx + ox, cy + oy);
-            if x < 0 || y < 0 || x >= w || y >= h {
-                continue;
-            }
-            let q = 4 * (oy as usize * occluder.width as usize + ox as usize);
-            let alpha = f32::from(occluder.rgba[q + 3]) / 255.0;
+/// Pastes `shape` over `image` (straight alpha, over), its box centred at
+/// `centre` (pixels), and marks where it covers at least half in `mask`.
+/// Only the pixels within the frame are visited.
+fn paste(image: &mut Image, mask: &mut [u8], shape: &Shape, centre: [f32; 2], cutouts: &[Image]) {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let [sw, sh] = shape.size();
+    let x0 = (centre[0] - sw / 2.0).floor().max(0.0) as usize;
+    let y0 = (centre[1] - sh / 2.0).floor().max(0.0) as usize;
+    let x1 = ((centre[0] + sw / 2.0).ceil().max(0.0) as usize).min(w);
+    let y1 = ((centre[1] + sh / 2.0).ceil().max(0.0) as usize).min(h);
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let (colour, alpha) = shape.at(x as f32 + 0.5 - centre[0], y as f32 + 0.5 - centre[1], cutouts);
             if alpha <= 0.0 {
                 continue;
             }
-            let k = y as usize * w as usize + x as usize;
+            let k = y * w + x;
             let p = 4 * k;
-            // Straight (not premultiplied) alpha, over.
             let under = f32::from(image.rgba[p + 3]) / 255.0 * (1.0 - alpha);
             let a = alpha + under;
             for c in 0..3 {
-                let over = alpha * f32::from(occluder.rgba[q + c]) + under * f32::from(image.rgba[p + c]);
-                image.rgba[p + c] = (over / a).round() as u8;
+                let over = alpha * colour[c] + under * f32::from(image.rgba[p + c]);
+                image.rgba[p + c] = (over / a).round().min(255.0) as u8;
             }
             image.rgba[p + 3] = (a * 255.0).round() as u8;
             if alpha >= 0.5 {
@@ -268,9 +346,8 @@ mod tests {
                     // past its edges.
                     let share = p.share();
                     assert!(share > 0.02 && share < 0.12, "frame {f}: {share}");
-                    // Every pixel the mask marks changed or was already the
-                    // occluder's colour; every unmarked pixel that changed is
-                    // on the soft edge (beside a marked one).
+                    // Every unmarked pixel that changed is on the soft edge
+                    // (beside a marked one).
                     let w = a.image.width as usize;
                     for (k, (pa, pb)) in a.image.rgba.chunks(4).zip(b.image.rgba.chunks(4)).enumerate() {
                         if pa != pb && p.mask[k] == 0 {
@@ -290,34 +367,100 @@ mod tests {
         assert_ne!(occlude(&mut other, &Occluders { seed: 1, ..o.clone() }).unwrap(), pasted);
     }
 
-    #[test]
-    fn a_cutout_is_scaled_to_the_asked_area_and_pasted_through_its_matte() {
-        // A 10x10 cut-out, opaque red in its left half, clear in its right.
-        let mut rgba = vec![0u8; 400];
-        for k in 0..100 {
-            if k % 10 < 5 {
-                rgba[4 * k..4 * k + 4].copy_from_slice(&[255, 0, 0, 255]);
-            }
+    /// A 10x10 cut-out: opaque red in its left half, clear green in its
+    /// right (a colour that must not bleed into the edge).
+    fn half_red() -> Image {
+        let mut rgba = [0u8, 255, 0, 0].repeat(100);
+        for k in (0..100).filter(|k| k % 10 < 5) {
+            rgba[4 * k..4 * k + 4].copy_from_slice(&[255, 0, 0, 255]);
         }
-        let cut = Image { width: 10, height: 10, rgba, has_alpha: true };
-        let scaled = scaled_cutout(&cut, 100, 100, 0.08);
-        // 800 px of alpha: 50 x scale^2 = 800, scale 4.
-        assert_eq!((scaled.width, scaled.height), (40, 40));
-        assert!((alpha_area(&scaled) - 800.0).abs() < 40.0, "{}", alpha_area(&scaled));
+        Image { width: 10, height: 10, rgba, has_alpha: true }
+    }
+
+    #[test]
+    fn a_cutout_is_cropped_scaled_to_the_asked_area_and_pasted_through_its_matte() {
+        let cut = crop_to_matte(&half_red());
+        assert_eq!((cut.width, cut.height), (5, 10));
+        // 800 px of alpha in a 100x100 frame: 50 x scale^2 = 800, scale 4.
+        match Shape::cutout(0, &cut, 100, 100, 0.08).unwrap() {
+            Shape::Cutout { scale, size, .. } => assert_eq!((scale, size), (4.0, [20, 40])),
+            Shape::Ellipse { .. } => unreachable!(),
+        }
         let mut ds = scene();
-        let o =
-            Occluders { share: 1.0, per_photo: (2, 2), area: (0.05, 0.05), cutouts: vec![cut], ..Default::default() };
+        let clean = ds.clone();
+        let o = Occluders {
+            share: 1.0,
+            per_photo: (2, 2),
+            area: (0.05, 0.05),
+            cutouts: vec![half_red()],
+            ..Default::default()
+        };
         let pasted = occlude(&mut ds, &o).unwrap();
         assert_eq!(pasted.len(), ds.train.len());
+        let mut over_clear = 0;
         for p in &pasted {
-            let img = &ds.frames[p.frame].image;
-            // Where the mask marks, the pixel is the cut-out's red.
-            for (k, _) in p.mask.iter().enumerate().filter(|(_, m)| **m == 255) {
-                let px = &img.rgba[4 * k..4 * k + 3];
-                assert!(px[0] >= 128 && px[1] <= 128 && px[2] <= 128, "frame {}: {px:?}", p.frame);
-            }
+            let (img, was) = (&ds.frames[p.frame].image, &clean.frames[p.frame].image);
             assert!(p.share() > 0.0);
+            for (k, _) in p.mask.iter().enumerate().filter(|(_, m)| **m == 255) {
+                let px = &img.rgba[4 * k..4 * k + 4];
+                assert!(px[0] >= 128 && px[1] <= 128 && px[2] <= 128, "frame {}: {px:?}", p.frame);
+                // Over a clear pixel of the photo, the cut-out's own colour:
+                // red, with no green from its clear half even at its edge.
+                if was.rgba[4 * k + 3] == 0 {
+                    assert_eq!(&px[..3], &[255, 0, 0], "frame {}: {px:?}", p.frame);
+                    over_clear += 1;
+                }
+            }
         }
+        assert!(over_clear > 0, "no cut-out fell on the ball scene's clear background");
+    }
+
+    #[test]
+    fn a_sparse_or_clear_cutout_is_refused_and_leaves_the_photos_alone() {
+        // Two opaque pixels in opposite corners of 100x100: a fifth of a
+        // 48x48 frame would take a cut-out of thousands of pixels a side.
+        let mut rgba = vec![0u8; 4 * 100 * 100];
+        rgba[3] = 255;
+        rgba[4 * 9999 + 3] = 255;
+        let sparse = Image { width: 100, height: 100, rgba, has_alpha: true };
+        let mut ds = scene();
+        let clean = ds.clone();
+        let o = Occluders { share: 1.0, cutouts: vec![half_red(), sparse], ..Default::default() };
+        let e = occlude(&mut ds, &o).unwrap_err();
+        assert!(matches!(e, OccludeError::SparseCutout(1, _, _)), "{e}");
+        assert!(ds.frames.iter().zip(&clean.frames).all(|(a, b)| a.image.rgba == b.image.rgba));
+        // A matte never half opaque marks nothing: refused too.
+        let faint = Image { width: 2, height: 2, rgba: [9, 9, 9, 100].repeat(4), has_alpha: true };
+        let e = occlude(&mut ds, &Occluders { cutouts: vec![faint], ..Default::default() }).unwrap_err();
+        assert_eq!(e, OccludeError::EmptyCutout(0));
+    }
+
+    #[test]
+    fn cutouts_are_read_from_a_folder_and_bad_ones_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let save = |name: &str, img: &Image| {
+            image::RgbaImage::from_raw(img.width, img.height, img.rgba.clone())
+                .unwrap()
+                .save(dir.path().join(name))
+                .unwrap()
+        };
+        save("a.png", &half_red());
+        std::fs::write(dir.path().join("notes.txt"), "not an image").unwrap();
+        let read = load_cutouts(dir.path()).unwrap();
+        assert_eq!(read, vec![half_red()]);
+        // An image without alpha is named.
+        image::RgbImage::new(4, 4).save(dir.path().join("b.png")).unwrap();
+        let e = load_cutouts(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("b.png") && e.contains("alpha"), "{e}");
+        // A broken PNG is named.
+        std::fs::remove_file(dir.path().join("b.png")).unwrap();
+        std::fs::write(dir.path().join("c.png"), b"\x89PNG broken").unwrap();
+        let e = load_cutouts(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("c.png"), "{e}");
+        // A folder without images, or none at all.
+        let empty = tempfile::tempdir().unwrap();
+        assert!(load_cutouts(empty.path()).unwrap_err().to_string().contains("no cut-out images"));
+        assert!(load_cutouts(&empty.path().join("missing")).is_err());
     }
 
     #[test]
@@ -328,6 +471,7 @@ mod tests {
         assert!(bad(Occluders { area: (0.3, 0.1), ..Default::default() }).contains("area"));
         assert!(bad(Occluders { area: (0.0, 0.1), ..Default::default() }).contains("area"));
         assert!(bad(Occluders { per_photo: (0, 2), ..Default::default() }).contains("per photo"));
+        assert!(bad(Occluders { per_photo: (1, MOST_PER_PHOTO + 1), ..Default::default() }).contains("per photo"));
         let clear = Image { width: 2, height: 2, rgba: vec![0; 16], has_alpha: true };
         assert!(bad(Occluders { cutouts: vec![clear], ..Default::default() }).contains("cut-out 0"));
         // Refused settings leave the photos alone.
