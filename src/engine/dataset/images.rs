@@ -28,6 +28,20 @@ pub(super) fn has_image_extension(path: &Path) -> bool {
         .is_some_and(|e| IMAGE_EXTENSIONS.iter().any(|x| e.eq_ignore_ascii_case(x)))
 }
 
+/// The image files of folder `dir` (by [`has_image_extension`]), by name.
+pub(super) fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
+    let io = |e| DatasetError::Io { path: dir.to_path_buf(), source: e };
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(io)? {
+        let p = entry.map_err(io)?.path();
+        if has_image_extension(&p) && p.is_file() {
+            files.push(p);
+        }
+    }
+    files.sort_by(|a, b| a.file_name().cmp(&b.file_name()));
+    Ok(files)
+}
+
 /// Reads and decodes one image. `referenced_by` is the file that named it
 /// (for the error when it is missing).
 pub(super) fn decode_image(path: &Path, referenced_by: &Path) -> Result<Image, DatasetError> {

@@ -19,7 +19,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::images::{decode_all, has_image_extension};
+use super::images::{decode_all, list_images};
 use super::npy::{NpyArray, parse_npy};
 use super::validate::{check_pose, check_shared_size, unsplit};
 use super::{Dataset, DatasetError, DatasetFormat, Frame, LoadOptions};
@@ -152,19 +152,6 @@ fn frames(
         frames.push(Frame { name, path, camera, image, mask: None });
     }
     Ok((frames, warnings))
-}
-
-fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
-    let io = |e| DatasetError::Io { path: dir.to_path_buf(), source: e };
-    let mut files = Vec::new();
-    for entry in std::fs::read_dir(dir).map_err(io)? {
-        let p = entry.map_err(io)?.path();
-        if has_image_extension(&p) && p.is_file() {
-            files.push(p);
-        }
-    }
-    files.sort_by(|a, b| a.file_name().cmp(&b.file_name()));
-    Ok(files)
 }
 
 /// Splits one row into the pose (reordered to OpenGL axes), `H`, `W`,

@@ -65,8 +65,9 @@ pub enum OccludeError {
 }
 
 impl Occluders {
-    /// Whether the settings can be used (every error [`occlude`] can give,
-    /// before any photo is touched).
+    /// Whether the settings can be used: every error [`occlude`] can give
+    /// but [`OccludeError::SparseCutout`], which depends on the photos'
+    /// sizes.
     pub fn check(&self) -> Result<(), OccludeError> {
         if !(0.0..=1.0).contains(&self.share) {
             return Err(OccludeError::Share(self.share));
@@ -79,7 +80,7 @@ impl Occluders {
         if n0 == 0 || n0 > n1 || n1 > MOST_PER_PHOTO {
             return Err(OccludeError::PerPhoto(n0, n1));
         }
-        if let Some(k) = self.cutouts.iter().position(|c| !c.rgba.chunks_exact(4).any(|p| p[3] >= 128)) {
+        if let Some(k) = self.cutouts.iter().position(|c| !has_matte(c)) {
             return Err(OccludeError::EmptyCutout(k));
         }
         Ok(())
@@ -137,13 +138,7 @@ pub fn occlude(ds: &mut Dataset, o: &Occluders) -> Result<Vec<Pasted>, OccludeEr
 /// The cut-outs in folder `dir`: its images (by name), each with an alpha
 /// channel that mattes the object.
 pub fn load_cutouts(dir: &std::path::Path) -> Result<Vec<Image>, super::DatasetError> {
-    let io = |e: std::io::Error| super::DatasetError::Io { path: dir.to_path_buf(), source: e };
-    let mut paths: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
-        .map_err(io)?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| super::images::has_image_extension(p))
-        .collect();
-    paths.sort();
+    let paths = super::images::list_images(dir)?;
     let bad = |p: &std::path::Path, message: &str| super::DatasetError::BadImage {
         path: p.to_path_buf(),
         message: message.into(),
@@ -155,12 +150,18 @@ pub fn load_cutouts(dir: &std::path::Path) -> Result<Vec<Image>, super::DatasetE
         .iter()
         .map(|p| {
             let img = super::images::decode_image(p, dir)?;
-            if !img.has_alpha || !img.rgba.chunks_exact(4).any(|px| px[3] >= 128) {
+            if !img.has_alpha || !has_matte(&img) {
                 return Err(bad(p, "a cut-out needs an alpha channel with pixels at least half opaque (the matte)"));
             }
             Ok(img)
         })
         .collect()
+}
+
+/// Whether some pixel of `img` is at least half opaque: a cut-out's
+/// matte marks only those (`Pasted::mask`).
+fn has_matte(img: &Image) -> bool {
+    img.rgba.chunks_exact(4).any(|p| p[3] >= 128)
 }
 
 /// The sum of an image's alpha, in pixels.
