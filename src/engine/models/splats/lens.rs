@@ -27,15 +27,19 @@ pub fn pinhole_around(camera: &Camera) -> Camera {
     // A wild distortion's edge may run off: the size is capped below, and
     // the pixels past it are filled.
     let lo = [lo[0].max(-2.0 * w / fx), lo[1].max(-2.0 * h / fy)];
-    let width = ((hi[0] - lo[0]) * fx).ceil() as u32 + 3;
-    let height = ((hi[1] - lo[1]) * fy).ceil() as u32 + 3;
+    // The principal point moves by whole pixels, so that where the lens
+    // hardly distorts (the centre) a pixel reads one pinhole pixel, not the
+    // mean of four: a fractional shift blurs every view by half a pixel.
+    let shift = [(-lo[0] * fx + 1.5 - camera.cx).ceil(), (-lo[1] * fy + 1.5 - camera.cy).ceil()];
+    let width = ((hi[0] - lo[0]) * fx).ceil() as u32 + 4;
+    let height = ((hi[1] - lo[1]) * fy).ceil() as u32 + 4;
     Camera {
         width: width.min(2 * camera.width),
         height: height.min(2 * camera.height),
         fx,
         fy,
-        cx: -lo[0] * fx + 1.5,
-        cy: -lo[1] * fy + 1.5,
+        cx: camera.cx + shift[0],
+        cy: camera.cy + shift[1],
         distortion: Distortion::default(),
         c2w: camera.c2w,
     }
@@ -174,6 +178,23 @@ mod tests {
         let want = of_direction(&cam, true);
         let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
         assert!(worst < 2e-3, "worst difference {worst}");
+    }
+
+    #[test]
+    fn where_the_lens_hardly_distorts_a_pixel_reads_one_pinhole_pixel() {
+        let cam = distorted();
+        let pin = pinhole_around(&cam);
+        let at = Resampling::new(&cam, &pin);
+        // The pixel at the principal point: its ray is undistorted, so it
+        // lands on a pinhole pixel's centre (a bilinear read of one pixel),
+        // not between pixels (the mean of up to four: a blur).
+        let (i, j) = (cam.cx.floor() as usize, cam.cy.floor() as usize);
+        let [u, v] = at.at[j * cam.width as usize + i];
+        let off = |p: f32| (p - 0.5 - (p - 0.5).round()).abs();
+        let (du, dv) = ((i as f32 + 0.5 - cam.cx) / cam.fx, (j as f32 + 0.5 - cam.cy) / cam.fy);
+        // Near the centre the distortion moves a pixel by under 1e-2 px.
+        assert!(du.abs() < 0.02 && dv.abs() < 0.02);
+        assert!(off(u) < 0.01 && off(v) < 0.01, "pixel ({i}, {j}) reads the pinhole image at ({u}, {v})");
     }
 
     #[test]
