@@ -362,3 +362,34 @@ fn a_served_log_in_a_file_has_no_colour_codes() {
     assert!(text.contains("INFO") && text.contains("listening"), "the log has its lines: {text}");
     assert!(!text.contains('\u{1b}'), "colour codes in a log file: {text:?}");
 }
+
+/// `--drop-transients`: refused for a model that cannot find transients
+/// (nothing written); with `bench --occlude`, the masks found are scored
+/// against the pasted ones, printed and kept in the JSON report.
+#[test]
+fn drop_transients_on_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("ball");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_blender(&data).unwrap();
+    let model = dir.path().join("m.ckpt");
+    let (d, m) = (data.to_str().unwrap(), model.to_str().unwrap());
+    let out = radiance(&["train", "--data", d, "--model", "instant", "--steps", "2", "--drop-transients", "--out", m]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--drop-transients needs a capture model"), "{err}");
+    assert!(!model.exists());
+
+    let json = dir.path().join("bench.json");
+    let args = ["bench", "--data", d, "--model", "capture-tiny", "--budgets", "0.5", "--test-views", "1"];
+    let more = ["--occlude", "0.5", "--drop-transients", "--json", json.to_str().unwrap()];
+    let out = ok(&radiance(&[&args[..], &more[..]].concat()));
+    assert!(out.contains("transient masks: ") && out.contains("% of the static pixels"), "{out}");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let found = &report["found"];
+    for key in ["recall", "static_share"] {
+        let v = found[key].as_f64().unwrap_or(-1.0);
+        assert!((0.0..=1.0).contains(&v), "{key}: {found}");
+    }
+    // Without the flag, nothing is scored.
+    let out = ok(&radiance(&[&args[..], &["--occlude", "0.5"]].concat()));
+    assert!(!out.contains("transient masks"), "{out}");
+}

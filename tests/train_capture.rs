@@ -188,3 +188,91 @@ fn appearance_embeddings_explain_exposure_changes() {
         assert!(with > with_mean + 2.0, "seed {seed}: {with:.2} dB nearest, {with_mean:.2} dB with the mean");
     }
 }
+
+/// What robust training found and scored, on one dataset.
+struct Robust {
+    psnr: f64,
+    /// Shares of the pasted pixels, and of the others, found transient.
+    recall: f64,
+    static_share: f64,
+}
+
+/// 600 steps of `capture-tiny` on `ds` (its transient cells dropped or
+/// kept), scored on the clean held-out views; the masks found against
+/// `pasted`.
+fn robust_run(ds: &Dataset, pasted: &[radiance::engine::dataset::occlude::Pasted], drop: bool) -> Robust {
+    let config = ModelConfig::preset("capture-tiny").unwrap();
+    let (model, adam) = config.build_with_adam(ds.scene(), 1, None).unwrap();
+    let mut train = config.train_config(1, 1024, Budget { steps: Some(600), seconds: None });
+    train.drop_transients = drop;
+    let mut t = Trainer::new(model, adam, train, TrainState::default(), ds);
+    t.run(&AtomicBool::new(false), |_, _| true);
+    let (mut hit, mut wrong, mut truth, mut other) = (0u64, 0u64, 0u64, 0u64);
+    if let Some(maps) = &t.transients {
+        for (k, &f) in ds.train.iter().enumerate() {
+            let cam = &ds.frames[f].camera;
+            let mask = maps.mask(k, cam.width, cam.height);
+            let pasted = pasted.iter().find(|p| p.frame == f);
+            for (i, &m) in mask.iter().enumerate() {
+                let is = pasted.is_some_and(|p| p.mask[i] == 255);
+                (truth, other) = (truth + is as u64, other + !is as u64);
+                (hit, wrong) = (hit + (m && is) as u64, wrong + (m && !is) as u64);
+            }
+        }
+    }
+    assert_eq!(t.transients.is_some(), drop);
+    Robust {
+        psnr: held_out_psnr(&*t.model, ds),
+        recall: hit as f64 / truth.max(1) as f64,
+        static_share: wrong as f64 / other.max(1) as f64,
+    }
+}
+
+/// Occluders pasted into a third of the training photos (one or two each,
+/// 5-20% of the frame: shapes of one colour, the held-out views clean) pull
+/// the field towards them; robust training finds part of their pixels and
+/// little of the static scene, and does not score worse on the clean
+/// held-out views than training on every pixel. On the clean photos it
+/// finds nothing to drop and scores as training on every pixel does.
+/// Observed (seed 1): every pixel 20.03 dB, robust 20.10 dB, 36.4% of the
+/// occluders' pixels found, 0.38% of the static ones; clean 24.10 dB both,
+/// nothing dropped. (The ring's neighbouring cameras are 10 degrees apart,
+/// so the 4-pixel cells of these 64x48 photos match their neighbours'
+/// loosely: the real captures find more, `docs/design/transients.md`.)
+#[test]
+fn robust_training_finds_pasted_occluders_and_leaves_a_clean_capture_alone() {
+    use radiance::engine::dataset::occlude::{Occluders, occlude};
+    let clean = {
+        let mut ds = TexturedScene { width: 64, height: 48, views: 36, fov: 0.9 }.dataset();
+        let n = ds.frames.len();
+        ds.test = (0..n).filter(|k| k % 6 == 3).collect();
+        ds.val = ds.test.clone();
+        ds.train = (0..n).filter(|k| k % 6 != 3).collect();
+        ds
+    };
+    let mut occluded = clean.clone();
+    let o = Occluders { share: 0.3, per_photo: (1, 2), area: (0.05, 0.2), cutouts: Vec::new(), seed: 2 };
+    let pasted = occlude(&mut occluded, &o).unwrap();
+    let (kept, dropped) = (robust_run(&occluded, &pasted, false), robust_run(&occluded, &pasted, true));
+    let (clean_kept, clean_dropped) = (robust_run(&clean, &[], false), robust_run(&clean, &[], true));
+    eprintln!(
+        "held-out PSNR: occluded, every pixel {:.2} dB, robust {:.2} dB (found {:.1}% of the occluders, {:.2}% of \
+         the static pixels); clean, every pixel {:.2} dB, robust {:.2} dB ({:.2}% dropped)",
+        kept.psnr,
+        dropped.psnr,
+        100.0 * dropped.recall,
+        100.0 * dropped.static_share,
+        clean_kept.psnr,
+        clean_dropped.psnr,
+        100.0 * clean_dropped.static_share
+    );
+    assert!(
+        dropped.recall > 0.25 && dropped.static_share < 0.01,
+        "recall {} static {}",
+        dropped.recall,
+        dropped.static_share
+    );
+    assert!(dropped.psnr > kept.psnr - 0.1, "robust {} every pixel {}", dropped.psnr, kept.psnr);
+    assert!(clean_dropped.static_share < 0.002, "{}", clean_dropped.static_share);
+    assert!((clean_dropped.psnr - clean_kept.psnr).abs() < 0.1, "{} {}", clean_dropped.psnr, clean_kept.psnr);
+}

@@ -105,6 +105,32 @@ pub struct MaskArgs {
     pub masks: crate::engine::front::MaskUse,
 }
 
+/// Transient occluders in the training photos (`train`, `bench`).
+#[derive(Args, Debug, Clone, Default)]
+pub struct TransientArgs {
+    /// Find transient occluders (something in a few photos only: a
+    /// passer-by, a hand) from the training errors and stop training on
+    /// them (`capture` models).
+    #[arg(long)]
+    pub drop_transients: bool,
+}
+
+impl TransientArgs {
+    /// `config` (of a model of kind `kind`) as these arguments ask; a model
+    /// that cannot find transients is refused.
+    pub fn apply(
+        &self,
+        kind: &str,
+        config: crate::engine::front::TrainConfig,
+    ) -> anyhow::Result<crate::engine::front::TrainConfig> {
+        anyhow::ensure!(
+            !self.drop_transients || kind == crate::engine::front::CAPTURE_KIND,
+            "--drop-transients needs a capture model (this one is {kind})"
+        );
+        Ok(crate::engine::front::TrainConfig { drop_transients: self.drop_transients, ..config })
+    }
+}
+
 /// The appearance of a capture model's views (`render`, `eval`, `bench`).
 #[derive(Args, Debug, Clone)]
 pub struct AppearanceArgs {

@@ -10,7 +10,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam, resolve_model};
-use super::{Common, MaskArgs};
+use super::{Common, MaskArgs, TransientArgs};
 use crate::engine::front::{
     AUTO, BakeSettings, Budget, Checkpoint, DataSize, Dataset, Event, LoadOptions, MASK_INSIDE, MaskUse, ModelChoice,
     ModelConfig, Session, SessionConfig, Split, Start, Stop, TrainConfig, estimate_training, mib,
@@ -73,6 +73,8 @@ pub struct TrainArgs {
     pub out: PathBuf,
     #[command(flatten)]
     pub masks: MaskArgs,
+    #[command(flatten)]
+    pub transients: TransientArgs,
     #[command(flatten)]
     pub common: Common,
 }
@@ -170,7 +172,10 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
     }
     let budget = Budget { steps: None, seconds: Some(field_seconds) };
     let (config, model, adam) = new_model_and_adam(&kind, ds.scene(), a.seed, true, a.lr, &[])?;
-    let train = TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) };
+    let train = a.transients.apply(
+        config.kind(),
+        TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) },
+    )?;
     let config = SessionConfig { train, out: field_out, checkpoint_every: a.checkpoint_every, held_out: None };
     let mut session = Session::new(Start::Fresh { model, adam }, config.clone(), ds)?;
     describe(a, &session, ds, threads);
@@ -247,7 +252,10 @@ fn open_session<'a>(
     ds: &'a Dataset,
 ) -> anyhow::Result<Session<'a>> {
     let config = model_config(kind, !a.no_skip, &a.set)?;
-    let train = TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) };
+    let train = a.transients.apply(
+        config.kind(),
+        TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) },
+    )?;
     let start = match &a.resume {
         Some(p) => Start::Resume { from: p.clone(), kind: Some(config.kind().to_string()) },
         None => {

@@ -15,6 +15,9 @@ pub struct TrainRay {
     /// The dataset frame the ray comes from (fields with per-image
     /// appearance read it).
     pub image: u32,
+    /// The weight of the ray's colour loss: 1, or 0 where training found a
+    /// transient occluder (`train::transient`).
+    pub weight: f32,
 }
 
 /// Per-step context for a batch.

@@ -70,7 +70,14 @@ fn odd_world_rays_render_finite_pixels() {
         let train: Vec<TrainRay> = rays
             .iter()
             .enumerate()
-            .map(|(i, &ray)| TrainRay { ray, target: [0.2; 3], background: [1.0; 3], index: i as u64, image: 0 })
+            .map(|(i, &ray)| TrainRay {
+                ray,
+                target: [0.2; 3],
+                background: [1.0; 3],
+                index: i as u64,
+                image: 0,
+                weight: 1.0,
+            })
             .collect();
         let mut g = vec![0.0; model.params().len()];
         let s = model.train_rays(&train, &StepCtx { seed: 1, step: 0, batch_rays: train.len() }, &mut g);

@@ -13,10 +13,10 @@ use serde::{Deserialize, Serialize};
 
 use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
-use super::{AppearanceArgs, Common, MaskArgs};
+use super::{AppearanceArgs, Common, MaskArgs, TransientArgs};
 use crate::engine::front::{
     BakeSettings, Budget, CAPTURE_KIND, Dataset, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig, Occluders,
-    Progress, Split, StopReason, TrainState, Trainer, bake, load_cutouts, occlude, write_atomic,
+    Pasted, Progress, Split, StopReason, TrainState, Trainer, bake, load_cutouts, occlude, write_atomic,
 };
 use crate::system::{peak_memory, reset_peak_memory};
 
@@ -76,6 +76,8 @@ pub struct BenchArgs {
     pub occluder_cutouts: Option<PathBuf>,
     #[command(flatten)]
     pub masks: MaskArgs,
+    #[command(flatten)]
+    pub transients: TransientArgs,
     #[command(flatten)]
     pub appearance: AppearanceArgs,
     #[command(flatten)]
@@ -168,7 +170,20 @@ pub struct BenchReport {
     /// With `--occlude`: each occluded photo and the share of it covered.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub occluded: Vec<OccludedPhoto>,
+    /// With robust training: the transient masks found, against those
+    /// pasted (none pasted: how much of the static scene was dropped).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub found: Option<FoundMasks>,
     pub rows: Vec<BenchRow>,
+}
+
+/// The transient masks robust training found, against the pasted ones.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct FoundMasks {
+    /// Share of the pasted occluders' pixels found transient.
+    pub recall: f64,
+    /// Share of the other pixels (the static scene) found transient.
+    pub static_share: f64,
 }
 
 /// A photo `--occlude` pasted into.
@@ -388,9 +403,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3], masks: a.masks.masks };
     let mut ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
     anyhow::ensure!(!ds.train.is_empty(), "{}: the dataset has no training views", a.data.display());
-    let occluded = match &occluders {
+    let (occluded, pasted) = match &occluders {
         Some(o) => occlude_photos(&mut ds, o)?,
-        None => Vec::new(),
+        None => (Vec::new(), Vec::new()),
     };
     anyhow::ensure!(!ds.test.is_empty(), "{}: the dataset has no test views", a.data.display());
     for w in &ds.warnings {
@@ -422,6 +437,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         masks: (ds.masks != MaskUse::Off).then_some(ds.masks),
         model_choice,
         occluded,
+        found: None,
         test_views: views.len(),
         rows: Vec::new(),
     };
@@ -429,7 +445,16 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let with_mean = kinds.iter().any(|m| ModelConfig::preset(m).is_some_and(|c| c.kind() == CAPTURE_KIND));
     println!("{}", header(ds.masks != MaskUse::Off, with_mean));
     for kind in &kinds {
-        let run = Run { args: &a, ds: &ds, views: &views, budgets: &budgets, threads, cancel: &cancel, with_mean };
+        let run = Run {
+            args: &a,
+            ds: &ds,
+            views: &views,
+            budgets: &budgets,
+            threads,
+            cancel: &cancel,
+            with_mean,
+            pasted: &pasted,
+        };
         if let Err(e) = run.model(kind, &mut report) {
             failure = Some(e);
             break;
@@ -473,7 +498,7 @@ fn occluders(a: &BenchArgs, share: f32) -> anyhow::Result<Occluders> {
 }
 
 /// Pastes occluders `o` into `ds`'s training photos and says where.
-fn occlude_photos(ds: &mut Dataset, o: &Occluders) -> anyhow::Result<Vec<OccludedPhoto>> {
+fn occlude_photos(ds: &mut Dataset, o: &Occluders) -> anyhow::Result<(Vec<OccludedPhoto>, Vec<Pasted>)> {
     let pasted = occlude(ds, o).context("--occlude")?;
     let photos: Vec<OccludedPhoto> =
         pasted.iter().map(|p| OccludedPhoto { name: ds.frames[p.frame].name.clone(), share: p.share() }).collect();
@@ -484,7 +509,35 @@ fn occlude_photos(ds: &mut Dataset, o: &Occluders) -> anyhow::Result<Vec<Occlude
         ds.train.len(),
         100.0 * mean
     );
-    Ok(photos)
+    Ok((photos, pasted))
+}
+
+/// How the transient masks training found compare with the occluders
+/// pasted: the share of the pasted pixels they cover (recall), and of the
+/// other pixels of every training photo (the static scene).
+fn score_found(trainer: &Trainer, ds: &Dataset, pasted: &[Pasted]) -> Option<FoundMasks> {
+    let maps = trainer.transients.as_ref()?;
+    let (mut hit, mut missed, mut wrong, mut static_pixels) = (0u64, 0u64, 0u64, 0u64);
+    for (k, &f) in ds.train.iter().enumerate() {
+        let cam = &ds.frames[f].camera;
+        let found = maps.mask(k, cam.width, cam.height);
+        let truth = pasted.iter().find(|p| p.frame == f).map(|p| &p.mask);
+        for (i, &t) in found.iter().enumerate() {
+            match (truth.is_some_and(|m| m[i] == 255), t) {
+                (true, true) => hit += 1,
+                (true, false) => missed += 1,
+                (false, true) => {
+                    wrong += 1;
+                    static_pixels += 1;
+                }
+                (false, false) => static_pixels += 1,
+            }
+        }
+    }
+    Some(FoundMasks {
+        recall: hit as f64 / (hit + missed).max(1) as f64,
+        static_share: wrong as f64 / static_pixels.max(1) as f64,
+    })
 }
 
 /// One bench invocation's inputs.
@@ -498,6 +551,8 @@ struct Run<'a> {
     /// Whether the table has the mean appearance's column (a capture model
     /// is benched, named or chosen by `auto`).
     with_mean: bool,
+    /// The occluders `--occlude` pasted.
+    pasted: &'a [Pasted],
 }
 
 impl Run<'_> {
@@ -509,7 +564,7 @@ impl Run<'_> {
         reset_peak_memory();
         let (cfg, model, adam) = new_model_and_adam(kind, ds.scene(), a.seed, true, a.lr, &a.set)?;
         let budget = Budget { steps: None, seconds: Some(*budgets.last().unwrap_or(&0.0)) };
-        let config = cfg.train_config(a.seed, DEFAULT_BATCH_RAYS, budget);
+        let config = a.transients.apply(cfg.kind(), cfg.train_config(a.seed, DEFAULT_BATCH_RAYS, budget))?;
         eprintln!(
             "bench '{}' on {} ({} training views, {} test views scored), {} parameters, {} threads",
             kind,
@@ -550,6 +605,14 @@ impl Run<'_> {
         });
         if let Some(e) = error {
             return Err(e.context(format!("benchmarking '{kind}'")));
+        }
+        if let Some(f) = score_found(&trainer, ds, self.pasted) {
+            println!(
+                "transient masks: {:.1}% of the pasted occluders' pixels, {:.2}% of the static pixels",
+                100.0 * f.recall,
+                100.0 * f.static_share
+            );
+            report.found = Some(f);
         }
         if let (Some(seconds), StopReason::Budget | StopReason::Callback) = (a.bake, &reason) {
             eprintln!("baking '{kind}' into splats for {seconds} s");

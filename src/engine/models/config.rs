@@ -154,7 +154,14 @@ impl ModelConfig {
 
     /// Training settings for the kind.
     pub fn train_config(&self, seed: u64, batch_rays: usize, budget: Budget) -> TrainConfig {
-        TrainConfig { seed, batch_rays, budget, random_background: self.spec().random_background(), model_choice: None }
+        TrainConfig {
+            seed,
+            batch_rays,
+            budget,
+            random_background: self.spec().random_background(),
+            model_choice: None,
+            drop_transients: false,
+        }
     }
 }
 

@@ -107,6 +107,19 @@ pub trait Model: Send + Sync {
     /// Accumulates the gradient of the batch loss over `rays` (one part of a
     /// batch) into `grads` and returns the part's statistics.
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
+    /// [`Model::train_rays`], also writing each ray's mean squared colour
+    /// error into `errors` (as long as `rays`); `false` (the default) when
+    /// the model does not measure them and wrote nothing.
+    fn train_rays_measured(
+        &self,
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        errors: &mut [f32],
+    ) -> (BatchStats, bool) {
+        let _ = errors;
+        (self.train_rays(rays, ctx, grads), false)
+    }
     /// Training with the main grid's table gradient deferred to the
     /// trainer ([`DeferredGrid`]); `None` (the default): every gradient
     /// goes into `grads`.
@@ -211,6 +224,18 @@ pub trait DeferredGrid {
         ctx: &StepCtx,
         grads: &mut [f32],
         record: &mut GridRecord,
+    ) -> BatchStats {
+        self.train_rays_deferred_measured(rays, ctx, grads, record, &mut vec![0.0; rays.len()])
+    }
+    /// [`DeferredGrid::train_rays_deferred`], also writing each ray's mean
+    /// squared colour error into `errors` (as long as `rays`).
+    fn train_rays_deferred_measured(
+        &self,
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        record: &mut GridRecord,
+        errors: &mut [f32],
     ) -> BatchStats;
 }
 

@@ -129,6 +129,7 @@ mod tests {
                 background: [1.0, 0.5 * k as f32 / 3.0, 0.0],
                 index: k,
                 image: 0,
+                weight: 1.0,
             })
             .collect()
     }

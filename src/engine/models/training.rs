@@ -39,6 +39,11 @@ pub struct TrainConfig {
     /// checkpoint's `meta.train`; absent in checkpoints from before).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model_choice: Option<ModelChoice>,
+    /// Find transient occluders from the training residuals and stop
+    /// training on them (`train::transient`); a model that does not
+    /// measure its rays' errors finds none. Off unless asked for.
+    #[serde(default)]
+    pub drop_transients: bool,
 }
 
 impl Default for TrainConfig {
@@ -49,6 +54,7 @@ impl Default for TrainConfig {
             budget: Budget { steps: Some(1000), seconds: None },
             random_background: false,
             model_choice: None,
+            drop_transients: false,
         }
     }
 }

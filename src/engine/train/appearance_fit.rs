@@ -165,6 +165,7 @@ impl AppearanceFit {
                         background,
                         index,
                         image: self.row,
+                        weight: 1.0,
                     }
                 })
                 .collect();

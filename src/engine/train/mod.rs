@@ -11,3 +11,4 @@ pub mod persist;
 pub mod pixels;
 pub mod session;
 pub mod trainer;
+pub mod transient;

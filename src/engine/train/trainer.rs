@@ -17,6 +17,8 @@
 //! [`DivergenceGuard::max_rollbacks`] rollbacks, [`Trainer::run`] restores the
 //! last snapshot once more and stops with [`StopReason::Diverged`].
 
+use super::transient::{JUDGE_FROM, Photo, RECORD_FROM, TransientMaps};
+use crate::engine::geometry::math::Vec3;
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -166,6 +168,9 @@ impl std::fmt::Display for StopReason {
 }
 
 /// Trains a model on a dataset's training split.
+/// Steps between judgements of the transient cells.
+const JUDGE_EVERY: u64 = 50;
+
 pub struct Trainer<'a> {
     pub model: Box<dyn Model>,
     pub adam: Adam,
@@ -184,6 +189,10 @@ pub struct Trainer<'a> {
     good_streak: u64,
     /// Set when the guard gives up.
     diverged: Option<StopReason>,
+    /// The training photos' transient cells (robust training only).
+    pub transients: Option<TransientMaps>,
+    /// Each ray's mean squared colour error in the last step.
+    errors: Vec<f32>,
 }
 
 impl<'a> Trainer<'a> {
@@ -194,6 +203,23 @@ impl<'a> Trainer<'a> {
         state: TrainState,
         dataset: &'a Dataset,
     ) -> Self {
+        let transients = config.drop_transients.then(|| {
+            let photos: Vec<Photo> = dataset
+                .train
+                .iter()
+                .map(|&f| {
+                    let c = &dataset.frames[f].camera;
+                    let forward = c.rotate(Vec3::new(0.0, 0.0, -1.0));
+                    Photo {
+                        width: c.width,
+                        height: c.height,
+                        origin: c.origin().to_array(),
+                        forward: forward.to_array(),
+                    }
+                })
+                .collect();
+            TransientMaps::new(&photos)
+        });
         Self {
             model,
             adam,
@@ -208,6 +234,8 @@ impl<'a> Trainer<'a> {
             bad_streak: 0,
             good_streak: 0,
             diverged: None,
+            errors: Vec::new(),
+            transients,
         }
     }
 
@@ -266,16 +294,23 @@ impl<'a> Trainer<'a> {
     /// The training rays of a step: uniform over the training pixels (all
     /// of them, or those inside the masks).
     pub fn batch(&self, step: u64) -> Vec<TrainRay> {
+        self.batch_at(step).0
+    }
+
+    /// [`Trainer::batch`], with each ray's training photo (its place in the
+    /// training split) and pixel.
+    fn batch_at(&self, step: u64) -> (Vec<TrainRay>, Vec<(u32, u32, u32)>) {
         let total = self.pixels.total();
         if total == 0 {
-            return Vec::new();
+            return (Vec::new(), Vec::new());
         }
+        let mut at = Vec::new();
         let mut rng = Rng::stream(self.config.seed, step, u64::MAX);
         let scene = self.model.scene();
         let bg = self.dataset.background;
         let random_bg = self.config.random_background;
         let batch = self.model.batch_rays().unwrap_or(self.config.batch_rays);
-        (0..batch as u64)
+        let rays = (0..batch as u64)
             .map(|index| {
                 let (k, local) = self.pixels.pixel(rng.below(total));
                 let image = self.dataset.train[k];
@@ -284,15 +319,18 @@ impl<'a> Trainer<'a> {
                 let (i, j) = ((local % w) as u32, (local / w) as u32);
                 let background =
                     if random_bg && frame.image.has_alpha { [rng.f32(), rng.f32(), rng.f32()] } else { bg };
+                at.push((k as u32, i, j));
                 TrainRay {
                     ray: scene.to_model(&frame.camera.pixel_ray(i, j)),
                     target: frame.image.rgb_on(i, j, background),
                     background,
                     index,
                     image: image as u32,
+                    weight: self.transients.as_ref().map_or(1.0, |t| t.weight(k, i, j)),
                 }
             })
-            .collect()
+            .collect();
+        (rays, at)
     }
 
     /// One optimisation step. Returns the batch statistics, or `None` when
@@ -352,7 +390,9 @@ impl<'a> Trainer<'a> {
     /// per thread, each part's gradient in its own buffer (and its deferred
     /// grid's in its own record). Returns the batch's statistics.
     fn gradients(&mut self, step: u64) -> BatchStats {
-        let rays = self.batch(step);
+        let (rays, at) = self.batch_at(step);
+        self.errors.clear();
+        self.errors.resize(rays.len(), f32::NAN);
         let parts = rayon::current_num_threads().max(1);
         let nparams = self.model.params().len();
         self.part_grads.resize_with(parts, Vec::new);
@@ -364,8 +404,9 @@ impl<'a> Trainer<'a> {
             .part_grads
             .par_iter_mut()
             .zip(self.part_records.par_iter_mut())
+            .zip(self.errors.par_chunks_mut(per))
             .enumerate()
-            .map(|(p, (g, record))| {
+            .map(|(p, ((g, record), errors))| {
                 // The buffers are left zeroed by the previous step.
                 if g.len() != nparams {
                     g.clear();
@@ -374,10 +415,10 @@ impl<'a> Trainer<'a> {
                 let lo = (p * per).min(rays.len());
                 let hi = ((p + 1) * per).min(rays.len());
                 match model.deferred() {
-                    Some(d) => d.train_rays_deferred(&rays[lo..hi], &ctx, g, record),
+                    Some(d) => d.train_rays_deferred_measured(&rays[lo..hi], &ctx, g, record, errors),
                     None => {
                         record.clear();
-                        model.train_rays(&rays[lo..hi], &ctx, g)
+                        model.train_rays_measured(&rays[lo..hi], &ctx, g, errors).0
                     }
                 }
             })
@@ -385,6 +426,15 @@ impl<'a> Trainer<'a> {
         let mut total = BatchStats::default();
         for s in &stats {
             total.add(s);
+        }
+        let progress = self.config.budget.progress(step, self.state.elapsed);
+        if let Some(t) = self.transients.as_mut().filter(|_| progress >= RECORD_FROM) {
+            for (&(k, i, j), &e) in at.iter().zip(&self.errors) {
+                t.record(k as usize, i, j, e);
+            }
+            if progress >= JUDGE_FROM && step.is_multiple_of(JUDGE_EVERY) {
+                t.judge();
+            }
         }
         total
     }

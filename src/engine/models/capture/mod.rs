@@ -416,6 +416,7 @@ impl CaptureModel {
         ctx: &StepCtx,
         grads: &mut [f32],
         mut record: Option<&mut GridRecord>,
+        mut errors: Option<&mut [f32]>,
     ) -> BatchStats {
         for r in rays {
             if let Some(flag) = self.seen.get(r.image as usize) {
@@ -442,9 +443,13 @@ impl CaptureModel {
                 // the thread's scratch so.
                 None => self.field.end_deferring(&mut s.pass.ctx, &mut GridRecord::default()),
             }
-            for chunk in rays.chunks(self.config.chunk_rays.max(1)) {
+            let per = self.config.chunk_rays.max(1);
+            for (c, chunk) in rays.chunks(per).enumerate() {
                 let mut placement = Drawn::jittered(how, ctx.seed, ctx.step);
                 let p = capture_pass(self.nets(), &settings, chunk, &mut placement, &mut s.pass, grads);
+                if let Some(e) = errors.as_deref_mut().and_then(|e| e.get_mut(c * per..c * per + chunk.len())) {
+                    e.copy_from_slice(&s.pass.errors);
+                }
                 stats.add(&BatchStats {
                     sq_err: p.sq_err,
                     loss: p.loss(),
@@ -466,7 +471,17 @@ impl Model for CaptureModel {
     super::model_accessors!(params_mut: render_tables);
 
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats {
-        self.train(rays, ctx, grads, None)
+        self.train(rays, ctx, grads, None, None)
+    }
+
+    fn train_rays_measured(
+        &self,
+        rays: &[TrainRay],
+        ctx: &StepCtx,
+        grads: &mut [f32],
+        errors: &mut [f32],
+    ) -> (BatchStats, bool) {
+        (self.train(rays, ctx, grads, None, Some(errors)), true)
     }
 
     /// The main grid, without pose refinement (whose passes need the

@@ -60,6 +60,7 @@ fn rays(model: &CaptureModel, count: usize) -> Vec<TrainRay> {
                 background: ds.background,
                 index: k as u64,
                 image: (k % 3) as u32,
+                weight: 1.0,
             }
         })
         .collect()

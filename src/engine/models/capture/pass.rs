@@ -127,6 +127,8 @@ pub struct CaptureBuffers {
     dsig_prop: Vec<f32>,
     drgb_prop: Vec<f32>,
     interlevel: Interlevel,
+    /// Each of the chunk's rays' mean squared colour error.
+    pub errors: Vec<f32>,
 }
 
 /// Where a model-space ray is sampled, training and rendering alike: from
@@ -205,6 +207,8 @@ fn run(
     buf.warps.clear();
     buf.index.clear();
     buf.corrections.clear();
+    buf.errors.clear();
+    buf.errors.resize(rays.len(), f32::NAN);
     for (i, r) in rays.iter().enumerate() {
         if samplable(&r.ray) {
             buf.valid.push(i);
@@ -217,7 +221,9 @@ fn run(
             buf.index.push(r.index);
         } else {
             // The background alone: in the loss, without a gradient.
-            stats.sq_err += l2(r.background, r.target, 0.0).0;
+            let sq = l2(r.background, r.target, 0.0).0;
+            stats.sq_err += sq;
+            buf.errors[i] = sq as f32;
         }
     }
     if buf.valid.is_empty() {
@@ -289,8 +295,10 @@ fn main_field(
         // A culled ray never reaches its last interval.
         let opts = CompositeOptions { background: ray.background, min_transmittance: 0.0, opaque_last: k == n };
         let comp = composite(s, &opts, &mut buf.weights[o..o + k])?;
-        let (sq, g) = l2(comp.rgb, ray.target, scale);
+        // A transient's ray (weight 0) still counts in the error reported.
+        let (sq, g) = l2(comp.rgb, ray.target, scale * ray.weight);
         stats.sq_err += sq;
+        buf.errors[i] = sq as f32;
         let full = &mut buf.full[r * n..(r + 1) * n];
         full[..k].copy_from_slice(&buf.weights[o..o + k]);
         buf.dfull.fill(0.0);

@@ -221,6 +221,7 @@ fn rays(count: usize) -> Vec<TrainRay> {
                 background: [1.0; 3],
                 index: k as u64,
                 image: (k % 3) as u32,
+                weight: 1.0,
             }
         })
         .collect()

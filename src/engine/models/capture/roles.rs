@@ -60,18 +60,19 @@ impl DeferredGrid for CaptureModel {
         self.field.grid().clone()
     }
 
-    fn train_rays_deferred(
+    fn train_rays_deferred_measured(
         &self,
         rays: &[TrainRay],
         ctx: &StepCtx,
         grads: &mut [f32],
         record: &mut GridRecord,
+        errors: &mut [f32],
     ) -> BatchStats {
         record.clear();
         // A posed model records nothing (its passes need the grid's input
         // gradient at once): it is not offered as deferring, but stays
         // right when called all the same.
         let record = self.defers_grid().then_some(record);
-        self.train(rays, ctx, grads, record)
+        self.train(rays, ctx, grads, record, Some(errors))
     }
 }

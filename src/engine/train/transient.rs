@@ -1,0 +1,335 @@
+//! Transient occluders found from training's own residuals (RobustNeRF,
+//! SpotLessSplats), checked against the neighbouring photos: each training
+//! photo is cut into square cells, each cell keeps the mean squared error
+//! of the rays drawn from it, and a cell whose error is several times what
+//! the photos taken nearest to it show around the same place, in a region
+//! of such cells, stops pulling on the field. A surface the field draws
+//! badly (a thin edge, fur) is as bad in the neighbouring photos; something
+//! that was in one photo only is not. What was tried and measured:
+//! `docs/design/transients.md`.
+
+/// The most pixels a cell's side has: about sixteen cells across the
+/// shorter side of a photo, at least four pixels wide.
+pub const CELL: u32 = 16;
+/// Residuals are recorded from this share of the budget on: the first
+/// steps' errors are large everywhere.
+pub const RECORD_FROM: f64 = 0.1;
+/// Cells are judged from this share of the budget on.
+pub const JUDGE_FROM: f64 = 0.2;
+/// Rays a cell needs before it is judged.
+const MIN_SAMPLES: f32 = 8.0;
+/// The neighbouring photos a cell is compared with: those whose cameras
+/// are nearest, looking within [`MAX_TURN_COS`] (30 degrees) of its own
+/// direction.
+const NEAREST: usize = 4;
+const MAX_TURN_COS: f32 = 0.866;
+/// A cell is transient when its error is this many times the reference
+/// (the median over the neighbouring photos of the worst error in the
+/// three by three cells around the same place)...
+const SEED_RATIO: f32 = 4.0;
+/// ...with at least [`NEIGHBOURS`] of its eight neighbours this many times
+/// theirs, which also takes in the neighbours of a transient cell (an
+/// occluder's edge covers part of a cell).
+const GROW_RATIO: f32 = 2.0;
+const NEIGHBOURS: usize = 2;
+/// A cell's mean squared error must also reach this (an RMS error of 0.1 a
+/// channel) to be transient: a capture fitted well everywhere has nothing
+/// out of line worth dropping.
+const MIN_ERROR: f32 = 0.01;
+
+/// One training photo's cells.
+#[derive(Clone, Debug)]
+struct Cells {
+    cell: u32,
+    nx: u32,
+    ny: u32,
+    sum: Vec<f32>,
+    count: Vec<f32>,
+    transient: Vec<bool>,
+    /// The photos compared with, nearest first.
+    nearest: Vec<usize>,
+}
+
+/// A training photo as the maps see it: its size, where its camera is and
+/// which way it looks (world units).
+#[derive(Clone, Copy, Debug)]
+pub struct Photo {
+    pub width: u32,
+    pub height: u32,
+    pub origin: [f32; 3],
+    pub forward: [f32; 3],
+}
+
+/// The cells of every training photo.
+#[derive(Clone, Debug)]
+pub struct TransientMaps {
+    photos: Vec<Cells>,
+}
+
+impl TransientMaps {
+    /// Maps for these training photos, nothing transient.
+    pub fn new(photos: &[Photo]) -> Self {
+        let dist = |a: &Photo, b: &Photo| (0..3).map(|c| (a.origin[c] - b.origin[c]).powi(2)).sum::<f32>();
+        let cos = |a: &Photo, b: &Photo| {
+            let (na, nb) = (norm(a.forward), norm(b.forward));
+            (0..3).map(|c| a.forward[c] * b.forward[c]).sum::<f32>() / (na * nb).max(1e-12)
+        };
+        let photos = photos
+            .iter()
+            .enumerate()
+            .map(|(p, ph)| {
+                let cell = (ph.width.min(ph.height) / 16).clamp(4, CELL);
+                let (nx, ny) = (ph.width.div_ceil(cell).max(1), ph.height.div_ceil(cell).max(1));
+                let n = (nx * ny) as usize;
+                let mut others: Vec<usize> =
+                    (0..photos.len()).filter(|&q| q != p && cos(ph, &photos[q]) >= MAX_TURN_COS).collect();
+                others.sort_by(|&a, &b| dist(ph, &photos[a]).total_cmp(&dist(ph, &photos[b])));
+                others.truncate(NEAREST);
+                Cells {
+                    cell,
+                    nx,
+                    ny,
+                    sum: vec![0.0; n],
+                    count: vec![0.0; n],
+                    transient: vec![false; n],
+                    nearest: others,
+                }
+            })
+            .collect();
+        Self { photos }
+    }
+
+    fn cell(&self, photo: usize, i: u32, j: u32) -> Option<(&Cells, usize)> {
+        let c = self.photos.get(photo)?;
+        let (x, y) = (i / c.cell, j / c.cell);
+        (x < c.nx && y < c.ny).then_some((c, (y * c.nx + x) as usize))
+    }
+
+    /// The loss weight of training photo `photo`'s pixel `(i, j)`: 0 where
+    /// it is transient, else 1.
+    pub fn weight(&self, photo: usize, i: u32, j: u32) -> f32 {
+        match self.cell(photo, i, j) {
+            Some((c, k)) if c.transient[k] => 0.0,
+            _ => 1.0,
+        }
+    }
+
+    /// Adds a ray's mean squared error (non-finite ones are left out).
+    pub fn record(&mut self, photo: usize, i: u32, j: u32, err: f32) {
+        if !err.is_finite() {
+            return;
+        }
+        let Some((_, k)) = self.cell(photo, i, j) else { return };
+        let c = &mut self.photos[photo];
+        c.sum[k] += err;
+        c.count[k] += 1.0;
+    }
+
+    /// Judges every cell again from the errors recorded so far.
+    pub fn judge(&mut self) {
+        let ratios: Vec<Vec<f32>> = (0..self.photos.len()).map(|p| self.ratios(p)).collect();
+        for (c, r) in self.photos.iter_mut().zip(ratios) {
+            let (nx, ny) = (c.nx as i64, c.ny as i64);
+            let neighbours = |k: usize| {
+                let (x, y) = ((k as i64) % nx, (k as i64) / nx);
+                (-1..=1i64)
+                    .flat_map(move |dy| (-1..=1i64).map(move |dx| (x + dx, y + dy)))
+                    .filter(move |&(a, b)| (a, b) != (x, y) && a >= 0 && b >= 0 && a < nx && b < ny)
+                    .map(move |(a, b)| (b * nx + a) as usize)
+            };
+            let mean = |k: usize| c.sum[k] / c.count[k].max(1.0);
+            // Seeds: far out of line, large, among cells out of line.
+            let seeds: Vec<bool> = (0..r.len())
+                .map(|k| {
+                    r[k] >= SEED_RATIO
+                        && mean(k) >= MIN_ERROR
+                        && neighbours(k).filter(|&n| r[n] >= GROW_RATIO).count() >= NEIGHBOURS
+                })
+                .collect();
+            // Grown by one cell into the neighbours out of line too.
+            c.transient =
+                (0..r.len()).map(|k| seeds[k] || (r[k] >= GROW_RATIO && neighbours(k).any(|n| seeds[n]))).collect();
+        }
+    }
+
+    /// Each of photo `p`'s cells' error over its reference (0 where either
+    /// is unknown).
+    fn ratios(&self, p: usize) -> Vec<f32> {
+        let c = &self.photos[p];
+        let mut refs = Vec::with_capacity(NEAREST);
+        (0..c.sum.len())
+            .map(|k| {
+                if c.count[k] < MIN_SAMPLES {
+                    return 0.0;
+                }
+                let (x, y) = (k as u32 % c.nx, k as u32 / c.nx);
+                refs.clear();
+                for &q in &c.nearest {
+                    let o = &self.photos[q];
+                    // The same place in photo q's grid.
+                    let (qx, qy) = ((x * o.nx / c.nx) as i64, (y * o.ny / c.ny) as i64);
+                    let mut worst: Option<f32> = None;
+                    for b in qy - 1..=qy + 1 {
+                        for a in qx - 1..=qx + 1 {
+                            if a < 0 || b < 0 || a >= o.nx as i64 || b >= o.ny as i64 {
+                                continue;
+                            }
+                            let m = (b * o.nx as i64 + a) as usize;
+                            if o.count[m] >= MIN_SAMPLES {
+                                let e = o.sum[m] / o.count[m];
+                                worst = Some(worst.map_or(e, |w: f32| w.max(e)));
+                            }
+                        }
+                    }
+                    refs.extend(worst);
+                }
+                if refs.is_empty() {
+                    return 0.0;
+                }
+                let reference = median(&refs).max(1e-6);
+                c.sum[k] / c.count[k] / reference
+            })
+            .collect()
+    }
+
+    /// The share of training photo `photo`'s cells that are transient.
+    pub fn share(&self, photo: usize) -> f64 {
+        self.photos
+            .get(photo)
+            .map_or(0.0, |c| c.transient.iter().filter(|&&t| t).count() as f64 / c.transient.len().max(1) as f64)
+    }
+
+    /// Training photo `photo`'s mask at its pixels (`w x h`, row by row):
+    /// true where transient.
+    pub fn mask(&self, photo: usize, w: u32, h: u32) -> Vec<bool> {
+        (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| self.weight(photo, i, j) == 0.0).collect()
+    }
+}
+
+fn norm(v: [f32; 3]) -> f32 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+fn median(v: &[f32]) -> f32 {
+    let mut v = v.to_vec();
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::rng::Rng;
+
+    /// Three 256x256 photos (16x16 cells of 16 pixels) from cameras side
+    /// by side, looking the same way: every other pixel of every other row
+    /// drawn 5 times, its squared error `base` times a random factor in
+    /// [0.5, 1.5), and `bad` in the pixels `bad_at` says.
+    fn recorded(base: f32, bad: f32, bad_at: impl Fn(usize, u32, u32) -> bool) -> TransientMaps {
+        let photo = |x: f32| Photo { width: 256, height: 256, origin: [x, 0.0, 0.0], forward: [0.0, 0.0, -1.0] };
+        let mut t = TransientMaps::new(&[photo(0.0), photo(0.1), photo(0.2)]);
+        let mut rng = Rng::new(3);
+        for photo in 0..3 {
+            for j in (0..256).step_by(2) {
+                for i in (0..256).step_by(2) {
+                    for _ in 0..5 {
+                        let err = if bad_at(photo, i, j) { bad } else { base * (0.5 + rng.f32()) };
+                        t.record(photo, i, j, err);
+                    }
+                }
+            }
+        }
+        t.judge();
+        t
+    }
+
+    #[test]
+    fn a_region_out_of_line_with_the_neighbouring_photos_is_transient_and_the_rest_is_not() {
+        // Photo 1's 48x48 square at (32, 32): cells 2..=4 both ways.
+        let square = |p: usize, i: u32, j: u32| p == 1 && (32..80).contains(&i) && (32..80).contains(&j);
+        let t = recorded(0.004, 0.09, square);
+        for photo in 0..3 {
+            for j in 0..256 {
+                for i in 0..256 {
+                    assert_eq!(t.weight(photo, i, j) == 0.0, square(photo, i, j), "photo {photo} ({i}, {j})");
+                }
+            }
+        }
+        assert_eq!((t.share(0), t.share(1), t.share(2)), (0.0, 9.0 / 256.0, 0.0));
+        let mask = t.mask(1, 256, 256);
+        assert_eq!(mask.iter().filter(|&&m| m).count(), 48 * 48);
+        assert!(mask[40 * 256 + 40] && !mask[10 * 256 + 10]);
+    }
+
+    #[test]
+    fn what_every_photo_gets_wrong_in_the_same_place_is_not_transient() {
+        // A surface the field draws badly (a thin edge, fur): as bad in the
+        // neighbouring photos as in each.
+        let square = |_: usize, i: u32, j: u32| (32..80).contains(&i) && (32..80).contains(&j);
+        let t = recorded(0.004, 0.09, square);
+        assert_eq!((t.share(0), t.share(1), t.share(2)), (0.0, 0.0, 0.0));
+    }
+
+    #[test]
+    fn an_occluders_edge_cells_join_it() {
+        // The square from (46, 46) to (66, 66) fills cell (3, 3), an eighth
+        // of the four cells beside it (an error of about 0.015, under the
+        // floor a seed needs) and a sixty-fourth of the corner ones (0.005).
+        let square = |p: usize, i: u32, j: u32| p == 1 && (46..66).contains(&i) && (46..66).contains(&j);
+        let t = recorded(0.004, 0.09, square);
+        let cell = |x: u32, y: u32| t.weight(1, 16 * x + 8, 16 * y + 8) == 0.0;
+        assert!(cell(3, 3) && cell(2, 3) && cell(4, 3) && cell(3, 2) && cell(3, 4));
+        assert!(!cell(2, 2) && !cell(4, 4) && !cell(1, 3) && !cell(5, 3));
+        assert_eq!(t.share(1), 5.0 / 256.0);
+    }
+
+    #[test]
+    fn a_lone_cell_out_of_line_stays() {
+        // One cell (a highlight, a reflection) is not an occluder:
+        // occluders are regions.
+        let cell = |p: usize, i: u32, j: u32| p == 2 && (64..80).contains(&i) && (16..32).contains(&j);
+        let t = recorded(0.004, 0.09, cell);
+        assert_eq!(t.share(2), 0.0);
+    }
+
+    #[test]
+    fn a_capture_fitted_well_everywhere_drops_nothing() {
+        // Far out of line, but every error below the floor: a good fit's
+        // worst cells are not occluders.
+        let square = |p: usize, i: u32, j: u32| p == 0 && i < 64 && j < 64;
+        let t = recorded(1e-4, 0.009, square);
+        assert_eq!(t.share(0), 0.0);
+        // Nothing is judged before errors are recorded, and non-finite
+        // errors are not recorded.
+        let lone = Photo { width: 256, height: 256, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
+        let mut t = TransientMaps::new(&[lone, lone]);
+        for _ in 0..100 {
+            t.record(0, 5, 5, f32::NAN);
+            t.record(0, 5, 5, f32::INFINITY);
+        }
+        t.judge();
+        assert_eq!(t.share(0), 0.0);
+    }
+
+    #[test]
+    fn photos_are_compared_with_the_nearest_that_look_the_same_way() {
+        let at = |x: f32, forward: [f32; 3]| Photo { width: 32, height: 32, origin: [x, 0.0, 0.0], forward };
+        let ahead = [0.0, 0.0, -1.0];
+        let photos =
+            [at(0.0, ahead), at(5.0, ahead), at(1.0, ahead), at(0.5, [0.0, 1.0, 0.0]), at(2.0, ahead), at(3.0, ahead)];
+        let t = TransientMaps::new(&photos);
+        // Photo 3 looks 90 degrees away; the fifth nearest is left out.
+        assert_eq!(t.photos[0].nearest, vec![2, 4, 5, 1]);
+        assert!(t.photos[3].nearest.is_empty());
+    }
+
+    #[test]
+    fn pixels_off_the_maps_weigh_one() {
+        let t = recorded(0.004, 0.09, |p, _, _| p == 0);
+        // Photo 3 does not exist; (256, 0) is past photo 0's edge.
+        assert_eq!((t.weight(3, 0, 0), t.weight(0, 256, 0)), (1.0, 1.0));
+        // A photo smaller than a cell still has one.
+        let small = Photo { width: 3, height: 2, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
+        assert_eq!(TransientMaps::new(&[small]).mask(0, 3, 2), vec![false; 6]);
+    }
+}
