@@ -41,8 +41,9 @@ pub struct TrainConfig {
     pub model_choice: Option<ModelChoice>,
     /// Find transient occluders from the training residuals and stop
     /// training on them (`train::transient`); a model that does not
-    /// measure its rays' errors finds none. Off unless asked for.
-    #[serde(default)]
+    /// measure its rays' errors finds none. Off unless asked for (and then
+    /// not written: a run without it saves what it saved before).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub drop_transients: bool,
 }
 
