@@ -18,6 +18,7 @@ use radiance::engine::models::training::Budget;
 use radiance::engine::rng::Rng;
 use radiance::engine::train::persist;
 use radiance::engine::train::trainer::{TrainState, Trainer};
+use radiance::engine::train::transient::FoundMasks;
 use radiance::engine::view::appearance::held_out_options;
 use radiance::engine::view::render_view_with;
 
@@ -207,25 +208,9 @@ fn robust_run(ds: &Dataset, pasted: &[radiance::engine::dataset::occlude::Pasted
     train.drop_transients = drop;
     let mut t = Trainer::new(model, adam, train, TrainState::default(), ds);
     t.run(&AtomicBool::new(false), |_, _| true);
-    let (mut hit, mut wrong, mut truth, mut other) = (0u64, 0u64, 0u64, 0u64);
-    if let Some(maps) = &t.transients {
-        for (k, &f) in ds.train.iter().enumerate() {
-            let cam = &ds.frames[f].camera;
-            let mask = maps.mask(k, cam.width, cam.height);
-            let pasted = pasted.iter().find(|p| p.frame == f);
-            for (i, &m) in mask.iter().enumerate() {
-                let is = pasted.is_some_and(|p| p.mask[i] == 255);
-                (truth, other) = (truth + is as u64, other + !is as u64);
-                (hit, wrong) = (hit + (m && is) as u64, wrong + (m && !is) as u64);
-            }
-        }
-    }
     assert_eq!(t.transients.is_some(), drop);
-    Robust {
-        psnr: held_out_psnr(&*t.model, ds),
-        recall: hit as f64 / truth.max(1) as f64,
-        static_share: wrong as f64 / other.max(1) as f64,
-    }
+    let found = t.transients.as_ref().map_or(FoundMasks { recall: 0.0, static_share: 0.0 }, |m| m.score(ds, pasted));
+    Robust { psnr: held_out_psnr(&*t.model, ds), recall: found.recall, static_share: found.static_share }
 }
 
 /// Occluders pasted into a third of the training photos (one or two each,

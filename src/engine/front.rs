@@ -53,6 +53,7 @@ pub use super::nn::adam::Adam;
 pub use super::train::appearance_fit::{AppearanceFit, FitError, FitSettings, Half};
 pub use super::train::persist::{Restored, load as load_checkpoint};
 pub use super::train::trainer::{StopReason, Trainer};
+pub use super::train::transient::FoundMasks;
 pub use super::view::{View, render_view};
 
 /// The model a checkpoint holds, ready to render (its optimiser state, if

@@ -15,12 +15,12 @@ use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{AppearanceArgs, Common, MaskArgs, TransientArgs};
 use crate::engine::front::{
-    BakeSettings, Budget, CAPTURE_KIND, Dataset, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig, Pasted,
-    Progress, Split, StopReason, TrainState, Trainer, bake, write_atomic,
+    BakeSettings, Budget, CAPTURE_KIND, Dataset, FoundMasks, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig,
+    Pasted, Progress, Split, StopReason, TrainState, Trainer, bake, write_atomic,
 };
 use crate::system::{peak_memory, reset_peak_memory};
-pub use occluded::{FoundMasks, OccludedPhoto};
-use occluded::{occlude_photos, occluders, score_found};
+pub use occluded::OccludedPhoto;
+use occluded::{occlude_photos, occluders};
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -530,7 +530,7 @@ impl Run<'_> {
         if let Some(e) = error {
             return Err(e.context(format!("benchmarking '{kind}'")));
         }
-        if let Some(f) = score_found(&trainer, ds, self.pasted) {
+        if let Some(f) = trainer.transients.as_ref().map(|t| t.score(ds, self.pasted)) {
             println!(
                 "transient masks: {:.1}% of the pasted occluders' pixels, {:.2}% of the static pixels",
                 100.0 * f.recall,

@@ -5,16 +5,7 @@ use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
 use super::BenchArgs;
-use crate::engine::front::{Dataset, Occluders, Pasted, Trainer, load_cutouts, occlude};
-
-/// The transient masks robust training found, against the pasted ones.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
-pub struct FoundMasks {
-    /// Share of the pasted occluders' pixels found transient.
-    pub recall: f64,
-    /// Share of the other pixels (the static scene) found transient.
-    pub static_share: f64,
-}
+use crate::engine::front::{Dataset, Occluders, Pasted, load_cutouts, occlude};
 
 /// A photo `--occlude` pasted into.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -62,32 +53,4 @@ pub(super) fn occlude_photos(ds: &mut Dataset, o: &Occluders) -> anyhow::Result<
         100.0 * mean
     );
     Ok((photos, pasted))
-}
-
-/// How the transient masks training found compare with the occluders
-/// pasted: the share of the pasted pixels they cover (recall), and of the
-/// other pixels of every training photo (the static scene).
-pub(super) fn score_found(trainer: &Trainer, ds: &Dataset, pasted: &[Pasted]) -> Option<FoundMasks> {
-    let maps = trainer.transients.as_ref()?;
-    let (mut hit, mut missed, mut wrong, mut static_pixels) = (0u64, 0u64, 0u64, 0u64);
-    for (k, &f) in ds.train.iter().enumerate() {
-        let cam = &ds.frames[f].camera;
-        let found = maps.mask(k, cam.width, cam.height);
-        let truth = pasted.iter().find(|p| p.frame == f).map(|p| &p.mask);
-        for (i, &t) in found.iter().enumerate() {
-            match (truth.is_some_and(|m| m[i] == 255), t) {
-                (true, true) => hit += 1,
-                (true, false) => missed += 1,
-                (false, true) => {
-                    wrong += 1;
-                    static_pixels += 1;
-                }
-                (false, false) => static_pixels += 1,
-            }
-        }
-    }
-    Some(FoundMasks {
-        recall: hit as f64 / (hit + missed).max(1) as f64,
-        static_share: wrong as f64 / static_pixels.max(1) as f64,
-    })
 }

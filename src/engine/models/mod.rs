@@ -108,17 +108,17 @@ pub trait Model: Send + Sync {
     /// batch) into `grads` and returns the part's statistics.
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
     /// [`Model::train_rays`], also writing each ray's mean squared colour
-    /// error into `errors` (as long as `rays`); `false` (the default) when
-    /// the model does not measure them and wrote nothing.
+    /// error into `errors` (as long as `rays`). The default, for a model
+    /// that does not measure them, leaves `errors` as it is.
     fn train_rays_measured(
         &self,
         rays: &[TrainRay],
         ctx: &StepCtx,
         grads: &mut [f32],
         errors: &mut [f32],
-    ) -> (BatchStats, bool) {
+    ) -> BatchStats {
         let _ = errors;
-        (self.train_rays(rays, ctx, grads), false)
+        self.train_rays(rays, ctx, grads)
     }
     /// Training with the main grid's table gradient deferred to the
     /// trainer ([`DeferredGrid`]); `None` (the default): every gradient

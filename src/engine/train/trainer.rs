@@ -17,8 +17,6 @@
 //! [`DivergenceGuard::max_rollbacks`] rollbacks, [`Trainer::run`] restores the
 //! last snapshot once more and stops with [`StopReason::Diverged`].
 
-use super::transient::{JUDGE_FROM, Photo, RECORD_FROM, TransientMaps};
-use crate::engine::geometry::math::Vec3;
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -27,6 +25,7 @@ use rayon::prelude::*;
 
 use crate::engine::batch::{BatchStats, StepCtx, TrainRay};
 use crate::engine::dataset::Dataset;
+use crate::engine::geometry::math::Vec3;
 use crate::engine::models::Model;
 use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::adam::{Adam, AdamUpdate};
@@ -34,6 +33,7 @@ use crate::engine::nn::all_finite;
 use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
 use crate::engine::rng::Rng;
 use crate::engine::train::pixels::PixelPool;
+use crate::engine::train::transient::{JUDGE_FROM, Photo, RECORD_FROM, TransientMaps};
 
 /// Where training is, reported after every step.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -167,10 +167,10 @@ impl std::fmt::Display for StopReason {
     }
 }
 
-/// Trains a model on a dataset's training split.
 /// Steps between judgements of the transient cells.
 const JUDGE_EVERY: u64 = 50;
 
+/// Trains a model on a dataset's training split.
 pub struct Trainer<'a> {
     pub model: Box<dyn Model>,
     pub adam: Adam,
@@ -391,13 +391,15 @@ impl<'a> Trainer<'a> {
     /// grid's in its own record). Returns the batch's statistics.
     fn gradients(&mut self, step: u64) -> BatchStats {
         let (rays, at) = self.batch_at(step);
-        self.errors.clear();
-        self.errors.resize(rays.len(), f32::NAN);
         let parts = rayon::current_num_threads().max(1);
         let nparams = self.model.params().len();
         self.part_grads.resize_with(parts, Vec::new);
         self.part_records.resize_with(parts, GridRecord::default);
         let per = rays.len().div_ceil(parts).max(1);
+        // A chunk of errors for every part, the empty ones too (their
+        // records must be cleared as well); those past the rays stay NaN.
+        self.errors.clear();
+        self.errors.resize(parts * per, f32::NAN);
         let ctx = StepCtx { seed: self.config.seed, step, batch_rays: rays.len() };
         let model = &*self.model;
         let stats: Vec<BatchStats> = self
@@ -415,10 +417,10 @@ impl<'a> Trainer<'a> {
                 let lo = (p * per).min(rays.len());
                 let hi = ((p + 1) * per).min(rays.len());
                 match model.deferred() {
-                    Some(d) => d.train_rays_deferred_measured(&rays[lo..hi], &ctx, g, record, errors),
+                    Some(d) => d.train_rays_deferred_measured(&rays[lo..hi], &ctx, g, record, &mut errors[..hi - lo]),
                     None => {
                         record.clear();
-                        model.train_rays_measured(&rays[lo..hi], &ctx, g, errors).0
+                        model.train_rays_measured(&rays[lo..hi], &ctx, g, &mut errors[..hi - lo])
                     }
                 }
             })

@@ -8,6 +8,9 @@
 //! that was in one photo only is not. What was tried and measured:
 //! `docs/design/transients.md`.
 
+use crate::engine::dataset::Dataset;
+use crate::engine::dataset::occlude::Pasted;
+
 /// The most pixels a cell's side has: about sixteen cells across the
 /// shorter side of a photo, at least four pixels wide.
 pub const CELL: u32 = 16;
@@ -204,6 +207,31 @@ impl TransientMaps {
     pub fn mask(&self, photo: usize, w: u32, h: u32) -> Vec<bool> {
         (0..h).flat_map(|j| (0..w).map(move |i| (i, j))).map(|(i, j)| self.weight(photo, i, j) == 0.0).collect()
     }
+
+    /// How the masks compare with the occluders `pasted` into `ds`'s
+    /// training photos (the maps' photos, in the same order).
+    pub fn score(&self, ds: &Dataset, pasted: &[Pasted]) -> FoundMasks {
+        let (mut hit, mut truth, mut wrong, mut other) = (0u64, 0u64, 0u64, 0u64);
+        for (k, &f) in ds.train.iter().enumerate() {
+            let cam = &ds.frames[f].camera;
+            let pasted = pasted.iter().find(|p| p.frame == f);
+            for (i, found) in self.mask(k, cam.width, cam.height).into_iter().enumerate() {
+                let occluded = pasted.is_some_and(|p| p.mask[i] == 255);
+                (truth, other) = (truth + occluded as u64, other + !occluded as u64);
+                (hit, wrong) = (hit + (found && occluded) as u64, wrong + (found && !occluded) as u64);
+            }
+        }
+        FoundMasks { recall: hit as f64 / truth.max(1) as f64, static_share: wrong as f64 / other.max(1) as f64 }
+    }
+}
+
+/// Transient masks found, against known occluders ([`TransientMaps::score`]).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FoundMasks {
+    /// Share of the occluders' pixels found transient.
+    pub recall: f64,
+    /// Share of the other pixels (the static scene) found transient.
+    pub static_share: f64,
 }
 
 fn norm(v: [f32; 3]) -> f32 {

@@ -480,8 +480,8 @@ impl Model for CaptureModel {
         ctx: &StepCtx,
         grads: &mut [f32],
         errors: &mut [f32],
-    ) -> (BatchStats, bool) {
-        (self.train(rays, ctx, grads, None, Some(errors)), true)
+    ) -> BatchStats {
+        self.train(rays, ctx, grads, None, Some(errors))
     }
 
     /// The main grid, without pose refinement (whose passes need the
