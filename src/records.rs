@@ -253,6 +253,11 @@ pub struct ModelInfo {
     /// For a splats model: how many Gaussians it has.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gaussians: Option<u64>,
+    /// For a model trained with `drop_transients`: what was dropped, per
+    /// training photo (written when training ends; each photo's mask is
+    /// `GET /v1/models/{id}/transients/{photo}`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub transients: Option<crate::engine::front::TransientReport>,
 }
 
 fn yes() -> bool {

@@ -32,7 +32,7 @@ fn resuming_from_a_checkpoint_continues_exactly() {
     let mut first = trainer(&ds, 40);
     first.run(&no, |t, p| {
         if p.step == 20 {
-            persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+            persist::save(&path, &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref()).unwrap();
             return false;
         }
         true
@@ -68,7 +68,7 @@ fn corrupt_checkpoints_are_clear_errors() {
     let t = trainer(&ds, 1);
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.ckpt");
-    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref()).unwrap();
     let bytes = std::fs::read(&path).unwrap();
     std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
     let e = persist::load(&path).err().expect("truncated file must not load").to_string();
@@ -87,7 +87,7 @@ fn non_finite_parameters_are_never_saved() {
     t.model.params_mut()[5] = f32::NAN;
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.ckpt");
-    assert!(persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).is_err());
+    assert!(persist::save(&path, &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref()).is_err());
     assert!(!path.exists());
 }
 
@@ -99,7 +99,7 @@ fn a_stripped_checkpoint_renders_the_same_and_cannot_resume() {
     t.run(&AtomicBool::new(false), |_, _| true);
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.ckpt");
-    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref()).unwrap();
     let full_len = std::fs::metadata(&path).unwrap().len();
     let camera = &ds.frames[ds.train[0]].camera;
     let before = persist::load(&path).unwrap();

@@ -279,7 +279,7 @@ fn appearance_on_the_command_line() {
     let train = config.train_config(1, 256, Budget { steps: Some(3), seconds: None });
     let mut t = Trainer::new(net, adam, train, TrainState::default(), &ds);
     t.run(&std::sync::atomic::AtomicBool::new(false), |_, _| true);
-    persist::save(&model, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+    persist::save(&model, &*t.model, &t.adam, &t.config, &t.state, None).unwrap();
     let trained = t.model.appearance().map(|a| a.images()).unwrap();
     assert!(!trained.is_empty());
 
@@ -392,4 +392,33 @@ fn drop_transients_on_the_command_line() {
     // Without the flag, nothing is scored.
     let out = ok(&radiance(&[&args[..], &["--occlude", "0.5"]].concat()));
     assert!(!out.contains("transient masks"), "{out}");
+
+    // `train` reports what it dropped and writes one mask a training photo,
+    // named by its stem, of its size, 0 or 255.
+    let masks = dir.path().join("masks");
+    let args = ["train", "--data", d, "--model", "capture-tiny", "--steps", "20", "--out", m];
+    let out = radiance(&[&args[..], &["--transient-masks", masks.to_str().unwrap()]].concat());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--drop-transients"), "{err}");
+    let out =
+        ok(&radiance(&[&args[..], &["--drop-transients", "--transient-masks", masks.to_str().unwrap()]].concat()));
+    assert!(out.contains("transients     ") && out.contains("% of the training pixels dropped, in "), "{out}");
+    let mut stems: Vec<String> = std::fs::read_dir(data.join("train"))
+        .unwrap()
+        .map(|e| e.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned())
+        .collect();
+    let mut written: Vec<String> = std::fs::read_dir(&masks)
+        .unwrap()
+        .map(|e| e.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned())
+        .collect();
+    stems.sort();
+    written.sort();
+    assert_eq!(written, stems);
+    assert!(out.contains(&format!("masks          {} in ", stems.len())), "{out}");
+    let img = image::open(masks.join(format!("{}.png", stems[0]))).unwrap().to_luma8();
+    assert_eq!(img.dimensions(), (16, 16));
+    assert!(img.pixels().all(|p| p.0[0] == 0 || p.0[0] == 255));
+    // The checkpoint keeps the maps.
+    let maps = radiance::engine::front::load_transients(&model).unwrap().expect("maps saved");
+    assert_eq!(maps.photos().len(), stems.len());
 }

@@ -33,6 +33,9 @@ const LAYERS: &[&[&str]] = &[
     &["models"],
     // Views of a model: tiles of rays, the appearance a view takes.
     &["view"],
+    // Transient occluders found in the training photos: what training and
+    // the bake leave out.
+    &["transient"],
     // Baking a field into splats: placing, carving, fitting.
     &["bake"],
     // Training: the trainer, sessions, held-out estimates, checkpoints of a run.

@@ -117,6 +117,7 @@ fn train(scene: &str) -> JobSpec {
         masks: Default::default(),
         model_reason: None,
         bake: None,
+        drop_transients: false,
     }))
 }
 
@@ -163,6 +164,7 @@ fn model_of(job: &Job, scene: &SceneInfo, steps: u64) -> ModelInfo {
         view: scene.view.clone(),
         poses: None,
         gaussians: None,
+        transients: None,
     }
 }
 

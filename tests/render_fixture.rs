@@ -170,7 +170,7 @@ fn write_fixtures() {
         };
         let mut t = Trainer::new(model, adam, cfg, TrainState::default(), &ds);
         t.run(&AtomicBool::new(false), |_, _| true);
-        persist::save(&fixture(name), &*t.model, &t.adam, &t.config, &t.state).unwrap();
+        persist::save(&fixture(name), &*t.model, &t.adam, &t.config, &t.state, None).unwrap();
         println!("(\"{name}\", {:?}),", rendered(name));
     }
 }

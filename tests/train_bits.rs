@@ -30,7 +30,7 @@ fn trained_hash(ds: &Dataset, preset: &str) -> String {
             t.step();
         }
         assert_eq!(t.state.step, 60, "{preset}: every step taken");
-        let c = persist::to_checkpoint(t.model.as_ref(), &t.adam, &t.config, &t.state);
+        let c = persist::to_checkpoint(t.model.as_ref(), &t.adam, &t.config, &t.state, t.transients.as_ref());
         let bytes = persist::identity_bytes(&c);
         Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect()
     })

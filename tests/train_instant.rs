@@ -47,6 +47,7 @@ fn instant_model_learns_and_skipping_is_lossless() {
         &Adam::new(AdamConfig::default(), model.params().len()),
         &TrainConfig::default(),
         &TrainState { step: 200, ..Default::default() },
+        None,
     );
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.ckpt");

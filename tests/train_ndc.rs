@@ -69,7 +69,7 @@ fn an_ndc_checkpoint_reloads_and_resumes_exactly() {
         let mut first = trainer(&config, &ds, 4, 20);
         first.run(&no, |t, p| {
             if p.step == 10 {
-                persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap();
+                persist::save(&path, &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref()).unwrap();
                 return false;
             }
             true

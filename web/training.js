@@ -29,6 +29,7 @@ function watchJob(job) {
   $('job-id').textContent = job.id;
   $('preview').removeAttribute('src');
   $('preview').alt = 'Preview of the model: not rendered yet';
+  $('transients').hidden = true;
   showJob(job);
   followJob(job.id, showJob, training.abort.signal)
     .then(() => refreshJobs())
@@ -101,6 +102,7 @@ async function refreshPreview(force) {
     const model = await getJson(`/v1/models/${id}`);
     const version = `${id}@${model.updated_at}`;
     if (version === training.shown) return;
+    showTransients(model);
     training.shown = version;
     const blob = await (await api(`/v1/models/${id}/render?width=240&height=240`)).blob();
     const img = $('preview');
@@ -181,6 +183,7 @@ export function setupTraining() {
     try {
       const body = { scene_id: $('train-scene').value, model: $('train-model').value, budget };
       if ($('train-bake').checked) body.bake = { seconds: Number($('train-bake-seconds').value) || 60 };
+      if ($('train-transients').checked) body.drop_transients = true;
       const job = await postJson('/v1/jobs', body);
       status(`job ${job.id} queued`);
       watchJob(job);
@@ -191,4 +194,39 @@ export function setupTraining() {
     try { await api(`/v1/jobs/${training.id}/cancel`, { method: 'POST' }); status(`asked ${training.id} to stop`); } catch (e) { fail(e); }
   });
   $('job-view').addEventListener('click', () => openViewer(training.modelId));
+  $('transients-show').addEventListener('click', () => showMasks().catch(fail));
+}
+
+/**
+ * What a job that dropped transients dropped: the share of the training
+ * pixels, the photos mostly masked (worth retaking), and on demand every
+ * photo's mask, most masked first (black where a pixel was dropped).
+ */
+function showTransients(model) {
+  const t = model.transients;
+  $('transients').hidden = !t;
+  if (!t) return;
+  const withSome = t.photos.filter((p) => p.share > 0);
+  const mostly = t.photos.filter((p) => p.share >= 0.5).map((p) => p.name);
+  $('transients-line').textContent = `transient occluders: ${(100 * t.dropped).toFixed(2)}% of the training pixels ` +
+    `dropped, in ${withSome.length} of ${t.photos.length} photos` +
+    (mostly.length ? `; mostly masked, worth retaking: ${mostly.join(', ')}` : '');
+  $('transients').dataset.model = model.id;
+  $('transients-list').replaceChildren();
+}
+
+async function showMasks() {
+  const id = $('transients').dataset.model;
+  const model = await getJson(`/v1/models/${id}`);
+  const photos = [...model.transients.photos].sort((a, b) => b.share - a.share);
+  const items = photos.map((p) => {
+    const img = el('img', { alt: `Transient mask of ${p.name}: black where dropped`, width: 120 });
+    const item = el('li', {}, el('figure', {}, img, el('figcaption', {}, `${p.name} · ${(100 * p.share).toFixed(1)}%`)));
+    return [item, img, p.name];
+  });
+  $('transients-list').replaceChildren(...items.map((i) => i[0]));
+  for (const [, img, name] of items) {
+    const blob = await (await api(`/v1/models/${id}/transients/${encodeURIComponent(name)}`)).blob();
+    img.src = URL.createObjectURL(blob);
+  }
 }

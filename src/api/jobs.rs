@@ -15,7 +15,7 @@ use super::{ApiError, ApiResult, AppState, limits};
 use crate::backend::NewJob;
 use crate::datadir::{ScenePart, new_id};
 use crate::engine::front::{
-    AUTO, ConfigError, DEFAULT_BATCH_RAYS, MaskUse, ModelChoice, ModelConfig, SplatsConfig, choose_model,
+    AUTO, CAPTURE_KIND, ConfigError, DEFAULT_BATCH_RAYS, MaskUse, ModelChoice, ModelConfig, SplatsConfig, choose_model,
     estimate_training, trainable_presets,
 };
 use crate::jobs::scoring::load_dataset;
@@ -47,6 +47,10 @@ pub struct CreateJob {
     pub kind: Option<String>,
     /// Bake the model into splats when training succeeds.
     pub bake: Option<BakeBudget>,
+    /// Find transient occluders (a passer-by in a few photos) from the
+    /// training errors and stop training on them (`capture` models).
+    #[serde(default)]
+    pub drop_transients: bool,
 }
 
 /// A bake's budget: seconds (60 when neither is given) or optimisation steps.
@@ -159,6 +163,10 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
         return Err(ApiError::bad_field("batch_rays must be in 1..=65536", "batch_rays", batch_rays, "1..=65536"));
     }
     let masks = mask_use(r.masks)?;
+    if r.drop_transients && config.kind() != CAPTURE_KIND {
+        let message = format!("drop_transients needs a capture model (this one is '{}')", config.kind());
+        return Err(ApiError::bad_field(message, "drop_transients", true, CAPTURE_KIND));
+    }
     if let Some(k) = r.kind.as_deref().filter(|k| *k != "train") {
         return Err(ApiError::bad_field(format!("unknown job kind '{k}'"), "kind", k, KINDS));
     }
@@ -179,6 +187,7 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
         batch_rays,
         masks,
         bake,
+        drop_transients: r.drop_transients,
     })
 }
 

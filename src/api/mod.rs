@@ -43,6 +43,7 @@ pub mod role;
 pub mod scenes;
 pub mod site;
 pub mod thumbnails;
+pub mod transients;
 pub mod videos;
 pub mod web;
 
@@ -147,6 +148,7 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/models/{id}", quick(get(models::get_one).delete(models::delete)))
         .route("/v1/models/{id}/render", get(models::render))
         .route("/v1/models/{id}/export", get(models::export))
+        .route("/v1/models/{id}/transients/{photo}", get(transients::get))
         .route("/v1/models/{id}/videos", quick(post(videos::create)))
         .route("/v1/videos/{id}", get(videos::get_one).merge(quick(delete(videos::delete))))
         .route("/metrics", quick(get(health::metrics)))

@@ -12,8 +12,8 @@ use super::Common;
 use crate::api::site;
 use crate::engine::front::{
     Adam, BakeSettings, Budget, DataSize, Dataset, LoadOptions, Model, ModelConfig, SplatsFormat as Format,
-    SplatsModel, Split, TrainConfig, TrainState, bake, estimate_bake, load_checkpoint, mib, save_checkpoint, splats_of,
-    write_atomic, write_splats,
+    SplatsModel, Split, TrainConfig, TrainState, TransientMaps, bake, estimate_bake, load_checkpoint, mib,
+    save_checkpoint, splats_of, write_atomic, write_splats,
 };
 use crate::system::peak_memory;
 
@@ -93,7 +93,12 @@ pub fn bake_cmd(a: BakeArgs) -> anyhow::Result<()> {
         let e = estimate_bake(&c, &splats, initial, DataSize::of(&ds), threads);
         eprintln!("estimated peak memory {} ({})", mib(e.memory_bytes), e.describe());
     }
-    let (model, adam, steps, elapsed) = bake_with_lines(&*source.model, &ds, &settings, &AtomicBool::new(false))?;
+    if let Some(t) = &source.transients {
+        eprintln!("the photos' transient masks from training stay out of the fit ({})", t.report().summary());
+    }
+    let no = AtomicBool::new(false);
+    let (model, adam, steps, elapsed) =
+        bake_with_lines(&*source.model, &ds, &settings, source.transients.as_ref(), &no)?;
     save_baked(&a.out, &model, &adam, a.seed, Budget { steps: a.steps, seconds }, steps, elapsed)?;
     eprintln!("wrote {}: {} Gaussians, {steps} steps in {elapsed:.1} s", a.out.display(), model.layout().n);
     if let Some(peak) = peak_memory() {
@@ -115,20 +120,22 @@ pub fn save_baked(
 ) -> anyhow::Result<()> {
     let train = TrainConfig { seed, budget, ..Default::default() };
     let state = TrainState { step: steps, elapsed, ..Default::default() };
-    Ok(save_checkpoint(out, model, adam, &train, &state)?)
+    Ok(save_checkpoint(out, model, adam, &train, &state, None)?)
 }
 
-/// Bakes `source` into splats, a line on standard error every 5 s; the
-/// splats, their optimiser, the steps made and the seconds taken.
+/// Bakes `source` into splats (the pixels in `dropped` left out), a line on
+/// standard error every 5 s; the splats, their optimiser, the steps made
+/// and the seconds taken.
 pub fn bake_with_lines(
     source: &dyn Model,
     ds: &Dataset,
     settings: &BakeSettings,
+    dropped: Option<&TransientMaps>,
     cancel: &AtomicBool,
 ) -> anyhow::Result<(SplatsModel, Adam, u64, f64)> {
     let started = Instant::now();
     let mut last = 0.0;
-    let (model, adam, steps) = bake(source, ds, settings, cancel, |p| {
+    let (model, adam, steps) = bake(source, ds, settings, dropped, cancel, |p| {
         if p.elapsed - last >= 5.0 {
             last = p.elapsed;
             eprintln!(

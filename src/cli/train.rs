@@ -13,8 +13,10 @@ use super::setup::{DEFAULT_BATCH_RAYS, model_config, new_model_and_adam, resolve
 use super::{Common, MaskArgs, TransientArgs};
 use crate::engine::front::{
     AUTO, BakeSettings, Budget, Checkpoint, DataSize, Dataset, Event, LoadOptions, MASK_INSIDE, MaskUse, ModelChoice,
-    ModelConfig, Session, SessionConfig, Split, Start, Stop, TrainConfig, estimate_training, mib,
+    ModelConfig, Session, SessionConfig, Split, Start, Stop, TrainConfig, TransientMaps, estimate_training, mib,
+    write_atomic,
 };
+use crate::media::png::encode_gray;
 use crate::system::peak_memory;
 
 #[derive(Args, Debug)]
@@ -75,6 +77,12 @@ pub struct TrainArgs {
     pub masks: MaskArgs,
     #[command(flatten)]
     pub transients: TransientArgs,
+    /// With --drop-transients: write each training photo's mask into this
+    /// folder when training ends, as DIR/NAME.png (the photo's file stem):
+    /// 255 where the pixel was trained on, 0 where it was dropped, the
+    /// layout of a dataset's `masks/` folder.
+    #[arg(long, requires = "drop_transients", value_name = "DIR")]
+    pub transient_masks: Option<PathBuf>,
     #[command(flatten)]
     pub common: Common,
 }
@@ -122,7 +130,30 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
         }
     }
     summary(&session, wall, &a.out);
+    if let (Some(dir), Some(maps)) = (&a.transient_masks, &session.trainer().transients) {
+        let n = write_transient_masks(maps, dir)?;
+        println!("masks          {n} in {}", dir.display());
+    }
     Ok(())
+}
+
+/// Writes every training photo's transient mask into `dir` (created), each
+/// file atomically; returns how many.
+pub fn write_transient_masks(maps: &TransientMaps, dir: &Path) -> anyhow::Result<usize> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let photos = maps.photos();
+    for (k, p) in photos.iter().enumerate() {
+        let (w, h, gray) = maps.mask_image(k).expect("one image a photo");
+        // Two photos of one name (from two folders) keep their index.
+        let name = match maps.index_of(&p.name) {
+            Some(first) if first == k => format!("{}.png", p.name),
+            _ => format!("{k}_{}.png", p.name),
+        };
+        let path = dir.join(name);
+        let png = encode_gray(w, h, &gray).context("encoding a mask")?;
+        write_atomic(&path, &png).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(photos.len())
 }
 
 /// The share of `train --model splats`'s time that trains the field the
@@ -195,6 +226,7 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
         field_run(&mut session, budget, &cancel)?;
     }
     let bake_seconds = total - field_seconds;
+    let trainer = session.trainer();
     let settings = BakeSettings {
         budget: Budget { seconds: Some(bake_seconds), steps: None },
         splats,
@@ -202,9 +234,10 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
         ..Default::default()
     };
     let (model, adam, steps, elapsed) =
-        super::splats::bake_with_lines(&*session.trainer().model, ds, &settings, &cancel).with_context(|| {
-            format!("splats from the field trained for {field_seconds:.0} s (more --seconds gives a better one)")
-        })?;
+        super::splats::bake_with_lines(&*trainer.model, ds, &settings, trainer.transients.as_ref(), &cancel)
+            .with_context(|| {
+                format!("splats from the field trained for {field_seconds:.0} s (more --seconds gives a better one)")
+            })?;
     let budget = Budget { steps: None, seconds: Some(total) };
     super::splats::save_baked(&a.out, &model, &adam, a.seed, budget, steps, elapsed)?;
     println!("splats         {} Gaussians, {steps} steps in {elapsed:.1} s", model.layout().n);
@@ -361,6 +394,9 @@ fn summary(session: &Session<'_>, wall: Instant, out: &Path) {
     }
     if let Some(report) = session.trainer().model.poses().and_then(|p| p.report()) {
         println!("poses          {report}");
+    }
+    if let Some(maps) = &session.trainer().transients {
+        println!("transients     {}", maps.report().summary());
     }
     println!("model          {}", out.display());
 }

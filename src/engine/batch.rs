@@ -16,7 +16,7 @@ pub struct TrainRay {
     /// appearance read it).
     pub image: u32,
     /// The weight of the ray's colour loss: 1, or 0 where training found a
-    /// transient occluder (`train::transient`).
+    /// transient occluder (`engine::transient`).
     pub weight: f32,
 }
 

@@ -18,4 +18,5 @@ pub mod render;
 pub mod rng;
 pub mod sampling;
 pub mod train;
+pub mod transient;
 pub mod view;

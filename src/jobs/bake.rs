@@ -27,7 +27,7 @@ use super::{BakeAfter, BakeSpec, Job, JobError, JobSpec, Outcome, SchedError};
 use crate::datadir::{ScenePart, now_ms};
 use crate::engine::front::{
     BakeError, BakeProgress, BakeSettings, Budget, DataSize, Dataset, Estimate, MaskUse, Model, ModelConfig,
-    SplatsConfig, TrainConfig, TrainState, bake, estimate_bake, load_model, save_checkpoint,
+    SplatsConfig, TrainConfig, TrainState, TransientMaps, bake, estimate_bake, load_checkpoint, save_checkpoint,
 };
 use crate::records::ModelInfo;
 
@@ -103,7 +103,7 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &Atomi
     let started = Instant::now();
     let stage = |s: &str| host.set_progress(&job.id, &mut |j| j.progress.stage = Some(s.to_string()));
     stage("loading the model and its photos");
-    let (source, model, ds) = load_source(host, spec)?;
+    let (source, model, dropped, ds) = load_source(host, spec)?;
     let settings = BakeSettings {
         budget: Budget { seconds: spec.seconds, steps: spec.steps },
         seed: spec.seed,
@@ -112,7 +112,7 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &Atomi
     };
     stage("placing Gaussians");
     let mut last = Instant::now();
-    let baked = bake(&*model, &ds, &settings, cancel, |p| {
+    let baked = bake(&*model, &ds, &settings, dropped.as_ref(), cancel, |p| {
         if last.elapsed().as_secs_f64() >= 0.1 {
             last = Instant::now();
             report(host, job, spec, p);
@@ -137,7 +137,7 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &Atomi
         ..Default::default()
     };
     let state = TrainState { step: steps, elapsed, ..Default::default() };
-    save_checkpoint(&out, &splats, &adam, &train, &state).map_err(JobError::SaveSplats)?;
+    save_checkpoint(&out, &splats, &adam, &train, &state, None).map_err(JobError::SaveSplats)?;
     let gaussians = splats.layout().n as u64;
     let baked = Baked { model: &splats, gaussians, steps, elapsed, metric };
     host.publish_model(job, &baked.record(job, &source, &out), &out)?;
@@ -155,15 +155,19 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &BakeSpec, cancel: &Atomi
 
 /// The bake's source: its model record, the model (from its checkpoint)
 /// and the training photos of its scene.
-fn load_source(host: &dyn JobHost, spec: &BakeSpec) -> Result<(ModelInfo, Box<dyn Model>, Dataset), JobError> {
+/// The source model's record, the model, the transient maps it was trained
+/// with (if any) and its scene's photos.
+type Source = (ModelInfo, Box<dyn Model>, Option<TransientMaps>, Dataset);
+
+fn load_source(host: &dyn JobHost, spec: &BakeSpec) -> Result<Source, JobError> {
     let id = &spec.source_model_id;
     let source = host.model(id)?.ok_or_else(|| JobError::ModelGone(id.clone()))?;
     let scene = host.scene(&source.scene_id)?.ok_or_else(|| JobError::SceneGone(source.scene_id.clone()))?;
     let dir = host.scene_dir(&scene, ScenePart::Data)?;
     let ds = load_dataset(&dir.path, &scene, MaskUse::Auto)?;
     let ckpt = host.model_checkpoint(&source).map_err(JobError::ModelFile)?;
-    let model = load_model(&ckpt.path)?;
-    Ok((source, model, ds))
+    let restored = load_checkpoint(&ckpt.path)?;
+    Ok((source, restored.model, restored.transients, ds))
 }
 
 /// The job's progress while optimising.
@@ -213,6 +217,7 @@ impl Baked<'_> {
             view: source.view.clone(),
             poses: None,
             gaussians: Some(self.gaussians),
+            transients: None,
         }
     }
 }

@@ -67,6 +67,9 @@ pub struct TrainSpec {
     /// id (chosen when the training job was posted) and its budget.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bake: Option<BakeAfter>,
+    /// Drop the transient occluders found from the training errors.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub drop_transients: bool,
 }
 
 /// The bake a training job asks for when it succeeds (`TrainSpec::bake`).

@@ -152,6 +152,7 @@ pub(super) mod tests {
             masks: Default::default(),
             model_reason: None,
             bake: None,
+            drop_transients: false,
         }))
     }
 

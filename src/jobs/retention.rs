@@ -205,6 +205,7 @@ mod tests {
             view,
             poses: None,
             gaussians: None,
+            transients: None,
         }
     }
 

@@ -14,7 +14,7 @@ use super::{Job, JobError, Outcome, TrainSpec};
 use crate::datadir::{ScenePart, now_ms};
 use crate::engine::front::{
     DataSize, Dataset, Event, HeldOut, ModelChoice, PoseReport, Progress, Session, SessionConfig, Start, Stop,
-    TrainConfig, TrainState,
+    TrainConfig, TrainState, TransientReport,
 };
 use crate::records::{ModelInfo, SceneInfo};
 
@@ -53,7 +53,7 @@ pub(crate) fn run(host: &dyn JobHost, job: &Job, spec: &TrainSpec, cancel: &Atom
             true
         }
         Event::Saved { progress } => {
-            record.write(&progress, false, None, None).map_err(|e| record_error = Some(e)).is_ok()
+            record.write(&progress, false, None, None, None).map_err(|e| record_error = Some(e)).is_ok()
         }
     });
     let stop = stop?;
@@ -84,6 +84,7 @@ fn open_session<'a>(
     let config = SessionConfig {
         train: TrainConfig {
             model_choice: choice,
+            drop_transients: spec.drop_transients,
             ..spec.config.train_config(spec.seed, spec.batch_rays, spec.budget.engine())
         },
         out: ckpt,
@@ -124,6 +125,11 @@ fn finish(
     }
     let p = session.trainer().progress(f64::NAN);
     let poses = session.trainer().model.poses().and_then(|p| p.report());
+    let transients = session.trainer().transients.as_ref().map(|t| t.report());
+    if let Some(t) = &transients {
+        tracing::info!(job = %job.id, "transients: {}", t.summary());
+    }
+    let transients = transients.as_ref();
     host.set_progress(&job.id, &mut |j| {
         j.progress.step = p.step;
         j.progress.elapsed = p.elapsed;
@@ -133,13 +139,13 @@ fn finish(
     });
     if stop == Stop::Cancelled {
         // Canceled or shut down: keep what was learnt as a usable model.
-        record.write(&p, true, None, poses)?;
+        record.write(&p, true, None, poses, transients)?;
         return Ok(Outcome::Stopped);
     }
-    record.write(&p, false, None, poses)?;
+    record.write(&p, false, None, poses, transients)?;
     let metric = evaluate(&*session.trainer().model, ds, host.config().eval_views, cancel);
     if cancel.load(Ordering::SeqCst) {
-        record.write(&p, true, None, poses)?;
+        record.write(&p, true, None, poses, transients)?;
         return Ok(Outcome::Stopped);
     }
     host.set_progress(&job.id, &mut |j| {
@@ -147,7 +153,7 @@ fn finish(
             (j.progress.test_psnr, j.progress.test_psnr_step) = (Some(m.0), Some(p.step));
         }
     });
-    record.write(&p, true, metric, poses)?;
+    record.write(&p, true, metric, poses, transients)?;
     if let Some(after) = &record.spec.bake {
         let data = DataSize::of(ds);
         let config = &record.spec.config;
@@ -221,14 +227,16 @@ struct ModelRecord<'a> {
 
 impl ModelRecord<'_> {
     /// Writes the record of the checkpoint saved at `p.step`; `poses` is
-    /// the pose report of a model that refines its cameras (given when
-    /// training has ended).
+    /// the pose report of a model that refines its cameras and
+    /// `transients` what a run that drops transients dropped (both given
+    /// when training has ended).
     fn write(
         &self,
         p: &Progress,
         complete: bool,
         metric: Option<(f64, usize)>,
         poses: Option<PoseReport>,
+        transients: Option<&TransientReport>,
     ) -> io::Result<()> {
         let previous = self.host.model(self.model_id).ok().flatten();
         let info = ModelInfo {
@@ -250,6 +258,7 @@ impl ModelRecord<'_> {
             view: self.scene.view.clone(),
             poses,
             gaussians: None,
+            transients: transients.cloned(),
         };
         self.host.publish_model(self.job, &info, &self.ckpt)?;
         self.host.set_progress(&self.job.id, &mut |j| j.model_id = Some(info.id.clone()));

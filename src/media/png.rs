@@ -108,6 +108,15 @@ pub fn encode_alpha(view: &View) -> io::Result<Vec<u8>> {
     Ok(out)
 }
 
+/// Encodes an 8-bit greyscale image (a mask) as PNG bytes.
+pub fn encode_gray(width: u32, height: u32, gray: &[u8]) -> io::Result<Vec<u8>> {
+    let mut out = Vec::new();
+    PngEncoder::new(&mut out)
+        .write_image(gray, width, height, image::ExtendedColorType::L8)
+        .map_err(io::Error::other)?;
+    Ok(out)
+}
+
 /// Encodes a view rendered on black as an 8-bit RGBA PNG: the colour,
 /// premultiplied by the opacity on black, is divided by it again.
 pub fn encode_rgba(view: &View) -> io::Result<Vec<u8>> {

@@ -179,6 +179,7 @@ pub fn train(scene: &str, steps: u64, seed: u64) -> JobSpec {
         masks: Default::default(),
         model_reason: None,
         bake: None,
+        drop_transients: false,
     }))
 }
 

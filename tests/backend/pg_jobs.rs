@@ -78,6 +78,7 @@ fn model_of(job: &Job, scene: &SceneInfo) -> ModelInfo {
         view: scene.view.clone(),
         poses: None,
         gaussians: None,
+        transients: None,
     }
 }
 

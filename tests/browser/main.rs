@@ -16,6 +16,7 @@ mod key;
 mod posing;
 mod realtime;
 mod splats;
+mod transients;
 mod trial;
 
 use std::path::PathBuf;

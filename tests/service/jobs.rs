@@ -490,3 +490,57 @@ async fn auto_chooses_the_model_by_the_scene_and_says_why() {
     let choice = restored.train.model_choice.expect("the checkpoint keeps the choice");
     assert_eq!((choice.preset.as_str(), choice.reason), ("instant", object));
 }
+
+/// `drop_transients`: refused for a model that cannot find transients; a
+/// capture job keeps it, its model record says what was dropped per
+/// training photo, and each photo's mask is served as a PNG of its size.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_drop_transients_and_serve_the_masks() {
+    let data = tempfile::tempdir().unwrap();
+    let svc = Svc::start(config(data.path())).await;
+    let (s, v) = svc.upload("application/zip", zip_of(&llff_files())).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let scene = v["id"].as_str().unwrap().to_string();
+    let body =
+        |model: &str| json!({ "scene_id": scene, "model": model, "budget": { "steps": 40 }, "drop_transients": true });
+    let (s, v) = svc.post_json("/v1/jobs", body("nerf-tiny")).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
+    assert_eq!(v["error"]["details"]["field"], "drop_transients", "{v}");
+    assert!(v["error"]["message"].as_str().unwrap().contains("needs a capture model"), "{v}");
+
+    let job = accepted(&svc, body("capture-tiny")).await;
+    assert_eq!(job["drop_transients"], true, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    let job = svc.wait_job(&id, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    assert_eq!(job["status"], "succeeded", "{job}");
+    let model = job["model_id"].as_str().unwrap().to_string();
+    let (_, m) = svc.get(&format!("/v1/models/{model}")).await;
+    let photos = m["transients"]["photos"].as_array().unwrap_or_else(|| panic!("{m}"));
+    let (_, sc) = svc.get(&format!("/v1/scenes/{scene}")).await;
+    assert_eq!(photos.len() as u64, sc["images"]["train"].as_u64().unwrap(), "{m}");
+    let dropped = m["transients"]["dropped"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&dropped), "{m}");
+    let name = photos[0]["name"].as_str().unwrap();
+    let r = svc.client.get(svc.url(&format!("/v1/models/{model}/transients/{name}"))).send().await.unwrap();
+    assert_eq!((r.status(), r.headers()["content-type"].to_str().unwrap()), (StatusCode::OK, "image/png"));
+    let mask = image::load_from_memory(&r.bytes().await.unwrap()).unwrap().to_luma8();
+    let b = ball();
+    assert_eq!(mask.dimensions(), (b.size, b.size));
+    assert!(mask.pixels().all(|p| p.0[0] == 0 || p.0[0] == 255));
+    let (s, v) = svc.get(&format!("/v1/models/{model}/transients/nope")).await;
+    assert_eq!(s, StatusCode::NOT_FOUND, "{v}");
+    assert!(v["error"]["message"].as_str().unwrap().contains("training photo 'nope' not found"), "{v}");
+
+    // A model trained on every pixel has no masks.
+    let job = accepted(&svc, json!({ "scene_id": scene, "model": "capture-tiny", "budget": { "steps": 2 } })).await;
+    assert!(job.get("drop_transients").is_none(), "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    let job = svc.wait_job(&id, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    let plain = job["model_id"].as_str().unwrap().to_string();
+    let (_, m) = svc.get(&format!("/v1/models/{plain}")).await;
+    assert!(m.get("transients").is_none(), "{m}");
+    let (s, v) = svc.get(&format!("/v1/models/{plain}/transients/{name}")).await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+    assert!(v["error"]["message"].as_str().unwrap().contains("not trained with drop_transients"), "{v}");
+    svc.stop().await;
+}

@@ -197,7 +197,7 @@ fn persistent_divergence_fails_the_run_with_a_clear_error() {
     assert_eq!(t.model.params(), at10.as_slice(), "left with the last good parameters");
     // ... which can be saved: never a NaN checkpoint.
     let dir = tempfile::tempdir().unwrap();
-    persist::save(&dir.path().join("m.ckpt"), &*t.model, &t.adam, &t.config, &t.state).unwrap();
+    persist::save(&dir.path().join("m.ckpt"), &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref()).unwrap();
     assert_eq!(persist::load(&dir.path().join("m.ckpt")).unwrap().state.rollbacks, 3);
 }
 
@@ -216,7 +216,7 @@ fn train_checkpoint(ds: &Dataset, steps: u64) -> radiance::engine::io::checkpoin
         let model = NerfModel::new(tiny::nerf_micro(true), ds.scene(), 5);
         let mut t = trainer_for(Box::new(model), ds, steps, 64, 5e-3);
         assert_eq!(t.run(&AtomicBool::new(false), |_, _| true), StopReason::Budget);
-        persist::to_checkpoint(&*t.model, &t.adam, &t.config, &t.state)
+        persist::to_checkpoint(&*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref())
     })
 }
 
@@ -287,7 +287,8 @@ fn train_briefly(name: &str, ds: &Dataset) {
     assert!(all_finite(t.model.params()), "{name}: non-finite parameters");
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.ckpt");
-    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state).unwrap_or_else(|e| panic!("{name}: {e}"));
+    persist::save(&path, &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref())
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
     let r = persist::load(&path).unwrap();
     assert!(all_finite(r.model.params()) && all_finite(&r.adam.m) && all_finite(&r.adam.v), "{name}");
     if reason == StopReason::Budget {

@@ -16,7 +16,7 @@ use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, res
 use super::{AppearanceArgs, Common, MaskArgs, TransientArgs};
 use crate::engine::front::{
     BakeSettings, Budget, CAPTURE_KIND, Dataset, FoundMasks, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig,
-    Pasted, Progress, Split, StopReason, TrainState, Trainer, bake, write_atomic,
+    Pasted, Progress, Split, StopReason, TrainState, Trainer, TransientMaps, bake, write_atomic,
 };
 use crate::system::{peak_memory, reset_peak_memory};
 pub use occluded::OccludedPhoto;
@@ -343,11 +343,12 @@ fn measure_bake(
     views: &[usize],
     args: &BenchArgs,
     seconds: f64,
+    dropped: Option<&TransientMaps>,
 ) -> anyhow::Result<BenchRow> {
     let settings =
         BakeSettings { budget: Budget { seconds: Some(seconds), steps: None }, seed: args.seed, ..Default::default() };
     let started = std::time::Instant::now();
-    let (model, _, steps) = bake(source, ds, &settings, &AtomicBool::new(false), |_| {})?;
+    let (model, _, steps) = bake(source, ds, &settings, dropped, &AtomicBool::new(false), |_| {})?;
     let elapsed = started.elapsed().as_secs_f64();
     let v = score_views(&model, steps, ds, views, args)?;
     Ok(BenchRow {
@@ -540,7 +541,7 @@ impl Run<'_> {
         }
         if let (Some(seconds), StopReason::Budget | StopReason::Callback) = (a.bake, &reason) {
             eprintln!("baking '{kind}' into splats for {seconds} s");
-            let row = measure_bake(&*trainer.model, ds, self.views, a, seconds)
+            let row = measure_bake(&*trainer.model, ds, self.views, a, seconds, trainer.transients.as_ref())
                 .with_context(|| format!("baking '{kind}'"))?;
             println!("{}", format_row(&row, ds.masks != MaskUse::Off, self.with_mean));
             let n = row.gaussians.unwrap_or(0);

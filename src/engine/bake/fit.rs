@@ -11,6 +11,7 @@ use crate::engine::models::splats::lens;
 use crate::engine::models::splats::raster::RasterCamera;
 use crate::engine::nn::adam::{Adam, AdamConfig, LrGroup};
 use crate::engine::rng::Rng;
+use crate::engine::transient::TransientMaps;
 
 /// The learning rate the blocks' scales multiply: four times the 3DGS
 /// paper's rates, since a bake has hundreds of steps where the paper has
@@ -62,16 +63,29 @@ pub(super) struct Fit<'a> {
 }
 
 impl<'a> Fit<'a> {
-    pub fn new(ds: &'a Dataset, frames: Vec<usize>, settings: &'a BakeSettings, model: SplatsModel) -> Self {
+    /// `dropped`: the pixels training dropped as transient, which are not
+    /// fitted (their maps are of `frames`, in order).
+    pub fn new(
+        ds: &'a Dataset,
+        frames: Vec<usize>,
+        settings: &'a BakeSettings,
+        model: SplatsModel,
+        dropped: Option<&TransientMaps>,
+    ) -> Self {
         let adam_config = AdamConfig { lr: BASE_LR, lr_end: BASE_LR, beta1: 0.9, beta2: 0.999, eps: 1e-15 };
         let adam = Adam::new(adam_config, model.params().len());
         let bg = ds.background;
         let targets: Vec<Vec<f32>> = frames
             .iter()
-            .map(|&f| {
+            .enumerate()
+            .map(|(k, &f)| {
                 let im = &ds.frames[f].image;
-                let rgb: Vec<f32> =
-                    (0..im.height).flat_map(|j| (0..im.width).flat_map(move |i| im.rgb_on(i, j, bg))).collect();
+                let kept = |i: u32, j: u32| dropped.is_none_or(|m| m.weight(k, i, j) > 0.0);
+                let rgb: Vec<f32> = (0..im.height)
+                    .flat_map(|j| {
+                        (0..im.width).flat_map(move |i| if kept(i, j) { im.rgb_on(i, j, bg) } else { [f32::NAN; 3] })
+                    })
+                    .collect();
                 // The rasteriser draws the pinhole part of a camera: a
                 // distorted photo is fitted as that camera would have
                 // taken it (NaN where it does not reach: no loss there).

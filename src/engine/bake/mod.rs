@@ -30,6 +30,7 @@ use crate::engine::models::Model;
 use crate::engine::models::splats::{SplatsConfig, SplatsModel};
 use crate::engine::models::training::Budget;
 use crate::engine::nn::adam::Adam;
+use crate::engine::transient::TransientMaps;
 
 pub use place::{MOST_INITIAL, PER_PHOTO, placing_rays};
 
@@ -102,6 +103,8 @@ pub enum BakeError {
     Kind(&'static str),
     #[error("a bake needs a budget: seconds, steps or both")]
     NoBudget,
+    #[error("the source's transient masks are of other photos than the dataset's training photos")]
+    OtherPhotos,
 }
 
 /// Progress of a bake, reported after each step.
@@ -142,11 +145,14 @@ fn in_frame(u: f32, v: f32, w: f32, h: f32) -> bool {
 const DENSIFY_EVERY: u64 = 100;
 
 /// Bakes `source` (trained on `ds`) into splats: the splats, their
-/// optimiser and the steps made.
+/// optimiser and the steps made. `dropped`, the transient maps of a source
+/// trained with them, keeps the pixels training dropped out of the fit, so
+/// that what training left out does not come back in the splats.
 pub fn bake(
     source: &dyn Model,
     ds: &Dataset,
     settings: &BakeSettings,
+    dropped: Option<&TransientMaps>,
     cancel: &AtomicBool,
     mut on_progress: impl FnMut(&BakeProgress),
 ) -> Result<(SplatsModel, Adam, u64), BakeError> {
@@ -162,13 +168,24 @@ pub fn bake(
     if frames.is_empty() {
         return Err(BakeError::NoPhotos);
     }
+    if let Some(m) = dropped {
+        let photos = m.photos();
+        let same = photos.len() == frames.len()
+            && frames.iter().zip(&photos).all(|(&f, p)| {
+                let (frame, c) = (&ds.frames[f], &ds.frames[f].camera);
+                (frame.name.as_str(), c.width, c.height) == (p.name.as_str(), p.width, p.height)
+            });
+        if !same {
+            return Err(BakeError::OtherPhotos);
+        }
+    }
     let params = place::place(source, ds, &frames, settings, cancel)?;
     let model = SplatsModel::from_parts(settings.splats.clone(), source.scene().clone(), params)
         .map_err(|_| BakeError::Empty)?;
     if model.layout().n == 0 {
         return Err(BakeError::Empty);
     }
-    let mut fit = fit::Fit::new(ds, frames, settings, model);
+    let mut fit = fit::Fit::new(ds, frames, settings, model, dropped);
     loop {
         let elapsed = started.elapsed().as_secs_f64();
         if budget.done(fit.step, elapsed) {

@@ -40,7 +40,7 @@ pub struct TrainConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model_choice: Option<ModelChoice>,
     /// Find transient occluders from the training residuals and stop
-    /// training on them (`train::transient`); a model that does not
+    /// training on them (`engine::transient`); a model that does not
     /// measure its rays' errors finds none. Off unless asked for (and then
     /// not written: a run without it saves what it saved before).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]

@@ -11,4 +11,3 @@ pub mod persist;
 pub mod pixels;
 pub mod session;
 pub mod trainer;
-pub mod transient;

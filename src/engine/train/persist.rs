@@ -26,6 +26,7 @@ use crate::engine::models::config::ModelConfig;
 use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::adam::{Adam, AdamConfig};
 use crate::engine::train::trainer::TrainState;
+use crate::engine::transient::{SavedPhoto, TransientMaps};
 
 /// A model restored from a checkpoint, ready to render or to train on.
 pub struct Restored {
@@ -36,10 +37,24 @@ pub struct Restored {
     /// The checkpoint had no optimiser state ([`strip_training_state`]):
     /// `adam` is zeroed, and training would not continue exactly.
     pub render_only: bool,
+    /// The transient maps of a run that dropped transients (they compare
+    /// no photos: a resumed run's take their cells).
+    pub transients: Option<TransientMaps>,
 }
 
-/// Builds the checkpoint of a training run.
-pub fn to_checkpoint(model: &dyn Model, adam: &Adam, train: &TrainConfig, state: &TrainState) -> Checkpoint {
+/// The meta key and tensors of the transient maps.
+const TRANSIENT_PHOTOS: &str = "transient_photos";
+const TRANSIENT_TENSORS: [&str; 3] = ["transients.sum", "transients.count", "transients.flags"];
+
+/// Builds the checkpoint of a training run, with its transient maps when it
+/// drops transients.
+pub fn to_checkpoint(
+    model: &dyn Model,
+    adam: &Adam,
+    train: &TrainConfig,
+    state: &TrainState,
+    transients: Option<&TransientMaps>,
+) -> Checkpoint {
     let mut c = Checkpoint::new(model.kind(), state.step);
     let mut state_json = serde_json::to_value(state).unwrap_or_default();
     if let Some(o) = state_json.as_object_mut() {
@@ -60,7 +75,37 @@ pub fn to_checkpoint(model: &dyn Model, adam: &Adam, train: &TrainConfig, state:
     for (name, data) in model.state_tensors() {
         c.insert(name, Tensor::F32(data));
     }
+    if let Some(t) = transients {
+        if let Some(o) = c.meta.as_object_mut() {
+            o.insert(TRANSIENT_PHOTOS.into(), serde_json::to_value(t.photos()).unwrap_or_default());
+        }
+        let (sum, count, flags) = t.cells();
+        c.insert(TRANSIENT_TENSORS[0], Tensor::F32(sum));
+        c.insert(TRANSIENT_TENSORS[1], Tensor::F32(count));
+        c.insert(TRANSIENT_TENSORS[2], Tensor::U8(flags));
+    }
     c
+}
+
+/// The transient maps of the checkpoint at `path` (none when its run kept
+/// every pixel), without restoring its model.
+pub fn load_transients(path: &Path) -> Result<Option<TransientMaps>, CheckpointError> {
+    transients(&mut Checkpoint::load(path)?, path)
+}
+
+/// The transient maps a checkpoint holds (none when its run kept every
+/// pixel).
+fn transients(c: &mut Checkpoint, path: &Path) -> Result<Option<TransientMaps>, CheckpointError> {
+    if c.meta.get(TRANSIENT_PHOTOS).is_none() {
+        return Ok(None);
+    }
+    let photos: Vec<SavedPhoto> = field(&c.meta, TRANSIENT_PHOTOS, path)?;
+    let sum = c.take_f32(TRANSIENT_TENSORS[0]).map_err(|e| e.with_path(path))?;
+    let count = c.take_f32(TRANSIENT_TENSORS[1]).map_err(|e| e.with_path(path))?;
+    let flags = c.u8(TRANSIENT_TENSORS[2]).map_err(|e| e.with_path(path))?;
+    TransientMaps::from_saved(&photos, &sum, &count, flags)
+        .map(Some)
+        .map_err(|message| CheckpointError::Header { path: Some(path.to_path_buf()), message })
 }
 
 /// The meta key of the only time-dependent part of a checkpoint.
@@ -83,6 +128,7 @@ pub fn save(
     adam: &Adam,
     train: &TrainConfig,
     state: &TrainState,
+    transients: Option<&TransientMaps>,
 ) -> Result<(), CheckpointError> {
     if let Some(i) = model.params().iter().position(|p| !p.is_finite()) {
         return Err(CheckpointError::Header {
@@ -90,7 +136,7 @@ pub fn save(
             message: format!("refusing to save a model with a non-finite parameter (index {i})"),
         });
     }
-    to_checkpoint(model, adam, train, state).save(path)
+    to_checkpoint(model, adam, train, state, transients).save(path)
 }
 
 fn field<T: serde::de::DeserializeOwned>(
@@ -163,6 +209,7 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
     model.restore_state(&mut |name| c.take_f32(name).ok(), step).map_err(|e| bad(e.to_string()))?;
     let adam_cfg: AdamConfig = field(&c.meta, "adam", path)?;
     let state: TrainState = field(&c.meta, "state", path)?;
+    let transients = transients(&mut c, path)?;
     let render_only = is_render_only(&c);
     let (m, v) = if render_only {
         (vec![0.0; nparams], vec![0.0; nparams])
@@ -186,5 +233,6 @@ pub fn load(path: &Path) -> Result<Restored, CheckpointError> {
             ..state
         },
         render_only,
+        transients,
     })
 }

@@ -153,8 +153,8 @@ pub struct Session<'a> {
 impl<'a> Session<'a> {
     /// Builds the trainer from `start`; trains nothing yet.
     pub fn new(start: Start, mut config: SessionConfig, ds: &'a Dataset) -> Result<Self, SessionError> {
-        let (model, adam, state) = match start {
-            Start::Fresh { model, adam } => (model, adam, TrainState::default()),
+        let (model, adam, state, saved) = match start {
+            Start::Fresh { model, adam } => (model, adam, TrainState::default(), None),
             Start::Resume { from, kind } => {
                 let r = persist::load_resumable(&from).map_err(SessionError::Resume)?;
                 if let Some(expected) = kind
@@ -165,11 +165,13 @@ impl<'a> Session<'a> {
                 if ModelConfig::of_model(&*r.model).is_some_and(|c| !c.spec().trains_on_rays()) {
                     return Err(SessionError::NotTrainable { path: from, kind: r.model.kind().into() });
                 }
-                // Why the model is what it is stays with it.
+                // Why the model is what it is stays with it, and a run
+                // that dropped transients goes on dropping them.
                 if config.train.model_choice.is_none() {
                     config.train.model_choice = r.train.model_choice;
                 }
-                (r.model, r.adam, r.state)
+                config.train.drop_transients |= r.transients.is_some();
+                (r.model, r.adam, r.state, r.transients.map(|t| (from, t)))
             }
         };
         let estimator = config.held_out.and_then(|h| {
@@ -181,13 +183,12 @@ impl<'a> Session<'a> {
             })
         });
         let started = state.clone();
-        Ok(Self {
-            trainer: Trainer::new(model, adam, config.train, state, ds),
-            out: config.out,
-            checkpoint_every: config.checkpoint_every,
-            estimator,
-            started,
-        })
+        let mut trainer = Trainer::new(model, adam, config.train, state, ds);
+        if let (Some(maps), Some((from, saved))) = (trainer.transients.as_mut(), saved) {
+            maps.resume_from(&saved)
+                .map_err(|message| SessionError::Resume(CheckpointError::Header { path: Some(from), message }))?;
+        }
+        Ok(Self { trainer, out: config.out, checkpoint_every: config.checkpoint_every, estimator, started })
     }
 
     pub fn trainer(&self) -> &Trainer<'a> {
@@ -259,7 +260,7 @@ impl<'a> Session<'a> {
 }
 
 fn save(out: &Path, t: &Trainer<'_>) -> Result<(), SessionError> {
-    persist::save(out, &*t.model, &t.adam, &t.config, &t.state).map_err(SessionError::Save)
+    persist::save(out, &*t.model, &t.adam, &t.config, &t.state, t.transients.as_ref()).map_err(SessionError::Save)
 }
 
 #[cfg(test)]

@@ -25,7 +25,6 @@ use rayon::prelude::*;
 
 use crate::engine::batch::{BatchStats, StepCtx, TrainRay};
 use crate::engine::dataset::Dataset;
-use crate::engine::geometry::math::Vec3;
 use crate::engine::models::Model;
 use crate::engine::models::training::TrainConfig;
 use crate::engine::nn::adam::{Adam, AdamUpdate};
@@ -33,7 +32,7 @@ use crate::engine::nn::all_finite;
 use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
 use crate::engine::rng::Rng;
 use crate::engine::train::pixels::PixelPool;
-use crate::engine::train::transient::{JUDGE_FROM, Photo, RECORD_FROM, TransientMaps};
+use crate::engine::transient::{JUDGE_FROM, RECORD_FROM, TransientMaps};
 
 /// Where training is, reported after every step.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -203,23 +202,7 @@ impl<'a> Trainer<'a> {
         state: TrainState,
         dataset: &'a Dataset,
     ) -> Self {
-        let transients = config.drop_transients.then(|| {
-            let photos: Vec<Photo> = dataset
-                .train
-                .iter()
-                .map(|&f| {
-                    let c = &dataset.frames[f].camera;
-                    let forward = c.rotate(Vec3::new(0.0, 0.0, -1.0));
-                    Photo {
-                        width: c.width,
-                        height: c.height,
-                        origin: c.origin().to_array(),
-                        forward: forward.to_array(),
-                    }
-                })
-                .collect();
-            TransientMaps::new(&photos)
-        });
+        let transients = config.drop_transients.then(|| TransientMaps::for_dataset(dataset));
         Self {
             model,
             adam,

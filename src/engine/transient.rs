@@ -10,6 +10,7 @@
 
 use crate::engine::dataset::Dataset;
 use crate::engine::dataset::occlude::Pasted;
+use crate::engine::geometry::math::Vec3;
 
 /// The most pixels a cell's side has: about sixteen cells across the
 /// shorter side of a photo, at least four pixels wide.
@@ -43,6 +44,9 @@ const MIN_ERROR: f32 = 0.01;
 /// One training photo's cells.
 #[derive(Clone, Debug)]
 struct Cells {
+    name: String,
+    width: u32,
+    height: u32,
     cell: u32,
     nx: u32,
     ny: u32,
@@ -53,10 +57,11 @@ struct Cells {
     nearest: Vec<usize>,
 }
 
-/// A training photo as the maps see it: its size, where its camera is and
-/// which way it looks (world units).
-#[derive(Clone, Copy, Debug)]
+/// A training photo as the maps see it: its name, its size, where its
+/// camera is and which way it looks (world units).
+#[derive(Clone, Debug)]
 pub struct Photo {
+    pub name: String,
     pub width: u32,
     pub height: u32,
     pub origin: [f32; 3],
@@ -70,6 +75,26 @@ pub struct TransientMaps {
 }
 
 impl TransientMaps {
+    /// Maps for `ds`'s training photos (in `ds.train`'s order), nothing
+    /// transient.
+    pub fn for_dataset(ds: &Dataset) -> Self {
+        let photos: Vec<Photo> = ds
+            .train
+            .iter()
+            .map(|&f| {
+                let c = &ds.frames[f].camera;
+                Photo {
+                    name: ds.frames[f].name.clone(),
+                    width: c.width,
+                    height: c.height,
+                    origin: c.origin().to_array(),
+                    forward: c.rotate(Vec3::new(0.0, 0.0, -1.0)).to_array(),
+                }
+            })
+            .collect();
+        Self::new(&photos)
+    }
+
     /// Maps for these training photos, nothing transient.
     pub fn new(photos: &[Photo]) -> Self {
         let dist = |a: &Photo, b: &Photo| (0..3).map(|c| (a.origin[c] - b.origin[c]).powi(2)).sum::<f32>();
@@ -81,25 +106,67 @@ impl TransientMaps {
             .iter()
             .enumerate()
             .map(|(p, ph)| {
-                let cell = (ph.width.min(ph.height) / 16).clamp(4, CELL);
-                let (nx, ny) = (ph.width.div_ceil(cell).max(1), ph.height.div_ceil(cell).max(1));
-                let n = (nx * ny) as usize;
                 let mut others: Vec<usize> =
                     (0..photos.len()).filter(|&q| q != p && cos(ph, &photos[q]) >= MAX_TURN_COS).collect();
                 others.sort_by(|&a, &b| dist(ph, &photos[a]).total_cmp(&dist(ph, &photos[b])));
                 others.truncate(NEAREST);
-                Cells {
-                    cell,
-                    nx,
-                    ny,
-                    sum: vec![0.0; n],
-                    count: vec![0.0; n],
-                    transient: vec![false; n],
-                    nearest: others,
-                }
+                Cells { nearest: others, ..Cells::empty(&ph.name, ph.width, ph.height) }
             })
             .collect();
         Self { photos }
+    }
+
+    /// The training photos' names and sizes, in order.
+    pub fn photos(&self) -> Vec<SavedPhoto> {
+        self.photos.iter().map(|c| SavedPhoto { name: c.name.clone(), width: c.width, height: c.height }).collect()
+    }
+
+    /// Every photo's cells one after the other: the errors' sums, the
+    /// rays counted and the verdicts (1 transient), as a checkpoint keeps
+    /// them ([`TransientMaps::from_saved`] reads them back).
+    pub fn cells(&self) -> (Vec<f32>, Vec<f32>, Vec<u8>) {
+        let sum = self.photos.iter().flat_map(|c| c.sum.iter().copied()).collect();
+        let count = self.photos.iter().flat_map(|c| c.count.iter().copied()).collect();
+        let flags = self.photos.iter().flat_map(|c| c.transient.iter().map(|&t| t as u8)).collect();
+        (sum, count, flags)
+    }
+
+    /// Maps as [`TransientMaps::photos`] and [`TransientMaps::cells`] gave
+    /// them; they compare no photos (for reading the masks, or for
+    /// [`TransientMaps::resume_from`]).
+    pub fn from_saved(photos: &[SavedPhoto], sum: &[f32], count: &[f32], flags: &[u8]) -> Result<Self, String> {
+        let mut cells: Vec<Cells> = photos.iter().map(|p| Cells::empty(&p.name, p.width, p.height)).collect();
+        let n: usize = cells.iter().map(|c| c.sum.len()).sum();
+        if (sum.len(), count.len(), flags.len()) != (n, n, n) {
+            return Err(format!(
+                "transient maps: {} photos have {n} cells, but {} sums, {} counts and {} verdicts were saved",
+                photos.len(),
+                sum.len(),
+                count.len(),
+                flags.len()
+            ));
+        }
+        let mut at = 0;
+        for c in &mut cells {
+            let r = at..at + c.sum.len();
+            c.sum.copy_from_slice(&sum[r.clone()]);
+            c.count.copy_from_slice(&count[r.clone()]);
+            c.transient = flags[r].iter().map(|&f| f != 0).collect();
+            at += c.sum.len();
+        }
+        Ok(Self { photos: cells })
+    }
+
+    /// Takes the cells of `saved` (a resumed run's), which must be of the
+    /// same photos, keeping the photos this map compares.
+    pub fn resume_from(&mut self, saved: &TransientMaps) -> Result<(), String> {
+        if saved.photos() != self.photos() {
+            return Err("transient maps: the checkpoint's training photos are not this dataset's".into());
+        }
+        for (c, s) in self.photos.iter_mut().zip(&saved.photos) {
+            (c.sum, c.count, c.transient) = (s.sum.clone(), s.count.clone(), s.transient.clone());
+        }
+        Ok(())
     }
 
     fn cell(&self, photo: usize, i: u32, j: u32) -> Option<(&Cells, usize)> {
@@ -202,6 +269,46 @@ impl TransientMaps {
             .map_or(0.0, |c| c.transient.iter().filter(|&&t| t).count() as f64 / c.transient.len().max(1) as f64)
     }
 
+    /// Training photo `photo`'s pixels dropped, as a share of its own.
+    fn pixel_share(&self, photo: usize) -> f64 {
+        let Some(c) = self.photos.get(photo) else { return 0.0 };
+        let dropped: u64 = (0..c.transient.len())
+            .filter(|&k| c.transient[k])
+            .map(|k| {
+                let (x, y) = (k as u32 % c.nx, k as u32 / c.nx);
+                let w = c.cell.min(c.width.saturating_sub(x * c.cell));
+                let h = c.cell.min(c.height.saturating_sub(y * c.cell));
+                w as u64 * h as u64
+            })
+            .sum();
+        dropped as f64 / (c.width as u64 * c.height as u64).max(1) as f64
+    }
+
+    /// What was dropped: each photo's share of pixels, and the whole's.
+    pub fn report(&self) -> TransientReport {
+        let photos: Vec<PhotoShare> = (0..self.photos.len())
+            .map(|p| PhotoShare { name: self.photos[p].name.clone(), share: self.pixel_share(p) })
+            .collect();
+        let pixels = |c: &Cells| c.width as f64 * c.height as f64;
+        let all: f64 = self.photos.iter().map(pixels).sum();
+        let dropped: f64 = self.photos.iter().zip(&photos).map(|(c, p)| pixels(c) * p.share).sum();
+        TransientReport { dropped: dropped / all.max(1.0), photos }
+    }
+
+    /// Training photo `photo`'s mask as an 8-bit image of its size, in the
+    /// layout of the masks a dataset gives (`masks/`): 255 where the pixel
+    /// was trained on, 0 where it was dropped. `None` for no such photo.
+    pub fn mask_image(&self, photo: usize) -> Option<(u32, u32, Vec<u8>)> {
+        let c = self.photos.get(photo)?;
+        let m = self.mask(photo, c.width, c.height);
+        Some((c.width, c.height, m.into_iter().map(|t| if t { 0 } else { 255 }).collect()))
+    }
+
+    /// The index of the training photo named `name`.
+    pub fn index_of(&self, name: &str) -> Option<usize> {
+        self.photos.iter().position(|c| c.name == name)
+    }
+
     /// Training photo `photo`'s mask at its pixels (`w x h`, row by row):
     /// true where transient.
     pub fn mask(&self, photo: usize, w: u32, h: u32) -> Vec<bool> {
@@ -222,6 +329,88 @@ impl TransientMaps {
             }
         }
         FoundMasks { recall: hit as f64 / truth.max(1) as f64, static_share: wrong as f64 / other.max(1) as f64 }
+    }
+}
+
+impl Cells {
+    /// A `width x height` photo's cells, nothing recorded: about sixteen
+    /// across the shorter side.
+    fn empty(name: &str, width: u32, height: u32) -> Self {
+        let cell = (width.min(height) / 16).clamp(4, CELL);
+        let (nx, ny) = (width.div_ceil(cell).max(1), height.div_ceil(cell).max(1));
+        let n = (nx * ny) as usize;
+        Cells {
+            name: name.to_string(),
+            width,
+            height,
+            cell,
+            nx,
+            ny,
+            sum: vec![0.0; n],
+            count: vec![0.0; n],
+            transient: vec![false; n],
+            nearest: Vec::new(),
+        }
+    }
+}
+
+/// A training photo of the maps: its name (the image file's stem) and size.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SavedPhoto {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// A photo mostly masked: at least this share of its pixels dropped (the
+/// training report names it).
+pub const MOSTLY_MASKED: f64 = 0.5;
+
+/// What robust training dropped ([`TransientMaps::report`]).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TransientReport {
+    /// Share of all the training pixels dropped.
+    pub dropped: f64,
+    /// Each training photo's share of pixels dropped, in training order.
+    pub photos: Vec<PhotoShare>,
+}
+
+/// One training photo's share of pixels dropped.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PhotoShare {
+    pub name: String,
+    pub share: f64,
+}
+
+impl TransientReport {
+    /// The photos mostly masked ([`MOSTLY_MASKED`]), most masked first.
+    pub fn mostly_masked(&self) -> Vec<&PhotoShare> {
+        let mut v: Vec<&PhotoShare> = self.photos.iter().filter(|p| p.share >= MOSTLY_MASKED).collect();
+        v.sort_by(|a, b| b.share.total_cmp(&a.share));
+        v
+    }
+
+    /// One line: the share dropped, the most masked photos.
+    pub fn summary(&self) -> String {
+        let mut by_share: Vec<&PhotoShare> = self.photos.iter().filter(|p| p.share > 0.0).collect();
+        by_share.sort_by(|a, b| b.share.total_cmp(&a.share));
+        let mut s = format!(
+            "{:.2}% of the training pixels dropped, in {} of {} photos",
+            100.0 * self.dropped,
+            by_share.len(),
+            self.photos.len()
+        );
+        if !by_share.is_empty() {
+            let most: Vec<String> =
+                by_share.iter().take(3).map(|p| format!("{} {:.0}%", p.name, 100.0 * p.share)).collect();
+            s += &format!(" (most: {})", most.join(", "));
+        }
+        let mostly = self.mostly_masked();
+        if !mostly.is_empty() {
+            let names: Vec<&str> = mostly.iter().map(|p| p.name.as_str()).collect();
+            s += &format!("; mostly masked, consider retaking: {}", names.join(", "));
+        }
+        s
     }
 }
 
@@ -254,8 +443,7 @@ mod tests {
     /// drawn 5 times, its squared error `base` times a random factor in
     /// [0.5, 1.5), and `bad` in the pixels `bad_at` says.
     fn recorded(base: f32, bad: f32, bad_at: impl Fn(usize, u32, u32) -> bool) -> TransientMaps {
-        let photo = |x: f32| Photo { width: 256, height: 256, origin: [x, 0.0, 0.0], forward: [0.0, 0.0, -1.0] };
-        let mut t = TransientMaps::new(&[photo(0.0), photo(0.1), photo(0.2)]);
+        let mut t = TransientMaps::new(&three());
         let mut rng = Rng::new(3);
         for photo in 0..3 {
             for j in (0..256).step_by(2) {
@@ -269,6 +457,68 @@ mod tests {
         }
         t.judge();
         t
+    }
+
+    fn three() -> Vec<Photo> {
+        let photo = |x: f32| Photo {
+            name: format!("p{x}"),
+            width: 256,
+            height: 256,
+            origin: [x, 0.0, 0.0],
+            forward: [0.0, 0.0, -1.0],
+        };
+        vec![photo(0.0), photo(0.1), photo(0.2)]
+    }
+
+    #[test]
+    fn saved_cells_read_back_as_the_same_masks_and_resume_only_on_the_same_photos() {
+        let square = |p: usize, i: u32, j: u32| p == 1 && (32..80).contains(&i) && (32..80).contains(&j);
+        let t = recorded(0.004, 0.09, square);
+        let (sum, count, flags) = t.cells();
+        assert_eq!(flags.iter().filter(|&&f| f == 1).count(), 9);
+        let back = TransientMaps::from_saved(&t.photos(), &sum, &count, &flags).unwrap();
+        assert_eq!(back.cells(), t.cells());
+        for p in 0..3 {
+            assert_eq!(back.mask(p, 256, 256), t.mask(p, 256, 256));
+        }
+        // A resumed run's maps take the cells and judge them as before.
+        let mut resumed = TransientMaps::new(&three());
+        resumed.resume_from(&back).unwrap();
+        resumed.judge();
+        assert_eq!(resumed.cells(), t.cells());
+        // Cells that do not fit the photos, or other photos, are refused.
+        let e = TransientMaps::from_saved(&t.photos(), &sum[1..], &count, &flags).err().unwrap();
+        assert!(e.contains("3 photos have 768 cells, but 767 sums"), "{e}");
+        let mut other = three();
+        other[2].width = 128;
+        assert!(TransientMaps::new(&other).resume_from(&back).is_err());
+        other[2].width = 256;
+        other[0].name = "elsewhere".into();
+        assert!(TransientMaps::new(&other).resume_from(&back).is_err());
+    }
+
+    #[test]
+    fn the_report_counts_pixels_and_names_photos_mostly_masked() {
+        // 48x48 of photo 1's 256x256 pixels; photo 2's bottom half.
+        let bad = |p: usize, i: u32, j: u32| {
+            (p == 1 && (32..80).contains(&i) && (32..80).contains(&j)) || (p == 2 && j >= 128)
+        };
+        let t = recorded(0.004, 0.09, bad);
+        let r = t.report();
+        assert_eq!(r.photos.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(), ["p0", "p0.1", "p0.2"]);
+        assert_eq!(r.photos[0].share, 0.0);
+        assert_eq!(r.photos[1].share, 48.0 * 48.0 / 65536.0);
+        assert_eq!(r.photos[2].share, 0.5);
+        assert!((r.dropped - (48.0 * 48.0 + 128.0 * 256.0) / (3.0 * 65536.0)).abs() < 1e-12);
+        assert_eq!(r.mostly_masked(), vec![&r.photos[2]]);
+        let line = r.summary();
+        assert!(line.contains("in 2 of 3 photos") && line.contains("consider retaking: p0.2"), "{line}");
+        // The image: 255 kept, 0 dropped, the photo's size.
+        let (w, h, img) = t.mask_image(1).unwrap();
+        assert_eq!((w, h, img.len()), (256, 256, 65536));
+        assert_eq!((img[40 * 256 + 40], img[10 * 256 + 10]), (0, 255));
+        assert!(t.mask_image(3).is_none());
+        assert_eq!((t.index_of("p0.1"), t.index_of("nope")), (Some(1), None));
     }
 
     #[test]
@@ -329,8 +579,8 @@ mod tests {
         assert_eq!(t.share(0), 0.0);
         // Nothing is judged before errors are recorded, and non-finite
         // errors are not recorded.
-        let lone = Photo { width: 256, height: 256, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
-        let mut t = TransientMaps::new(&[lone, lone]);
+        let lone = Photo { name: String::new(), width: 256, height: 256, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
+        let mut t = TransientMaps::new(&[lone.clone(), lone]);
         for _ in 0..100 {
             t.record(0, 5, 5, f32::NAN);
             t.record(0, 5, 5, f32::INFINITY);
@@ -341,7 +591,13 @@ mod tests {
 
     #[test]
     fn photos_are_compared_with_the_nearest_that_look_the_same_way() {
-        let at = |x: f32, forward: [f32; 3]| Photo { width: 32, height: 32, origin: [x, 0.0, 0.0], forward };
+        let at = |x: f32, forward: [f32; 3]| Photo {
+            name: String::new(),
+            width: 32,
+            height: 32,
+            origin: [x, 0.0, 0.0],
+            forward,
+        };
         let ahead = [0.0, 0.0, -1.0];
         let photos =
             [at(0.0, ahead), at(5.0, ahead), at(1.0, ahead), at(0.5, [0.0, 1.0, 0.0]), at(2.0, ahead), at(3.0, ahead)];
@@ -357,7 +613,7 @@ mod tests {
         // Photo 3 does not exist; (256, 0) is past photo 0's edge.
         assert_eq!((t.weight(3, 0, 0), t.weight(0, 256, 0)), (1.0, 1.0));
         // A photo smaller than a cell still has one.
-        let small = Photo { width: 3, height: 2, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
+        let small = Photo { name: String::new(), width: 3, height: 2, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
         assert_eq!(TransientMaps::new(&[small]).mask(0, 3, 2), vec![false; 6]);
     }
 }
