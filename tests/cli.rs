@@ -379,11 +379,26 @@ fn drop_transients_on_the_command_line() {
     assert!(!model.exists());
 
     let json = dir.path().join("bench.json");
+    let saved = dir.path().join("saved");
     let args = ["bench", "--data", d, "--model", "capture-tiny", "--budgets", "0.5", "--test-views", "1"];
     let more = ["--occlude", "0.5", "--drop-transients", "--json", json.to_str().unwrap()];
-    let out = ok(&radiance(&[&args[..], &more[..]].concat()));
+    let out = ok(&radiance(&[&args[..], &more[..], &["--save", saved.to_str().unwrap()]].concat()));
     assert!(out.contains("transient masks: ") && out.contains("% of the static pixels"), "{out}");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    // --save: each occluded photo with the mask found, and the view scored.
+    let mut names: Vec<String> =
+        std::fs::read_dir(&saved).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    let occluded = report["occluded"].as_array().unwrap();
+    assert_eq!(names.len(), 2 * occluded.len() + 1, "{names:?}");
+    for p in occluded {
+        let name = p["name"].as_str().unwrap();
+        for suffix in ["occluded", "found"] {
+            let img = image::open(saved.join(format!("{name}.{suffix}.png"))).unwrap();
+            assert_eq!((img.width(), img.height()), (16, 16));
+        }
+    }
+    assert!(names.iter().any(|n| n.starts_with("capture_") && n.ends_with(".png")), "{names:?}");
     let found = &report["found"];
     for key in ["recall", "static_share"] {
         let v = found[key].as_f64().unwrap_or(-1.0);

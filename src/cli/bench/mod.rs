@@ -76,6 +76,13 @@ pub struct BenchArgs {
     /// of generated shapes.
     #[arg(long, requires = "occlude")]
     pub occluder_cutouts: Option<PathBuf>,
+    /// Write what was scored into this folder, to look at: each scored
+    /// view's render (MODEL_STEP_NAME.png: the model's kind, its steps, the
+    /// view's name) and, with --occlude, each occluded training photo
+    /// (NAME.occluded.png) with, under --drop-transients, the mask training
+    /// found for it (NAME.found.png: 255 trained on, 0 dropped).
+    #[arg(long, value_name = "DIR")]
+    pub save: Option<PathBuf>,
     #[command(flatten)]
     pub masks: MaskArgs,
     #[command(flatten)]
@@ -263,6 +270,9 @@ fn score_views(
         let f = &ds.frames[i];
         let Scored { view, secs, scores: sc, psnr_mean, fit: fitted } =
             render_and_score(model, f, ds.background, &args.appearance, fit.as_mut())?;
+        if let Some(dir) = &args.save {
+            occluded::save_rgb(&dir.join(format!("{}_{step}_{}.png", model.kind(), f.name)), &view)?;
+        }
         v.secs += secs;
         v.rays += view.stats.rays;
         v.samples += view.stats.samples;
@@ -392,6 +402,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let budgets = checked_budgets(&a)?;
 
     let occluders = a.occlude.map(|share| occluders(&a, share)).transpose()?;
+    if let Some(dir) = &a.save {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
 
     let opts = LoadOptions { splits: vec![Split::Train, Split::Test], background: [1.0; 3], masks: a.masks.masks };
     let mut ds = Dataset::load(&a.data, &opts).with_context(|| format!("loading {}", a.data.display()))?;
@@ -530,6 +543,9 @@ impl Run<'_> {
         });
         if let Some(e) = error {
             return Err(e.context(format!("benchmarking '{kind}'")));
+        }
+        if let Some(dir) = &a.save {
+            occluded::save_photos(dir, ds, self.pasted, trainer.transients.as_ref())?;
         }
         if let Some(f) = trainer.transients.as_ref().map(|t| t.score(ds, self.pasted)) {
             println!(

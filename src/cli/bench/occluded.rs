@@ -4,8 +4,11 @@
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
+use std::path::Path;
+
 use super::BenchArgs;
-use crate::engine::front::{Dataset, Occluders, Pasted, load_cutouts, occlude};
+use crate::engine::front::{Dataset, Occluders, Pasted, TransientMaps, View, load_cutouts, occlude, write_atomic};
+use crate::media::png::{encode_gray, encode_rgb, quantise_rgb};
 
 /// A photo `--occlude` pasted into.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -53,4 +56,35 @@ pub(super) fn occlude_photos(ds: &mut Dataset, o: &Occluders) -> anyhow::Result<
         100.0 * mean
     );
     Ok((photos, pasted))
+}
+
+/// Writes a rendered view's colour as a PNG (`bench --save`).
+pub(super) fn save_rgb(path: &Path, view: &View) -> anyhow::Result<()> {
+    let png = encode_rgb(view.width, view.height, &quantise_rgb(&view.rgb))?;
+    write_atomic(path, &png).with_context(|| format!("writing {}", path.display()))
+}
+
+/// `bench --save`: each occluded training photo as pasted, and the mask
+/// training found for it when it dropped transients.
+pub(super) fn save_photos(
+    dir: &Path,
+    ds: &Dataset,
+    pasted: &[Pasted],
+    maps: Option<&TransientMaps>,
+) -> anyhow::Result<()> {
+    for p in pasted {
+        let f = &ds.frames[p.frame];
+        let (w, h) = (f.image.width, f.image.height);
+        let rgb: Vec<f32> =
+            (0..h).flat_map(|j| (0..w).flat_map(move |i| f.image.rgb_on(i, j, ds.background))).collect();
+        let path = dir.join(format!("{}.occluded.png", f.name));
+        write_atomic(&path, &encode_rgb(w, h, &quantise_rgb(&rgb))?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        let found = maps.and_then(|m| m.mask_image(ds.train.iter().position(|&t| t == p.frame)?));
+        if let Some((w, h, gray)) = found {
+            let path = dir.join(format!("{}.found.png", f.name));
+            write_atomic(&path, &encode_gray(w, h, &gray)?).with_context(|| format!("writing {}", path.display()))?;
+        }
+    }
+    Ok(())
 }
