@@ -436,4 +436,16 @@ fn drop_transients_on_the_command_line() {
     // The checkpoint keeps the maps.
     let maps = radiance::engine::front::load_transients(&model).unwrap().expect("maps saved");
     assert_eq!(maps.photos().len(), stems.len());
+
+    // `train --model splats`: its field (a capture model for these opaque
+    // photos) drops transients, and its masks are written too.
+    let llff = dir.path().join("llff");
+    BallScene { size: 16, views: 8, ..Default::default() }.write_llff(&llff).unwrap();
+    let masks = dir.path().join("splat_masks");
+    let splats = dir.path().join("s.ckpt");
+    let args = ["train", "--data", llff.to_str().unwrap(), "--model", "splats", "--seconds", "4"];
+    let more = ["--drop-transients", "--transient-masks", masks.to_str().unwrap(), "--out", splats.to_str().unwrap()];
+    let out = ok(&radiance(&[&args[..], &more[..]].concat()));
+    assert!(out.contains("transients     ") && out.contains("(the field's)"), "{out}");
+    assert!(std::fs::read_dir(&masks).unwrap().count() > 0 && splats.exists(), "{out}");
 }

@@ -203,6 +203,8 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
     }
     let budget = Budget { steps: None, seconds: Some(field_seconds) };
     let (config, model, adam) = new_model_and_adam(&kind, ds.scene(), a.seed, true, a.lr, &[])?;
+    // The checkpoint holds the kind (`capture`), not the preset (`capture-360`).
+    let field_kind = config.kind().to_string();
     let train = a.transients.apply(
         config.kind(),
         TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) },
@@ -221,7 +223,7 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
         );
         let budget = Budget { steps: Some(SPLATS_FIELD_MIN_STEPS), seconds: None };
         let config = SessionConfig { train: TrainConfig { budget, ..config.train }, ..config };
-        let from = Start::Resume { from: config.out.clone(), kind: Some(kind.clone()) };
+        let from = Start::Resume { from: config.out.clone(), kind: Some(field_kind) };
         session = Session::new(from, config, ds)?;
         field_run(&mut session, budget, &cancel)?;
     }
@@ -242,6 +244,13 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
     super::splats::save_baked(&a.out, &model, &adam, a.seed, budget, steps, elapsed)?;
     println!("splats         {} Gaussians, {steps} steps in {elapsed:.1} s", model.layout().n);
     println!("model          {}", a.out.display());
+    if let Some(maps) = &trainer.transients {
+        println!("transients     {} (the field's)", maps.report().summary());
+        if let Some(dir) = &a.transient_masks {
+            let n = write_transient_masks(maps, dir)?;
+            println!("masks          {n} in {}", dir.display());
+        }
+    }
     Ok(())
 }
 
