@@ -434,7 +434,7 @@ fn drop_transients_on_the_command_line() {
     assert_eq!(img.dimensions(), (16, 16));
     assert!(img.pixels().all(|p| p.0[0] == 0 || p.0[0] == 255));
     // The checkpoint keeps the maps.
-    let maps = radiance::engine::front::load_transients(&model).unwrap().expect("maps saved");
+    let maps = radiance::engine::front::load_checkpoint(&model).unwrap().transients.expect("maps saved");
     assert_eq!(maps.photos().len(), stems.len());
 
     // `train --model splats`: its field (a capture model for these opaque

@@ -122,11 +122,14 @@ pub struct AppInner {
     pub worker_stats: Option<Arc<crate::worker::WorkerStats>>,
 }
 
-/// A loaded model, valid while its record's `updated_at` is unchanged.
+/// A loaded model and the transient maps its checkpoint holds, valid while
+/// its record's `updated_at` is unchanged.
+#[derive(Clone)]
 pub struct CachedModel {
     pub id: String,
     pub updated_at: u64,
     pub model: Arc<dyn Model>,
+    pub transients: Option<Arc<crate::engine::front::TransientMaps>>,
 }
 
 pub type AppState = Arc<AppInner>;

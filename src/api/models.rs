@@ -16,7 +16,8 @@ use serde::{Deserialize, Serialize};
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel, site};
 use crate::backend::Artifact;
 use crate::engine::front::{
-    Appearance, Camera, CheckpointError, Model, SplatsFormat, load_model, render_view_until, splats_of, write_splats,
+    Appearance, Camera, CheckpointError, Model, SplatsFormat, load_checkpoint, render_view_until, splats_of,
+    write_splats,
 };
 use crate::media::png::{self, ViewImage};
 use crate::records::{ModelInfo, VideoInfo, ViewDefaults};
@@ -327,27 +328,38 @@ impl Drop for CancelOnDrop {
 /// Loads a model from its checkpoint (on the blocking threads), or reuses
 /// it when its record has not changed.
 pub(super) async fn model_of(s: &AppInner, info: &ModelInfo) -> ApiResult<Arc<dyn Model>> {
+    Ok(loaded(s, info).await?.model)
+}
+
+/// A model and its transient maps, loaded from its checkpoint (on the
+/// blocking threads) once and kept while its record has not changed.
+pub(super) async fn loaded(s: &AppInner, info: &ModelInfo) -> ApiResult<CachedModel> {
     {
         let cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(c) = cache.iter().find(|c| c.id == info.id && c.updated_at == info.updated_at) {
-            return Ok(c.model.clone());
+            return Ok(c.clone());
         }
     }
     let ckpt = s.artifacts.checkpoint(info).await?;
-    let restored = tokio::task::spawn_blocking(move || load_model(&ckpt.path)).await?;
-    let model = restored.map_err(|e| match e {
+    let restored = tokio::task::spawn_blocking(move || load_checkpoint(&ckpt.path)).await?;
+    let restored = restored.map_err(|e| match e {
         // Deleted since its record was read.
         CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
             ApiError::not_found("model", &info.id)
         }
         e => e.into(),
     })?;
-    let model: Arc<dyn Model> = Arc::from(model);
+    let loaded = CachedModel {
+        id: info.id.clone(),
+        updated_at: info.updated_at,
+        model: Arc::from(restored.model),
+        transients: restored.transients.map(Arc::new),
+    };
     let mut cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
     cache.retain(|c| c.id != info.id);
-    cache.insert(0, CachedModel { id: info.id.clone(), updated_at: info.updated_at, model: model.clone() });
+    cache.insert(0, loaded.clone());
     cache.truncate(4);
-    Ok(model)
+    Ok(loaded)
 }
 
 /// The image the query asked for.

@@ -6,13 +6,14 @@ use axum::extract::{Path, State};
 use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 
-use super::{ApiError, ApiResult, AppState};
-use crate::engine::front::{CheckpointError, load_transients};
+use super::{ApiError, ApiResult, AppState, models};
 use crate::media::png::encode_gray;
 
 /// The mask of training photo `photo` (its name, the image file's stem) as
 /// an 8-bit PNG of the photo's size: 255 where training used the pixel, 0
 /// where it was dropped as transient (the layout of a dataset's `masks/`).
+/// The maps come with the model from the API's model cache, so the masks of
+/// one model read its checkpoint once.
 pub async fn get(State(s): State<AppState>, Path((id, photo)): Path<(String, String)>) -> ApiResult<impl IntoResponse> {
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
     if info.transients.is_none() {
@@ -20,15 +21,9 @@ pub async fn get(State(s): State<AppState>, Path((id, photo)): Path<(String, Str
             "model '{id}' has no transient masks: it was not trained with drop_transients (or is still training)"
         )));
     }
-    let ckpt = s.artifacts.checkpoint(&info).await?;
+    let maps = models::loaded(&s, &info).await?.transients;
     let name = photo.clone();
     let png = tokio::task::spawn_blocking(move || -> ApiResult<Option<Vec<u8>>> {
-        let maps = load_transients(&ckpt.path).map_err(|e| match e {
-            CheckpointError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
-                ApiError::not_found("model", &id)
-            }
-            e => e.into(),
-        })?;
         let Some((w, h, gray)) = maps.and_then(|m| m.mask_image(m.index_of(&name)?)) else { return Ok(None) };
         encode_gray(w, h, &gray).map(Some).map_err(ApiError::internal)
     })

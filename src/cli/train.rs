@@ -131,15 +131,14 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     }
     summary(&session, wall, &a.out);
     if let (Some(dir), Some(maps)) = (&a.transient_masks, &session.trainer().transients) {
-        let n = write_transient_masks(maps, dir)?;
-        println!("masks          {n} in {}", dir.display());
+        write_transient_masks(maps, dir)?;
     }
     Ok(())
 }
 
 /// Writes every training photo's transient mask into `dir` (created), each
-/// file atomically; returns how many.
-pub fn write_transient_masks(maps: &TransientMaps, dir: &Path) -> anyhow::Result<usize> {
+/// file atomically, and says how many.
+fn write_transient_masks(maps: &TransientMaps, dir: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let photos = maps.photos();
     for (k, p) in photos.iter().enumerate() {
@@ -153,7 +152,8 @@ pub fn write_transient_masks(maps: &TransientMaps, dir: &Path) -> anyhow::Result
         let png = encode_gray(w, h, &gray).context("encoding a mask")?;
         write_atomic(&path, &png).with_context(|| format!("writing {}", path.display()))?;
     }
-    Ok(photos.len())
+    println!("masks          {} in {}", photos.len(), dir.display());
+    Ok(())
 }
 
 /// The share of `train --model splats`'s time that trains the field the
@@ -247,8 +247,7 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
     if let Some(maps) = &trainer.transients {
         println!("transients     {} (the field's)", maps.report().summary());
         if let Some(dir) = &a.transient_masks {
-            let n = write_transient_masks(maps, dir)?;
-            println!("masks          {n} in {}", dir.display());
+            write_transient_masks(maps, dir)?;
         }
     }
     Ok(())

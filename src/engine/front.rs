@@ -51,7 +51,7 @@ pub use super::models::splats::SplatsModel;
 pub use super::models::{RenderOptions, heldout_pose};
 pub use super::nn::adam::Adam;
 pub use super::train::appearance_fit::{AppearanceFit, FitError, FitSettings, Half};
-pub use super::train::persist::{Restored, load as load_checkpoint, load_transients};
+pub use super::train::persist::{Restored, load as load_checkpoint};
 pub use super::train::trainer::{StopReason, Trainer};
 pub use super::transient::{FoundMasks, MOSTLY_MASKED, PhotoShare, TransientMaps, TransientReport};
 pub use super::view::{View, render_view};

@@ -157,6 +157,16 @@ impl TransientMaps {
         Ok(Self { photos: cells })
     }
 
+    /// Whether these are maps of `ds`'s training photos (the same names and
+    /// sizes, in `ds.train`'s order).
+    pub fn fits(&self, ds: &Dataset) -> bool {
+        self.photos.len() == ds.train.len()
+            && self.photos.iter().zip(&ds.train).all(|(c, &f)| {
+                let (frame, cam) = (&ds.frames[f], &ds.frames[f].camera);
+                (c.name.as_str(), c.width, c.height) == (frame.name.as_str(), cam.width, cam.height)
+            })
+    }
+
     /// Takes the cells of `saved` (a resumed run's), which must be of the
     /// same photos, keeping the photos this map compares.
     pub fn resume_from(&mut self, saved: &TransientMaps) -> Result<(), String> {

@@ -101,11 +101,7 @@ pub fn write_depth(path: &Path, view: &View, far: f32) -> io::Result<()> {
 /// Encodes a view's opacity as an 8-bit greyscale PNG.
 pub fn encode_alpha(view: &View) -> io::Result<Vec<u8>> {
     let a: Vec<u8> = view.opacity.iter().map(|&x| to_u8(x)).collect();
-    let mut out = Vec::new();
-    PngEncoder::new(&mut out)
-        .write_image(&a, view.width, view.height, image::ExtendedColorType::L8)
-        .map_err(io::Error::other)?;
-    Ok(out)
+    encode_gray(view.width, view.height, &a)
 }
 
 /// Encodes an 8-bit greyscale image (a mask) as PNG bytes.

@@ -8,7 +8,7 @@ use std::path::Path;
 
 use super::BenchArgs;
 use crate::engine::front::{Dataset, Occluders, Pasted, TransientMaps, View, load_cutouts, occlude, write_atomic};
-use crate::media::png::{encode_gray, encode_rgb, quantise_rgb};
+use crate::media::png::{ViewImage, encode_gray, encode_rgb, encode_view, quantise_rgb};
 
 /// A photo `--occlude` pasted into.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -60,7 +60,7 @@ pub(super) fn occlude_photos(ds: &mut Dataset, o: &Occluders) -> anyhow::Result<
 
 /// Writes a rendered view's colour as a PNG (`bench --save`).
 pub(super) fn save_rgb(path: &Path, view: &View) -> anyhow::Result<()> {
-    let png = encode_rgb(view.width, view.height, &quantise_rgb(&view.rgb))?;
+    let png = encode_view(view, ViewImage::Rgb)?;
     write_atomic(path, &png).with_context(|| format!("writing {}", path.display()))
 }
 

@@ -168,16 +168,8 @@ pub fn bake(
     if frames.is_empty() {
         return Err(BakeError::NoPhotos);
     }
-    if let Some(m) = dropped {
-        let photos = m.photos();
-        let same = photos.len() == frames.len()
-            && frames.iter().zip(&photos).all(|(&f, p)| {
-                let (frame, c) = (&ds.frames[f], &ds.frames[f].camera);
-                (frame.name.as_str(), c.width, c.height) == (p.name.as_str(), p.width, p.height)
-            });
-        if !same {
-            return Err(BakeError::OtherPhotos);
-        }
+    if dropped.is_some_and(|m| !m.fits(ds)) {
+        return Err(BakeError::OtherPhotos);
     }
     let params = place::place(source, ds, &frames, settings, cancel)?;
     let model = SplatsModel::from_parts(settings.splats.clone(), source.scene().clone(), params)

@@ -87,12 +87,6 @@ pub fn to_checkpoint(
     c
 }
 
-/// The transient maps of the checkpoint at `path` (none when its run kept
-/// every pixel), without restoring its model.
-pub fn load_transients(path: &Path) -> Result<Option<TransientMaps>, CheckpointError> {
-    transients(&mut Checkpoint::load(path)?, path)
-}
-
 /// The transient maps a checkpoint holds (none when its run kept every
 /// pixel).
 fn transients(c: &mut Checkpoint, path: &Path) -> Result<Option<TransientMaps>, CheckpointError> {
