@@ -1,6 +1,7 @@
-// The splat viewer: a model's 3D Gaussian splats (the 3DGS `.ply`, whose
-// spherical-harmonic colours Spark draws, so that the canvas is what the
-// CPU rasteriser renders; a 32-byte `.splat` too, one colour a splat)
+// The splat viewer: a model's 3D Gaussian splats (Niantic's `.spz` or the
+// 3DGS `.ply`, whose spherical-harmonic colours Spark draws, so that the
+// canvas is what the CPU rasteriser renders; a 32-byte `.splat` too, one
+// colour a splat)
 // drawn in the browser with WebGL2 by Spark (web/vendor/spark, on
 // three.js), turned with the mouse, the wheel, touch and the arrow keys
 // (three.js's OrbitControls). Once the file is fetched nothing more is
@@ -99,14 +100,16 @@ export class SplatView {
 
   /**
    * Fetches a splats file (with the API key) and shows it; returns the
-   * splat count. The URL says its type: `.ply` or `format=ply`, else `.splat`.
+   * splat count. The URL says its type: `.spz` or `format=spz`, `.ply` or
+   * `format=ply`, else `.splat`.
    */
   async load(url) {
     const bytes = new Uint8Array(await (await api(url)).arrayBuffer());
-    return this.show(bytes, /(\.ply$|format=ply)/.test(url) ? 'ply' : 'splat');
+    const type = url.match(/(?:\.|format=)(spz|ply)$/);
+    return this.show(bytes, type ? type[1] : 'splat');
   }
 
-  /** Shows the splats of a file's bytes (`fileType` 'ply' or 'splat'); returns the splat count. */
+  /** Shows the splats of a file's bytes (`fileType` 'spz', 'ply' or 'splat'); returns the splat count. */
   async show(bytes, fileType = 'ply') {
     if (this.mesh) {
       this.scene.remove(this.mesh);

@@ -219,7 +219,7 @@ async function showSplats(m) {
   placeSplatCamera();
   $('view-info').textContent = 'loading the splats...';
   const t0 = performance.now();
-  const n = await splats.load(`/v1/models/${m.id}/export?format=ply`);
+  const n = await splats.load(`/v1/models/${m.id}/export?format=spz`);
   if (viewer.model !== m) return;
   placeSplatCamera();
   await splats.settled();

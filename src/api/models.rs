@@ -255,13 +255,14 @@ pub async fn render(
 #[serde(deny_unknown_fields)]
 pub struct ExportQuery {
     /// `splat` (default: antimatter15's 32 bytes a Gaussian), `ply` (the
-    /// 3DGS paper's layout) or `html` (a zip of a static web site showing
-    /// the splats: `api::site`).
+    /// 3DGS paper's layout), `spz` (Niantic's, version 3), `glb` (glTF with
+    /// `KHR_gaussian_splatting`) or `html` (a zip of a static web site
+    /// showing the splats: `api::site`).
     pub format: Option<String>,
 }
 
 /// What `format` takes.
-const EXPORT_FORMATS: &str = "splat, ply or html";
+const EXPORT_FORMATS: &str = "splat, ply, spz, glb or html";
 
 /// `GET /v1/models/{id}/export`: a splats model as a file other tools
 /// open, or as a static web site (zip), named by `Content-Disposition`.
@@ -298,9 +299,9 @@ pub async fn export(
         match format {
             Some(f) => write_splats(splats, f, &mut out)?,
             None => {
-                let mut ply = Vec::new();
-                write_splats(splats, SplatsFormat::Ply, &mut ply)?;
-                let files = site::files(&title, &view, ply)?;
+                let mut spz = Vec::new();
+                write_splats(splats, SplatsFormat::Spz, &mut spz)?;
+                let files = site::files(&title, &view, spz)?;
                 site::write_zip(&folder2, &files, std::io::Cursor::new(&mut out))?;
             }
         }

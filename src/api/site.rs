@@ -10,8 +10,8 @@
 //! - `splats.js` and `api.js` (the web app's viewer and the fetch helper
 //!   it imports), `vendor/` (Spark and three.js, with their licences), as
 //!   the server serves them (`api/web.rs`);
-//! - `scene.ply`: the splats (the 3DGS `.ply`, with their spherical-harmonic
-//!   colours, which the viewer draws).
+//! - `scene.spz`: the splats (Niantic's SPZ, the smallest file that keeps
+//!   their spherical-harmonic colours, which the viewer draws).
 //!
 //! The default view's drawing buffer is the training cameras' size, so
 //! what the page draws is what the server renders for the same camera.
@@ -29,7 +29,7 @@ use crate::records::ViewDefaults;
 const VIEWER_FILES: [&str; 2] = ["splats.js", "api.js"];
 
 /// The splat file's name in the site.
-pub const SPLAT_FILE: &str = "scene.ply";
+pub const SPLAT_FILE: &str = "scene.spz";
 
 /// The camera the page opens at: the model's default view.
 pub fn default_camera(view: &ViewDefaults) -> Option<Camera> {
@@ -87,7 +87,7 @@ view.setCamera(setup.c2w, k, {{ near: setup.near, far: setup.far, target: setup.
 try {{
   const res = await fetch('{SPLAT_FILE}');
   if (!res.ok) throw new Error(`{SPLAT_FILE}: ${{res.status}} ${{res.statusText}}`);
-  const n = await view.show(new Uint8Array(await res.arrayBuffer()), 'ply');
+  const n = await view.show(new Uint8Array(await res.arrayBuffer()), 'spz');
   document.getElementById('status').textContent = `${{n}} Gaussians: drag to turn, wheel or pinch to zoom, right-drag to pan.`;
   await view.settled();
   document.body.dataset.ready = 'true';
@@ -104,15 +104,15 @@ try {{
 }
 
 /// The site's files, path and bytes: the page, the viewer, the vendored
-/// libraries and their licences, the splats (`ply`: their `.ply` bytes).
-pub fn files(title: &str, view: &ViewDefaults, ply: Vec<u8>) -> io::Result<Vec<(String, Vec<u8>)>> {
+/// libraries and their licences, the splats (`spz`: their `.spz` bytes).
+pub fn files(title: &str, view: &ViewDefaults, spz: Vec<u8>) -> io::Result<Vec<(String, Vec<u8>)>> {
     let camera = default_camera(view)
         .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidData, "the model's default view gives no camera"))?;
     let mut out = vec![("index.html".to_string(), index_html(title, &camera, view).into_bytes())];
     for a in ASSETS.iter().filter(|a| VIEWER_FILES.contains(&a.name) || a.name.starts_with("vendor/")) {
         out.push((a.name.to_string(), a.body.as_bytes().to_vec()));
     }
-    out.push((SPLAT_FILE.to_string(), ply));
+    out.push((SPLAT_FILE.to_string(), spz));
     Ok(out)
 }
 
@@ -167,7 +167,7 @@ mod tests {
         write_zip("site", &files, &mut zip).unwrap();
         let mut read = zip::ZipArchive::new(std::io::Cursor::new(zip.into_inner())).unwrap();
         let mut splat = Vec::new();
-        std::io::Read::read_to_end(&mut read.by_name("site/scene.ply").unwrap(), &mut splat).unwrap();
+        std::io::Read::read_to_end(&mut read.by_name("site/scene.spz").unwrap(), &mut splat).unwrap();
         assert_eq!(splat, [1, 2, 3]);
     }
 }

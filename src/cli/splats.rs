@@ -178,7 +178,7 @@ fn parse_format(s: &str) -> Result<ExportFormat, String> {
         "html" => Ok(ExportFormat::Html),
         s => Format::parse(s)
             .map(ExportFormat::File)
-            .ok_or_else(|| format!("unknown format '{s}' (known: ply, splat, html)")),
+            .ok_or_else(|| format!("unknown format '{s}' (known: ply, splat, spz, glb, html)")),
     }
 }
 
@@ -210,10 +210,10 @@ fn export_site(a: &ExportArgs, splats: &SplatsModel) -> anyhow::Result<()> {
     let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
     let ds = Dataset::load(data, &opts).with_context(|| format!("loading {}", data.display()))?;
     let view = crate::records::ViewDefaults::from_dataset(&ds);
-    let mut ply = Vec::new();
-    write_splats(splats, Format::Ply, &mut ply)?;
+    let mut spz = Vec::new();
+    write_splats(splats, Format::Spz, &mut spz)?;
     let stem = a.out.file_stem().and_then(|s| s.to_str()).unwrap_or("splats").to_string();
-    let files = site::files(&stem, &view, ply)?;
+    let files = site::files(&stem, &view, spz)?;
     if a.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("zip")) {
         let mut zip = std::io::Cursor::new(Vec::new());
         site::write_zip(&stem, &files, &mut zip)?;

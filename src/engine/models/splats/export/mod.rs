@@ -6,7 +6,10 @@
 //!   the paper's own viewer open;
 //! - antimatter15's 32-byte `.splat` (position and linear scale as f32,
 //!   colour and opacity as 4 bytes, the unit quaternion `w x y z` as 4 bytes
-//!   `q * 128 + 128`), largest and most opaque Gaussians first.
+//!   `q * 128 + 128`), largest and most opaque Gaussians first;
+//! - Niantic's SPZ (`spz`): every value quantised, gzipped, a fifth to a
+//!   tenth of the `.ply`;
+//! - glTF 2.0 binary with `KHR_gaussian_splatting` (`glb`).
 //!
 //! Both are in the world units and axes of the capture's cameras (the
 //! model's space is undone: positions `p / scale + centre`, log scales
@@ -25,6 +28,8 @@ use crate::engine::models::Model;
 pub enum Format {
     Ply,
     Splat,
+    Spz,
+    Glb,
 }
 
 impl Format {
@@ -32,6 +37,8 @@ impl Format {
         match s {
             "ply" => Some(Format::Ply),
             "splat" => Some(Format::Splat),
+            "spz" => Some(Format::Spz),
+            "glb" => Some(Format::Glb),
             _ => None,
         }
     }
@@ -39,22 +46,38 @@ impl Format {
         match self {
             Format::Ply => "ply",
             Format::Splat => "splat",
+            Format::Spz => "spz",
+            Format::Glb => "glb",
         }
     }
     pub fn content_type(self) -> &'static str {
-        "application/octet-stream"
+        match self {
+            Format::Glb => "model/gltf-binary",
+            _ => "application/octet-stream",
+        }
     }
 }
 
+pub mod glb;
+pub mod spz;
+
 /// One Gaussian in world units.
-struct World {
+struct World<'a> {
     mean: [f32; 3],
     log_scale: [f32; 3],
+    /// As the model holds it: `w x y z`, not necessarily of unit length.
     rotation: [f32; 4],
     opacity_logit: f32,
+    sh_dc: [f32; 3],
+    /// `[(k-1) x 3]`: coefficient by coefficient, the channels inner.
+    sh_rest: &'a [f32],
 }
 
-fn world(model: &SplatsModel, i: usize) -> World {
+fn world_all(model: &SplatsModel) -> Vec<World<'_>> {
+    (0..model.layout().n).map(|i| world(model, i)).collect()
+}
+
+fn world(model: &SplatsModel, i: usize) -> World<'_> {
     let scene = model.scene();
     let g = model.layout().get(model.params(), i);
     let inv = 1.0 / scene.scale;
@@ -64,6 +87,8 @@ fn world(model: &SplatsModel, i: usize) -> World {
         log_scale: g.log_scale.map(|s| s - ln),
         rotation: g.rotation,
         opacity_logit: g.opacity_logit,
+        sh_dc: g.sh_dc,
+        sh_rest: g.sh_rest,
     }
 }
 
@@ -115,7 +140,7 @@ pub fn ply_len(n: usize, k: usize) -> u64 {
 /// Writes antimatter15's `.splat`.
 pub fn write_splat(model: &SplatsModel, mut out: impl Write) -> io::Result<()> {
     let l = model.layout();
-    let all: Vec<World> = (0..l.n).map(|i| world(model, i)).collect();
+    let all = world_all(model);
     // The order antimatter15's converter writes: largest volume times
     // opacity first (a viewer streaming the file draws the big ones first).
     let mut order: Vec<usize> = (0..l.n).collect();
@@ -125,7 +150,7 @@ pub fn write_splat(model: &SplatsModel, mut out: impl Write) -> io::Result<()> {
     let mut buf = Vec::with_capacity(32 * 4096);
     for i in order {
         let w = &all[i];
-        let dc = l.get(model.params(), i).sh_dc;
+        let dc = w.sh_dc;
         for v in w.mean.iter().chain(&w.log_scale.map(f32::exp)) {
             buf.extend_from_slice(&v.to_le_bytes());
         }
@@ -155,6 +180,8 @@ pub fn write(model: &SplatsModel, format: Format, out: impl Write) -> io::Result
     match format {
         Format::Ply => write_ply(model, out),
         Format::Splat => write_splat(model, out),
+        Format::Spz => spz::write_spz(model, out),
+        Format::Glb => glb::write_glb(model, out),
     }
 }
 

@@ -1,0 +1,304 @@
+//! The compact splat formats read back by readers that are not ours, run
+//! with Node.js from `tools/readers` (installed by `scripts/setup`):
+//! - the `.spz` by PlayCanvas's `splat-transform`, every value of every
+//!   Gaussian within SPZ's quantisation of what the model holds;
+//! - the `.glb` by Khronos' `gltf-validator`, and its values against the
+//!   GLB `splat-transform` makes from our `.ply` (so the turn into glTF's
+//!   axes is the one the rest of the world uses).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use radiance::engine::dataset::synthetic::BallScene;
+use radiance::engine::models::Model;
+use radiance::engine::models::splats::SplatsModel;
+use radiance::engine::models::splats::export;
+
+fn readers() -> PathBuf {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/readers/node_modules");
+    assert!(dir.is_dir(), "{} is missing: run scripts/setup (npm ci in tools/readers)", dir.display());
+    dir
+}
+
+fn node(args: &[&str]) -> String {
+    let out = Command::new("node").args(args).output().expect("node (Node.js 20 or later)");
+    assert!(out.status.success(), "node {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap()
+}
+
+fn splat_transform(args: &[&str]) {
+    let cli = readers().join("@playcanvas/splat-transform/bin/cli.mjs");
+    let mut all = vec![cli.to_str().unwrap(), "-q", "-w"];
+    all.extend_from_slice(args);
+    node(&all);
+}
+
+/// One Gaussian in world units, as the `.ply` holds it.
+struct G {
+    mean: [f32; 3],
+    log_scale: [f32; 3],
+    rot: [f32; 4],
+    opacity: f32,
+    dc: [f32; 3],
+    /// `[(k-1) x 3]`, channels inner.
+    rest: Vec<f32>,
+}
+
+fn gaussians(m: &SplatsModel) -> Vec<G> {
+    let (l, s) = (m.layout(), m.scene());
+    (0..l.n)
+        .map(|i| {
+            let g = l.get(m.params(), i);
+            let n = g.rotation.iter().map(|v| v * v).sum::<f32>().sqrt();
+            G {
+                mean: [0, 1, 2].map(|c| g.mean[c] / s.scale + s.centre[c]),
+                log_scale: g.log_scale.map(|v| v - s.scale.ln()),
+                rot: g.rotation.map(|v| v / n),
+                opacity: 1.0 / (1.0 + (-g.opacity_logit).exp()),
+                dc: g.sh_dc,
+                rest: g.sh_rest.to_vec(),
+            }
+        })
+        .collect()
+}
+
+/// A baked model of SH degree 3 and its exports.
+struct Baked {
+    _dir: tempfile::TempDir,
+    model: SplatsModel,
+    ply: String,
+    spz: String,
+    glb: String,
+    dir: PathBuf,
+}
+
+fn baked() -> Baked {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("scene");
+    BallScene { size: 32, views: 12, ..Default::default() }.write_blender(&ds).unwrap();
+    let bin = env!("CARGO_BIN_EXE_radiance");
+    let run = |args: &[&str]| {
+        let out = Command::new(bin).args(args).output().unwrap();
+        assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    let p = |f: &str| dir.path().join(f).to_string_lossy().into_owned();
+    let data = ds.to_string_lossy().into_owned();
+    run(&[
+        "train",
+        "--data",
+        &data,
+        "--model",
+        "instant-tiny",
+        "--steps",
+        "200",
+        "--out",
+        &p("m.ckpt"),
+        "--threads",
+        "2",
+    ]);
+    run(&[
+        "bake",
+        "--model",
+        &p("m.ckpt"),
+        "--data",
+        &data,
+        "--out",
+        &p("s.ckpt"),
+        "--steps",
+        "20",
+        "--sh-degree",
+        "3",
+    ]);
+    for f in ["ply", "spz", "glb"] {
+        run(&["export", "--model", &p("s.ckpt"), "--format", f, "--out", &p(&format!("s.{f}"))]);
+    }
+    let restored = radiance::engine::train::persist::load(Path::new(&p("s.ckpt"))).unwrap();
+    let s = export::splats_of(&*restored.model).expect("splats");
+    let model = SplatsModel::from_parts(s.config.clone(), s.scene().clone(), s.params().to_vec()).unwrap();
+    assert_eq!(model.config.sh_degree, 3);
+    Baked { model, ply: p("s.ply"), spz: p("s.spz"), glb: p("s.glb"), dir: dir.path().to_path_buf(), _dir: dir }
+}
+
+#[test]
+fn the_spz_reads_back_in_splat_transform() {
+    let b = baked();
+    let want = gaussians(&b.model);
+    let csv = b.dir.join("spz.csv");
+    splat_transform(&[&b.spz, csv.to_str().unwrap()]);
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text.lines();
+    let names: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |n: &str| names.iter().position(|&m| m == n).unwrap_or_else(|| panic!("no column {n} in {names:?}"));
+    let rows: Vec<Vec<f32>> = lines.map(|l| l.split(',').map(|v| v.parse().unwrap()).collect()).collect();
+    assert_eq!(rows.len(), want.len(), "every Gaussian");
+    assert_eq!(names.iter().filter(|n| n.starts_with("f_rest_")).count(), 45, "SH degree 3");
+    let reach = want.iter().flat_map(|g| g.mean).fold(0f32, |a, v| a.max(v.abs()));
+    let step = reach / (1 << 16) as f32;
+    let sig = |x: f32| 1.0 / (1.0 + (-x).exp());
+    let mut used = vec![false; want.len()];
+    for r in &rows {
+        let p = [r[col("x")], r[col("y")], r[col("z")]];
+        // The file is in its own order: the Gaussian nearest each row.
+        let d2 = |g: &G| (0..3).map(|c| (g.mean[c] - p[c]).powi(2)).sum::<f32>();
+        let (i, g) = want.iter().enumerate().min_by(|a, b| d2(a.1).total_cmp(&d2(b.1))).unwrap();
+        assert!(!used[i], "two rows for Gaussian {i}");
+        used[i] = true;
+        for c in 0..3 {
+            assert!((p[c] - g.mean[c]).abs() <= step, "position {c}: {} for {}", p[c], g.mean[c]);
+            let s = g.log_scale[c].clamp(-10.0, 255.0 / 16.0 - 10.0);
+            assert!((r[col(&format!("scale_{c}"))] - s).abs() <= 1.0 / 32.0 + 1e-5, "scale");
+            let dc = g.dc[c].clamp(-0.5 / 0.15, 0.5 / 0.15);
+            assert!((r[col(&format!("f_dc_{c}"))] - dc).abs() <= 0.5 / (255.0 * 0.15) + 1e-4, "colour");
+            // f_rest is channel by channel in the reader's table.
+            for j in 1..16 {
+                let v = g.rest[3 * (j - 1) + c].clamp(-1.0, 127.0 / 128.0);
+                let got = r[col(&format!("f_rest_{}", 15 * c + j - 1))];
+                let bucket = if j < 4 { 8.0 } else { 16.0 };
+                assert!((got - v).abs() <= bucket / 256.0 + 1.0 / 256.0, "SH {j} channel {c}: {got} for {v}");
+            }
+        }
+        assert!((sig(r[col("opacity")]) - g.opacity).abs() <= 0.5 / 255.0 + 1e-5, "opacity");
+        let q = [0, 1, 2, 3].map(|c| r[col(&format!("rot_{c}"))]);
+        let dot: f32 = (0..4).map(|c| q[c] * g.rot[c]).sum();
+        assert!(dot.abs() > 0.999, "rotation {q:?} for {:?}", g.rot);
+    }
+    let ply = std::fs::metadata(&b.ply).unwrap().len();
+    let spz = std::fs::metadata(&b.spz).unwrap().len();
+    assert!(spz * 5 < ply, "SPZ {spz} bytes, the .ply {ply}");
+}
+
+/// A GLB's attributes by name: (components, values as f32).
+fn glb_attributes(path: &str) -> (serde_json::Value, Vec<(String, usize, Vec<f32>)>) {
+    let b = std::fs::read(path).unwrap();
+    let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap()) as usize;
+    assert_eq!(&b[0..4], b"glTF");
+    assert_eq!(u32_at(8), b.len(), "the header's length");
+    let jl = u32_at(12);
+    assert_eq!(&b[16..20], b"JSON");
+    let json: serde_json::Value = serde_json::from_slice(&b[20..20 + jl]).unwrap();
+    let bin = &b[20 + jl + 8..];
+    assert_eq!(&b[20 + jl + 4..20 + jl + 8], b"BIN\0");
+    let mut out = Vec::new();
+    for (name, a) in json["meshes"][0]["primitives"][0]["attributes"].as_object().unwrap() {
+        let acc = &json["accessors"][a.as_u64().unwrap() as usize];
+        let view = &json["bufferViews"][acc["bufferView"].as_u64().unwrap() as usize];
+        let (o, len) = (view["byteOffset"].as_u64().unwrap() as usize, view["byteLength"].as_u64().unwrap() as usize);
+        let width = match acc["type"].as_str().unwrap() {
+            "SCALAR" => 1,
+            "VEC3" => 3,
+            _ => 4,
+        };
+        let data = &bin[o..o + len];
+        let values: Vec<f32> = match acc["componentType"].as_u64().unwrap() {
+            5126 => data.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect(),
+            5121 => data.iter().map(|&v| v as f32 / 255.0).collect(),
+            t => panic!("component type {t}"),
+        };
+        assert_eq!(values.len(), width * acc["count"].as_u64().unwrap() as usize);
+        out.push((name.clone(), width, values));
+    }
+    (json, out)
+}
+
+/// `R diag(s^2) R^T` of a quaternion `x y z w` and linear scales.
+fn covariance(q: &[f32], s: &[f32]) -> [[f32; 3]; 3] {
+    let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+    let [x, y, z, w] = [q[0] / n, q[1] / n, q[2] / n, q[3] / n];
+    let r = [
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+    ];
+    let mut c = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            c[i][j] = (0..3).map(|k| r[i][k] * s[k] * s[k] * r[j][k]).sum();
+        }
+    }
+    c
+}
+
+#[test]
+fn the_glb_passes_the_khronos_validator_and_matches_splat_transform() {
+    let b = baked();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/readers/validate-gltf.mjs");
+    readers();
+    let issues: serde_json::Value = serde_json::from_str(&node(&[script.to_str().unwrap(), &b.glb])).unwrap();
+    // The validator (2.0.0-dev.3.10) predates the extension's ratification
+    // and calls each of its attributes (`KHR_gaussian_splatting:...`) an
+    // invalid name (KhronosGroup/glTF-Validator#252): those errors, and
+    // only those, are expected; no other error and no warning.
+    let messages = issues["messages"].as_array().unwrap();
+    let (mut named, mut other) = (0, Vec::new());
+    for m in messages {
+        let (code, pointer, severity) =
+            (m["code"].as_str().unwrap(), m["pointer"].as_str().unwrap_or(""), m["severity"].as_u64().unwrap());
+        if code == "MESH_PRIMITIVE_INVALID_ATTRIBUTE"
+            && pointer.starts_with("/meshes/0/primitives/0/attributes/KHR_gaussian_splatting:")
+        {
+            named += 1;
+        } else if severity <= 1 {
+            other.push(m.clone());
+        }
+    }
+    assert!(other.is_empty(), "validator errors or warnings: {other:?}");
+    assert_eq!(named, 4 + 15, "rotation, scale, opacity, the 16 SH coefficients less none: {messages:?}");
+    assert_eq!(issues["numErrors"].as_u64().unwrap(), named);
+
+    let theirs_path = b.dir.join("theirs.glb");
+    splat_transform(&[&b.ply, theirs_path.to_str().unwrap()]);
+    let (json, ours) = glb_attributes(&b.glb);
+    let (_, theirs) = glb_attributes(theirs_path.to_str().unwrap());
+    let prim = &json["meshes"][0]["primitives"][0];
+    assert_eq!(prim["mode"], 0, "points");
+    assert_eq!(prim["extensions"]["KHR_gaussian_splatting"]["kernel"], "ellipse");
+    assert_eq!(json["extensionsUsed"][0], "KHR_gaussian_splatting");
+    let get = |set: &[(String, usize, Vec<f32>)], n: &str| -> Vec<f32> {
+        set.iter().find(|a| a.0 == n).unwrap_or_else(|| panic!("no attribute {n}")).2.clone()
+    };
+    let n = b.model.layout().n;
+    // Every attribute theirs has, ours has, with the same values (the
+    // rotation compared by the covariance it gives: a half turn can be
+    // written as two quaternions that shape every Gaussian alike; COLOR_0
+    // below, since theirs skips glTF's sRGB-to-linear step).
+    for (name, width, t) in &theirs {
+        let o = get(&ours, name);
+        assert_eq!(o.len(), t.len(), "{name}");
+        match name.as_str() {
+            "COLOR_0" | "KHR_gaussian_splatting:ROTATION" => {}
+            _ => {
+                for (i, (a, b)) in o.iter().zip(t).enumerate() {
+                    assert!((a - b).abs() <= 1e-6 * b.abs().max(1.0), "{name}[{}] ({width}): {a} for {b}", i / width);
+                }
+            }
+        }
+    }
+    let (oq, tq, s) = (
+        get(&ours, "KHR_gaussian_splatting:ROTATION"),
+        get(&theirs, "KHR_gaussian_splatting:ROTATION"),
+        get(&ours, "KHR_gaussian_splatting:SCALE"),
+    );
+    for i in 0..n {
+        let (a, b) = (
+            covariance(&oq[4 * i..4 * i + 4], &s[3 * i..3 * i + 3]),
+            covariance(&tq[4 * i..4 * i + 4], &s[3 * i..3 * i + 3]),
+        );
+        let big = a.iter().flatten().fold(0f32, |m, v| m.max(v.abs()));
+        for r in 0..3 {
+            for c in 0..3 {
+                assert!((a[r][c] - b[r][c]).abs() <= 1e-4 * big, "covariance of {i}: {a:?} against {b:?}");
+            }
+        }
+    }
+    // COLOR_0: the DC colour decoded to linear, and the opacity.
+    let want = gaussians(&b.model);
+    let colour = get(&ours, "COLOR_0");
+    for (i, g) in want.iter().enumerate() {
+        for c in 0..3 {
+            let srgb = (0.5 + 0.282_094_8 * g.dc[c]).clamp(0.0, 1.0);
+            let lin = if srgb <= 0.04045 { srgb / 12.92 } else { ((srgb + 0.055) / 1.055).powf(2.4) };
+            assert!((colour[4 * i + c] - lin).abs() <= 0.5 / 255.0 + 1e-6, "COLOR_0");
+        }
+        assert!((colour[4 * i + 3] - g.opacity).abs() <= 0.5 / 255.0 + 1e-6, "COLOR_0's alpha");
+    }
+}
