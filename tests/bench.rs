@@ -194,7 +194,8 @@ fn bench_auto_capture_rows_have_the_mean_column() {
 
 /// `--bake`: after the last budget the model is baked into splats and
 /// scored on the same views, a `splats` row with the bake's time, steps
-/// and Gaussians.
+/// and Gaussians; then as export gives them, after the floater cleanup
+/// (`cleaned`) and through SPZ (`spz`), each with its file's bytes.
 #[test]
 fn bench_bakes_and_scores_the_splats() {
     let dir = tempfile::tempdir().unwrap();
@@ -207,8 +208,15 @@ fn bench_bakes_and_scores_the_splats() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "stdout: {stdout}\nstderr: {}", String::from_utf8_lossy(&out.stderr));
     let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
-    let [source, splats] = &report.rows[..] else { panic!("two rows: {:?}", report.rows) };
+    let [source, splats, cleaned, spz] = &report.rows[..] else { panic!("four rows: {:?}", report.rows) };
     assert_eq!((source.model.as_str(), splats.model.as_str()), ("instant-tiny", "splats"));
+    assert_eq!((cleaned.model.as_str(), spz.model.as_str()), ("cleaned", "spz"));
+    let (kept, ply) = (cleaned.gaussians.unwrap(), cleaned.bytes.unwrap());
+    assert!(kept <= splats.gaussians.unwrap() && spz.gaussians == Some(kept), "{cleaned:?} {spz:?}");
+    assert_eq!(splats.bytes.unwrap(), radiance::engine::models::splats::export::ply_len(splats.gaussians.unwrap(), 4));
+    assert!(spz.bytes.unwrap() * 3 < ply, "the .spz is a fraction of the .ply: {spz:?} {cleaned:?}");
+    // The SPZ's quantisation costs little.
+    assert!((spz.psnr - cleaned.psnr).abs() < 0.5, "{spz:?} {cleaned:?}");
     let n = splats.gaussians.expect("the Gaussians are counted");
     assert!(n > 0 && splats.steps > 0 && splats.budget_seconds == 3.0, "{splats:?}");
     assert!(splats.train_seconds >= 3.0 && splats.train_seconds < 30.0, "the bake's own time: {splats:?}");

@@ -12,6 +12,7 @@ use std::process::Command;
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::models::Model;
 use radiance::engine::models::splats::SplatsModel;
+use radiance::engine::models::splats::cleanup::{CleanupSettings, cleanup};
 use radiance::engine::models::splats::export;
 
 fn readers() -> PathBuf {
@@ -112,9 +113,23 @@ fn baked() -> Baked {
     for f in ["ply", "spz", "glb"] {
         run(&["export", "--model", &p("s.ckpt"), "--format", f, "--out", &p(&format!("s.{f}"))]);
     }
+    // The cleanup says what it removed; a bad threshold is refused by name
+    // and writes nothing.
+    let out = Command::new(bin)
+        .args(["export", "--model", &p("s.ckpt"), "--format", "spz", "--out", &p("again.spz")])
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("cleanup: "), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new(bin)
+        .args(["export", "--model", &p("s.ckpt"), "--format", "spz", "--out", &p("bad.spz"), "--min-opacity", "2"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--min-opacity"));
+    assert!(!dir.path().join("bad.spz").exists());
     let restored = radiance::engine::train::persist::load(Path::new(&p("s.ckpt"))).unwrap();
     let s = export::splats_of(&*restored.model).expect("splats");
-    let model = SplatsModel::from_parts(s.config.clone(), s.scene().clone(), s.params().to_vec()).unwrap();
+    // What export writes by default: the splats after the floater cleanup.
+    let (model, _) = cleanup(s, &CleanupSettings::default()).unwrap();
     assert_eq!(model.config.sh_degree, 3);
     Baked { model, ply: p("s.ply"), spz: p("s.spz"), glb: p("s.glb"), dir: dir.path().to_path_buf(), _dir: dir }
 }

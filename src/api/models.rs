@@ -8,6 +8,7 @@ use std::time::Instant;
 use axum::Json;
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{Path, Query, State};
+use axum::http::HeaderName;
 use axum::http::StatusCode;
 use axum::http::header::{CONTENT_DISPOSITION, CONTENT_TYPE};
 use axum::response::IntoResponse;
@@ -16,8 +17,8 @@ use serde::{Deserialize, Serialize};
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel, site};
 use crate::backend::Artifact;
 use crate::engine::front::{
-    Appearance, Camera, CheckpointError, Model, SplatsFormat, load_checkpoint, render_view_until, splats_of,
-    write_splats,
+    Appearance, Camera, CheckpointError, CleanupSettings, Model, Removed, SplatsFormat, cleanup, load_checkpoint,
+    render_view_until, splats_of, write_splats,
 };
 use crate::media::png::{self, ViewImage};
 use crate::records::{ModelInfo, VideoInfo, ViewDefaults};
@@ -259,13 +260,21 @@ pub struct ExportQuery {
     /// `KHR_gaussian_splatting`) or `html` (a zip of a static web site
     /// showing the splats: `api::site`).
     pub format: Option<String>,
+    /// `false`: every Gaussian, without the floater cleanup (default true).
+    pub cleanup: Option<bool>,
 }
 
 /// What `format` takes.
 const EXPORT_FORMATS: &str = "splat, ply, spz, glb or html";
 
+/// The Gaussians an export holds, and those its floater cleanup removed.
+pub const GAUSSIANS_HEADER: &str = "x-gaussians";
+pub const REMOVED_HEADER: &str = "x-gaussians-removed";
+
 /// `GET /v1/models/{id}/export`: a splats model as a file other tools
-/// open, or as a static web site (zip), named by `Content-Disposition`.
+/// open, or as a static web site (zip), named by `Content-Disposition`,
+/// after the floater cleanup unless `cleanup=false` (its count in the
+/// `X-Gaussians-Removed` header, the Gaussians written in `X-Gaussians`).
 /// A model of another kind is a conflict (409), saying to bake it.
 pub async fn export(
     State(s): State<AppState>,
@@ -293,8 +302,11 @@ pub async fn export(
     let title = format!("{} ({} splats)", info.id, info.scene_id);
     let folder = format!("{id}-site");
     let folder2 = folder.clone();
-    let bytes = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<u8>> {
-        let splats = splats_of(&*model).expect("checked above");
+    let settings = if q.cleanup.unwrap_or(true) { CleanupSettings::default() } else { CleanupSettings::OFF };
+    let (bytes, removed, kept) = tokio::task::spawn_blocking(move || -> std::io::Result<(Vec<u8>, Removed, usize)> {
+        let (splats, removed) =
+            cleanup(splats_of(&*model).expect("checked above"), &settings).map_err(std::io::Error::other)?;
+        let splats = &splats;
         let mut out = Vec::new();
         match format {
             Some(f) => write_splats(splats, f, &mut out)?,
@@ -305,7 +317,7 @@ pub async fn export(
                 site::write_zip(&folder2, &files, std::io::Cursor::new(&mut out))?;
             }
         }
-        Ok(out)
+        Ok((out, removed, splats.layout().n))
     })
     .await?
     .map_err(ApiError::internal)?;
@@ -314,7 +326,15 @@ pub async fn export(
         None => (format!("{folder}.zip"), "application/zip"),
     };
     let disposition = format!("attachment; filename=\"{file}\"");
-    Ok(([(CONTENT_TYPE, content_type.to_string()), (CONTENT_DISPOSITION, disposition)], bytes))
+    Ok((
+        [
+            (CONTENT_TYPE, content_type.to_string()),
+            (CONTENT_DISPOSITION, disposition),
+            (HeaderName::from_static(GAUSSIANS_HEADER), kept.to_string()),
+            (HeaderName::from_static(REMOVED_HEADER), removed.total().to_string()),
+        ],
+        bytes,
+    ))
 }
 
 /// Sets its flag when dropped.

@@ -11,9 +11,9 @@ use clap::Args;
 use super::Common;
 use crate::api::site;
 use crate::engine::front::{
-    Adam, BakeSettings, Budget, DataSize, Dataset, LoadOptions, Model, ModelConfig, SplatsFormat as Format,
-    SplatsModel, Split, TrainConfig, TrainState, TransientMaps, bake, estimate_bake, load_checkpoint, mib,
-    save_checkpoint, splats_of, write_atomic, write_splats,
+    Adam, BakeSettings, Budget, CleanupSettings, DataSize, Dataset, LoadOptions, Model, ModelConfig,
+    SplatsFormat as Format, SplatsModel, Split, TrainConfig, TrainState, TransientMaps, bake, cleanup, estimate_bake,
+    load_checkpoint, mib, save_checkpoint, splats_of, write_atomic, write_splats,
 };
 use crate::system::peak_memory;
 
@@ -153,8 +153,9 @@ pub struct ExportArgs {
     #[arg(long)]
     pub model: PathBuf,
     /// `ply` (the 3DGS paper's layout), `splat` (antimatter15's 32 bytes a
-    /// Gaussian) or `html` (a static web site showing the splats: a folder,
-    /// or a zip when `--out` ends in `.zip`).
+    /// Gaussian), `spz` (Niantic's SPZ, version 3), `glb` (glTF 2.0 with
+    /// `KHR_gaussian_splatting`) or `html` (a static web site showing the
+    /// splats: a folder, or a zip when `--out` ends in `.zip`).
     #[arg(long, value_parser = parse_format)]
     pub format: ExportFormat,
     /// The file to write (`html`: the folder, or the `.zip`).
@@ -164,6 +165,46 @@ pub struct ExportArgs {
     /// cameras give the view the page opens at.
     #[arg(long)]
     pub data: Option<PathBuf>,
+    #[command(flatten)]
+    pub cleanup: CleanupArgs,
+}
+
+/// The floater cleanup every export applies first (`engine::models::splats::cleanup`).
+#[derive(Args, Debug, Clone)]
+pub struct CleanupArgs {
+    /// Export every Gaussian: no floater cleanup.
+    #[arg(long)]
+    pub no_cleanup: bool,
+    /// Remove Gaussians of a lower opacity (0 to 1; 1/255 draws nothing).
+    #[arg(long, default_value_t = CleanupSettings::default().min_opacity)]
+    pub min_opacity: f32,
+    /// Remove a Gaussian whose `--neighbours`-th nearest is farther than
+    /// this many times their reach (3 deviations each) together; 0: off.
+    #[arg(long, default_value_t = CleanupSettings::default().isolation)]
+    pub isolation: f32,
+    /// The neighbour `--isolation` counts.
+    #[arg(long, default_value_t = CleanupSettings::default().neighbours)]
+    pub neighbours: usize,
+    /// Remove a Gaussian outside the central 90% of centres whose reach is
+    /// over this many radii of the central 99%; 0: off.
+    #[arg(long, default_value_t = CleanupSettings::default().max_reach)]
+    pub max_reach: f32,
+}
+
+impl CleanupArgs {
+    pub fn settings(&self) -> anyhow::Result<CleanupSettings> {
+        if self.no_cleanup {
+            return Ok(CleanupSettings::OFF);
+        }
+        let s = CleanupSettings {
+            min_opacity: self.min_opacity,
+            isolation: self.isolation,
+            neighbours: self.neighbours,
+            max_reach: self.max_reach,
+        };
+        s.check().map_err(|(field, why)| anyhow::anyhow!("--{}: {why}", field.replace('_', "-")))?;
+        Ok(s)
+    }
 }
 
 /// What `export --format` takes.
@@ -183,6 +224,7 @@ fn parse_format(s: &str) -> Result<ExportFormat, String> {
 }
 
 pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
+    let settings = a.cleanup.settings()?;
     let restored = load_checkpoint(&a.model)?;
     let Some(splats) = splats_of(&*restored.model) else {
         anyhow::bail!(
@@ -191,6 +233,9 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
             restored.model.kind()
         );
     };
+    let (cleaned, removed) = cleanup(splats, &settings)?;
+    eprintln!("cleanup: {removed}");
+    let splats = &cleaned;
     let format = match a.format {
         ExportFormat::File(f) => f,
         ExportFormat::Html => return export_site(&a, splats),

@@ -163,6 +163,9 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
             let header = |h: &str| r.headers()[h].to_str().unwrap().to_string();
             assert_eq!(header("content-type"), kind);
             assert!(header("content-disposition").ends_with(&format!("{id}.{format}\"")));
+            let (kept, removed): (u64, u64) =
+                (header("x-gaussians").parse().unwrap(), header("x-gaussians-removed").parse().unwrap());
+            assert_eq!(kept + removed, model["gaussians"].as_u64().unwrap(), "every Gaussian kept or removed");
             assert!(r.bytes().await.unwrap().starts_with(magic), "{format}");
         }
         println!(

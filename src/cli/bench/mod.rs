@@ -15,8 +15,9 @@ use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{AppearanceArgs, Common, MaskArgs, TransientArgs};
 use crate::engine::front::{
-    BakeSettings, Budget, CAPTURE_KIND, Dataset, FoundMasks, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig,
-    Pasted, Progress, Split, StopReason, TrainState, Trainer, TransientMaps, bake, write_atomic,
+    BakeSettings, Budget, CAPTURE_KIND, CleanupSettings, Dataset, FoundMasks, LoadOptions, MaskUse, Model, ModelChoice,
+    ModelConfig, Pasted, Progress, SplatsModel, Split, StopReason, TrainState, Trainer, TransientMaps, bake, cleanup,
+    ply_len, read_spz, write_atomic, write_spz,
 };
 use crate::system::{peak_memory, reset_peak_memory};
 pub use occluded::OccludedPhoto;
@@ -155,6 +156,10 @@ pub struct BenchRow {
     /// A baked row's Gaussians (its `.splat` is 32 bytes each).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gaussians: Option<usize>,
+    /// A baked row's file: the `.ply`'s bytes (`splats`, `cleaned`) or the
+    /// `.spz`'s (`spz`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bytes: Option<u64>,
 }
 
 /// What `--json` writes.
@@ -316,6 +321,7 @@ fn scored_row(model: &str, budget: f64, v: &ViewScores, n: usize) -> BenchRow {
         render_proposal_samples_per_ray: v.proposal as f64 / v.rays.max(1) as f64,
         peak_memory_mib: peak_memory().map(|b| b as f64 / (1024.0 * 1024.0)),
         gaussians: None,
+        bytes: None,
     }
 }
 
@@ -346,7 +352,9 @@ fn measure(
 
 /// Bakes `source` (`kind`, trained) into splats for `seconds` and scores
 /// them: a row labelled `splats`, its budget the bake's, its time and
-/// steps the bake's own.
+/// steps the bake's own; then the same splats as export gives them: after
+/// the floater cleanup (`cleaned`), and those written as SPZ and read back
+/// (`spz`).
 fn measure_bake(
     source: &dyn Model,
     ds: &Dataset,
@@ -354,19 +362,31 @@ fn measure_bake(
     args: &BenchArgs,
     seconds: f64,
     dropped: Option<&TransientMaps>,
-) -> anyhow::Result<BenchRow> {
+) -> anyhow::Result<Vec<BenchRow>> {
     let settings =
         BakeSettings { budget: Budget { seconds: Some(seconds), steps: None }, seed: args.seed, ..Default::default() };
     let started = std::time::Instant::now();
     let (model, _, steps) = bake(source, ds, &settings, dropped, &AtomicBool::new(false), |_| {})?;
     let elapsed = started.elapsed().as_secs_f64();
     let v = score_views(&model, steps, ds, views, args)?;
-    Ok(BenchRow {
+    let row = |label: &str, m: &SplatsModel, bytes: u64, v: &ViewScores| BenchRow {
         train_seconds: elapsed,
         steps,
-        gaussians: Some(model.layout().n),
-        ..scored_row(SPLATS_LABEL, seconds, &v, views.len())
-    })
+        gaussians: Some(m.layout().n),
+        bytes: Some(bytes),
+        ..scored_row(label, seconds, v, views.len())
+    };
+    let l = model.layout();
+    let mut rows = vec![row(SPLATS_LABEL, &model, ply_len(l.n, l.k), &v)];
+    let (cleaned, removed) = cleanup(&model, &CleanupSettings::default())?;
+    println!("cleanup: {removed}");
+    let l = cleaned.layout();
+    rows.push(row("cleaned", &cleaned, ply_len(l.n, l.k), &score_views(&cleaned, steps, ds, views, args)?));
+    let mut spz = Vec::new();
+    write_spz(&cleaned, &mut spz)?;
+    let back = read_spz(&spz, l.n)?.into_model(cleaned.scene().clone())?;
+    rows.push(row("spz", &back, spz.len() as u64, &score_views(&back, steps, ds, views, args)?));
+    Ok(rows)
 }
 
 /// The model column of a baked row.
@@ -557,12 +577,22 @@ impl Run<'_> {
         }
         if let (Some(seconds), StopReason::Budget | StopReason::Callback) = (a.bake, &reason) {
             eprintln!("baking '{kind}' into splats for {seconds} s");
-            let row = measure_bake(&*trainer.model, ds, self.views, a, seconds, trainer.transients.as_ref())
+            let rows = measure_bake(&*trainer.model, ds, self.views, a, seconds, trainer.transients.as_ref())
                 .with_context(|| format!("baking '{kind}'"))?;
-            println!("{}", format_row(&row, ds.masks != MaskUse::Off, self.with_mean));
-            let n = row.gaussians.unwrap_or(0);
-            println!("{SPLATS_LABEL:<8} {n} Gaussians, .splat {:.2} MB", (32 * n) as f64 / 1e6);
-            report.rows.push(row);
+            for row in &rows {
+                println!("{}", format_row(row, ds.masks != MaskUse::Off, self.with_mean));
+            }
+            for row in &rows {
+                let (n, b) = (row.gaussians.unwrap_or(0), row.bytes.unwrap_or(0));
+                let file = if row.model == "spz" { ".spz" } else { ".ply" };
+                println!(
+                    "{:<8} {n} Gaussians, {file} {:.2} MB, .splat {:.2} MB",
+                    row.model,
+                    b as f64 / 1e6,
+                    (32 * n) as f64 / 1e6
+                );
+            }
+            report.rows.extend(rows);
             if let Some(path) = &a.json {
                 write_json(path, report)?;
             }
@@ -609,6 +639,7 @@ mod tests {
             render_proposal_samples_per_ray: 24.0,
             peak_memory_mib: Some(512.0),
             gaussians: None,
+            bytes: None,
         }
     }
 

@@ -6,6 +6,7 @@
 //! written in the formats splat viewers read by `export`.
 
 pub mod backward;
+pub mod cleanup;
 pub mod config;
 pub mod export;
 pub mod fit;
