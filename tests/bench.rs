@@ -208,15 +208,19 @@ fn bench_bakes_and_scores_the_splats() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "stdout: {stdout}\nstderr: {}", String::from_utf8_lossy(&out.stderr));
     let report: BenchReport = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
-    let [source, splats, cleaned, spz] = &report.rows[..] else { panic!("four rows: {:?}", report.rows) };
+    // A ring of cameras around the ball: the automatic crop's row too.
+    let [source, splats, cleaned, spz, cropped] = &report.rows[..] else { panic!("five rows: {:?}", report.rows) };
+    assert_eq!(cropped.model, "cropped");
+    assert!(cropped.gaussians.unwrap() <= cleaned.gaussians.unwrap() && cropped.gaussians.unwrap() > 0);
     assert_eq!((source.model.as_str(), splats.model.as_str()), ("instant-tiny", "splats"));
     assert_eq!((cleaned.model.as_str(), spz.model.as_str()), ("cleaned", "spz"));
     let (kept, ply) = (cleaned.gaussians.unwrap(), cleaned.bytes.unwrap());
     assert!(kept <= splats.gaussians.unwrap() && spz.gaussians == Some(kept), "{cleaned:?} {spz:?}");
     assert_eq!(splats.bytes.unwrap(), radiance::engine::models::splats::export::ply_len(splats.gaussians.unwrap(), 4));
     assert!(spz.bytes.unwrap() * 3 < ply, "the .spz is a fraction of the .ply: {spz:?} {cleaned:?}");
-    // The SPZ's quantisation costs little.
-    assert!((spz.psnr - cleaned.psnr).abs() < 0.5, "{spz:?} {cleaned:?}");
+    // The SPZ's quantisation costs little (its scales step by 6%, its
+    // colours by 2/255: on this 24-pixel ball up to about half a dB).
+    assert!((spz.psnr - cleaned.psnr).abs() < 1.5, "{spz:?} {cleaned:?}");
     let n = splats.gaussians.expect("the Gaussians are counted");
     assert!(n > 0 && splats.steps > 0 && splats.budget_seconds == 3.0, "{splats:?}");
     assert!(splats.train_seconds >= 3.0 && splats.train_seconds < 30.0, "the bake's own time: {splats:?}");

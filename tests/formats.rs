@@ -134,6 +134,51 @@ fn baked() -> Baked {
     Baked { model, ply: p("s.ply"), spz: p("s.spz"), glb: p("s.glb"), dir: dir.path().to_path_buf(), _dir: dir }
 }
 
+/// `export --crop`: `auto` finds the box from the training cameras (the
+/// ball's ring) and keeps the ball; a box file is checked by field, and a
+/// box that keeps nothing is an error; neither writes a file.
+#[test]
+fn export_crops_to_the_automatic_box_or_a_given_one() {
+    let b = baked();
+    let bin = env!("CARGO_BIN_EXE_radiance");
+    let (ckpt, data) = (b.dir.join("s.ckpt"), b.dir.join("scene"));
+    let export = |extra: &[&str], out: &str| {
+        let mut args = vec!["export", "--model", ckpt.to_str().unwrap(), "--format", "spz"];
+        args.extend_from_slice(&["--out", out]);
+        args.extend_from_slice(extra);
+        Command::new(bin).args(&args).output().unwrap()
+    };
+    let out_path = b.dir.join("crop.spz");
+    let o = export(&["--crop", "auto", "--data", data.to_str().unwrap()], out_path.to_str().unwrap());
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "{stderr}");
+    // The box it printed, applied here, keeps what the file holds.
+    let line = stderr.lines().find(|l| l.starts_with("crop: {")).expect("the box printed");
+    let bx: radiance::engine::models::splats::crop::CropBox = serde_json::from_str(&line[6..]).unwrap();
+    let (kept, _) = radiance::engine::models::splats::crop::crop(&b.model, &bx).unwrap();
+    let read = export::spz::read_spz(&std::fs::read(&out_path).unwrap(), 1 << 20).unwrap();
+    assert_eq!(read.means.len(), kept.layout().n);
+    assert!(kept.layout().n > b.model.layout().n / 2, "the ball is most of the splats: {stderr}");
+    let write = |name: &str, json: &str| {
+        let p = b.dir.join(name);
+        std::fs::write(&p, json).unwrap();
+        p.to_string_lossy().into_owned()
+    };
+    let nothing =
+        write("far.json", r#"{"centre": [100, 100, 100], "axes": [[1,0,0],[0,1,0],[0,0,1]], "half": [1, 1, 1]}"#);
+    let flat = write("flat.json", r#"{"centre": [0, 0, 0], "axes": [[1,0,0],[0,1,0],[0,0,1]], "half": [1, 0, 1]}"#);
+    for (json, says) in [(nothing, "keeps none"), (flat, "half")] {
+        let out = b.dir.join("bad.spz");
+        let o = export(&["--crop", &json], out.to_str().unwrap());
+        assert!(
+            !o.status.success() && String::from_utf8_lossy(&o.stderr).contains(says),
+            "{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        assert!(!out.exists());
+    }
+}
+
 #[test]
 fn the_spz_reads_back_in_splat_transform() {
     let b = baked();

@@ -11,9 +11,9 @@ use clap::Args;
 use super::Common;
 use crate::api::site;
 use crate::engine::front::{
-    Adam, BakeSettings, Budget, CleanupSettings, DataSize, Dataset, LoadOptions, Model, ModelConfig,
-    SplatsFormat as Format, SplatsModel, Split, TrainConfig, TrainState, TransientMaps, bake, cleanup, estimate_bake,
-    load_checkpoint, mib, save_checkpoint, splats_of, write_atomic, write_splats,
+    Adam, BakeSettings, Budget, CleanupSettings, CropBox, DataSize, Dataset, LoadOptions, Model, ModelConfig,
+    SplatsFormat as Format, SplatsModel, Split, TrainConfig, TrainState, TransientMaps, auto_crop, bake, cleanup, crop,
+    estimate_bake, load_checkpoint, mib, save_checkpoint, splats_of, write_atomic, write_splats,
 };
 use crate::system::peak_memory;
 
@@ -161,10 +161,16 @@ pub struct ExportArgs {
     /// The file to write (`html`: the folder, or the `.zip`).
     #[arg(long)]
     pub out: PathBuf,
-    /// `html` only: the dataset the model was baked from; its training
-    /// cameras give the view the page opens at.
+    /// The dataset the model was baked from: `html`'s opening view and
+    /// `--crop auto`'s cameras.
     #[arg(long)]
     pub data: Option<PathBuf>,
+    /// Export only what is inside a box: `auto` (the box around what the
+    /// training cameras all see, found from `--data`; printed as JSON) or
+    /// a JSON file of one (`{"centre": [x, y, z], "axes": [[..], [..],
+    /// [..]], "half": [hx, hy, hz]}`, world units, axes orthonormal rows).
+    #[arg(long)]
+    pub crop: Option<String>,
     #[command(flatten)]
     pub cleanup: CleanupArgs,
 }
@@ -235,7 +241,16 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
     };
     let (cleaned, removed) = cleanup(splats, &settings)?;
     eprintln!("cleanup: {removed}");
-    let splats = &cleaned;
+    let cropped = match &a.crop {
+        Some(c) => {
+            let b = crop_box(c, a.data.as_deref(), &cleaned)?;
+            let (kept, gone) = crop(&cleaned, &b)?;
+            eprintln!("crop: {gone} Gaussians outside the box removed, {} kept", kept.layout().n);
+            kept
+        }
+        None => cleaned,
+    };
+    let splats = &cropped;
     let format = match a.format {
         ExportFormat::File(f) => f,
         ExportFormat::Html => return export_site(&a, splats),
@@ -245,6 +260,33 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
     write_atomic(&a.out, &bytes).with_context(|| format!("writing {}", a.out.display()))?;
     eprintln!("wrote {} ({} Gaussians, {} bytes)", a.out.display(), splats.layout().n, bytes.len());
     Ok(())
+}
+
+/// The box `--crop` names: `auto`, or a JSON file.
+fn crop_box(arg: &str, data: Option<&Path>, splats: &SplatsModel) -> anyhow::Result<CropBox> {
+    let b = if arg == "auto" {
+        let Some(data) = data else {
+            anyhow::bail!("--crop auto needs --data DIR: the box is found from the training cameras");
+        };
+        let ds = Dataset::load(data, &LoadOptions { splits: vec![Split::Train], ..Default::default() })
+            .with_context(|| format!("loading {}", data.display()))?;
+        let Some(rig) = ds.rig().filter(|r| !r.forward_facing) else {
+            anyhow::bail!(
+                "--crop auto: {} is not a capture taken around an object (its cameras face one way); give the box as a JSON file",
+                data.display()
+            );
+        };
+        let cameras: Vec<_> = ds.split_frames(Split::Train).map(|f| f.camera.clone()).collect();
+        let b = auto_crop(splats, &cameras, rig.up)?;
+        eprintln!("crop: {}", serde_json::to_string(&b)?);
+        b
+    } else {
+        let text = std::fs::read_to_string(arg).with_context(|| format!("--crop {arg}: reading the box"))?;
+        serde_json::from_str(&text)
+            .with_context(|| format!("--crop {arg}: not a box ({{\"centre\", \"axes\", \"half\"}})"))?
+    };
+    b.check()?;
+    Ok(b)
 }
 
 /// `export --format html`: the site of `api::site`, as a folder or a zip.

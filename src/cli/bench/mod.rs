@@ -15,9 +15,8 @@ use super::eval::{FitArgs, Scored, appearance_fit, render_and_score};
 use super::setup::{DEFAULT_BATCH_RAYS, check_model_name, new_model_and_adam, resolve_model};
 use super::{AppearanceArgs, Common, MaskArgs, TransientArgs};
 use crate::engine::front::{
-    BakeSettings, Budget, CAPTURE_KIND, CleanupSettings, Dataset, FoundMasks, LoadOptions, MaskUse, Model, ModelChoice,
-    ModelConfig, Pasted, Progress, SplatsModel, Split, StopReason, TrainState, Trainer, TransientMaps, bake, cleanup,
-    ply_len, read_spz, write_atomic, write_spz,
+    Budget, CAPTURE_KIND, Dataset, FoundMasks, LoadOptions, MaskUse, Model, ModelChoice, ModelConfig, Pasted, Progress,
+    Split, StopReason, TrainState, Trainer, write_atomic,
 };
 use crate::system::{peak_memory, reset_peak_memory};
 pub use occluded::OccludedPhoto;
@@ -246,7 +245,7 @@ fn format_row(r: &BenchRow, masked: bool, mean: bool) -> String {
 
 /// The test views' scores summed ([`score_views`]).
 #[derive(Default)]
-struct ViewScores {
+pub(super) struct ViewScores {
     psnr: f64,
     ssim: f64,
     secs: f64,
@@ -262,7 +261,7 @@ struct ViewScores {
 
 /// Renders and scores the test views `views` with `model` (trained `step`
 /// steps), as `eval` does (`render_and_score`).
-fn score_views(
+pub(super) fn score_views(
     model: &dyn Model,
     step: u64,
     ds: &Dataset,
@@ -295,7 +294,7 @@ fn score_views(
 
 /// A row of `v`'s scores over `n` views; the training columns are the
 /// caller's.
-fn scored_row(model: &str, budget: f64, v: &ViewScores, n: usize) -> BenchRow {
+pub(super) fn scored_row(model: &str, budget: f64, v: &ViewScores, n: usize) -> BenchRow {
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
     let n = n as f64;
     BenchRow {
@@ -350,47 +349,8 @@ fn measure(
     })
 }
 
-/// Bakes `source` (`kind`, trained) into splats for `seconds` and scores
-/// them: a row labelled `splats`, its budget the bake's, its time and
-/// steps the bake's own; then the same splats as export gives them: after
-/// the floater cleanup (`cleaned`), and those written as SPZ and read back
-/// (`spz`).
-fn measure_bake(
-    source: &dyn Model,
-    ds: &Dataset,
-    views: &[usize],
-    args: &BenchArgs,
-    seconds: f64,
-    dropped: Option<&TransientMaps>,
-) -> anyhow::Result<Vec<BenchRow>> {
-    let settings =
-        BakeSettings { budget: Budget { seconds: Some(seconds), steps: None }, seed: args.seed, ..Default::default() };
-    let started = std::time::Instant::now();
-    let (model, _, steps) = bake(source, ds, &settings, dropped, &AtomicBool::new(false), |_| {})?;
-    let elapsed = started.elapsed().as_secs_f64();
-    let v = score_views(&model, steps, ds, views, args)?;
-    let row = |label: &str, m: &SplatsModel, bytes: u64, v: &ViewScores| BenchRow {
-        train_seconds: elapsed,
-        steps,
-        gaussians: Some(m.layout().n),
-        bytes: Some(bytes),
-        ..scored_row(label, seconds, v, views.len())
-    };
-    let l = model.layout();
-    let mut rows = vec![row(SPLATS_LABEL, &model, ply_len(l.n, l.k), &v)];
-    let (cleaned, removed) = cleanup(&model, &CleanupSettings::default())?;
-    println!("cleanup: {removed}");
-    let l = cleaned.layout();
-    rows.push(row("cleaned", &cleaned, ply_len(l.n, l.k), &score_views(&cleaned, steps, ds, views, args)?));
-    let mut spz = Vec::new();
-    write_spz(&cleaned, &mut spz)?;
-    let back = read_spz(&spz, l.n)?.into_model(cleaned.scene().clone())?;
-    rows.push(row("spz", &back, spz.len() as u64, &score_views(&back, steps, ds, views, args)?));
-    Ok(rows)
-}
-
 /// The model column of a baked row.
-const SPLATS_LABEL: &str = "splats";
+pub(super) const SPLATS_LABEL: &str = "splats";
 
 fn write_json(path: &Path, report: &BenchReport) -> anyhow::Result<()> {
     let mut bytes = serde_json::to_vec_pretty(report)?;
@@ -577,21 +537,12 @@ impl Run<'_> {
         }
         if let (Some(seconds), StopReason::Budget | StopReason::Callback) = (a.bake, &reason) {
             eprintln!("baking '{kind}' into splats for {seconds} s");
-            let rows = measure_bake(&*trainer.model, ds, self.views, a, seconds, trainer.transients.as_ref())
+            let rows = baked::measure_bake(&*trainer.model, ds, self.views, a, seconds, trainer.transients.as_ref())
                 .with_context(|| format!("baking '{kind}'"))?;
             for row in &rows {
                 println!("{}", format_row(row, ds.masks != MaskUse::Off, self.with_mean));
             }
-            for row in &rows {
-                let (n, b) = (row.gaussians.unwrap_or(0), row.bytes.unwrap_or(0));
-                let file = if row.model == "spz" { ".spz" } else { ".ply" };
-                println!(
-                    "{:<8} {n} Gaussians, {file} {:.2} MB, .splat {:.2} MB",
-                    row.model,
-                    b as f64 / 1e6,
-                    (32 * n) as f64 / 1e6
-                );
-            }
+            baked::print_sizes(&rows);
             report.rows.extend(rows);
             if let Some(path) = &a.json {
                 write_json(path, report)?;
@@ -608,6 +559,7 @@ impl Run<'_> {
     }
 }
 
+mod baked;
 mod occluded;
 mod plot;
 

@@ -8,6 +8,7 @@
 pub mod backward;
 pub mod cleanup;
 pub mod config;
+pub mod crop;
 pub mod export;
 pub mod fit;
 pub mod frame;
