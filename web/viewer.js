@@ -121,6 +121,7 @@ async function selectModel(id, camera) {
   $('view-splats').hidden = !drawn;
   $('view-output').disabled = drawn;
   $('view-bake').hidden = drawn || !m.complete;
+  $('view-export').hidden = !drawn;
   const v = m.view;
   Object.assign(viewer, { target: v.centre.slice(), azimuth: 0, elevation: v.elevation ?? 25, radius: v.radius, fov: v.fov });
   if (camera) setFromLink(camera);
@@ -207,6 +208,28 @@ function splatMoved() {
   const p = splats.camera.position, t = splats.controls.target;
   setFromLink({ eye: [p.x, p.y, p.z], target: [t.x, t.y, t.z], fov: viewer.fov });
   updateLink();
+}
+
+/**
+ * Downloads the shown splats model in the chosen format (with the API key,
+ * so through a blob), named as the server names it, and says what the
+ * floater cleanup removed.
+ */
+async function downloadSplats() {
+  const m = viewer.model;
+  const format = $('view-export-format').value;
+  status(`preparing the ${format} file...`);
+  const res = await api(`/v1/models/${m.id}/export?format=${format}`);
+  const name = /filename="([^"]+)"/.exec(res.headers.get('content-disposition') || '')?.[1] || `${m.id}.${format}`;
+  const blob = await res.blob();
+  const a = el('a', { href: URL.createObjectURL(blob), download: name });
+  document.body.append(a);
+  a.click();
+  a.remove();
+  const kept = res.headers.get('x-gaussians');
+  const removed = res.headers.get('x-gaussians-removed');
+  $('view-export-go').dataset.file = name;
+  status(`${name}: ${(blob.size / 1048576).toFixed(2)} MiB, ${kept} Gaussians (${removed} floaters removed)`);
 }
 
 async function showSplats(m) {
@@ -436,6 +459,7 @@ export function setupViewer() {
   $('view-link').addEventListener('click', (e) => { e.preventDefault(); navigator.clipboard?.writeText(location.href.split('#')[0] + viewLink()).catch(() => {}); status('link to this view copied (and in the address bar)'); });
   $('view-output').addEventListener('change', () => changed(false));
   $('view-reset').addEventListener('click', () => resetView());
+  $('view-export-go').addEventListener('click', () => downloadSplats().catch(fail));
   $('view-save').addEventListener('click', () => {
     if (!viewer.full.blob) { status('no full-resolution image yet'); return; }
     const a = el('a', { href: URL.createObjectURL(viewer.full.blob), download: `${viewer.model.id}-${$('view-output').value}-az${viewer.azimuth.toFixed(0)}-el${viewer.elevation.toFixed(0)}.png` });

@@ -256,6 +256,16 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     assert!(renders.is_empty(), "the page asked the server for renders of a splats model: {renders:?}");
     assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
 
+    // The splats taken away from the viewer: a .glb, named by the server,
+    // with what the cleanup removed said.
+    assert_eq!(page.eval("document.getElementById('view-export').hidden"), false);
+    page.eval("document.getElementById('view-export-format').value = 'glb'; document.getElementById('view-export-go').click()");
+    page.wait_for("(document.getElementById('view-export-go').dataset.file || '').endsWith('.glb')", 30.0);
+    let said = page.eval("document.getElementById('status').textContent");
+    assert_eq!(page.eval("document.getElementById('view-export-go').dataset.file"), format!("{splats_id}.glb"));
+    assert!(said.as_str().unwrap().contains("floaters removed"), "{said}");
+    assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
+
     // The exported site on a plain static file server.
     let zip = rt.block_on(async {
         let r = reqwest::get(svc.url(&format!("/v1/models/{splats_id}/export?format=html"))).await.unwrap();
