@@ -12,8 +12,8 @@ use super::Common;
 use crate::api::site;
 use crate::engine::front::{
     Adam, BakeSettings, Budget, CleanupSettings, CropBox, DataSize, Dataset, LoadOptions, Model, ModelConfig,
-    SplatsFormat as Format, SplatsModel, Split, TrainConfig, TrainState, TransientMaps, auto_crop, bake, cleanup, crop,
-    estimate_bake, load_checkpoint, mib, save_checkpoint, splats_of, write_atomic, write_splats,
+    SplatsFormat as Format, SplatsModel, Split, TrainConfig, TrainState, TransientMaps, auto_crop_for, bake, cleanup,
+    crop, estimate_bake, load_checkpoint, mib, save_checkpoint, splats_of, write_atomic, write_splats,
 };
 use crate::system::peak_memory;
 
@@ -241,9 +241,18 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
     };
     let (cleaned, removed) = cleanup(splats, &settings)?;
     eprintln!("cleanup: {removed}");
+    // The dataset, read once where `--crop auto` or the site needs it.
+    let needs_data = a.format == ExportFormat::Html || a.crop.as_deref() == Some("auto");
+    let ds = match (&a.data, needs_data) {
+        (Some(data), true) => {
+            let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
+            Some(Dataset::load(data, &opts).with_context(|| format!("loading {}", data.display()))?)
+        }
+        _ => None,
+    };
     let cropped = match &a.crop {
         Some(c) => {
-            let b = crop_box(c, a.data.as_deref(), &cleaned)?;
+            let b = crop_box(c, ds.as_ref(), &cleaned)?;
             let (kept, gone) = crop(&cleaned, &b)?;
             eprintln!("crop: {gone} Gaussians outside the box removed, {} kept", kept.layout().n);
             kept
@@ -253,7 +262,7 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
     let splats = &cropped;
     let format = match a.format {
         ExportFormat::File(f) => f,
-        ExportFormat::Html => return export_site(&a, splats),
+        ExportFormat::Html => return export_site(&a, ds.as_ref(), splats),
     };
     let mut bytes = Vec::new();
     write_splats(splats, format, &mut bytes)?;
@@ -263,21 +272,17 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
 }
 
 /// The box `--crop` names: `auto`, or a JSON file.
-fn crop_box(arg: &str, data: Option<&Path>, splats: &SplatsModel) -> anyhow::Result<CropBox> {
+fn crop_box(arg: &str, ds: Option<&Dataset>, splats: &SplatsModel) -> anyhow::Result<CropBox> {
     let b = if arg == "auto" {
-        let Some(data) = data else {
+        let Some(ds) = ds else {
             anyhow::bail!("--crop auto needs --data DIR: the box is found from the training cameras");
         };
-        let ds = Dataset::load(data, &LoadOptions { splits: vec![Split::Train], ..Default::default() })
-            .with_context(|| format!("loading {}", data.display()))?;
-        let Some(rig) = ds.rig().filter(|r| !r.forward_facing) else {
+        let Some(b) = auto_crop_for(splats, ds)? else {
             anyhow::bail!(
                 "--crop auto: {} is not a capture taken around an object (its cameras face one way); give the box as a JSON file",
-                data.display()
+                ds.root.display()
             );
         };
-        let cameras: Vec<_> = ds.split_frames(Split::Train).map(|f| f.camera.clone()).collect();
-        let b = auto_crop(splats, &cameras, rig.up)?;
         eprintln!("crop: {}", serde_json::to_string(&b)?);
         b
     } else {
@@ -290,13 +295,11 @@ fn crop_box(arg: &str, data: Option<&Path>, splats: &SplatsModel) -> anyhow::Res
 }
 
 /// `export --format html`: the site of `api::site`, as a folder or a zip.
-fn export_site(a: &ExportArgs, splats: &SplatsModel) -> anyhow::Result<()> {
-    let Some(data) = &a.data else {
+fn export_site(a: &ExportArgs, ds: Option<&Dataset>, splats: &SplatsModel) -> anyhow::Result<()> {
+    let Some(ds) = ds else {
         anyhow::bail!("--format html needs --data DIR: the dataset's training cameras give the view the page opens at");
     };
-    let opts = LoadOptions { splits: vec![Split::Train], ..Default::default() };
-    let ds = Dataset::load(data, &opts).with_context(|| format!("loading {}", data.display()))?;
-    let view = crate::records::ViewDefaults::from_dataset(&ds);
+    let view = crate::records::ViewDefaults::from_dataset(ds);
     let mut spz = Vec::new();
     write_splats(splats, Format::Spz, &mut spz)?;
     let stem = a.out.file_stem().and_then(|s| s.to_str()).unwrap_or("splats").to_string();

@@ -10,16 +10,8 @@ use std::sync::atomic::AtomicBool;
 use super::{BenchArgs, BenchRow, SPLATS_LABEL, ViewScores, score_views, scored_row};
 use crate::engine::front::{
     BakeSettings, Budget, CleanupSettings, CropBox, Dataset, MaskUse, Model, SplatsModel, Split, TransientMaps,
-    auto_crop, bake, cleanup, crop, mask_inside, ply_len, project, read_spz, write_spz,
+    auto_crop_for, bake, cleanup, crop, mask_inside, ply_len, project, read_spz, write_spz,
 };
-
-/// The automatic crop of `model` for `ds`'s training cameras; `None` for a
-/// forward-facing capture (nothing to walk around) or one without a rig.
-pub fn auto_box(model: &SplatsModel, ds: &Dataset) -> anyhow::Result<Option<CropBox>> {
-    let Some(rig) = ds.rig().filter(|r| !r.forward_facing) else { return Ok(None) };
-    let cameras: Vec<_> = ds.split_frames(Split::Train).map(|f| f.camera.clone()).collect();
-    Ok(Some(auto_crop(model, &cameras, rig.up)?))
-}
 
 /// What the crop kept of the Gaussians the masks call outside.
 pub struct MaskedCrop {
@@ -108,7 +100,7 @@ pub fn measure_bake(
     write_spz(&cleaned, &mut spz)?;
     let back = read_spz(&spz, l.n)?.into_model(cleaned.scene().clone())?;
     rows.push(row("spz", &back, spz.len() as u64, &score_views(&back, steps, ds, views, args)?));
-    if let Some(b) = auto_box(&cleaned, ds)? {
+    if let Some(b) = auto_crop_for(&cleaned, ds)? {
         println!("crop: centre {:?}, half extents {:?}, axes {:?}", b.centre, b.half, b.axes);
         if let Some(m) = against_masks(&cleaned, ds, &b) {
             println!(

@@ -62,6 +62,17 @@ impl Scene {
         Aabb { min: Vec3::from_array(self.aabb_min), max: Vec3::from_array(self.aabb_max) }
     }
 
+    /// A model-space point in world coordinates.
+    pub fn point_to_world(&self, p: [f32; 3]) -> [f32; 3] {
+        let inv = 1.0 / self.scale;
+        [0, 1, 2].map(|c| p[c] * inv + self.centre[c])
+    }
+
+    /// A world point in model coordinates.
+    pub fn point_to_model(&self, p: [f32; 3]) -> [f32; 3] {
+        [0, 1, 2].map(|c| (p[c] - self.centre[c]) * self.scale)
+    }
+
     /// A world ray in model coordinates (same direction, normalised;
     /// distances scale). A zero or non-finite direction is left as it is,
     /// and [`Scene::clip`] rejects it.

@@ -23,6 +23,7 @@ use rstar::{RTree, primitives::GeomWithData};
 
 use super::SplatsModel;
 use super::gaussians::sigmoid;
+use crate::engine::geometry::math::Vec3;
 use crate::engine::models::{Model, ModelError};
 
 /// The thresholds.
@@ -147,7 +148,7 @@ pub enum Rule {
 }
 
 fn dist(a: &[f32; 3], b: &[f32; 3]) -> f32 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    (Vec3::from_array(*a) - Vec3::from_array(*b)).norm()
 }
 
 /// `model` without the Gaussians `s` removes, and what went.
@@ -163,8 +164,7 @@ pub fn cleanup(model: &SplatsModel, s: &CleanupSettings) -> Result<(SplatsModel,
             Some(Rule::Oversized) => removed.oversized += 1,
         }
     }
-    let params = model.layout().select(model.params(), &keep);
-    Ok((SplatsModel::from_parts(model.config.clone(), model.scene().clone(), params)?, removed))
+    Ok((model.keeping(&keep)?, removed))
 }
 
 #[cfg(test)]

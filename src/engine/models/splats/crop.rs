@@ -12,7 +12,9 @@
 
 use super::SplatsModel;
 use super::gaussians::sigmoid;
+use crate::engine::dataset::{Dataset, Split};
 use crate::engine::geometry::camera::Camera;
+use crate::engine::geometry::math::Vec3;
 use crate::engine::models::{Model, ModelError};
 
 /// An oriented box: `centre`, unit orthogonal `axes` (rows: the box's x,
@@ -44,8 +46,8 @@ pub enum CropError {
 pub const SEEN_BY: f32 = 0.9;
 /// Opacity from which a Gaussian shapes the box.
 const OPAQUE: f32 = 0.3;
-/// The box's margin, a share of its size on each side (on gold_cape, 5%
-/// cut the object's edges: docs/design/object.md).
+/// The box's margin, a share of its size on each side: a thinner one cuts
+/// an object's edges (docs/design/object.md).
 const MARGIN: f32 = 0.15;
 
 impl CropBox {
@@ -57,11 +59,11 @@ impl CropBox {
         if self.half.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
             return Err(CropError::Field("half", format!("{:?}: each half extent must be positive", self.half)));
         }
-        let dot = |a: &[f32; 3], b: &[f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let axes = self.axes.map(Vec3::from_array);
         for i in 0..3 {
             for j in 0..3 {
                 let want = if i == j { 1.0 } else { 0.0 };
-                if !(dot(&self.axes[i], &self.axes[j]) - want).abs().lt(&1e-3) {
+                if !(axes[i].dot(axes[j]) - want).abs().lt(&1e-3) {
                     return Err(CropError::Field("axes", "must be three orthogonal unit vectors".into()));
                 }
             }
@@ -71,32 +73,24 @@ impl CropBox {
 
     /// Whether world point `p` is inside.
     pub fn contains(&self, p: [f32; 3]) -> bool {
-        let d = [p[0] - self.centre[0], p[1] - self.centre[1], p[2] - self.centre[2]];
-        (0..3).all(|a| {
-            let t = self.axes[a][0] * d[0] + self.axes[a][1] * d[1] + self.axes[a][2] * d[2];
-            t.abs() <= self.half[a]
-        })
+        let d = Vec3::from_array(p) - Vec3::from_array(self.centre);
+        (0..3).all(|a| Vec3::from_array(self.axes[a]).dot(d).abs() <= self.half[a])
     }
 }
 
 /// Each Gaussian's centre in world units.
 pub fn world_centres(model: &SplatsModel) -> Vec<[f32; 3]> {
     let (l, s) = (model.layout(), model.scene());
-    (0..l.n)
-        .map(|i| {
-            let m = l.get(model.params(), i).mean;
-            [0, 1, 2].map(|c| m[c] / s.scale + s.centre[c])
-        })
-        .collect()
+    (0..l.n).map(|i| s.point_to_world(l.get(model.params(), i).mean)).collect()
 }
 
 /// Where world point `p` falls in `camera`'s frame (pixels), if in front
 /// of it (lens distortion ignored: a crop needs no sub-pixel truth).
 pub fn project(camera: &Camera, p: [f32; 3]) -> Option<(f32, f32)> {
     let m = &camera.c2w;
-    let d = [p[0] - m[0][3], p[1] - m[1][3], p[2] - m[2][3]];
+    let d = Vec3::from_array(p) - camera.origin();
     // Camera coordinates: the rotation's columns are the camera's axes.
-    let c = [0, 1, 2].map(|k| m[0][k] * d[0] + m[1][k] * d[1] + m[2][k] * d[2]);
+    let c = [0, 1, 2].map(|k| Vec3::new(m[0][k], m[1][k], m[2][k]).dot(d));
     let depth = -c[2];
     if depth <= 1e-6 {
         return None;
@@ -111,74 +105,66 @@ pub fn auto_crop(model: &SplatsModel, cameras: &[Camera], up: [f32; 3]) -> Resul
     let centres = world_centres(model);
     let l = model.layout();
     let need = (SEEN_BY * cameras.len() as f32).ceil() as usize;
-    let object: Vec<[f32; 3]> = centres
+    let object: Vec<Vec3> = centres
         .iter()
         .enumerate()
         .filter(|&(i, p)| {
             sigmoid(l.get(model.params(), i).opacity_logit) >= OPAQUE
                 && cameras.iter().filter(|c| project(c, *p).is_some()).count() >= need.max(1)
         })
-        .map(|(_, p)| *p)
+        .map(|(_, p)| Vec3::from_array(*p))
         .collect();
     if object.is_empty() {
         return Err(CropError::Unseen);
     }
-    let z = unit(up).ok_or(CropError::Field("up", "is not a direction".into()))?;
+    let z = Vec3::from_array(up).normalized().ok_or(CropError::Field("up", "is not a direction".into()))?;
     let (x, y) = horizontal_axes(&object, z);
     let axes = [x, y, z];
-    let mut centre = [0.0; 3];
+    let mut centre = Vec3::new(0.0, 0.0, 0.0);
     let mut half = [0.0; 3];
     for a in 0..3 {
-        let mut t: Vec<f32> = object.iter().map(|p| dot(axes[a], *p)).collect();
+        let mut t: Vec<f32> = object.iter().map(|p| axes[a].dot(*p)).collect();
         t.sort_unstable_by(f32::total_cmp);
         let (lo, hi) = (t[t.len() / 100], t[(t.len() * 99) / 100]);
         let pad = MARGIN * (hi - lo).max(1e-6);
         half[a] = 0.5 * (hi - lo) + pad;
-        for c in 0..3 {
-            centre[c] += 0.5 * (lo + hi) * axes[a][c];
-        }
+        centre = centre + axes[a] * (0.5 * (lo + hi));
     }
-    Ok(CropBox { centre, axes, half })
-}
-
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
-fn unit(v: [f32; 3]) -> Option<[f32; 3]> {
-    let n = dot(v, v).sqrt();
-    (n.is_finite() && n > 0.0).then(|| v.map(|c| c / n))
+    Ok(CropBox { centre: centre.to_array(), axes: axes.map(Vec3::to_array), half })
 }
 
 /// The principal axes of `points` across `z` (the larger spread first),
 /// a right-handed `x, y` with `z`.
-fn horizontal_axes(points: &[[f32; 3]], z: [f32; 3]) -> ([f32; 3], [f32; 3]) {
+fn horizontal_axes(points: &[Vec3], z: Vec3) -> (Vec3, Vec3) {
     // Any basis of the plane, then the 2x2 covariance's eigenvectors in it.
-    let seed = if z[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
-    let e1 = unit(cross(z, seed)).expect("a vector not along z");
-    let e2 = cross(z, e1);
+    let seed = if z.x.abs() < 0.9 { Vec3::new(1.0, 0.0, 0.0) } else { Vec3::new(0.0, 1.0, 0.0) };
+    let e1 = z.cross(seed).normalized().expect("a vector not along z");
+    let e2 = z.cross(e1);
     let n = points.len() as f64;
     let (mut m1, mut m2) = (0.0f64, 0.0f64);
     for p in points {
-        m1 += dot(e1, *p) as f64;
-        m2 += dot(e2, *p) as f64;
+        m1 += e1.dot(*p) as f64;
+        m2 += e2.dot(*p) as f64;
     }
     let (m1, m2) = (m1 / n, m2 / n);
     let (mut a, mut b, mut c) = (0.0f64, 0.0f64, 0.0f64);
     for p in points {
-        let (u, v) = (dot(e1, *p) as f64 - m1, dot(e2, *p) as f64 - m2);
+        let (u, v) = (e1.dot(*p) as f64 - m1, e2.dot(*p) as f64 - m2);
         a += u * u;
         b += u * v;
         c += v * v;
     }
     let angle = 0.5 * (2.0 * b).atan2(a - c);
-    let (s, co) = (angle.sin() as f32, angle.cos() as f32);
-    let x = [0, 1, 2].map(|k| co * e1[k] + s * e2[k]);
-    (x, cross(z, x))
+    let x = e1 * angle.cos() as f32 + e2 * angle.sin() as f32;
+    (x, z.cross(x))
+}
+
+/// [`auto_crop`] for `ds`'s training cameras and rig; `None` for a capture
+/// with no rig or a forward-facing one (nothing was walked around).
+pub fn auto_crop_for(model: &SplatsModel, ds: &Dataset) -> Result<Option<CropBox>, CropError> {
+    let Some(rig) = ds.rig().filter(|r| !r.forward_facing) else { return Ok(None) };
+    let cameras: Vec<Camera> = ds.split_frames(Split::Train).map(|f| f.camera.clone()).collect();
+    auto_crop(model, &cameras, rig.up).map(Some)
 }
 
 /// `model` with only the Gaussians whose centres are inside `b`, and how
@@ -191,8 +177,7 @@ pub fn crop(model: &SplatsModel, b: &CropBox) -> Result<(SplatsModel, usize), Cr
     if keep.is_empty() {
         return Err(CropError::Empty(n));
     }
-    let params = model.layout().select(model.params(), &keep);
-    Ok((SplatsModel::from_parts(model.config.clone(), model.scene().clone(), params)?, n - keep.len()))
+    Ok((model.keeping(&keep)?, n - keep.len()))
 }
 
 #[cfg(test)]

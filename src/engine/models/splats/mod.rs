@@ -68,6 +68,12 @@ impl SplatsModel {
         self.layout
     }
 
+    /// The splats of the Gaussians `keep` (in that order) alone: what the
+    /// export's cleanup and crop leave.
+    pub fn keeping(&self, keep: &[usize]) -> Result<Self, ModelError> {
+        Self::from_parts(self.config.clone(), self.scene.clone(), self.layout.select(&self.params, keep))
+    }
+
     /// Renders `camera` (world units).
     pub fn rasterise(&self, camera: &Camera, background: [f32; 3]) -> raster::Frame {
         let cam = RasterCamera::new(camera, &self.scene);

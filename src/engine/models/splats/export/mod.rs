@@ -80,10 +80,9 @@ fn world_all(model: &SplatsModel) -> Vec<World<'_>> {
 fn world(model: &SplatsModel, i: usize) -> World<'_> {
     let scene = model.scene();
     let g = model.layout().get(model.params(), i);
-    let inv = 1.0 / scene.scale;
     let ln = scene.scale.ln();
     World {
-        mean: [0, 1, 2].map(|c| g.mean[c] * inv + scene.centre[c]),
+        mean: scene.point_to_world(g.mean),
         log_scale: g.log_scale.map(|s| s - ln),
         rotation: g.rotation,
         opacity_logit: g.opacity_logit,

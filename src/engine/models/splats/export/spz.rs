@@ -279,8 +279,8 @@ impl Decoded {
         let mut p = vec![0.0f32; l.len()];
         let ln = scene.scale.ln();
         for i in 0..n {
+            p[3 * i..3 * i + 3].copy_from_slice(&scene.point_to_model(self.means[i]));
             for c in 0..3 {
-                p[3 * i + c] = (self.means[i][c] - scene.centre[c]) * scene.scale;
                 p[3 * n + 3 * i + c] = self.log_scales[i][c] + ln;
                 p[11 * n + 3 * i + c] = self.sh_dc[i][c];
             }
