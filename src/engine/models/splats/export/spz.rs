@@ -181,6 +181,8 @@ pub enum SpzError {
     Degree(u8),
     #[error("SPZ file of {got} bytes unpacked, where its header says {want}")]
     Length { got: usize, want: usize },
+    #[error("SPZ file of {0} Gaussians, over the {1} read")]
+    TooMany(usize, usize),
 }
 
 /// A decoded SPZ file, in world units.
@@ -220,7 +222,7 @@ pub fn read_spz(bytes: &[u8], max_gaussians: usize) -> Result<Decoded, SpzError>
     let rot = if version == 2 { 3 } else { 4 };
     let per = 9 + 1 + 3 + 3 + rot + 3 * rest;
     if n > max_gaussians {
-        return Err(SpzError::Length { got: n * per, want: max_gaussians * per });
+        return Err(SpzError::TooMany(n, max_gaussians));
     }
     let mut body = Vec::with_capacity(n * per);
     gz.take((n * per + 1) as u64).read_to_end(&mut body)?;
@@ -397,7 +399,7 @@ mod tests {
         assert!(matches!(read_spz(b"not gzip at all", 10), Err(SpzError::Gzip(_))));
         let m = model(5, 1);
         let bytes = encode(&m);
-        assert!(matches!(read_spz(&bytes, 4), Err(SpzError::Length { .. })), "over the limit");
+        assert!(matches!(read_spz(&bytes, 4), Err(SpzError::TooMany(5, 4))), "over the limit");
         let mut raw = Vec::new();
         flate2::read::GzDecoder::new(&bytes[..]).read_to_end(&mut raw).unwrap();
         let gz = |raw: &[u8]| {
@@ -411,7 +413,9 @@ mod tests {
         assert!(matches!(read_spz(&gz(&v4), 10), Err(SpzError::Version(4))));
         let mut huge = raw.clone();
         huge[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
-        assert!(matches!(read_spz(&gz(&huge), 1_000_000), Err(SpzError::Length { .. })));
+        assert!(
+            matches!(read_spz(&gz(&huge), 1_000_000), Err(SpzError::TooMany(n, 1_000_000)) if n == u32::MAX as usize)
+        );
         // A position beyond 24 bits at any precision is refused.
         let mut far = model(2, 0);
         let scale = far.scene().scale;
