@@ -1,7 +1,13 @@
 //! The fast model learns a tiny generated scene; its skipping (occupancy
 //! grid, early termination) does not change what it renders.
 
-mod common;
+mod common {
+    //! The parts of `tests/common` this binary uses: the rest (its HTTP,
+    //! browser and database clients) would be compiled here for nothing.
+    #![allow(dead_code)]
+    pub mod psnr;
+    pub mod tiny;
+}
 
 use std::sync::atomic::AtomicBool;
 
