@@ -12,6 +12,9 @@ use crate::engine::geometry::rig::Spiral;
 use crate::engine::models::auto::SceneKind;
 use crate::system::now_ms;
 
+/// A model's crop volume: an oriented box in world units.
+pub use crate::engine::front::CropBox;
+
 /// Image counts of a dataset's splits.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct SplitCounts {
@@ -258,6 +261,10 @@ pub struct ModelInfo {
     /// `GET /v1/models/{id}/transients/{photo}`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub transients: Option<crate::engine::front::TransientReport>,
+    /// The crop volume (`PUT /v1/models/{id}/crop`): a splats model's
+    /// views, videos and exports keep only the Gaussians inside it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crop: Option<CropBox>,
 }
 
 fn yes() -> bool {

@@ -167,9 +167,11 @@ fn demo_needs_no_data() {
     let (m, d) = (out.join("model.ckpt"), out.join("scene"));
     let e = ok(&radiance(&["eval", "--model", m.to_str().unwrap(), "--data", d.to_str().unwrap(), "--limit", "2"]));
     let psnr: f64 = e.lines().last().unwrap().split_whitespace().nth(3).unwrap().parse().unwrap();
-    assert!(psnr > 25.0, "demo model PSNR {psnr} dB:\n{e}");
+    // 200 steps score about 17.8 dB; a blank white frame scores about 7 dB
+    // on these views, their mean colour 10 to 11.
+    assert!(psnr > 16.0, "demo model PSNR {psnr} dB:\n{e}");
     // An orbit video of it with no parameters: around the point the training
-    // cameras look at (the ball), from their distance.
+    // cameras look at (the mug), from their distance.
     let gif = dir.path().join("orbit.gif");
     let g = gif.to_str().unwrap();
     let printed =
@@ -184,9 +186,10 @@ fn demo_needs_no_data() {
         let im = f.buffer();
         assert_eq!(im.dimensions(), (32, 32));
         let sum = |x, y| im.get_pixel(x, y).0[..3].iter().map(|&c| c as u32).sum::<u32>();
-        // The ball fills the middle; the corners are the white background.
-        assert!(sum(16, 16) < 600, "centre {:?}", im.get_pixel(16, 16));
-        assert!(sum(0, 0) > 700 && sum(31, 31) > 700, "corners {:?} {:?}", im.get_pixel(0, 0), im.get_pixel(31, 31));
+        // The mug is in the middle; above it, the top corners are the white
+        // background (the mat fills the bottom ones).
+        assert!(sum(16, 16) < 700, "centre {:?}", im.get_pixel(16, 16));
+        assert!(sum(0, 0) > 700 && sum(31, 0) > 700, "corners {:?} {:?}", im.get_pixel(0, 0), im.get_pixel(31, 0));
     }
     let bad = radiance(&["video", "--model", m.to_str().unwrap(), "--out", dir.path().join("o.avi").to_str().unwrap()]);
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("write a .mp4 or a .gif"));

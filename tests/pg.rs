@@ -165,6 +165,7 @@ fn model_of(job: &Job, scene: &SceneInfo, steps: u64) -> ModelInfo {
         poses: None,
         gaussians: None,
         transients: None,
+        crop: None,
     }
 }
 

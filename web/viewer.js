@@ -122,6 +122,8 @@ async function selectModel(id, camera) {
   $('view-output').disabled = drawn;
   $('view-bake').hidden = drawn || !m.complete;
   $('view-export').hidden = !drawn;
+  $('view-crop').hidden = !drawn;
+  closeCrop();
   const v = m.view;
   Object.assign(viewer, { target: v.centre.slice(), azimuth: 0, elevation: v.elevation ?? 25, radius: v.radius, fov: v.fov });
   if (camera) setFromLink(camera);
@@ -232,7 +234,72 @@ async function downloadSplats() {
   status(`${name}: ${(blob.size / 1048576).toFixed(2)} MiB, ${kept} Gaussians (${removed} floaters removed)`);
 }
 
-async function showSplats(m) {
+/** The crop box editor while it is open (crop.js). */
+let cropEditor = null;
+
+/**
+ * Opens the crop box over every Gaussian of the shown model (so that what
+ * it leaves out shows): the model's crop, else a box around all of them.
+ */
+async function editCrop() {
+  const m = viewer.model;
+  const { CropEditor, boxAround } = await import('./crop.js');
+  closeCrop();
+  delete $('view-splats').dataset.cropDone;
+  await showSplats(m, { crop: false });
+  const box = m.crop || boxAround(splats.bounds);
+  cropEditor = new CropEditor(splats, box, cropCounted);
+  window.cropEditor = cropEditor;
+  cropEditor.setMode($('crop-mode').value);
+  $('crop-tools').hidden = false;
+  $('crop-edit').hidden = true;
+  cropCounted(cropEditor.preview());
+}
+
+/** Says how many Gaussians the box holds (and keeps it for the tests). */
+function cropCounted({ inside, all }) {
+  $('view-splats').dataset.cropInside = String(inside);
+  status(`the crop box holds ${inside} of the ${all} Gaussians`);
+}
+
+function closeCrop() {
+  if (cropEditor) cropEditor.dispose();
+  cropEditor = null;
+  window.cropEditor = null;
+  $('crop-tools').hidden = true;
+  $('crop-edit').hidden = false;
+}
+
+/** Stores the box on the model, then shows what is inside it. */
+async function saveCrop(body) {
+  const m = viewer.model;
+  const res = await api(`/v1/models/${m.id}/crop`, {
+    method: 'PUT', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body),
+  });
+  m.crop = await res.json();
+  return m.crop;
+}
+
+async function cropAction(what) {
+  const m = viewer.model;
+  if (what === 'auto') {
+    status('finding the object...');
+    cropCounted(cropEditor.set(await saveCrop({ auto: true })));
+    return;
+  }
+  if (what === 'save') await saveCrop(cropEditor.box());
+  if (what === 'remove') {
+    await api(`/v1/models/${m.id}/crop`, { method: 'DELETE' });
+    delete m.crop;
+  }
+  closeCrop();
+  await showSplats(m);
+  // What the tests wait for: the view drawn again after this action.
+  $('view-splats').dataset.cropDone = what;
+  if (what !== 'close') status(m.crop ? 'cropped: views, videos and downloads keep what is inside the box' : 'the crop is removed');
+}
+
+async function showSplats(m, { crop = true } = {}) {
   if (!splats) {
     const { SplatView } = await import('./splats.js');
     splats = new SplatView($('view-splats'), { background: [1, 1, 1], up: m.view.up });
@@ -242,7 +309,7 @@ async function showSplats(m) {
   placeSplatCamera();
   $('view-info').textContent = 'loading the splats...';
   const t0 = performance.now();
-  const n = await splats.load(`/v1/models/${m.id}/export?format=spz`);
+  const n = await splats.load(`/v1/models/${m.id}/export?${crop ? '' : 'crop=false&'}format=spz`);
   if (viewer.model !== m) return;
   placeSplatCamera();
   await splats.settled();
@@ -460,6 +527,11 @@ export function setupViewer() {
   $('view-output').addEventListener('change', () => changed(false));
   $('view-reset').addEventListener('click', () => resetView());
   $('view-export-go').addEventListener('click', () => downloadSplats().catch(fail));
+  $('crop-edit').addEventListener('click', () => editCrop().catch(fail));
+  $('crop-mode').addEventListener('change', (e) => cropEditor?.setMode(e.target.value));
+  for (const what of ['auto', 'save', 'remove', 'close']) {
+    $(`crop-${what}`).addEventListener('click', () => cropAction(what).catch(fail));
+  }
   $('view-save').addEventListener('click', () => {
     if (!viewer.full.blob) { status('no full-resolution image yet'); return; }
     const a = el('a', { href: URL.createObjectURL(viewer.full.blob), download: `${viewer.model.id}-${$('view-output').value}-az${viewer.azimuth.toFixed(0)}-el${viewer.elevation.toFixed(0)}.png` });

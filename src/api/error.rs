@@ -39,6 +39,8 @@ pub enum Code {
     PayloadTooLarge,
     UnsupportedMediaType,
     InvalidDataset,
+    /// A crop box that cannot be used (`PUT /v1/models/{id}/crop`).
+    InvalidCrop,
     QueueFull,
     /// The job would need more memory than the server allows one job.
     ResourceLimit,
@@ -63,6 +65,7 @@ impl Code {
             Code::PayloadTooLarge => ("payload_too_large", StatusCode::PAYLOAD_TOO_LARGE),
             Code::UnsupportedMediaType => ("unsupported_media_type", StatusCode::UNSUPPORTED_MEDIA_TYPE),
             Code::InvalidDataset => ("invalid_dataset", StatusCode::UNPROCESSABLE_ENTITY),
+            Code::InvalidCrop => ("invalid_crop", StatusCode::UNPROCESSABLE_ENTITY),
             Code::QueueFull => ("queue_full", StatusCode::SERVICE_UNAVAILABLE),
             Code::ResourceLimit => ("resource_limit", StatusCode::UNPROCESSABLE_ENTITY),
             Code::InsufficientStorage => ("insufficient_storage", StatusCode::INSUFFICIENT_STORAGE),

@@ -23,7 +23,7 @@ use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::header::AUTHORIZATION;
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{delete, get, post};
+use axum::routing::{delete, get, post, put};
 
 use crate::backend::{Artifact, ArtifactStore, JobStore, embedded};
 use crate::engine::front::Model;
@@ -31,6 +31,7 @@ use crate::jobs::SchedulerConfig;
 
 pub mod archive;
 pub mod camera_path;
+pub mod crop;
 pub mod demo;
 pub mod deploy;
 pub mod error;
@@ -130,6 +131,25 @@ pub struct CachedModel {
     pub updated_at: u64,
     pub model: Arc<dyn Model>,
     pub transients: Option<Arc<crate::engine::front::TransientMaps>>,
+    /// With the record's crop: what views of it draw (`Ok(None)`: a model
+    /// whose views the crop leaves as they are), or why the crop cannot be
+    /// used (it keeps none of the Gaussians).
+    pub cropped: Option<Result<Option<Arc<dyn Model>>, String>>,
+}
+
+impl CachedModel {
+    /// The model as views, videos and exports draw it: cropped when its
+    /// record has a crop; a crop that cannot be used is a conflict.
+    pub fn viewed(&self) -> ApiResult<Arc<dyn Model>> {
+        match &self.cropped {
+            None | Some(Ok(None)) => Ok(self.model.clone()),
+            Some(Ok(Some(m))) => Ok(m.clone()),
+            Some(Err(why)) => Err(ApiError::conflict(format!(
+                "model '{}''s crop cannot be used ({why}): PUT another or DELETE it, or ask with crop=false",
+                self.id
+            ))),
+        }
+    }
 }
 
 pub type AppState = Arc<AppInner>;
@@ -151,6 +171,7 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/models/{id}", quick(get(models::get_one).delete(models::delete)))
         .route("/v1/models/{id}/render", get(models::render))
         .route("/v1/models/{id}/export", get(models::export))
+        .route("/v1/models/{id}/crop", put(crop::put).merge(quick(get(crop::get).delete(crop::delete))))
         .route("/v1/models/{id}/transients/{photo}", get(transients::get))
         .route("/v1/models/{id}/videos", quick(post(videos::create)))
         .route("/v1/videos/{id}", get(videos::get_one).merge(quick(delete(videos::delete))))

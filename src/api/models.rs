@@ -1,5 +1,7 @@
 //! `/v1/models`: list, get, delete, render a novel view as PNG, and export
-//! a splats model (`.splat`, `.ply`, or a static web site).
+//! a splats model (`.splat`, `.ply`, `.spz`, `.glb`, or a static web site),
+//! each inside the model's crop (`api::crop`) unless asked with
+//! `crop=false`.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -17,8 +19,8 @@ use serde::{Deserialize, Serialize};
 use super::{ApiError, ApiResult, AppInner, AppState, CachedModel, site};
 use crate::backend::Artifact;
 use crate::engine::front::{
-    Appearance, Camera, CheckpointError, CleanupSettings, Model, Removed, SplatsFormat, cleanup, load_checkpoint,
-    render_view_until, splats_of, write_splats,
+    Appearance, Camera, CheckpointError, CleanupSettings, Model, Removed, SplatsFormat, cleanup, crop_model,
+    load_checkpoint, render_view_until, splats_of, write_splats,
 };
 use crate::media::png::{self, ViewImage};
 use crate::records::{ModelInfo, VideoInfo, ViewDefaults};
@@ -86,6 +88,9 @@ pub struct RenderQuery {
     /// training image's index (its appearance); models without per-image
     /// appearance ignore it.
     pub appearance: Option<String>,
+    /// `false`: every Gaussian of a splats model with a crop (default true:
+    /// only those inside it).
+    pub crop: Option<bool>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -228,7 +233,8 @@ pub async fn render(
     let Request { camera, output, background, appearance } = parse_query(&q, &info.view, s.config.max_render_pixels)?;
     let _slot = s.render_slots.acquire().await.map_err(ApiError::internal)?;
     let t0 = Instant::now();
-    let model = model_of(&s, &info).await?;
+    let loaded = loaded(&s, &info).await?;
+    let model = if q.crop.unwrap_or(true) { loaded.viewed()? } else { loaded.model };
     // Set when this handler is dropped: the client went away (a viewer that
     // moved on), so the render stops instead of holding the workers.
     let cancel = CancelOnDrop(Arc::new(AtomicBool::new(false)));
@@ -262,6 +268,9 @@ pub struct ExportQuery {
     pub format: Option<String>,
     /// `false`: every Gaussian, without the floater cleanup (default true).
     pub cleanup: Option<bool>,
+    /// `false`: the Gaussians outside the model's crop too (default true:
+    /// only those inside it).
+    pub crop: Option<bool>,
 }
 
 /// What `format` takes.
@@ -270,6 +279,8 @@ const EXPORT_FORMATS: &str = "splat, ply, spz, glb or html";
 /// The Gaussians an export holds, and those its floater cleanup removed.
 pub const GAUSSIANS_HEADER: &str = "x-gaussians";
 pub const REMOVED_HEADER: &str = "x-gaussians-removed";
+/// The Gaussians outside the model's crop, left out of the export.
+pub const CROPPED_HEADER: &str = "x-gaussians-cropped";
 
 /// `GET /v1/models/{id}/export`: a splats model as a file other tools
 /// open, or as a static web site (zip), named by `Content-Disposition`,
@@ -291,7 +302,9 @@ pub async fn export(
         })?),
     };
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
-    let model = model_of(&s, &info).await?;
+    let loaded = loaded(&s, &info).await?;
+    let all = splats_of(&*loaded.model).map_or(0, |m| m.layout().n);
+    let model = if q.crop.unwrap_or(true) { loaded.viewed()? } else { loaded.model };
     if splats_of(&*model).is_none() {
         return Err(ApiError::conflict(format!(
             "model '{id}' is a '{}' model: only splats export as {name}; bake it first (POST /v1/jobs {{\"kind\": \"bake\", \"model_id\": \"{id}\"}})",
@@ -303,6 +316,7 @@ pub async fn export(
     let folder = format!("{id}-site");
     let folder2 = folder.clone();
     let settings = if q.cleanup.unwrap_or(true) { CleanupSettings::default() } else { CleanupSettings::OFF };
+    let cropped = all - splats_of(&*model).map_or(0, |m| m.layout().n);
     let (bytes, removed, kept) = tokio::task::spawn_blocking(move || -> std::io::Result<(Vec<u8>, Removed, usize)> {
         let (splats, removed) =
             cleanup(splats_of(&*model).expect("checked above"), &settings).map_err(std::io::Error::other)?;
@@ -332,6 +346,7 @@ pub async fn export(
             (CONTENT_DISPOSITION, disposition),
             (HeaderName::from_static(GAUSSIANS_HEADER), kept.to_string()),
             (HeaderName::from_static(REMOVED_HEADER), removed.total().to_string()),
+            (HeaderName::from_static(CROPPED_HEADER), cropped.to_string()),
         ],
         bytes,
     ))
@@ -370,11 +385,21 @@ pub(super) async fn loaded(s: &AppInner, info: &ModelInfo) -> ApiResult<CachedMo
         }
         e => e.into(),
     })?;
+    let model: Arc<dyn Model> = Arc::from(restored.model);
+    let cropped = match info.crop {
+        None => None,
+        Some(b) => {
+            let m = model.clone();
+            let made = tokio::task::spawn_blocking(move || crop_model(&*m, &b)).await?;
+            Some(made.map(|c| c.map(|c| Arc::new(c) as Arc<dyn Model>)).map_err(|e| e.to_string()))
+        }
+    };
     let loaded = CachedModel {
         id: info.id.clone(),
         updated_at: info.updated_at,
-        model: Arc::from(restored.model),
+        model,
         transients: restored.transients.map(Arc::new),
+        cropped,
     };
     let mut cache = s.model_cache.lock().unwrap_or_else(|e| e.into_inner());
     cache.retain(|c| c.id != info.id);

@@ -33,7 +33,7 @@ const TEXT: &str = "text/plain; charset=utf-8";
 /// page first. The vendored files are as published (see
 /// `web/vendor/README.md`): about 3.5 MB of the binary.
 #[rustfmt::skip]
-pub const ASSETS: [Asset; 17] = [
+pub const ASSETS: [Asset; 19] = [
     Asset { name: "index.html", content_type: HTML, body: include_str!("../../web/index.html") },
     Asset { name: "app.js", content_type: JS, body: include_str!("../../web/app.js") },
     Asset { name: "api.js", content_type: JS, body: include_str!("../../web/api.js") },
@@ -43,6 +43,7 @@ pub const ASSETS: [Asset; 17] = [
     Asset { name: "viewer.js", content_type: JS, body: include_str!("../../web/viewer.js") },
     Asset { name: "videos.js", content_type: JS, body: include_str!("../../web/videos.js") },
     Asset { name: "splats.js", content_type: JS, body: include_str!("../../web/splats.js") },
+    Asset { name: "crop.js", content_type: JS, body: include_str!("../../web/crop.js") },
     Asset { name: "style.css", content_type: CSS, body: include_str!("../../web/style.css") },
     Asset { name: "vendor/spark/spark.module.min.js", content_type: JS, body: include_str!("../../web/vendor/spark/spark.module.min.js") },
     Asset { name: "vendor/spark/LICENSE", content_type: TEXT, body: include_str!("../../web/vendor/spark/LICENSE") },
@@ -50,6 +51,7 @@ pub const ASSETS: [Asset; 17] = [
     Asset { name: "vendor/three/three.module.min.js", content_type: JS, body: include_str!("../../web/vendor/three/three.module.min.js") },
     Asset { name: "vendor/three/three.core.min.js", content_type: JS, body: include_str!("../../web/vendor/three/three.core.min.js") },
     Asset { name: "vendor/three/addons/controls/OrbitControls.js", content_type: JS, body: include_str!("../../web/vendor/three/addons/controls/OrbitControls.js") },
+    Asset { name: "vendor/three/addons/controls/TransformControls.js", content_type: JS, body: include_str!("../../web/vendor/three/addons/controls/TransformControls.js") },
     Asset { name: "vendor/three/addons/postprocessing/Pass.js", content_type: JS, body: include_str!("../../web/vendor/three/addons/postprocessing/Pass.js") },
 ];
 

@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 
 use crate::datadir::{DiskUsage, Local, ScenePart};
 use crate::jobs::{Counters, Job, JobSpec, SchedError, Status};
-use crate::records::{ModelInfo, SceneInfo, VideoInfo};
+use crate::records::{CropBox, ModelInfo, SceneInfo, VideoInfo};
 
 pub mod embedded;
 pub mod object;
@@ -113,6 +113,12 @@ pub trait JobStore: Send + Sync + 'static {
     /// running job writes or renders it (`ModelInUse`). Videos made from it
     /// stay.
     fn delete_model<'a>(&'a self, id: &'a str) -> Fut<'a, Result<(), SchedError>>;
+
+    /// Sets (`Some`) or removes (`None`) a model's crop volume, bumping its
+    /// `updated_at`; the record as it now is. Refused like a deletion
+    /// (`ModelInUse`) while a queued or running job writes or renders the
+    /// model, whose record or views would otherwise disagree with it.
+    fn set_crop<'a>(&'a self, id: &'a str, crop: Option<CropBox>) -> Fut<'a, Result<ModelInfo, SchedError>>;
 
     fn get_video<'a>(&'a self, id: &'a str) -> Fut<'a, io::Result<Option<VideoInfo>>>;
 

@@ -1,5 +1,6 @@
 //! `radiance demo --out DIR`: the whole flow without data. Generates the
-//! demo scene (the engine's synthetic ball, as `POST /v1/demo` does), trains
+//! demo scene (the engine's product shot, a mug on a tiled mat seen from
+//! all around, as `POST /v1/demo` does), trains
 //! the fast model on it for a few seconds and writes an orbit video.
 
 use std::path::PathBuf;
@@ -12,7 +13,7 @@ use clap::Args;
 use super::Common;
 use super::setup::new_model_and_adam;
 use crate::engine::front::{
-    BallScene, Budget, DEFAULT_BATCH_RAYS, Dataset, LoadOptions, Orbit, Session, SessionConfig, Start, Vec3,
+    Budget, DEFAULT_BATCH_RAYS, Dataset, LoadOptions, Orbit, ProductScene, Session, SessionConfig, Start, Vec3,
     render_view, write_atomic,
 };
 use crate::media::png;
@@ -43,7 +44,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     anyhow::ensure!((1..=600).contains(&a.frames), "--frames must be in 1..=600");
     let scene_dir = a.out.join("scene");
     std::fs::create_dir_all(&scene_dir).with_context(|| format!("creating {}", scene_dir.display()))?;
-    let demo = BallScene::demo();
+    let demo = ProductScene::default();
     demo.write_blender(&scene_dir).with_context(|| format!("writing the demo scene to {}", scene_dir.display()))?;
     let ds = Dataset::load(&scene_dir, &LoadOptions::default())?;
     eprintln!(
@@ -76,8 +77,13 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     let format = if VideoFormat::Mp4.is_available() { VideoFormat::Mp4 } else { VideoFormat::Gif };
     let size = 256;
     let fov = 2.0 * (0.5 * ds.frames[0].camera.width as f32 / ds.frames[0].camera.fx).atan().to_degrees();
-    let orbit =
-        Orbit { centre: Vec3::splat(0.0), up: Vec3::new(0.0, 0.0, 1.0), front: None, elevation_deg: 25.0, radius: 3.0 };
+    let orbit = Orbit {
+        centre: Vec3::new(0.0, 0.0, -0.15),
+        up: Vec3::new(0.0, 0.0, 1.0),
+        front: None,
+        elevation_deg: 22.0,
+        radius: 2.4,
+    };
     let started = Instant::now();
     let model = &*session.trainer().model;
     let mut frames = Vec::with_capacity(a.frames as usize);

@@ -11,6 +11,7 @@
 use std::path::Path;
 
 pub use super::bake::{BakeError, BakeProgress, BakeSettings, bake};
+pub use super::dataset::product::ProductScene;
 pub use super::dataset::synthetic::BallScene;
 pub use super::dataset::{Dataset, DatasetError, DatasetFormat, LoadOptions, MaskUse, Split, detect_format};
 pub use super::geometry::camera::Camera;
@@ -23,7 +24,9 @@ pub use super::models::auto::{AUTO, ModelChoice, SceneKind, choose as choose_mod
 pub use super::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, presets, trainable_presets};
 pub use super::models::splats::SplatsConfig;
 pub use super::models::splats::cleanup::{CleanupSettings, Removed, cleanup};
-pub use super::models::splats::crop::{CropBox, CropError, auto_crop, auto_crop_for, crop, project, world_centres};
+pub use super::models::splats::crop::{
+    CropBox, CropError, auto_crop, auto_crop_for, crop, crop_model, project, world_centres,
+};
 pub use super::models::splats::export::spz::{read_spz, write_spz};
 pub use super::models::splats::export::{Format as SplatsFormat, ply_len, splats_of, write as write_splats};
 pub use super::models::training::{Budget, TrainConfig};

@@ -218,6 +218,8 @@ impl Baked<'_> {
             poses: None,
             gaussians: Some(self.gaussians),
             transients: None,
+            // A crop set on the field carries over to its splats.
+            crop: source.crop,
         }
     }
 }

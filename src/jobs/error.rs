@@ -4,7 +4,9 @@
 
 use std::io;
 
-use crate::engine::front::{AppearanceError, BakeError, CheckpointError, DatasetError, ModelError, SessionError, Stop};
+use crate::engine::front::{
+    AppearanceError, BakeError, CheckpointError, CropError, DatasetError, ModelError, SessionError, Stop,
+};
 use crate::media::video::VideoError;
 use crate::poses::PoseError;
 
@@ -64,6 +66,9 @@ pub enum JobError {
     /// not be enqueued.
     #[error("the model is trained, but its bake could not be queued: {0}")]
     BakeNotQueued(String),
+    /// The video's model has a crop that cannot be used.
+    #[error("the model's crop: {0}")]
+    Crop(#[from] CropError),
     /// Reading records or files, or publishing what the job made.
     #[error("{0}")]
     Io(#[from] io::Error),

@@ -1,4 +1,5 @@
-//! Deleting what the jobs made: a finished job's record, a model, a video.
+//! Deleting what the jobs made (a finished job's record, a model, a video)
+//! and changing a model's crop volume.
 //! Each check ("is anything queued or running that needs it?") and its
 //! deletion happen under the scheduler's lock, so no job can be enqueued
 //! on a model between the check and the removal (enqueueing checks that
@@ -7,6 +8,9 @@
 //! database write happens under the lock.
 
 use super::{Job, JobSpec, SchedError, Scheduler, State};
+use crate::datadir::write_json;
+use crate::records::{CropBox, ModelInfo};
+use crate::system::now_ms;
 
 impl Scheduler {
     /// Removes a finished job's record: from the job database (outside the
@@ -46,6 +50,24 @@ impl Scheduler {
         }
         storage.remove_model(id)?;
         Ok(())
+    }
+
+    /// Sets or removes a model's crop volume (`JobStore::set_crop`) unless a
+    /// job that has not ended writes or renders the model. Under
+    /// `model_files`, as retention's rewrite of the same record.
+    pub fn set_crop(&self, id: &str, crop: Option<CropBox>) -> Result<ModelInfo, SchedError> {
+        let _files = self.shared.model_files.lock().unwrap_or_else(|e| e.into_inner());
+        let st = self.shared.lock();
+        let storage = &self.shared.storage;
+        let Some(mut info) = storage.load_model(id)? else { return Err(SchedError::ModelNotFound(id.into())) };
+        if let Some(j) = model_user(&st, id) {
+            return Err(SchedError::ModelInUse { model: id.into(), job: j.id.clone(), status: j.status.name() });
+        }
+        info.crop = crop;
+        // Strictly later, so that a cache keyed on it sees the change.
+        info.updated_at = now_ms().max(info.updated_at + 1);
+        write_json(&storage.model_record(id), &info)?;
+        Ok(info)
     }
 
     /// Removes a video (record, then file) unless its job has not ended.

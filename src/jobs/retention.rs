@@ -206,6 +206,7 @@ mod tests {
             poses: None,
             gaussians: None,
             transients: None,
+            crop: None,
         }
     }
 

@@ -259,6 +259,7 @@ impl ModelRecord<'_> {
             poses,
             gaussians: None,
             transients: transients.cloned(),
+            crop: previous.as_ref().and_then(|p| p.crop),
         };
         self.host.publish_model(self.job, &info, &self.ckpt)?;
         self.host.set_progress(&self.job.id, &mut |j| j.model_id = Some(info.id.clone()));

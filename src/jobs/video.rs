@@ -12,7 +12,7 @@ use std::time::Instant;
 use super::host::JobHost;
 use super::{Job, JobError, Outcome, VideoSpec};
 use crate::datadir::{DataDir, now_ms};
-use crate::engine::front::{Camera, load_model, render_view_with, write_atomic};
+use crate::engine::front::{Camera, crop_model, load_model, render_view_with, write_atomic};
 use crate::media::{png, video};
 use crate::records::VideoInfo;
 
@@ -53,7 +53,13 @@ fn render(host: &dyn JobHost, job: &Job, spec: &VideoSpec, cancel: &AtomicBool) 
     let model_id = job.model_id.clone().unwrap_or_default();
     let info = host.model(&model_id)?.ok_or_else(|| JobError::ModelGone(model_id.clone()))?;
     let ckpt = host.model_checkpoint(&info).map_err(JobError::ModelFile)?;
-    let model = load_model(&ckpt.path)?;
+    let mut model = load_model(&ckpt.path)?;
+    // A splats model with a crop: its object alone, on the plain background.
+    if let Some(b) = &info.crop
+        && let Some(cropped) = crop_model(&*model, b)?
+    {
+        model = Box::new(cropped);
+    }
     let orbit = info.view.orbit(spec.elevation, spec.radius);
     let started = Instant::now();
     let mut frames = Vec::with_capacity(spec.frames as usize);

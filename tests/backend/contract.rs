@@ -26,7 +26,7 @@ use radiance::engine::models::config::ModelConfig;
 use radiance::engine::train::persist;
 use radiance::jobs::{Job, JobBudget, JobProgress, JobSpec, PosesSpec, SchedError, Status, TrainSpec, VideoSpec};
 use radiance::media::video::VideoFormat;
-use radiance::records::{SceneInfo, ScenePoses, SceneStatus, SplitCounts};
+use radiance::records::{CropBox, SceneInfo, ScenePoses, SceneStatus, SplitCounts};
 use serde_json::Value;
 
 /// What a check needs of a fresh pair.
@@ -461,6 +461,10 @@ pub async fn running_jobs_stop_on_cancel_and_keep_their_model(open: Open) {
     assert_eq!(in_use(st.jobs.delete_scene(&scene.id).await), (job.id.clone(), "running"));
     assert_eq!(in_use(st.jobs.delete_model(&model_id).await), (job.id.clone(), "running"));
     assert_eq!(in_use(st.jobs.delete_job(&job.id).await), (job.id.clone(), "running"));
+    // Nor can its crop change: the job writes its record.
+    let b =
+        CropBox { centre: [0.1, 0.2, 0.3], axes: [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], half: [0.5; 3] };
+    assert_eq!(in_use(st.jobs.set_crop(&model_id, Some(b)).await.map(|_| ())), (job.id.clone(), "running"));
 
     // Cancel is asked for, answered while the job still runs, and reaches it.
     let asked = st.jobs.cancel(&job.id).await.unwrap();
@@ -473,6 +477,22 @@ pub async fn running_jobs_stop_on_cancel_and_keep_their_model(open: Open) {
     let ckpt = st.artifacts.checkpoint(&kept).await.unwrap();
     assert_eq!(load_checkpoint(&ckpt.path).await, Ok(kept.steps));
     drop(ckpt);
+
+    // Once it has ended, its crop is set, kept as given, and removed; each
+    // change is a later `updated_at`.
+    assert!(kept.crop.is_none());
+    let cropped = st.jobs.set_crop(&model_id, Some(b)).await.unwrap();
+    assert_eq!(cropped.crop, Some(b));
+    assert!(cropped.updated_at > kept.updated_at);
+    let record = |m: &radiance::records::ModelInfo| serde_json::to_value(m).unwrap();
+    assert_eq!(record(&st.jobs.get_model(&model_id).await.unwrap().unwrap()), record(&cropped));
+    let uncropped = st.jobs.set_crop(&model_id, None).await.unwrap();
+    assert!(uncropped.crop.is_none() && uncropped.updated_at > cropped.updated_at);
+    assert_eq!(record(&st.jobs.get_model(&model_id).await.unwrap().unwrap()), record(&uncropped));
+    assert!(matches!(st.jobs.set_crop(&new_id("mdl"), Some(b)).await, Err(SchedError::ModelNotFound(_))));
+    // A field model's crop leaves its videos as they are (and carries over
+    // to its bake).
+    let kept = st.jobs.set_crop(&model_id, Some(b)).await.unwrap();
     if let Some(c) = st.jobs.counters() {
         assert!(c.train_steps.load(std::sync::atomic::Ordering::Relaxed) >= kept.steps);
     }

@@ -79,6 +79,7 @@ fn model_of(job: &Job, scene: &SceneInfo) -> ModelInfo {
         poses: None,
         gaussians: None,
         transients: None,
+        crop: None,
     }
 }
 

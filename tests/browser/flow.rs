@@ -170,7 +170,7 @@ fn the_demo_scene_is_one_click_away() {
     assert_eq!(scenes.as_array().map(Vec::len), Some(1), "{scenes}");
     assert_eq!(
         (scenes[0]["images"]["train"].as_u64(), &scenes[0]["resolution"]),
-        (Some(32), &serde_json::json!([64, 64]))
+        (Some(32), &serde_json::json!([96, 96]))
     );
     assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
     drop(browser);

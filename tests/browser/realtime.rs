@@ -266,7 +266,11 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     assert!(said.as_str().unwrap().contains("floaters removed"), "{said}");
     assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
 
-    // The exported site on a plain static file server.
+    crop_in_the_viewer(&rt, &svc, &mut page, &splats_id, count);
+    transparent_render_over_a_coloured_page(&rt, &svc, &mut page, &splats_id);
+
+    // The exported site (of the cropped splats now) on a plain static file
+    // server.
     let zip = rt.block_on(async {
         let r = reqwest::get(svc.url(&format!("/v1/models/{splats_id}/export?format=html"))).await.unwrap();
         assert_eq!(r.status(), 200);
@@ -302,6 +306,214 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
     drop(server);
     drop(browser);
     rt.block_on(svc.stop());
+}
+
+/// The crop through the API (refusals naming the field, nothing stored),
+/// then in the viewer: the handles move the box, the view follows (what
+/// is outside is hidden), and the box kept is the model's crop, which the
+/// views and the export honour.
+fn crop_in_the_viewer(rt: &tokio::runtime::Runtime, svc: &Svc, page: &mut Page, id: &str, count: u64) {
+    let crop_url = format!("/v1/models/{id}/crop");
+    rt.block_on(async {
+        let (s, v) = svc.get(&crop_url).await;
+        assert_eq!(s, 404, "{v}");
+        let unit = json!([[1, 0, 0], [0, 1, 0], [0, 0, 1]]);
+        for (body, field) in [
+            (json!({ "centre": [0, 0, 0], "axes": unit, "half": [0.5, -1, 0.5] }), "half"),
+            // Beyond f32: infinite, so not finite.
+            (json!({ "centre": [1e39, 0, 0], "axes": unit, "half": [1, 1, 1] }), "centre"),
+            (json!({ "centre": [0, 0, 0], "axes": unit, "half": [1, 1e39, 1] }), "half"),
+            (json!({ "centre": [0, 0, 0], "axes": unit, "half": [0.5, 0, 0.5] }), "half"),
+            (json!({ "centre": [0, 0, 0], "axes": [[1, 0, 0], [1, 0, 0], [0, 0, 1]], "half": [1, 1, 1] }), "axes"),
+            (json!({ "centre": [0, 0, 0], "axes": unit }), "half"),
+            (json!({ "centre": [0, 0, 0], "axes": unit, "half": [1, 1, 1], "radius": 2 }), "radius"),
+            // Far from every Gaussian: it would keep nothing.
+            (json!({ "centre": [50, 50, 50], "axes": unit, "half": [0.1, 0.1, 0.1] }), "crop"),
+            (json!({ "auto": false }), "auto"),
+        ] {
+            let (s, v) = svc.put_json(&crop_url, body.clone()).await;
+            assert_eq!(s, 422, "{body} -> {v}");
+            assert_eq!(v["error"]["code"], "invalid_crop", "{v}");
+            assert_eq!(v["error"]["details"]["field"], field, "{body} -> {v}");
+        }
+        // A NaN is no JSON number: the body is refused before it is read.
+        let r = svc
+            .client
+            .put(svc.url(&crop_url))
+            .header("content-type", "application/json")
+            .body(r#"{"centre": [NaN, 0, 0], "axes": [[1,0,0],[0,1,0],[0,0,1]], "half": [1, 1, 1]}"#)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 400);
+        let (s, v) = svc.get(&crop_url).await;
+        assert_eq!(s, 404, "a refused crop was stored: {v}");
+        let (s, v) = svc.delete(&crop_url).await;
+        assert_eq!(s, 404, "{v}");
+
+        // Found automatically: around the mug (radius 0.3 at the origin, on
+        // the mat at z = -0.45, its handle reaching x = 0.58), not the rim of
+        // the mat (radius 1.35), which some cameras do not frame; stored,
+        // then removed.
+        let (s, auto) = svc.put_json(&crop_url, json!({ "auto": true })).await;
+        assert_eq!(s, 200, "{auto}");
+        let (s, v) = svc.get(&crop_url).await;
+        assert_eq!((s, &v), (reqwest::StatusCode::OK, &auto));
+        let inside = |p: [f64; 3]| {
+            (0..3).all(|a| {
+                let d: f64 = (0..3)
+                    .map(|i| (p[i] - auto["centre"][i].as_f64().unwrap()) * auto["axes"][a][i].as_f64().unwrap())
+                    .sum();
+                d.abs() <= auto["half"][a].as_f64().unwrap()
+            })
+        };
+        for p in [[0.0, 0.0, -0.3], [0.25, 0.0, -0.1], [0.0, -0.25, -0.4], [0.5, 0.0, -0.13]] {
+            assert!(inside(p), "the automatic crop misses the mug at {p:?}: {auto}");
+        }
+        for p in [[1.3, 0.0, -0.46], [0.0, -1.3, -0.46], [-0.92, 0.92, -0.46]] {
+            assert!(!inside(p), "the automatic crop keeps the mat's rim at {p:?}: {auto}");
+        }
+        let (s, v) = svc.get(&format!("/v1/models/{id}")).await;
+        assert_eq!((s, &v["crop"]), (reqwest::StatusCode::OK, &auto), "the model's record holds its crop");
+        let (s, v) = svc.delete(&crop_url).await;
+        assert_eq!(s, 204, "{v}");
+        let (s, v) = svc.get(&format!("/v1/models/{id}")).await;
+        assert!(s == 200 && v.get("crop").is_none(), "{v}");
+    });
+
+    // The editor: a box around every Gaussian to start with.
+    page.click("#crop-edit");
+    page.wait_for("!document.getElementById('crop-tools').hidden && !!window.cropEditor", 60.0);
+    page.eval("window.splatView.settled()");
+    let inside0 = page.eval("Number(document.getElementById('view-splats').dataset.cropInside)").as_u64().unwrap();
+    assert_eq!(inside0, count, "the first box holds every Gaussian");
+    let before = canvas_image(page, "#view-splats");
+    screenshot(page, "crop-editor", false);
+
+    // Drag the handle of the box's x axis by 150 px along the axis as
+    // drawn: the gizmo's arrow runs from the centre along x, 0.5 of its
+    // size (TransformControls: size / 4 of the camera distance times
+    // 1.9 tan(fov / 2)), its picker from 0 to 0.6.
+    let at = page.eval(
+        "(() => {
+           const v = window.splatView, e = window.cropEditor, b = e.box();
+           const cam = v.camera, r = v.canvas.getBoundingClientRect();
+           const c = e.object.position.clone();
+           const factor = c.distanceTo(cam.position) * Math.min(1.9 * Math.tan(Math.PI * cam.fov / 360) / cam.zoom, 7);
+           const p = c.clone().add(e.object.position.clone().set(...b.axes[0]).multiplyScalar(0.4 * factor / 4));
+           const px = (q) => { const s = q.clone().project(cam); return [r.left + (s.x + 1) / 2 * r.width, r.top + (1 - s.y) / 2 * r.height]; };
+           return { grab: px(p), centre: px(c), box: b };
+         })()",
+    );
+    let xy = |v: &Value| (v[0].as_f64().unwrap(), v[1].as_f64().unwrap());
+    let (grab, centre) = (xy(&at["grab"]), xy(&at["centre"]));
+    let (dx, dy) = (grab.0 - centre.0, grab.1 - centre.1);
+    let norm = (dx * dx + dy * dy).sqrt();
+    assert!(norm > 5.0, "the x handle is not on the screen: {at}");
+    page.drag(grab, (150.0 * dx / norm, 150.0 * dy / norm), 15, Duration::from_millis(30));
+    page.eval("window.splatView.settled()");
+    let moved = page.eval("window.cropEditor.box()");
+    let centre0: Vec<f64> = at["box"]["centre"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+    let centre1: Vec<f64> = moved["centre"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+    let axis: Vec<f64> = at["box"]["axes"][0].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+    let along: f64 = (0..3).map(|i| (centre1[i] - centre0[i]) * axis[i]).sum();
+    let across: f64 = (0..3).map(|i| (centre1[i] - centre0[i] - along * axis[i]).powi(2)).sum::<f64>().sqrt();
+    assert!(along > 0.05 && across < 1e-6, "the handle did not move the box along x: {at} -> {moved}");
+    let inside1 = page.eval("Number(document.getElementById('view-splats').dataset.cropInside)").as_u64().unwrap();
+    assert!(inside1 < inside0, "the moved box holds {inside1} of {inside0} Gaussians");
+    let followed = canvas_image(page, "#view-splats");
+    let change = rgb8_psnr(&followed, &before);
+    assert!(change < 40.0, "the view did not follow the box ({change:.1} dB from before)");
+    screenshot(page, "crop-editor-moved", false);
+
+    // Kept: the model's crop is the box, and the view shows what is inside.
+    page.click("#crop-save");
+    page.wait_for("document.getElementById('view-splats').dataset.cropDone === 'save'", 60.0);
+    page.eval("window.splatView.settled()");
+    let stored = rt.block_on(svc.get(&crop_url));
+    assert_eq!(stored.0, 200, "{}", stored.1);
+    for (k, v) in [("centre", &moved["centre"]), ("half", &moved["half"])] {
+        for i in 0..3 {
+            let (a, b) = (stored.1[k][i].as_f64().unwrap(), v[i].as_f64().unwrap());
+            assert!((a - b).abs() < 1e-4, "{k}: stored {} and moved {v}", stored.1[k]);
+        }
+    }
+    let shown = page.eval("Number(document.getElementById('view-splats').dataset.count)").as_u64().unwrap();
+    assert!(shown <= inside1 && shown > 0, "the cropped view shows {shown} Gaussians, the box held {inside1}");
+    let cropped = canvas_image(page, "#view-splats");
+    screenshot(page, "crop-kept", false);
+    save(&cropped, "crop-kept-canvas");
+    // The server's render of the same camera honours the crop: the
+    // canvas matches it, and not the uncropped render.
+    let cam = page.eval("window.splatView.getCamera()");
+    let flat: Vec<String> = (0..3)
+        .flat_map(|r| (0..4).map(move |c| (r, c)))
+        .map(|(r, c)| format!("{:.7}", cam["c2w"][r][c].as_f64().unwrap()))
+        .collect();
+    let (w, h) = cropped.dimensions();
+    let fov = 2.0 * ((w as f64 / 2.0) / cam["fx"].as_f64().unwrap()).atan().to_degrees();
+    let path = format!("/v1/models/{id}/render?c2w={}&width={w}&height={h}&fov={fov}", flat.join(","));
+    let cpu = rt.block_on(svc.png(&path)).to_rgb8();
+    let all = rt.block_on(svc.png(&format!("{path}&crop=false"))).to_rgb8();
+    let (psnr, psnr_all) = (rgb8_psnr(&cropped, &cpu), rgb8_psnr(&cropped, &all));
+    println!("cropped canvas against the CPU render: {psnr:.2} dB (uncropped render: {psnr_all:.2} dB)");
+    assert!(psnr >= 35.0 && psnr > psnr_all + 3.0, "cropped {psnr:.2} dB, uncropped {psnr_all:.2} dB");
+    // The export of the cropped model counts what the crop left out: as
+    // many as the viewer counted outside (it counted the splats it had
+    // loaded: after the floater cleanup, their positions quantised).
+    rt.block_on(async {
+        let r = reqwest::get(svc.url(&format!("/v1/models/{id}/export?format=spz&cleanup=false"))).await.unwrap();
+        assert_eq!(r.status(), 200);
+        let h = |k: &str| r.headers()[k].to_str().unwrap().parse::<u64>().unwrap();
+        let (kept, cropped) = (h("x-gaussians"), h("x-gaussians-cropped"));
+        assert_eq!((kept + cropped, h("x-gaussians-removed")), (count, 0));
+        assert!(kept.abs_diff(inside1) <= count / 50, "the export keeps {kept}, the viewer's box held {inside1}");
+    });
+    assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
+}
+
+/// A view of the object on a transparent background, shown by an `<img>`
+/// over a coloured page, is the colour render composited by its alpha
+/// over that colour.
+fn transparent_render_over_a_coloured_page(rt: &tokio::runtime::Runtime, svc: &Svc, page: &mut Page, id: &str) {
+    let (w, h) = (96u32, 96u32);
+    let view = format!("/v1/models/{id}/render?width={w}&height={h}&azimuth=30");
+    let colour = [40.0, 110.0, 220.0];
+    page.eval(&format!(
+        "new Promise((resolve, reject) => {{
+           const d = document.createElement('div');
+           d.id = 'composite';
+           d.style.cssText = 'position:fixed;left:0;top:0;padding:0;margin:0;z-index:99;background:rgb({},{},{})';
+           const i = new Image(); i.style.display = 'block'; i.width = {w}; i.height = {h};
+           i.onload = () => resolve(true); i.onerror = reject;
+           i.src = '{view}&background=transparent';
+           d.append(i); document.body.append(d);
+         }})",
+        colour[0], colour[1], colour[2]
+    ));
+    page.eval("new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))");
+    // Where the image is on the page (a capture's clip is in page coordinates).
+    let at = page.eval(
+        "(() => { const r = document.querySelector('#composite img').getBoundingClientRect(); return [r.left + scrollX, r.top + scrollY]; })()",
+    );
+    let shown = page.capture(at[0].as_f64().unwrap(), at[1].as_f64().unwrap(), w as f64, h as f64);
+    let rgba = rt.block_on(svc.png(&format!("{view}&background=transparent"))).to_rgba8();
+    let alpha = rgba.pixels().filter(|p| p[3] < 250).count();
+    assert!(alpha > (w * h / 4) as usize, "the transparent render has few clear pixels: {alpha}");
+    // What the page should show: the colour by its alpha over the page's.
+    let expected = image::RgbImage::from_fn(w, h, |x, y| {
+        let p = rgba.get_pixel(x, y);
+        let a = p[3] as f64 / 255.0;
+        image::Rgb([0, 1, 2].map(|c| (p[c] as f64 * a + colour[c] * (1.0 - a)).round() as u8))
+    });
+    let shown = image::DynamicImage::ImageRgba8(shown).to_rgb8();
+    save(&shown, "transparent-over-blue");
+    let psnr = rgb8_psnr(&shown, &expected);
+    println!("transparent render over a coloured page: {psnr:.2} dB against the expected composite");
+    assert!(psnr >= 35.0, "the transparent render composites wrongly over the page: {psnr:.2} dB");
+    // ... and it is not merely the white render.
+    let white = rt.block_on(svc.png(&view)).to_rgb8();
+    assert!(rgb8_psnr(&shown, &white) < 25.0, "the page shows the white background, not its own colour");
 }
 
 /// A training started on the page with "then bake a real-time view"

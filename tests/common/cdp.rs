@@ -319,6 +319,15 @@ impl Page {
         self.mouse("mouseReleased", from.0 + by.0, from.1 + by.1, 0);
     }
 
+    /// The page's pixels in a rectangle of CSS pixels (as composited on
+    /// screen, at a scale of 1).
+    pub fn capture(&mut self, x: f64, y: f64, width: f64, height: f64) -> image::RgbaImage {
+        let clip = json!({ "x": x, "y": y, "width": width, "height": height, "scale": 1 });
+        let r = self.call("Page.captureScreenshot", json!({ "format": "png", "clip": clip }));
+        let png = base64(r["data"].as_str().unwrap());
+        image::load_from_memory_with_format(&png, image::ImageFormat::Png).unwrap().to_rgba8()
+    }
+
     /// Saves a PNG screenshot of the viewport (or of the whole page).
     pub fn screenshot(&mut self, path: &Path, full_page: bool) {
         let r = self.call("Page.captureScreenshot", json!({ "format": "png", "captureBeyondViewport": full_page }));

@@ -181,6 +181,18 @@ impl Svc {
         (s, r.json().await.unwrap_or(Value::Null))
     }
 
+    pub async fn put_json(&self, path: &str, body: Value) -> (StatusCode, Value) {
+        let r = self.client.put(self.url(path)).json(&body).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
+    pub async fn delete(&self, path: &str) -> (StatusCode, Value) {
+        let r = self.client.delete(self.url(path)).send().await.unwrap();
+        let s = r.status();
+        (s, r.json().await.unwrap_or(Value::Null))
+    }
+
     pub async fn upload(&self, content_type: &str, body: Vec<u8>) -> (StatusCode, Value) {
         let r = self
             .client

@@ -63,7 +63,7 @@ async fn the_page_layers_and_demo_scene() {
     let (s, v) = svc.post_json("/v1/demo", json!({})).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
     assert_eq!((v["format"].as_str(), v["images"]["train"].as_u64()), (Some("blender"), Some(32)));
-    assert_eq!(v["resolution"], json!([64, 64]));
+    assert_eq!(v["resolution"], json!([96, 96]));
     svc.stop().await;
 
     // With an origin configured, that origin (only) may call the API.

@@ -9,7 +9,7 @@ use super::{blocking, invalid};
 use crate::backend::{Fut, JobStore, NewJob, QueueStats};
 use crate::datadir::{DataDir, valid_id, write_json};
 use crate::jobs::{Counters, Job, JobSpec, SchedError, Scheduler, Status};
-use crate::records::{ModelInfo, SceneInfo, VideoInfo};
+use crate::records::{CropBox, ModelInfo, SceneInfo, VideoInfo};
 
 /// How often a job's followers look at it again: the scheduler's progress
 /// lives in memory, so a look costs a lock.
@@ -159,6 +159,12 @@ impl JobStore for EmbeddedJobs {
     fn delete_model<'a>(&'a self, id: &'a str) -> Fut<'a, Result<(), SchedError>> {
         let (scheduler, id) = (self.scheduler.clone(), id.to_string());
         Box::pin(async move { blocking(move || scheduler.delete_model(&id)).await? })
+    }
+
+    /// Under the scheduler's lock, as a deletion.
+    fn set_crop<'a>(&'a self, id: &'a str, crop: Option<CropBox>) -> Fut<'a, Result<ModelInfo, SchedError>> {
+        let (scheduler, id) = (self.scheduler.clone(), id.to_string());
+        Box::pin(async move { blocking(move || scheduler.set_crop(&id, crop)).await? })
     }
 
     fn get_video<'a>(&'a self, id: &'a str) -> Fut<'a, io::Result<Option<VideoInfo>>> {

@@ -29,7 +29,7 @@ use super::migrate;
 use super::queue::{PgQueue, QueueConfig};
 use crate::backend::{Fut, JobStore, NewJob, QueueStats};
 use crate::jobs::{Counters, Job, SchedError, Status};
-use crate::records::{ModelInfo, SceneInfo, VideoInfo};
+use crate::records::{CropBox, ModelInfo, SceneInfo, VideoInfo};
 
 /// How long a follower of a job waits for a notice of its change before it
 /// reads the job again anyway (notices can be lost; see `changes`); the
@@ -223,6 +223,10 @@ impl JobStore for PgJobStore {
     /// The record only: see the module comment.
     fn delete_model<'a>(&'a self, id: &'a str) -> Fut<'a, Result<(), SchedError>> {
         Box::pin(async move { self.queue.delete_model(id).await.map_err(to_sched) })
+    }
+
+    fn set_crop<'a>(&'a self, id: &'a str, crop: Option<CropBox>) -> Fut<'a, Result<ModelInfo, SchedError>> {
+        Box::pin(async move { self.queue.set_crop(id, crop).await.map_err(to_sched) })
     }
 
     fn get_video<'a>(&'a self, id: &'a str) -> Fut<'a, io::Result<Option<VideoInfo>>> {

@@ -22,7 +22,8 @@ use tokio_postgres::types::Json;
 use super::error::PgError;
 use super::queue::PgQueue;
 use crate::jobs::{SchedError, Status};
-use crate::records::{ModelInfo, SceneInfo, VideoInfo};
+use crate::records::{CropBox, ModelInfo, SceneInfo, VideoInfo};
+use crate::system::now_ms;
 
 /// The job statuses a record's user can have to keep it from being deleted.
 const ACTIVE: &str = "status IN ('queued', 'running')";
@@ -78,6 +79,30 @@ impl PgQueue {
         tx.execute("DELETE FROM models WHERE id = $1", &[&id]).await?;
         tx.commit().await?;
         Ok(())
+    }
+
+    /// Sets or removes a model's crop volume unless a queued or running job
+    /// writes or renders the model (`ModelInUse`), with the row locked as a
+    /// deletion locks it; the record as it now is.
+    pub async fn set_crop(&self, id: &str, crop: Option<CropBox>) -> Result<ModelInfo, PgError> {
+        let mut client = self.pool.get().await?;
+        let tx = client.transaction().await?;
+        let Some(row) = tx.query_opt("SELECT id, record FROM models WHERE id = $1 FOR UPDATE", &[&id]).await? else {
+            return Err(SchedError::ModelNotFound(id.into()).into());
+        };
+        let mut info: ModelInfo = record(&row)?;
+        let user = first_user(&tx, &format!("(target_model_id = $1 OR model_id = $1) AND {ACTIVE}"), id).await?;
+        if let Some((job, status)) = user {
+            return Err(SchedError::ModelInUse { model: id.into(), job, status }.into());
+        }
+        info.crop = crop;
+        // Strictly later, so that a cache keyed on it sees the change.
+        info.updated_at = now_ms().max(info.updated_at + 1);
+        let updated = i64::try_from(info.updated_at).unwrap_or(i64::MAX);
+        tx.execute("UPDATE models SET record = $2, updated_at = $3 WHERE id = $1", &[&id, &Json(&info), &updated])
+            .await?;
+        tx.commit().await?;
+        Ok(info)
     }
 
     /// A video's record.

@@ -19,6 +19,7 @@ pub mod masks;
 mod ngp;
 pub mod npy;
 pub mod occlude;
+pub mod product;
 mod scene;
 pub mod synthetic;
 #[cfg(test)]

@@ -106,26 +106,7 @@ impl BallScene {
     /// Writes the scene as a Blender-format dataset (`transforms_train.json`,
     /// `transforms_test.json`, RGBA PNGs) into `dir`.
     pub fn write_blender(&self, dir: &std::path::Path) -> std::io::Result<()> {
-        let ds = self.dataset();
-        for (split, idx) in [("train", &ds.train), ("test", &ds.test)] {
-            std::fs::create_dir_all(dir.join(split))?;
-            let mut frames = Vec::new();
-            for &i in idx.iter() {
-                let f = &ds.frames[i];
-                let img = image::RgbaImage::from_raw(f.image.width, f.image.height, f.image.rgba.clone())
-                    .ok_or_else(|| std::io::Error::other("image size"))?;
-                img.save(dir.join(split).join(format!("{}.png", f.name))).map_err(std::io::Error::other)?;
-                let m = &f.camera.c2w;
-                frames.push(serde_json::json!({
-                    "file_path": format!("./{split}/{}", f.name),
-                    "transform_matrix": [m[0], m[1], m[2], [0.0, 0.0, 0.0, 1.0]],
-                }));
-            }
-            let fov = 2.0 * (0.5 * self.size as f32 / ds.frames[0].camera.fx).atan();
-            let json = serde_json::json!({ "camera_angle_x": fov, "near": ds.near, "far": ds.far, "frames": frames });
-            std::fs::write(dir.join(format!("transforms_{split}.json")), serde_json::to_vec_pretty(&json)?)?;
-        }
-        Ok(())
+        write_blender(&self.dataset(), dir)
     }
 
     /// Writes the scene as an instant-ngp `transforms.json` dataset (one
@@ -179,6 +160,32 @@ impl BallScene {
         let shape = [ds.frames.len(), 17];
         std::fs::write(dir.join("poses_bounds.npy"), crate::engine::dataset::npy::npy_bytes(&shape, &rows, 1))
     }
+}
+
+/// Writes a generated dataset (square views of one field of view) in the
+/// Blender layout: `transforms_train.json`, `transforms_test.json` and RGBA
+/// PNGs, into `dir`.
+pub fn write_blender(ds: &Dataset, dir: &std::path::Path) -> std::io::Result<()> {
+    for (split, idx) in [("train", &ds.train), ("test", &ds.test)] {
+        std::fs::create_dir_all(dir.join(split))?;
+        let mut frames = Vec::new();
+        for &i in idx.iter() {
+            let f = &ds.frames[i];
+            let img = image::RgbaImage::from_raw(f.image.width, f.image.height, f.image.rgba.clone())
+                .ok_or_else(|| std::io::Error::other("image size"))?;
+            img.save(dir.join(split).join(format!("{}.png", f.name))).map_err(std::io::Error::other)?;
+            let m = &f.camera.c2w;
+            frames.push(serde_json::json!({
+                "file_path": format!("./{split}/{}", f.name),
+                "transform_matrix": [m[0], m[1], m[2], [0.0, 0.0, 0.0, 1.0]],
+            }));
+        }
+        let c = &ds.frames[0].camera;
+        let fov = 2.0 * (0.5 * c.width as f32 / c.fx).atan();
+        let json = serde_json::json!({ "camera_angle_x": fov, "near": ds.near, "far": ds.far, "frames": frames });
+        std::fs::write(dir.join(format!("transforms_{split}.json")), serde_json::to_vec_pretty(&json)?)?;
+    }
+    Ok(())
 }
 
 /// Saves `image` composited on white as an RGB PNG.

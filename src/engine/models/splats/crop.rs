@@ -180,6 +180,16 @@ pub fn crop(model: &SplatsModel, b: &CropBox) -> Result<(SplatsModel, usize), Cr
     Ok((model.keeping(&keep)?, n - keep.len()))
 }
 
+/// `model` as views under the crop `b` draw it: a splats model's Gaussians
+/// inside `b` ([`crop`]); `None` for a model of another kind, whose views
+/// the crop leaves as they are (its box is still checked).
+pub fn crop_model(model: &dyn Model, b: &CropBox) -> Result<Option<SplatsModel>, CropError> {
+    match model.as_any().downcast_ref::<SplatsModel>() {
+        Some(splats) => crop(splats, b).map(|(m, _)| Some(m)),
+        None => b.check().map(|()| None),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -282,5 +292,21 @@ mod tests {
         let far = CropBox { centre: [10.0, 10.0, 10.0], ..good };
         assert!(matches!(crop(&m, &far), Err(CropError::Empty(2))));
         assert!(matches!(crop(&m, &CropBox { half: [0.0; 3], ..good }), Err(CropError::Field("half", _))));
+    }
+
+    #[test]
+    fn views_of_a_splats_model_keep_what_is_inside_and_a_field_stays_whole() {
+        let good =
+            CropBox { centre: [0.0; 3], axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], half: [0.3; 3] };
+        let m = model(&[[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.1, -0.2, 0.25]]);
+        let kept = crop_model(&m, &good).unwrap().expect("splats are cropped");
+        assert_eq!(kept.layout().n, 2);
+        assert!(matches!(crop_model(&m, &CropBox { centre: [9.0; 3], ..good }), Err(CropError::Empty(3))));
+        // A field model: nothing to cut, but the box is still checked.
+        let ds = crate::engine::dataset::synthetic::BallScene { size: 4, views: 2, ..Default::default() }.dataset();
+        let config = crate::engine::models::config::ModelConfig::preset("nerf-tiny").unwrap();
+        let field = config.build(ds.scene(), 0).unwrap();
+        assert!(crop_model(&*field, &good).unwrap().is_none());
+        assert!(matches!(crop_model(&*field, &CropBox { half: [-1.0; 3], ..good }), Err(CropError::Field("half", _))));
     }
 }
