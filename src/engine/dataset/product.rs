@@ -9,8 +9,8 @@
 
 use rayon::prelude::*;
 
-use super::synthetic::write_blender;
-use crate::engine::dataset::{Dataset, DatasetFormat, Frame, Image, MaskUse};
+use super::synthetic::{RING_TEST_VIEWS, ring_dataset, ring_frame, ring_slot, write_blender};
+use crate::engine::dataset::Dataset;
 use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::{Aabb, Vec3};
 
@@ -204,40 +204,14 @@ impl ProductScene {
 
     /// Renders the dataset: `views` training views and 4 test views between them.
     pub fn dataset(&self) -> Dataset {
-        let test_views = 4;
-        let total = self.views + test_views;
-        let frames = (0..total)
+        let frames = (0..self.views + RING_TEST_VIEWS)
             .map(|k| {
-                let camera = if k < self.views {
-                    self.camera(2 * k, 2 * self.views)
-                } else {
-                    self.camera(2 * (k - self.views) * self.views / test_views + 1, 2 * self.views)
-                };
+                let camera = self.camera(ring_slot(k, self.views), 2 * self.views);
                 let rgba = self.render(&camera);
-                Frame {
-                    name: format!("r_{k}"),
-                    path: format!("r_{k}.png").into(),
-                    camera,
-                    image: Image { width: self.size, height: self.size, rgba, has_alpha: true },
-                    mask: None,
-                }
+                ring_frame(k, camera, self.size, rgba)
             })
             .collect();
-        Dataset {
-            format: DatasetFormat::Blender,
-            root: ".".into(),
-            frames,
-            train: (0..self.views).collect(),
-            val: (self.views..total).collect(),
-            test: (self.views..total).collect(),
-            near: 1.0,
-            far: 6.0,
-            aabb: Aabb { min: Vec3::splat(-1.5), max: Vec3::splat(1.5) },
-            background: [1.0; 3],
-            warnings: Vec::new(),
-            masks: MaskUse::Off,
-            mask_folder: None,
-        }
+        ring_dataset(frames, self.views, [1.0, 6.0], Aabb { min: Vec3::splat(-1.5), max: Vec3::splat(1.5) })
     }
 
     /// Writes the scene as a Blender-format dataset into `dir`.

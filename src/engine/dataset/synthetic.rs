@@ -53,15 +53,8 @@ impl BallScene {
     /// Renders the dataset: `views` training views and 4 test views between them.
     pub fn dataset(&self) -> Dataset {
         let mut frames = Vec::new();
-        let test_views = 4;
-        let total = self.views + test_views;
-        for k in 0..total {
-            // test cameras sit half way between training cameras
-            let cam = if k < self.views {
-                self.camera(2 * k, 2 * self.views)
-            } else {
-                self.camera(2 * (k - self.views) * self.views / test_views + 1, 2 * self.views)
-            };
+        for k in 0..self.views + RING_TEST_VIEWS {
+            let cam = self.camera(ring_slot(k, self.views), 2 * self.views);
             let mut rgba = Vec::with_capacity((self.size * self.size * 4) as usize);
             for j in 0..self.size {
                 for i in 0..self.size {
@@ -75,30 +68,52 @@ impl BallScene {
             for row in &mut cam.c2w {
                 row[3] *= self.scale;
             }
-            frames.push(Frame {
-                name: format!("r_{k}"),
-                path: format!("r_{k}.png").into(),
-                camera: cam,
-                image: Image { width: self.size, height: self.size, rgba, has_alpha: true },
-                mask: None,
-            });
+            frames.push(ring_frame(k, cam, self.size, rgba));
         }
         let s = self.scale;
-        Dataset {
-            format: DatasetFormat::Blender,
-            root: ".".into(),
-            frames,
-            train: (0..self.views).collect(),
-            val: (self.views..total).collect(),
-            test: (self.views..total).collect(),
-            near: 1.0 * s,
-            far: 5.0 * s,
-            aabb: Aabb { min: Vec3::splat(-s), max: Vec3::splat(s) },
-            background: [1.0; 3],
-            warnings: Vec::new(),
-            masks: MaskUse::Off,
-            mask_folder: None,
-        }
+        ring_dataset(frames, self.views, [1.0 * s, 5.0 * s], Aabb { min: Vec3::splat(-s), max: Vec3::splat(s) })
+    }
+}
+
+/// Held-out views of a generated ring of cameras.
+pub(crate) const RING_TEST_VIEWS: usize = 4;
+
+/// Where view `k` of a ring of `views` training cameras (then
+/// [`RING_TEST_VIEWS`] held out) sits, among `2 * views` places: the
+/// training cameras on the even ones, the held-out ones half way between.
+pub(crate) fn ring_slot(k: usize, views: usize) -> usize {
+    if k < views { 2 * k } else { 2 * (k - views) * views / RING_TEST_VIEWS + 1 }
+}
+
+/// View `k` of a generated scene: a square RGBA image named `r_k`.
+pub(crate) fn ring_frame(k: usize, camera: Camera, size: u32, rgba: Vec<u8>) -> Frame {
+    Frame {
+        name: format!("r_{k}"),
+        path: format!("r_{k}.png").into(),
+        camera,
+        image: Image { width: size, height: size, rgba, has_alpha: true },
+        mask: None,
+    }
+}
+
+/// A generated Blender-format dataset: `frames` are `views` training views
+/// then the held-out ones, composited on white.
+pub(crate) fn ring_dataset(frames: Vec<Frame>, views: usize, [near, far]: [f32; 2], aabb: Aabb) -> Dataset {
+    let total = frames.len();
+    Dataset {
+        format: DatasetFormat::Blender,
+        root: ".".into(),
+        frames,
+        train: (0..views).collect(),
+        val: (views..total).collect(),
+        test: (views..total).collect(),
+        near,
+        far,
+        aabb,
+        background: [1.0; 3],
+        warnings: Vec::new(),
+        masks: MaskUse::Off,
+        mask_folder: None,
     }
 }
 
