@@ -38,6 +38,8 @@ const LAYERS: &[&[&str]] = &[
     &["transient"],
     // Baking a field into splats: placing, carving, fitting.
     &["bake"],
+    // Textured meshes from a model's views: fusing, extracting, texturing, writing.
+    &["mesh"],
     // Training: the trainer, sessions, held-out estimates, checkpoints of a run.
     &["train"],
     // The front door: what the service uses of the engine.

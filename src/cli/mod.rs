@@ -1,4 +1,4 @@
-//! The command line: `radiance demo | train | render | bake | export | eval | bench | poses | video | serve`.
+//! The command line: `radiance demo | train | render | bake | export | mesh | eval | bench | poses | video | serve`.
 
 use std::path::PathBuf;
 
@@ -7,6 +7,7 @@ use clap::{Args, Parser, Subcommand};
 mod bench;
 mod demo;
 mod eval;
+mod mesh;
 mod poses;
 mod serve;
 mod setup;
@@ -17,6 +18,7 @@ mod video;
 pub use bench::{BenchArgs, BenchReport, BenchRow};
 pub use demo::DemoArgs;
 pub use eval::{EvalArgs, RenderArgs};
+pub use mesh::MeshArgs;
 pub use poses::PosesArgs;
 pub use serve::ServeArgs;
 pub use splats::{BakeArgs, ExportArgs};
@@ -43,6 +45,8 @@ pub enum Command {
     Bake(BakeArgs),
     /// Write a splats model as a .ply (3DGS layout) or .splat file.
     Export(ExportArgs),
+    /// Write a trained model as a textured mesh (.glb or .usdz) for web shops, phones and AR.
+    Mesh(MeshArgs),
     /// Render a split and print PSNR and SSIM against its ground truth.
     Eval(EvalArgs),
     /// Train each model once and score its test views at several training-time budgets.
@@ -173,6 +177,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(a) => eval::render(a),
         Command::Bake(a) => splats::bake_cmd(a),
         Command::Export(a) => splats::export_cmd(a),
+        Command::Mesh(a) => mesh::run(a),
         Command::Eval(a) => eval::eval(a),
         Command::Bench(a) => bench::run(a),
         Command::Poses(a) => poses::run(a),

@@ -252,7 +252,7 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
     };
     let cropped = match &a.crop {
         Some(c) => {
-            let b = crop_box(c, ds.as_ref(), &cleaned)?;
+            let b = crop_box(c, ds.as_ref(), Some(&cleaned))?;
             let (kept, gone) = crop(&cleaned, &b)?;
             eprintln!("crop: {gone} Gaussians outside the box removed, {} kept", kept.layout().n);
             kept
@@ -272,8 +272,11 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
 }
 
 /// The box `--crop` names: `auto`, or a JSON file.
-fn crop_box(arg: &str, ds: Option<&Dataset>, splats: &SplatsModel) -> anyhow::Result<CropBox> {
+pub(super) fn crop_box(arg: &str, ds: Option<&Dataset>, splats: Option<&SplatsModel>) -> anyhow::Result<CropBox> {
     let b = if arg == "auto" {
+        let Some(splats) = splats else {
+            anyhow::bail!("--crop auto takes a splats model: its Gaussians give the box")
+        };
         let Some(ds) = ds else {
             anyhow::bail!("--crop auto needs --data DIR: the box is found from the training cameras");
         };

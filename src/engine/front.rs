@@ -19,6 +19,12 @@ pub use super::geometry::path::{CameraPath, Keyframe, MAX_KEYFRAMES};
 pub use super::geometry::rig::Spiral;
 pub use super::io::checkpoint::CheckpointError;
 pub use super::io::fsio::write_atomic;
+pub use super::mesh::export::{glb as mesh_glb, usdz as mesh_usdz};
+pub use super::mesh::raster::{MeshView, render_antialiased as render_mesh};
+pub use super::mesh::views::auto_crop as auto_crop_views;
+pub use super::mesh::{
+    MeshError, MeshOptions, MeshStats, Placement, STAGES as MESH_STAGES, TexturedMesh, make as make_mesh,
+};
 pub use super::metrics::psnr;
 pub use super::models::auto::{AUTO, ModelChoice, SceneKind, choose as choose_model};
 pub use super::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, presets, trainable_presets};

@@ -11,6 +11,7 @@ pub mod fields;
 pub mod front;
 pub mod geometry;
 pub mod io;
+pub mod mesh;
 pub mod metrics;
 pub mod models;
 pub mod nn;

@@ -35,7 +35,7 @@ pub enum CropError {
     Field(&'static str, String),
     #[error("the crop keeps none of the {0} Gaussians")]
     Empty(usize),
-    #[error("no training camera sees any Gaussian: no crop can be found")]
+    #[error("no training camera sees anything solid: no crop can be found")]
     Unseen,
     #[error(transparent)]
     Model(#[from] ModelError),
@@ -102,17 +102,25 @@ pub fn project(camera: &Camera, p: [f32; 3]) -> Option<(f32, f32)> {
 
 /// The box around what nearly every one of `cameras` sees, standing on `up`.
 pub fn auto_crop(model: &SplatsModel, cameras: &[Camera], up: [f32; 3]) -> Result<CropBox, CropError> {
-    let centres = world_centres(model);
     let l = model.layout();
-    let need = (SEEN_BY * cameras.len() as f32).ceil() as usize;
-    let object: Vec<Vec3> = centres
+    let opaque: Vec<Vec3> = world_centres(model)
         .iter()
         .enumerate()
-        .filter(|&(i, p)| {
-            sigmoid(l.get(model.params(), i).opacity_logit) >= OPAQUE
-                && cameras.iter().filter(|c| project(c, *p).is_some()).count() >= need.max(1)
-        })
+        .filter(|&(i, _)| sigmoid(l.get(model.params(), i).opacity_logit) >= OPAQUE)
         .map(|(_, p)| Vec3::from_array(*p))
+        .collect();
+    crop_around(&opaque, cameras, up)
+}
+
+/// The box around those of `points` (world units: what a model draws
+/// solid) that nearly every one of `cameras` has in its frame, standing on
+/// `up`.
+pub fn crop_around(points: &[Vec3], cameras: &[Camera], up: [f32; 3]) -> Result<CropBox, CropError> {
+    let need = (SEEN_BY * cameras.len() as f32).ceil() as usize;
+    let object: Vec<Vec3> = points
+        .iter()
+        .filter(|p| cameras.iter().filter(|c| project(c, p.to_array()).is_some()).count() >= need.max(1))
+        .copied()
         .collect();
     if object.is_empty() {
         return Err(CropError::Unseen);

@@ -1,0 +1,193 @@
+//! The views a mesh is made from: the model rendered from where its
+//! training cameras stood, each turned to look at the crop box and framed
+//! to hold it, so that every view is one the model learnt to draw. Their
+//! depths make the surface and their colours its texture.
+
+use std::sync::atomic::AtomicBool;
+
+use crate::engine::geometry::camera::{Camera, look_at};
+use crate::engine::geometry::math::Vec3;
+use crate::engine::mesh::MeshError;
+use crate::engine::models::splats::crop::{CropBox, crop_around};
+use crate::engine::models::{Model, RenderOptions};
+use crate::engine::view::render_view_until;
+
+/// Opacity from which a pixel's ray counts as meeting a surface.
+const SOLID: f32 = 0.5;
+
+/// A rendered view, as the mesh uses it.
+pub struct SurfaceView {
+    pub camera: Camera,
+    /// Per pixel, how far along its ray the surface is (world units), or
+    /// `None` where the ray meets none.
+    pub surface: Vec<Option<f32>>,
+    /// Per pixel, the surface's colour (not darkened by partial opacity).
+    pub rgb: Vec<[f32; 3]>,
+}
+
+/// Up to `n` cameras of `size x size` pixels looking at `crop`'s centre:
+/// from the training cameras' centres (evenly chosen) where the model
+/// knows them, else from a sphere around the box (its upper part, `up`
+/// being the box's z axis); each framing the box, but no wider than the
+/// training photos (a box larger than the object would leave it small).
+pub fn cameras(model: &dyn Model, crop: &CropBox, n: usize, size: u32) -> Vec<Camera> {
+    let centre = Vec3::from_array(crop.centre);
+    let up = Vec3::from_array(crop.axes[2]);
+    let radius = Vec3::from_array(crop.half).norm();
+    let rig = model.scene().rig.as_ref();
+    let frames = rig.map(|r| r.frames.clone()).unwrap_or_default();
+    // No wider than the training photos: the object as large in the views as in them.
+    let widest = rig.map(|r| r.fov_deg.to_radians()).filter(|f| *f > 0.0).unwrap_or(1.75);
+    let mut eyes: Vec<Vec3> =
+        frames.iter().map(|f| Vec3::from_array(f.centre)).filter(|&e| (e - centre).norm() > 0.1 * radius).collect();
+    if eyes.is_empty() {
+        // Inside the model's ray range: a field draws nothing past its far plane.
+        let far = model.scene().far / model.scene().scale;
+        let dist = (3.0 * radius).min(0.5 * far).max(1.2 * radius);
+        eyes = sphere(n.max(1)).into_iter().map(|d| centre + turn_up(d, up) * dist).collect();
+    }
+    let stride = (eyes.len() as f64 / n.max(1) as f64).max(1.0);
+    let mut out = Vec::new();
+    let mut i = 0.0f64;
+    while (i as usize) < eyes.len() && out.len() < n {
+        let eye = eyes[i as usize];
+        i += stride;
+        let up_hint = if (eye - centre).normalized().is_some_and(|d| d.dot(up).abs() > 0.99) {
+            Vec3::from_array(crop.axes[1])
+        } else {
+            up
+        };
+        let Some(c2w) = look_at(eye, centre, up_hint) else { continue };
+        // The box's sphere filling the frame; at most 100 degrees across from inside it.
+        let fov = 2.0 * (radius / (eye - centre).norm()).min(0.766).asin() * 1.05;
+        out.push(Camera::from_fov(size, size, fov.min(widest).max(0.2), c2w));
+    }
+    out
+}
+
+/// Unit directions spread over the upper three quarters of a sphere
+/// around +z (a Fibonacci spiral): what an object on a table shows.
+fn sphere(n: usize) -> Vec<Vec3> {
+    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    (0..n)
+        .map(|i| {
+            let z = 1.0 - 1.5 * (i as f32 + 0.5) / n as f32;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let a = golden * i as f32;
+            Vec3::new(r * a.cos(), r * a.sin(), z)
+        })
+        .collect()
+}
+
+/// `d` (around +z) turned to be around `up`.
+fn turn_up(d: Vec3, up: Vec3) -> Vec3 {
+    let helper = if up.x.abs() < 0.9 { Vec3::new(1.0, 0.0, 0.0) } else { Vec3::new(0.0, 1.0, 0.0) };
+    let x = up.cross(helper).normalized().unwrap_or(helper);
+    let y = up.cross(x);
+    x * d.x + y * d.y + up * d.z
+}
+
+/// Renders `camera` with the model's mean appearance, or `None` once
+/// `cancel` is set.
+pub fn render(model: &dyn Model, camera: &Camera, cancel: &AtomicBool) -> Option<SurfaceView> {
+    let view = render_view_until(model, camera, [0.0; 3], &RenderOptions::default(), cancel)?;
+    let n = view.opacity.len();
+    let mut surface = Vec::with_capacity(n);
+    let mut rgb = Vec::with_capacity(n);
+    for i in 0..n {
+        let a = view.opacity[i];
+        let solid = a >= SOLID && view.depth[i].is_finite();
+        surface.push(solid.then(|| view.depth[i] / a));
+        let c = &view.rgb[3 * i..3 * i + 3];
+        rgb.push(if a > 1e-3 { [0, 1, 2].map(|k| (c[k] / a).clamp(0.0, 1.0)) } else { [0.0; 3] });
+    }
+    Some(SurfaceView { camera: camera.clone(), surface, rgb })
+}
+
+/// Most cameras [`auto_crop`] renders, and the width it renders them at.
+const CROP_CAMERAS: usize = 60;
+const CROP_WIDTH: u32 = 96;
+
+/// The automatic crop for any model: what the model draws solid, seen from
+/// (up to 60 of) its training `cameras` at a low resolution, boxed as the
+/// splats' automatic crop boxes their Gaussians (`crop_around`: the
+/// points nearly every camera has in its frame, standing on `up`).
+pub fn auto_crop(
+    model: &dyn Model,
+    cameras: &[Camera],
+    up: [f32; 3],
+    cancel: &AtomicBool,
+) -> Result<CropBox, MeshError> {
+    let stride = (cameras.len() as f64 / CROP_CAMERAS as f64).max(1.0);
+    let mut points = Vec::new();
+    let mut i = 0.0f64;
+    while (i as usize) < cameras.len() {
+        let c = &cameras[i as usize];
+        i += stride;
+        let k = (CROP_WIDTH as f32 / c.width as f32).min(1.0);
+        let small = Camera {
+            width: ((c.width as f32 * k).round() as u32).max(1),
+            height: ((c.height as f32 * k).round() as u32).max(1),
+            fx: c.fx * k,
+            fy: c.fy * k,
+            cx: c.cx * k,
+            cy: c.cy * k,
+            distortion: Default::default(),
+            c2w: c.c2w,
+        };
+        let view = render(model, &small, cancel).ok_or(MeshError::Cancelled)?;
+        for y in 0..small.height {
+            for x in 0..small.width {
+                if let Some(d) = view.surface[(y * small.width + x) as usize] {
+                    points.push(small.pixel_ray(x, y).at(d));
+                }
+            }
+        }
+    }
+    Ok(crop_around(&points, cameras, up)?)
+}
+
+impl SurfaceView {
+    /// Where world point `p` falls in this view (continuous pixels) and
+    /// its distance from the camera, if in front and inside the frame.
+    pub fn project(&self, p: Vec3) -> Option<(f32, f32, f32)> {
+        let c = &self.camera;
+        let m = &c.c2w;
+        let d = p - c.origin();
+        let cam = [0, 1, 2].map(|k| Vec3::new(m[0][k], m[1][k], m[2][k]).dot(d));
+        let depth = -cam[2];
+        if depth <= 1e-6 {
+            return None;
+        }
+        let u = c.fx * cam[0] / depth + c.cx;
+        let v = -c.fy * cam[1] / depth + c.cy;
+        (u >= 0.0 && v >= 0.0 && u < c.width as f32 && v < c.height as f32).then_some((u, v, d.norm()))
+    }
+
+    /// The colour at continuous pixel `(u, v)`, bilinear between the
+    /// surface pixels around it.
+    pub fn colour(&self, u: f32, v: f32) -> [f32; 3] {
+        let (w, h) = (self.camera.width as i64, self.camera.height as i64);
+        let (x, y) = (u - 0.5, v - 0.5);
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let mut sum = [0.0f32; 3];
+        let mut total = 0.0;
+        for (dx, dy, wt) in
+            [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+        {
+            let (px, py) = ((x0 as i64 + dx).clamp(0, w - 1), (y0 as i64 + dy).clamp(0, h - 1));
+            let i = (py * w + px) as usize;
+            if self.surface[i].is_some() && wt > 0.0 {
+                (0..3).for_each(|k| sum[k] += wt * self.rgb[i][k]);
+                total += wt;
+            }
+        }
+        if total > 0.0 { sum.map(|s| s / total) } else { self.rgb[(v as i64 * w + u as i64) as usize] }
+    }
+
+    /// The surface distance at the pixel holding continuous `(u, v)`.
+    pub fn surface_at(&self, u: f32, v: f32) -> Option<f32> {
+        self.surface[v as usize * self.camera.width as usize + u as usize]
+    }
+}
