@@ -73,30 +73,30 @@ struct Baked {
     dir: PathBuf,
 }
 
+/// The ball scene written to `dir/scene` and an `instant-tiny` field trained
+/// on it for `steps` steps as `dir/m.ckpt`: the scene's folder and the
+/// checkpoint's path.
+fn trained_ball(dir: &Path, steps: u32) -> (String, String) {
+    let ds = dir.join("scene");
+    BallScene { size: 32, views: 12, ..Default::default() }.write_blender(&ds).unwrap();
+    let (data, ckpt) = (ds.to_string_lossy().into_owned(), dir.join("m.ckpt").to_string_lossy().into_owned());
+    let steps = steps.to_string();
+    let args =
+        ["train", "--data", &data, "--model", "instant-tiny", "--steps", &steps, "--out", &ckpt, "--threads", "2"];
+    let out = Command::new(env!("CARGO_BIN_EXE_radiance")).args(args).output().unwrap();
+    assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    (data, ckpt)
+}
+
 fn baked() -> Baked {
     let dir = tempfile::tempdir().unwrap();
-    let ds = dir.path().join("scene");
-    BallScene { size: 32, views: 12, ..Default::default() }.write_blender(&ds).unwrap();
+    let (data, _) = trained_ball(dir.path(), 200);
     let bin = env!("CARGO_BIN_EXE_radiance");
     let run = |args: &[&str]| {
         let out = Command::new(bin).args(args).output().unwrap();
         assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
     };
     let p = |f: &str| dir.path().join(f).to_string_lossy().into_owned();
-    let data = ds.to_string_lossy().into_owned();
-    run(&[
-        "train",
-        "--data",
-        &data,
-        "--model",
-        "instant-tiny",
-        "--steps",
-        "200",
-        "--out",
-        &p("m.ckpt"),
-        "--threads",
-        "2",
-    ]);
     run(&[
         "bake",
         "--model",
@@ -371,28 +371,11 @@ fn the_glb_passes_the_khronos_validator_and_matches_splat_transform() {
 #[test]
 fn the_mesh_passes_gltf_validator_and_usd_and_looks_like_its_model() {
     let dir = tempfile::tempdir().unwrap();
-    let ds = dir.path().join("scene");
-    BallScene { size: 32, views: 12, ..Default::default() }.write_blender(&ds).unwrap();
+    let (data, model) = trained_ball(dir.path(), 300);
     let bin = env!("CARGO_BIN_EXE_radiance");
     let p = |f: &str| dir.path().join(f).to_string_lossy().into_owned();
-    let data = ds.to_string_lossy().into_owned();
     let run = |args: &[&str]| Command::new(bin).args(args).output().unwrap();
-    let out = run(&[
-        "train",
-        "--data",
-        &data,
-        "--model",
-        "instant-tiny",
-        "--steps",
-        "300",
-        "--out",
-        &p("m.ckpt"),
-        "--threads",
-        "2",
-    ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let small = ["--triangles", "4000", "--texture", "256", "--resolution", "48", "--views", "16", "--view-size", "64"];
-    let model = p("m.ckpt");
     let mesh = |out: &str, extra: &[&str]| {
         let mut args = vec!["mesh", "--model", &model, "--threads", "2"];
         args.extend(["--out", out]);

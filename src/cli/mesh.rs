@@ -12,8 +12,8 @@ use clap::Args;
 use super::{Common, MaskArgs};
 use crate::engine::front::{
     CAPTURE_KIND, CropBox, Dataset, LoadOptions, MESH_STAGES, MeshOptions, Model, Placement, RenderOptions, Split,
-    TexturedMesh, View, auto_crop_views, crop_model, heldout_pose, load_checkpoint, make_mesh, mesh_glb, mesh_usdz,
-    render_heldout_view, render_mesh, splats_of, write_atomic,
+    TexturedMesh, View, crop_model, heldout_pose, load_checkpoint, make_mesh, mesh_glb, mesh_usdz, render_heldout_view,
+    render_mesh, write_atomic,
 };
 use crate::media::png;
 
@@ -144,23 +144,7 @@ fn load(data: &std::path::Path, split: Split, opts: LoadOptions) -> anyhow::Resu
 /// The box `--crop` names, or the scene's box.
 fn crop_for(a: &MeshArgs, model: &dyn Model, train: Option<&Dataset>) -> anyhow::Result<CropBox> {
     if let Some(c) = &a.crop {
-        if c != "auto" || splats_of(model).is_some() {
-            return super::splats::crop_box(c, train, splats_of(model));
-        }
-        // A field: the box around what it draws solid from its training cameras.
-        let Some(ds) = train else {
-            anyhow::bail!("--crop auto needs --data DIR: the box is found from the training cameras")
-        };
-        let Some(rig) = ds.rig().filter(|r| !r.forward_facing) else {
-            anyhow::bail!(
-                "--crop auto: {} is not a capture taken around an object (its cameras face one way); give the box as a JSON file",
-                ds.root.display()
-            );
-        };
-        let cameras: Vec<_> = ds.split_frames(Split::Train).map(|f| f.camera.clone()).collect();
-        let b = auto_crop_views(model, &cameras, rig.up, &AtomicBool::new(false))?;
-        eprintln!("crop: {}", serde_json::to_string(&b)?);
-        return Ok(b);
+        return super::splats::crop_box(c, train, model);
     }
     anyhow::ensure!(
         model.kind() != CAPTURE_KIND,

@@ -12,7 +12,7 @@ use super::Common;
 use crate::api::site;
 use crate::engine::front::{
     Adam, BakeSettings, Budget, CleanupSettings, CropBox, DataSize, Dataset, LoadOptions, Model, ModelConfig,
-    SplatsFormat as Format, SplatsModel, Split, TrainConfig, TrainState, TransientMaps, auto_crop_for, bake, cleanup,
+    SplatsFormat as Format, SplatsModel, Split, TrainConfig, TrainState, TransientMaps, auto_crop_any, bake, cleanup,
     crop, estimate_bake, load_checkpoint, mib, save_checkpoint, splats_of, write_atomic, write_splats,
 };
 use crate::system::peak_memory;
@@ -252,7 +252,7 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
     };
     let cropped = match &a.crop {
         Some(c) => {
-            let b = crop_box(c, ds.as_ref(), Some(&cleaned))?;
+            let b = crop_box(c, ds.as_ref(), &cleaned)?;
             let (kept, gone) = crop(&cleaned, &b)?;
             eprintln!("crop: {gone} Gaussians outside the box removed, {} kept", kept.layout().n);
             kept
@@ -271,16 +271,14 @@ pub fn export_cmd(a: ExportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The box `--crop` names: `auto`, or a JSON file.
-pub(super) fn crop_box(arg: &str, ds: Option<&Dataset>, splats: Option<&SplatsModel>) -> anyhow::Result<CropBox> {
+/// The box `--crop` names: `auto` (from `model`: a splats model's Gaussians,
+/// another's views), or a JSON file.
+pub(super) fn crop_box(arg: &str, ds: Option<&Dataset>, model: &dyn Model) -> anyhow::Result<CropBox> {
     let b = if arg == "auto" {
-        let Some(splats) = splats else {
-            anyhow::bail!("--crop auto takes a splats model: its Gaussians give the box")
-        };
         let Some(ds) = ds else {
             anyhow::bail!("--crop auto needs --data DIR: the box is found from the training cameras");
         };
-        let Some(b) = auto_crop_for(splats, ds)? else {
+        let Some(b) = auto_crop_any(model, ds, &AtomicBool::new(false))? else {
             anyhow::bail!(
                 "--crop auto: {} is not a capture taken around an object (its cameras face one way); give the box as a JSON file",
                 ds.root.display()

@@ -5,10 +5,12 @@
 
 use std::sync::atomic::AtomicBool;
 
+use crate::engine::dataset::{Dataset, Split};
 use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::Vec3;
 use crate::engine::mesh::MeshError;
-use crate::engine::models::splats::crop::{CropBox, crop_around};
+use crate::engine::models::splats::SplatsModel;
+use crate::engine::models::splats::crop::{self, CropBox, crop_around, project};
 use crate::engine::models::{Model, RenderOptions};
 use crate::engine::view::render_view_until;
 
@@ -46,12 +48,8 @@ pub fn cameras(model: &dyn Model, crop: &CropBox, n: usize, size: u32) -> Vec<Ca
         let dist = (3.0 * radius).min(0.5 * far).max(1.2 * radius);
         eyes = sphere(n.max(1)).into_iter().map(|d| centre + turn_up(d, up) * dist).collect();
     }
-    let stride = (eyes.len() as f64 / n.max(1) as f64).max(1.0);
     let mut out = Vec::new();
-    let mut i = 0.0f64;
-    while (i as usize) < eyes.len() && out.len() < n {
-        let eye = eyes[i as usize];
-        i += stride;
+    for &eye in evenly(&eyes, n) {
         let up_hint = if (eye - centre).normalized().is_some_and(|d| d.dot(up).abs() > 0.99) {
             Vec3::from_array(crop.axes[1])
         } else {
@@ -118,12 +116,8 @@ pub fn auto_crop(
     up: [f32; 3],
     cancel: &AtomicBool,
 ) -> Result<CropBox, MeshError> {
-    let stride = (cameras.len() as f64 / CROP_CAMERAS as f64).max(1.0);
     let mut points = Vec::new();
-    let mut i = 0.0f64;
-    while (i as usize) < cameras.len() {
-        let c = &cameras[i as usize];
-        i += stride;
+    for c in evenly(cameras, CROP_CAMERAS) {
         let k = (CROP_WIDTH as f32 / c.width as f32).min(1.0);
         let small = Camera {
             width: ((c.width as f32 * k).round() as u32).max(1),
@@ -147,21 +141,34 @@ pub fn auto_crop(
     Ok(crop_around(&points, cameras, up)?)
 }
 
+/// The automatic crop for `ds`'s training cameras and rig, for any model: a
+/// splats model's from its Gaussians (`crop::auto_crop_for`), another's from
+/// its views ([`auto_crop`]); `None` for a capture with no rig or a
+/// forward-facing one (nothing was walked around).
+pub fn auto_crop_for(model: &dyn Model, ds: &Dataset, cancel: &AtomicBool) -> Result<Option<CropBox>, MeshError> {
+    if let Some(splats) = model.as_any().downcast_ref::<SplatsModel>() {
+        return Ok(crop::auto_crop_for(splats, ds)?);
+    }
+    let Some(rig) = ds.rig().filter(|r| !r.forward_facing) else { return Ok(None) };
+    let cameras: Vec<Camera> = ds.split_frames(Split::Train).map(|f| f.camera.clone()).collect();
+    auto_crop(model, &cameras, rig.up, cancel).map(Some)
+}
+
+/// Up to `n` of `items`, evenly spread (all of them when there are no more).
+fn evenly<T>(items: &[T], n: usize) -> impl Iterator<Item = &T> {
+    let stride = (items.len() as f64 / n.max(1) as f64).max(1.0);
+    std::iter::successors(Some(0.0f64), move |i| Some(i + stride))
+        .map(|i| i as usize)
+        .take_while(move |&i| i < items.len())
+        .take(n.max(1))
+        .map(move |i| &items[i])
+}
+
 impl SurfaceView {
     /// Where world point `p` falls in this view (continuous pixels) and
     /// its distance from the camera, if in front and inside the frame.
     pub fn project(&self, p: Vec3) -> Option<(f32, f32, f32)> {
-        let c = &self.camera;
-        let m = &c.c2w;
-        let d = p - c.origin();
-        let cam = [0, 1, 2].map(|k| Vec3::new(m[0][k], m[1][k], m[2][k]).dot(d));
-        let depth = -cam[2];
-        if depth <= 1e-6 {
-            return None;
-        }
-        let u = c.fx * cam[0] / depth + c.cx;
-        let v = -c.fy * cam[1] / depth + c.cy;
-        (u >= 0.0 && v >= 0.0 && u < c.width as f32 && v < c.height as f32).then_some((u, v, d.norm()))
+        project(&self.camera, p.to_array()).map(|(u, v)| (u, v, (p - self.camera.origin()).norm()))
     }
 
     /// The colour at continuous pixel `(u, v)`, bilinear between the
