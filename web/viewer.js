@@ -10,6 +10,7 @@
 // tests.
 
 import { api, followJob, getJson, postJson } from './api.js';
+import { closeMesh, showMesh } from './mesh.js';
 import { $, bakeLine, el, fail, showTab, status } from './ui.js';
 import { makeVideo } from './videos.js';
 
@@ -123,7 +124,9 @@ async function selectModel(id, camera) {
   $('view-bake').hidden = drawn || !m.complete;
   $('view-export').hidden = !drawn;
   $('view-crop').hidden = !drawn;
+  $('view-mesh').hidden = !m.complete;
   closeCrop();
+  closeMesh();
   const v = m.view;
   Object.assign(viewer, { target: v.centre.slice(), azimuth: 0, elevation: v.elevation ?? 25, radius: v.radius, fov: v.fov });
   if (camera) setFromLink(camera);
@@ -527,6 +530,8 @@ export function setupViewer() {
   $('view-output').addEventListener('change', () => changed(false));
   $('view-reset').addEventListener('click', () => resetView());
   $('view-export-go').addEventListener('click', () => downloadSplats().catch(fail));
+  $('view-mesh').addEventListener('click', () => showMesh(viewer.model).catch(fail));
+  $('mesh-close').addEventListener('click', () => closeMesh());
   $('crop-edit').addEventListener('click', () => editCrop().catch(fail));
   $('crop-mode').addEventListener('change', (e) => cropEditor?.setMode(e.target.value));
   for (const what of ['auto', 'save', 'remove', 'close']) {

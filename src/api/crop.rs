@@ -138,7 +138,7 @@ fn invalid(e: CropError) -> ApiError {
     }
 }
 
-fn invalid_field(field: &str, why: String) -> ApiError {
+pub(super) fn invalid_field(field: &str, why: String) -> ApiError {
     let message = if field == "crop" { format!("the crop {why}") } else { format!("crop {field}: {why}") };
     ApiError::new(Code::InvalidCrop, message).with_details(json!({ "field": field }))
 }

@@ -39,6 +39,7 @@ pub mod health;
 pub mod jobs;
 pub mod layers;
 pub mod limits;
+pub mod mesh;
 pub mod models;
 pub mod role;
 pub mod scenes;
@@ -118,6 +119,8 @@ pub struct AppInner {
     pub render_slots: tokio::sync::Semaphore,
     /// Recently used models, most recent first.
     pub model_cache: Mutex<Vec<CachedModel>>,
+    /// Meshes made lately (`mesh`).
+    pub meshes: mesh::MeshCache,
     /// What this node's worker counts (distributed mode; the embedded job
     /// store has its training counters, `JobStore::counters`).
     pub worker_stats: Option<Arc<crate::worker::WorkerStats>>,
@@ -171,6 +174,7 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/models/{id}", quick(get(models::get_one).delete(models::delete)))
         .route("/v1/models/{id}/render", get(models::render))
         .route("/v1/models/{id}/export", get(models::export))
+        .route("/v1/models/{id}/mesh", get(mesh::get))
         .route("/v1/models/{id}/crop", put(crop::put).merge(quick(get(crop::get).delete(crop::delete))))
         .route("/v1/models/{id}/transients/{photo}", get(transients::get))
         .route("/v1/models/{id}/videos", quick(post(videos::create)))
@@ -285,6 +289,7 @@ impl Server {
             artifacts,
             renders: Mutex::new(RenderStats::default()),
             model_cache: Mutex::new(Vec::new()),
+            meshes: mesh::MeshCache::default(),
             worker_stats: worker.as_ref().map(crate::worker::Worker::stats),
         });
         let listener = tokio::net::TcpListener::bind(addr).await?;

@@ -109,7 +109,9 @@ pub fn files(title: &str, view: &ViewDefaults, spz: Vec<u8>) -> io::Result<Vec<(
     let camera = default_camera(view)
         .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidData, "the model's default view gives no camera"))?;
     let mut out = vec![("index.html".to_string(), index_html(title, &camera, view).into_bytes())];
-    for a in ASSETS.iter().filter(|a| VIEWER_FILES.contains(&a.name) || a.name.starts_with("vendor/")) {
+    // The splat viewer's libraries (not `<model-viewer>`, which draws meshes).
+    let splat_lib = |n: &str| n.starts_with("vendor/spark/") || n.starts_with("vendor/three/");
+    for a in ASSETS.iter().filter(|a| VIEWER_FILES.contains(&a.name) || splat_lib(a.name)) {
         out.push((a.name.to_string(), a.body.as_bytes().to_vec()));
     }
     out.push((SPLAT_FILE.to_string(), spz));

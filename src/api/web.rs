@@ -31,9 +31,9 @@ const TEXT: &str = "text/plain; charset=utf-8";
 
 /// Every file of the page, by its path under `web/` (`/assets/PATH`); the
 /// page first. The vendored files are as published (see
-/// `web/vendor/README.md`): about 3.5 MB of the binary.
+/// `web/vendor/README.md`): about 4.6 MB of the binary.
 #[rustfmt::skip]
-pub const ASSETS: [Asset; 19] = [
+pub const ASSETS: [Asset; 22] = [
     Asset { name: "index.html", content_type: HTML, body: include_str!("../../web/index.html") },
     Asset { name: "app.js", content_type: JS, body: include_str!("../../web/app.js") },
     Asset { name: "api.js", content_type: JS, body: include_str!("../../web/api.js") },
@@ -44,7 +44,10 @@ pub const ASSETS: [Asset; 19] = [
     Asset { name: "videos.js", content_type: JS, body: include_str!("../../web/videos.js") },
     Asset { name: "splats.js", content_type: JS, body: include_str!("../../web/splats.js") },
     Asset { name: "crop.js", content_type: JS, body: include_str!("../../web/crop.js") },
+    Asset { name: "mesh.js", content_type: JS, body: include_str!("../../web/mesh.js") },
     Asset { name: "style.css", content_type: CSS, body: include_str!("../../web/style.css") },
+    Asset { name: "vendor/model-viewer/model-viewer.min.js", content_type: JS, body: include_str!("../../web/vendor/model-viewer/model-viewer.min.js") },
+    Asset { name: "vendor/model-viewer/LICENSE", content_type: TEXT, body: include_str!("../../web/vendor/model-viewer/LICENSE") },
     Asset { name: "vendor/spark/spark.module.min.js", content_type: JS, body: include_str!("../../web/vendor/spark/spark.module.min.js") },
     Asset { name: "vendor/spark/LICENSE", content_type: TEXT, body: include_str!("../../web/vendor/spark/LICENSE") },
     Asset { name: "vendor/three/LICENSE", content_type: TEXT, body: include_str!("../../web/vendor/three/LICENSE") },
@@ -56,7 +59,7 @@ pub const ASSETS: [Asset; 19] = [
 ];
 
 /// The vendored libraries' licence files; each is served too.
-pub const LICENSES: [&str; 2] = ["vendor/spark/LICENSE", "vendor/three/LICENSE"];
+pub const LICENSES: [&str; 3] = ["vendor/model-viewer/LICENSE", "vendor/spark/LICENSE", "vendor/three/LICENSE"];
 
 /// The strong entity tag of an asset: its CRC-32 and length, quoted.
 pub fn etag(asset: &Asset) -> String {

@@ -13,7 +13,7 @@ use super::{Common, MaskArgs};
 use crate::engine::front::{
     CAPTURE_KIND, CropBox, Dataset, LoadOptions, MESH_STAGES, MeshOptions, Model, Placement, RenderOptions, Split,
     TexturedMesh, View, crop_model, heldout_pose, load_checkpoint, make_mesh, mesh_glb, mesh_usdz, render_heldout_view,
-    render_mesh, write_atomic,
+    render_mesh, scene_box, write_atomic,
 };
 use crate::media::png;
 
@@ -151,26 +151,6 @@ fn crop_for(a: &MeshArgs, model: &dyn Model, train: Option<&Dataset>) -> anyhow:
         "a capture model's scene reaches the horizon: give --crop auto --data DIR, or --crop BOX.json"
     );
     Ok(scene_box(model))
-}
-
-/// The scene's box in world units, its z the world axis nearest the
-/// capture's up (world z without a rig).
-pub fn scene_box(model: &dyn Model) -> CropBox {
-    let s = model.scene();
-    let up = s.rig.as_ref().map_or([0.0, 0.0, 1.0], |r| r.up);
-    let z = (0..3).max_by(|&i, &j| up[i].abs().total_cmp(&up[j].abs())).unwrap_or(2);
-    let sign = if up[z] < 0.0 { -1.0 } else { 1.0 };
-    let (x, y) = ((z + 1) % 3, (z + 2) % 3);
-    let unit = |i: usize, s: f32| std::array::from_fn(|k| if k == i { s } else { 0.0 });
-    let lo = s.point_to_world(s.aabb_min);
-    let hi = s.point_to_world(s.aabb_max);
-    let centre = std::array::from_fn(|k| 0.5 * (lo[k] + hi[k]));
-    // A right-handed frame: x, then y = z cross x (flipped with z).
-    CropBox {
-        centre,
-        axes: [unit(x, 1.0), unit(y, sign), unit(z, sign)],
-        half: [x, y, z].map(|k| 0.5 * (hi[k] - lo[k])),
-    }
 }
 
 /// Prints the mesh's and the model's PSNR at each held-out view, against

@@ -13,6 +13,7 @@ mod common;
 mod cards;
 mod flow;
 mod key;
+mod mesh;
 mod posing;
 mod realtime;
 mod splats;

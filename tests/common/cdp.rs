@@ -341,7 +341,7 @@ impl Page {
 }
 
 /// Standard base64 (with padding) to bytes.
-fn base64(s: &str) -> Vec<u8> {
+pub fn base64(s: &str) -> Vec<u8> {
     let value = |c: u8| match c {
         b'A'..=b'Z' => c - b'A',
         b'a'..=b'z' => c - b'a' + 26,

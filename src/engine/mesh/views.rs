@@ -154,6 +154,26 @@ pub fn auto_crop_for(model: &dyn Model, ds: &Dataset, cancel: &AtomicBool) -> Re
     auto_crop(model, &cameras, rig.up, cancel).map(Some)
 }
 
+/// The scene's box in world units, its z the world axis nearest the
+/// capture's up (world z without a rig).
+pub fn scene_box(model: &dyn Model) -> CropBox {
+    let s = model.scene();
+    let up = s.rig.as_ref().map_or([0.0, 0.0, 1.0], |r| r.up);
+    let z = (0..3).max_by(|&i, &j| up[i].abs().total_cmp(&up[j].abs())).unwrap_or(2);
+    let sign = if up[z] < 0.0 { -1.0 } else { 1.0 };
+    let (x, y) = ((z + 1) % 3, (z + 2) % 3);
+    let unit = |i: usize, s: f32| std::array::from_fn(|k| if k == i { s } else { 0.0 });
+    let lo = s.point_to_world(s.aabb_min);
+    let hi = s.point_to_world(s.aabb_max);
+    let centre = std::array::from_fn(|k| 0.5 * (lo[k] + hi[k]));
+    // A right-handed frame: x, then y = z cross x (flipped with z).
+    CropBox {
+        centre,
+        axes: [unit(x, 1.0), unit(y, sign), unit(z, sign)],
+        half: [x, y, z].map(|k| 0.5 * (hi[k] - lo[k])),
+    }
+}
+
 /// Up to `n` of `items`, evenly spread (all of them when there are no more).
 fn evenly<T>(items: &[T], n: usize) -> impl Iterator<Item = &T> {
     let stride = (items.len() as f64 / n.max(1) as f64).max(1.0);

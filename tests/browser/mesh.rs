@@ -1,0 +1,212 @@
+//! The textured mesh through the API and in the web app: the demo scene
+//! (generated) trained briefly, then
+//! - `GET /v1/models/{id}/mesh` gives a GLB and a USDZ, named and typed, the
+//!   second from the mesh the first made; bad options are refused by name;
+//! - the viewer's mesh button shows it in `<model-viewer>` (vendored, on
+//!   WebGL2: the software renderer here) with its AR button and both files
+//!   to download; set to a known camera, its picture matches our own CPU
+//!   render of the same mesh (`engine::mesh::raster`, the GLB read back)
+//!   at that camera.
+
+use std::time::Instant;
+
+use image::RgbImage;
+use radiance::engine::front::{Camera, TexturedMesh, render_mesh};
+use serde_json::{Value, json};
+
+use crate::common::psnr::rgb8_psnr;
+use crate::common::{Svc, assert_error, config};
+use crate::{runtime, screenshot};
+
+/// Camera rows looking from `eye` at `at`, world up +y (model-viewer's).
+fn look_at(eye: [f32; 3], at: [f32; 3]) -> [[f32; 4]; 3] {
+    let sub = |a: [f32; 3], b: [f32; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let cross =
+        |a: [f32; 3], b: [f32; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let unit = |a: [f32; 3]| {
+        let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        a.map(|x| x / n)
+    };
+    let back = unit(sub(eye, at));
+    let right = unit(cross([0.0, 1.0, 0.0], back));
+    let up = cross(back, right);
+    [0, 1, 2].map(|i| [right[i], up[i], back[i], eye[i]])
+}
+
+/// Our GLB's mesh (`engine::mesh::export::glb`: three corners a triangle,
+/// positions as 16-bit steps of the node's scale from its translation,
+/// 16-bit normalised texture coordinates, a JPEG texture), read back
+/// as a `TexturedMesh` in the file's coordinates.
+fn read_glb(glb: &[u8]) -> TexturedMesh {
+    let u32_at = |b: &[u8], i: usize| u32::from_le_bytes(b[i..i + 4].try_into().unwrap()) as usize;
+    let json_len = u32_at(glb, 12);
+    let json: Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
+    let bin = &glb[20 + json_len + 8..];
+    let view = |i: usize| {
+        let v = &json["bufferViews"][i];
+        let start = v["byteOffset"].as_u64().unwrap() as usize;
+        &bin[start..start + v["byteLength"].as_u64().unwrap() as usize]
+    };
+    let floats = |v: &Value| [0, 1, 2].map(|k| v[k].as_f64().unwrap() as f32);
+    let node = &json["nodes"][0];
+    let (origin, step) = (floats(&node["translation"]), floats(&node["scale"]));
+    let n = json["accessors"][0]["count"].as_u64().unwrap() as usize;
+    let u16_at = |b: &[u8], i: usize| u16::from_le_bytes([b[i], b[i + 1]]) as f32;
+    let (p, t) = (view(0), view(1));
+    let positions: Vec<[f32; 3]> =
+        (0..n).map(|i| [0, 1, 2].map(|k| origin[k] + step[k] * u16_at(p, 8 * i + 2 * k))).collect();
+    let uv = |i: usize| [0, 1].map(|k| u16_at(t, 4 * i + 2 * k) / 65535.0);
+    let image = image::load_from_memory_with_format(view(2), image::ImageFormat::Jpeg).unwrap().to_rgb8();
+    assert_eq!(image.width(), image.height());
+    TexturedMesh {
+        triangles: (0..n as u32 / 3).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect(),
+        uvs: (0..n / 3).map(|i| [uv(3 * i), uv(3 * i + 1), uv(3 * i + 2)]).collect(),
+        texture: image.pixels().map(|p| p.0.map(|c| c as f32 / 255.0)).collect(),
+        texture_size: image.width(),
+        positions,
+    }
+}
+
+#[test]
+fn a_model_as_a_mesh_through_the_api_and_in_model_viewer_as_our_renderer_draws_it() {
+    let _ = tracing_subscriber::fmt().with_env_filter("radiance=warn").with_test_writer().try_init();
+    let rt = runtime();
+    let data = tempfile::tempdir().unwrap();
+    let svc = rt.block_on(Svc::start(config(data.path())));
+    let t0 = Instant::now();
+    let id = rt.block_on(async {
+        let (s, scene) = svc.post_json("/v1/demo", json!({})).await;
+        assert_eq!(s, 201, "{scene}");
+        let body = json!({ "scene_id": scene["id"], "model": "instant-tiny", "budget": { "steps": 1200 }, "seed": 1 });
+        let (s, train) = svc.post_json("/v1/jobs", body).await;
+        assert_eq!(s, 202, "{train}");
+        let done = |v: &Value| !matches!(v["status"].as_str(), Some("queued" | "running"));
+        let train = svc.wait_job(train["id"].as_str().unwrap(), 300.0, done).await;
+        assert_eq!(train["status"], "succeeded", "{train}");
+        train["model_id"].as_str().unwrap().to_string()
+    });
+    println!("trained {id} in {:.1} s", t0.elapsed().as_secs_f64());
+
+    // Bad requests, refused by name before any work.
+    rt.block_on(async {
+        for (query, field) in [
+            ("format=obj", "format"),
+            ("texture=8192", "texture"),
+            ("texture=16", "texture"),
+            ("triangles=0", "triangles"),
+            ("triangles=100000000", "triangles"),
+        ] {
+            let (s, v) = svc.get(&format!("/v1/models/{id}/mesh?{query}")).await;
+            assert_eq!(s, 400, "{query}: {v}");
+            assert_eq!(v["error"]["details"]["field"], field, "{query}: {v}");
+        }
+        let (s, v) = svc.get("/v1/models/mdl_none/mesh").await;
+        assert_eq!(s, 404, "{v}");
+        assert_error(&v, "not_found");
+    });
+
+    // The GLB, made now; the USDZ, from the same mesh: far quicker.
+    let get = |format: &str| {
+        rt.block_on(async {
+            let t = Instant::now();
+            let r = reqwest::get(svc.url(&format!("/v1/models/{id}/mesh?format={format}"))).await.unwrap();
+            assert_eq!(r.status(), 200, "{format}");
+            let header = |h: &str| r.headers()[h].to_str().unwrap().to_string();
+            assert!(header("content-disposition").ends_with(&format!("{id}.{format}\"")), "{format}");
+            let (kind, triangles) = (header("content-type"), header("x-triangles").parse::<usize>().unwrap());
+            (kind, triangles, r.bytes().await.unwrap().to_vec(), t.elapsed().as_secs_f64())
+        })
+    };
+    let (kind, triangles, glb, made) = get("glb");
+    assert_eq!(kind, "model/gltf-binary");
+    assert!(glb.starts_with(b"glTF") && (500..=200_000).contains(&triangles), "{triangles} triangles");
+    let (kind, again, usdz, kept) = get("usdz");
+    assert_eq!((kind.as_str(), again), ("model/vnd.usdz+zip", triangles));
+    assert!(usdz.starts_with(b"PK\x03\x04"), "a zip");
+    println!(
+        "mesh of {triangles} triangles: GLB {} bytes in {made:.1} s, then USDZ {} bytes in {kept:.1} s",
+        glb.len(),
+        usdz.len()
+    );
+    assert!(kept < 0.5 * made, "the USDZ was made again ({kept:.1} s against {made:.1} s)");
+
+    // The mesh as the GLB holds it, for our own renderer.
+    let placed = read_glb(&glb);
+    assert_eq!(placed.triangles.len(), triangles);
+    let top = placed.positions.iter().map(|p| p[1]).fold(0.0f32, f32::max);
+
+    // The web app: the viewer's mesh button, then model-viewer at a known
+    // camera (its orbit: azimuth from +z towards +x, polar angle from +y).
+    let browser = crate::common::cdp::Browser::launch(1200, 900);
+    let mut page = browser.page();
+    page.goto(&svc.url(&format!("/#/models/{id}")));
+    page.wait_for("!document.getElementById('view-mesh').hidden", 60.0);
+    page.click("#view-mesh");
+    page.wait_for("document.getElementById('mesh-panel').dataset.state !== 'making'", 120.0);
+    let state = page.eval("document.getElementById('mesh-state').textContent");
+    assert_eq!(page.eval("document.getElementById('mesh-panel').dataset.state"), "shown", "{state}");
+    page.wait_for("!document.getElementById('mesh-usdz').hidden", 60.0);
+    let state = page.eval("document.getElementById('mesh-state').textContent");
+    assert!(state.as_str().unwrap().contains("as USDZ"), "{state}");
+    for (link, ext) in [("mesh-glb", "glb"), ("mesh-usdz", "usdz")] {
+        let name = page.eval(&format!("document.getElementById('{link}').download"));
+        assert_eq!(name.as_str(), Some(format!("{id}.{ext}").as_str()));
+    }
+    let ar = page.eval("document.getElementById('mesh-view').getAttribute('ios-src')");
+    assert!(ar.as_str().is_some_and(|u| u.starts_with("blob:")), "the AR button's USDZ: {ar}");
+    screenshot(&mut page, "mesh", false);
+
+    let (theta, phi, radius, fov_y) = (35.0f32, 62.0f32, 1.3f32, 30.0f32);
+    let target = [0.0, 0.5 * top, 0.0];
+    let v = page.eval(&format!(
+        "(async () => {{
+           const mv = document.getElementById('mesh-view');
+           mv.scrollIntoView();
+           mv.constructor.minimumRenderScale = 1;
+           mv.setAttribute('min-camera-orbit', 'auto 0deg 0m');
+           mv.setAttribute('max-camera-orbit', 'auto 180deg 100m');
+           mv.setAttribute('camera-target', '0m {ty}m 0m');
+           mv.setAttribute('camera-orbit', '{theta}deg {phi}deg {radius}m');
+           mv.setAttribute('field-of-view', '{fov_y}deg');
+           await mv.updateComplete;
+           mv.jumpCameraToGoal();
+           for (let i = 0; i < 10; i++) await new Promise((r) => requestAnimationFrame(r));
+           const o = mv.getCameraOrbit(), t = mv.getCameraTarget();
+           window.meshCamera = {{ theta: o.theta, phi: o.phi, r: o.radius, fov: mv.getFieldOfView(), t: [t.x, t.y, t.z] }};
+           return mv.toDataURL('image/png');
+         }})()",
+        ty = target[1]
+    ));
+    let png = crate::common::cdp::base64(v.as_str().unwrap().trim_start_matches("data:image/png;base64,"));
+    let shot = image::load_from_memory(&png).unwrap().to_rgba8();
+    let (w, h) = shot.dimensions();
+    println!("model-viewer's camera: {}", page.eval("JSON.stringify(window.meshCamera)"));
+    // Over white, as our render.
+    let theirs = RgbImage::from_fn(w, h, |x, y| {
+        let p = shot.get_pixel(x, y).0;
+        let a = p[3] as f32 / 255.0;
+        image::Rgb([0, 1, 2].map(|k| (p[k] as f32 * a + 255.0 * (1.0 - a)).round() as u8))
+    });
+    let (t, p) = (theta.to_radians(), phi.to_radians());
+    let eye = [radius * p.sin() * t.sin(), target[1] + radius * p.cos(), radius * p.sin() * t.cos()];
+    let fov_x = 2.0 * ((0.5 * fov_y.to_radians()).tan() * w as f32 / h as f32).atan();
+    let camera = Camera::from_fov(w, h, fov_x, look_at(eye, target));
+    let ours = render_mesh(&placed, &camera, [1.0; 3], 3);
+    let ours = RgbImage::from_fn(w, h, |x, y| {
+        let i = (y * w + x) as usize * 3;
+        image::Rgb([0, 1, 2].map(|k| (ours.rgb[i + k].clamp(0.0, 1.0) * 255.0).round() as u8))
+    });
+    for (img, name) in [(&theirs, "mesh-model-viewer"), (&ours, "mesh-ours")] {
+        for path in crate::screenshot_paths(name) {
+            std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+            img.save(&path).unwrap();
+        }
+    }
+    let covered = theirs.pixels().filter(|p| p.0 != [255, 255, 255]).count();
+    assert!(covered > (w * h / 50) as usize, "model-viewer drew almost nothing ({covered} pixels)");
+    let psnr = rgb8_psnr(&theirs, &ours);
+    println!("model-viewer {w}x{h} against our render of the mesh: {psnr:.2} dB");
+    assert!(psnr >= 25.0, "model-viewer's picture differs from ours: {psnr:.2} dB");
+    assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
+    rt.block_on(svc.stop());
+}

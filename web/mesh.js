@@ -1,0 +1,92 @@
+// The mesh panel: a model of any kind as a textured mesh, made by the server
+// (`/v1/models/{id}/mesh`: tens of seconds the first time, kept after) and
+// shown in Google's <model-viewer> (vendored, loaded when first needed) with
+// its AR button: the GLB for the page, WebXR and Android's Scene Viewer, the
+// USDZ for AR Quick Look on iPhone and iPad. Both can be downloaded. The
+// files come with the API key, so they are shown from object URLs.
+// `#mesh-panel`'s `data-state` says where it is (`making`, `shown`,
+// `failed`), for people's scripts and the browser tests.
+
+import { api } from './api.js';
+import { $, fail, fmtBytes } from './ui.js';
+
+let library = null;
+/** What is shown: the model's id, its object URLs, the fetch to stop. */
+let shown = null;
+
+async function fetchMesh(id, format, signal) {
+  const res = await api(`/v1/models/${id}/mesh?format=${format}`, { signal });
+  const name = /filename="([^"]+)"/.exec(res.headers.get('content-disposition') || '')?.[1] || `${id}.${format}`;
+  const blob = await res.blob();
+  return { name, blob, url: URL.createObjectURL(blob), triangles: Number(res.headers.get('x-triangles')) };
+}
+
+function offer(linkId, file) {
+  const a = $(linkId);
+  Object.assign(a, { href: file.url, download: file.name, hidden: false });
+  a.title = `${file.name}, ${fmtBytes(file.blob.size)}`;
+}
+
+/** Makes (or fetches) `model`'s mesh and shows it. */
+export async function showMesh(model) {
+  closeMesh();
+  const mine = { id: model.id, urls: [], controller: new AbortController() };
+  shown = mine;
+  const panel = $('mesh-panel');
+  const state = $('mesh-state');
+  panel.hidden = false;
+  panel.dataset.state = 'making';
+  panel.scrollIntoView({ block: 'nearest' });
+  const t0 = performance.now();
+  const secs = () => ((performance.now() - t0) / 1000).toFixed(0);
+  const say = () => { state.textContent = `making the mesh: ${secs()} s (about a minute on two cores the first time)`; };
+  say();
+  const tick = setInterval(say, 1000);
+  try {
+    library ??= import('/assets/vendor/model-viewer/model-viewer.min.js');
+    await library;
+    const glb = await fetchMesh(model.id, 'glb', mine.controller.signal);
+    mine.urls.push(glb.url);
+    if (shown !== mine) return;
+    const view = $('mesh-view');
+    const drawn = new Promise((resolve, reject) => {
+      view.addEventListener('load', resolve, { once: true });
+      view.addEventListener('error', (e) => reject(new Error(`the mesh did not load: ${e.detail?.type ?? 'error'}`)), { once: true });
+    });
+    view.src = glb.url;
+    await drawn;
+    clearInterval(tick);
+    offer('mesh-glb', glb);
+    state.textContent = `${glb.triangles.toLocaleString('en')} triangles, ${fmtBytes(glb.blob.size)} as GLB, ready in ${secs()} s; the USDZ for iPhone AR follows`;
+    panel.dataset.state = 'shown';
+    // From the mesh just made (the server keeps it): quick.
+    const usdz = await fetchMesh(model.id, 'usdz', mine.controller.signal);
+    mine.urls.push(usdz.url);
+    if (shown !== mine) return;
+    view.setAttribute('ios-src', usdz.url);
+    offer('mesh-usdz', usdz);
+    state.textContent = `${glb.triangles.toLocaleString('en')} triangles: ${fmtBytes(glb.blob.size)} as GLB, ${fmtBytes(usdz.blob.size)} as USDZ`;
+  } catch (e) {
+    if (shown === mine && e.name !== 'AbortError') {
+      panel.dataset.state = 'failed';
+      state.textContent = `no mesh: ${e.message}`;
+    }
+    fail(e);
+  } finally {
+    clearInterval(tick);
+  }
+}
+
+/** Hides the panel, stops what it was fetching, frees its files. */
+export function closeMesh() {
+  if (!shown) return;
+  shown.controller.abort();
+  for (const u of shown.urls) URL.revokeObjectURL(u);
+  shown = null;
+  const view = $('mesh-view');
+  view.removeAttribute('src');
+  view.removeAttribute('ios-src');
+  for (const id of ['mesh-glb', 'mesh-usdz']) $(id).hidden = true;
+  $('mesh-panel').hidden = true;
+  delete $('mesh-panel').dataset.state;
+}
