@@ -7,12 +7,12 @@ use std::sync::atomic::AtomicBool;
 
 use crate::engine::dataset::{Dataset, Split};
 use crate::engine::geometry::camera::{Camera, look_at};
-use crate::engine::geometry::math::Vec3;
+use crate::engine::geometry::math::{Ray, Vec3};
 use crate::engine::mesh::MeshError;
 use crate::engine::models::splats::SplatsModel;
 use crate::engine::models::splats::crop::{self, CropBox, crop_around, project};
 use crate::engine::models::{Model, RenderOptions};
-use crate::engine::view::render_view_until;
+use crate::engine::view::{render_rays_until, render_view_until};
 
 /// Opacity from which a pixel's ray counts as meeting a surface.
 const SOLID: f32 = 0.5;
@@ -27,35 +27,38 @@ pub struct SurfaceView {
     pub rgb: Vec<[f32; 3]>,
 }
 
-/// Up to `n` cameras of `size x size` pixels looking at `crop`'s centre:
-/// from the training cameras' centres (evenly chosen) where the model
-/// knows them, else from a sphere around the box (its upper part, `up`
-/// being the box's z axis); each framing the box, but no wider than the
-/// training photos (a box larger than the object would leave it small).
+/// Up to `n` cameras of `size x size` pixels: where the model knows its
+/// training cameras, from their centres (evenly chosen) looking the way
+/// each looked, so that every view shows what a photo showed; else from a
+/// sphere around the box (its upper part, `up` being the box's z axis)
+/// looking at its centre. Each is as wide as the box seen from there, but
+/// no wider than the training photos (a box larger than the object would
+/// leave it small).
 pub fn cameras(model: &dyn Model, crop: &CropBox, n: usize, size: u32) -> Vec<Camera> {
     let centre = Vec3::from_array(crop.centre);
     let up = Vec3::from_array(crop.axes[2]);
     let radius = Vec3::from_array(crop.half).norm();
     let rig = model.scene().rig.as_ref();
-    let frames = rig.map(|r| r.frames.clone()).unwrap_or_default();
-    // No wider than the training photos: the object as large in the views as in them.
     let widest = rig.map(|r| r.fov_deg.to_radians()).filter(|f| *f > 0.0).unwrap_or(1.75);
-    let mut eyes: Vec<Vec3> =
-        frames.iter().map(|f| Vec3::from_array(f.centre)).filter(|&e| (e - centre).norm() > 0.1 * radius).collect();
-    if eyes.is_empty() {
+    // (eye, the direction it looks)
+    let mut poses: Vec<(Vec3, Vec3)> = rig
+        .map(|r| r.frames.as_slice())
+        .unwrap_or_default()
+        .iter()
+        .map(|f| (Vec3::from_array(f.centre), Vec3::from_array(f.axis)))
+        .filter(|&(e, _)| (e - centre).norm() > 0.1 * radius)
+        .collect();
+    if poses.is_empty() {
         // Inside the model's ray range: a field draws nothing past its far plane.
         let far = model.scene().far / model.scene().scale;
         let dist = (3.0 * radius).min(0.5 * far).max(1.2 * radius);
-        eyes = sphere(n.max(1)).into_iter().map(|d| centre + turn_up(d, up) * dist).collect();
+        poses = sphere(n.max(1)).into_iter().map(|d| (centre + turn_up(d, up) * dist, -turn_up(d, up))).collect();
     }
     let mut out = Vec::new();
-    for &eye in evenly(&eyes, n) {
-        let up_hint = if (eye - centre).normalized().is_some_and(|d| d.dot(up).abs() > 0.99) {
-            Vec3::from_array(crop.axes[1])
-        } else {
-            up
-        };
-        let Some(c2w) = look_at(eye, centre, up_hint) else { continue };
+    for &(eye, look) in evenly(&poses, n) {
+        let up_hint =
+            if look.normalized().is_some_and(|d| d.dot(up).abs() > 0.99) { Vec3::from_array(crop.axes[1]) } else { up };
+        let Some(c2w) = look_at(eye, eye + look, up_hint) else { continue };
         // The box's sphere filling the frame; at most 100 degrees across from inside it.
         let fov = 2.0 * (radius / (eye - centre).norm()).min(0.766).asin() * 1.05;
         out.push(Camera::from_fov(size, size, fov.min(widest).max(0.2), c2w));
@@ -86,20 +89,44 @@ fn turn_up(d: Vec3, up: Vec3) -> Vec3 {
 }
 
 /// Renders `camera` with the model's mean appearance, or `None` once
-/// `cancel` is set.
+/// `cancel` is set. A pixel meets a surface where the model draws it at
+/// least half opaque: for a field, where along the ray its opacity reaches
+/// one half (the median depth: the expected depth, a mean, lies between a
+/// soft surface and what is behind it); for splats, which have no median,
+/// the expected depth over the opacity.
 pub fn render(model: &dyn Model, camera: &Camera, cancel: &AtomicBool) -> Option<SurfaceView> {
+    if model.rasteriser().is_none() {
+        return render_field(model, camera, cancel);
+    }
     let view = render_view_until(model, camera, [0.0; 3], &RenderOptions::default(), cancel)?;
-    let n = view.opacity.len();
-    let mut surface = Vec::with_capacity(n);
-    let mut rgb = Vec::with_capacity(n);
-    for i in 0..n {
-        let a = view.opacity[i];
+    let mut surface = Vec::with_capacity(view.opacity.len());
+    let mut rgb = Vec::with_capacity(view.opacity.len());
+    for (i, &a) in view.opacity.iter().enumerate() {
         let solid = a >= SOLID && view.depth[i].is_finite();
         surface.push(solid.then(|| view.depth[i] / a));
-        let c = &view.rgb[3 * i..3 * i + 3];
-        rgb.push(if a > 1e-3 { [0, 1, 2].map(|k| (c[k] / a).clamp(0.0, 1.0)) } else { [0.0; 3] });
+        rgb.push(unpremultiplied(view.rgb[3 * i..3 * i + 3].try_into().expect("three channels"), a));
     }
     Some(SurfaceView { camera: camera.clone(), surface, rgb })
+}
+
+/// A field's view, its surface at each ray's median depth.
+fn render_field(model: &dyn Model, camera: &Camera, cancel: &AtomicBool) -> Option<SurfaceView> {
+    let (w, h) = (camera.width, camera.height);
+    let rays: Vec<Ray> = (0..h).flat_map(|y| (0..w).map(move |x| camera.pixel_ray(x, y))).collect();
+    let (out, _) = render_rays_until(model, &rays, [0.0; 3], &RenderOptions::default(), cancel)?;
+    // Ray distances come in model units.
+    let to_world = 1.0 / model.scene().scale;
+    let surface = out
+        .iter()
+        .map(|o| (o.opacity >= SOLID && o.median > 0.0 && o.median.is_finite()).then(|| o.median * to_world))
+        .collect();
+    let rgb = out.iter().map(|o| unpremultiplied(o.rgb, o.opacity)).collect();
+    Some(SurfaceView { camera: camera.clone(), surface, rgb })
+}
+
+/// A colour drawn over black at `opacity`, as the surface's own.
+fn unpremultiplied(c: [f32; 3], opacity: f32) -> [f32; 3] {
+    if opacity > 1e-3 { c.map(|k| (k / opacity).clamp(0.0, 1.0)) } else { [0.0; 3] }
 }
 
 /// Most cameras [`auto_crop`] renders, and the width it renders them at.

@@ -134,7 +134,7 @@ pub fn render_rays_with(
 }
 
 /// [`render_rays_with`], or `None` once `cancel` is set.
-fn render_rays_until(
+pub(crate) fn render_rays_until(
     model: &dyn Model,
     rays: &[Ray],
     background: [f32; 3],
