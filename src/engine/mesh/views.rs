@@ -118,7 +118,7 @@ fn render_field(model: &dyn Model, camera: &Camera, cancel: &AtomicBool) -> Opti
     let to_world = 1.0 / model.scene().scale;
     let surface = out
         .iter()
-        .map(|o| (o.opacity >= SOLID && o.median > 0.0 && o.median.is_finite()).then(|| o.median * to_world))
+        .map(|o| (o.opacity >= SOLID && o.median > 0.0 && o.median.is_finite()).then_some(o.median * to_world))
         .collect();
     let rgb = out.iter().map(|o| unpremultiplied(o.rgb, o.opacity)).collect();
     Some(SurfaceView { camera: camera.clone(), surface, rgb })
