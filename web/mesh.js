@@ -2,13 +2,14 @@
 // (`/v1/models/{id}/mesh`: tens of seconds the first time, kept after) and
 // shown in Google's <model-viewer> (vendored, loaded when first needed) with
 // its AR button: the GLB for the page, WebXR and Android's Scene Viewer, the
-// USDZ for AR Quick Look on iPhone and iPad. Both can be downloaded. The
+// USDZ for AR Quick Look on iPhone and iPad. Both can be downloaded, and a
+// static web site showing the mesh (a zip). The
 // files come with the API key, so they are shown from object URLs.
 // `#mesh-panel`'s `data-state` says where it is (`making`, `shown`,
 // `failed`), for people's scripts and the browser tests.
 
 import { api } from './api.js';
-import { $, fail, fmtBytes } from './ui.js';
+import { $, el, fail, fmtBytes } from './ui.js';
 
 let library = null;
 /** What is shown: the model's id, its object URLs, the fetch to stop. */
@@ -65,6 +66,7 @@ export async function showMesh(model) {
     if (shown !== mine) return;
     view.setAttribute('ios-src', usdz.url);
     offer('mesh-usdz', usdz);
+    $('mesh-site').hidden = false;
     state.textContent = `${glb.triangles.toLocaleString('en')} triangles: ${fmtBytes(glb.blob.size)} as GLB, ${fmtBytes(usdz.blob.size)} as USDZ`;
   } catch (e) {
     if (shown === mine && e.name !== 'AbortError') {
@@ -77,6 +79,18 @@ export async function showMesh(model) {
   }
 }
 
+/** Downloads the shown mesh as a static web site (a zip). */
+export async function downloadSite() {
+  if (!shown) return;
+  const site = await fetchMesh(shown.id, 'html', shown.controller.signal);
+  const a = el('a', { href: site.url, download: site.name });
+  document.body.append(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(site.url), 60000);
+  $('mesh-site').dataset.file = site.name;
+}
+
 /** Hides the panel, stops what it was fetching, frees its files. */
 export function closeMesh() {
   if (!shown) return;
@@ -86,7 +100,7 @@ export function closeMesh() {
   const view = $('mesh-view');
   view.removeAttribute('src');
   view.removeAttribute('ios-src');
-  for (const id of ['mesh-glb', 'mesh-usdz']) $(id).hidden = true;
+  for (const id of ['mesh-glb', 'mesh-usdz', 'mesh-site']) $(id).hidden = true;
   $('mesh-panel').hidden = true;
   delete $('mesh-panel').dataset.state;
 }

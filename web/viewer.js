@@ -10,7 +10,7 @@
 // tests.
 
 import { api, followJob, getJson, postJson } from './api.js';
-import { closeMesh, showMesh } from './mesh.js';
+import { closeMesh, downloadSite, showMesh } from './mesh.js';
 import { $, bakeLine, el, fail, showTab, status } from './ui.js';
 import { makeVideo } from './videos.js';
 
@@ -532,6 +532,7 @@ export function setupViewer() {
   $('view-export-go').addEventListener('click', () => downloadSplats().catch(fail));
   $('view-mesh').addEventListener('click', () => showMesh(viewer.model).catch(fail));
   $('mesh-close').addEventListener('click', () => closeMesh());
+  $('mesh-site').addEventListener('click', () => downloadSite().catch(fail));
   $('crop-edit').addEventListener('click', () => editCrop().catch(fail));
   $('crop-mode').addEventListener('change', (e) => cropEditor?.setMode(e.target.value));
   for (const what of ['auto', 'save', 'remove', 'close']) {

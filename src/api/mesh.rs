@@ -1,4 +1,4 @@
-//! `GET /v1/models/{id}/mesh?format=glb|usdz`: any trained model (field or
+//! `GET /v1/models/{id}/mesh?format=glb|usdz|html`: any trained model (field or
 //! splats) as a textured mesh (`engine::mesh`), made inside the model's crop
 //! (else its scene box; a capture's automatic crop, found from its training
 //! cameras, since its scene reaches the horizon). Making one takes tens of
@@ -19,7 +19,7 @@ use serde::Deserialize;
 
 use super::crop::invalid_field;
 use super::models::{CancelOnDrop, loaded};
-use super::{ApiError, ApiResult, AppState};
+use super::{ApiError, ApiResult, AppState, site};
 use crate::datadir::ScenePart;
 use crate::engine::front::{
     CAPTURE_KIND, CropBox, MaskUse, MeshError, MeshOptions, Model, Placement, TexturedMesh, auto_crop_any, crop_model,
@@ -32,8 +32,9 @@ use crate::records::ModelInfo;
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MeshQuery {
-    /// `glb` (default: glTF 2.0 binary, for `<model-viewer>` and Android)
-    /// or `usdz` (for AR Quick Look on iPhone and iPad).
+    /// `glb` (default: glTF 2.0 binary, for `<model-viewer>` and Android),
+    /// `usdz` (for AR Quick Look on iPhone and iPad) or `html` (a zip of a
+    /// static web site showing the mesh, with both files).
     pub format: Option<String>,
     /// Most triangles (200,000).
     pub triangles: Option<usize>,
@@ -71,6 +72,8 @@ const KEPT: usize = 2;
 enum Format {
     Glb,
     Usdz,
+    /// A zip of a static web site showing the mesh (`site::mesh_files`).
+    Html,
 }
 
 pub async fn get(
@@ -82,29 +85,41 @@ pub async fn get(
     let format = match q.format.as_deref().unwrap_or("glb") {
         "glb" => Format::Glb,
         "usdz" => Format::Usdz,
+        "html" => Format::Html,
         f => {
-            let message = format!("unknown mesh format '{f}' (expected glb or usdz)");
-            return Err(ApiError::bad_field(message, "format", f, "glb, usdz"));
+            let message = format!("unknown mesh format '{f}' (expected glb, usdz or html)");
+            return Err(ApiError::bad_field(message, "format", f, "glb, usdz, html"));
         }
     };
     let options = options_of(&q)?;
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
     let (mesh, place) = mesh_of(&s, &info, &options, q.crop.unwrap_or(true)).await?;
     let triangles = mesh.triangles.len();
-    let bytes = tokio::task::spawn_blocking(move || match format {
-        Format::Glb => mesh_glb(&mesh, &place),
-        Format::Usdz => mesh_usdz(&mesh, &place),
+    let folder = format!("{id}-mesh");
+    let title = format!("{} ({} mesh)", info.id, info.scene_id);
+    let bytes = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<u8>> {
+        match format {
+            Format::Glb => mesh_glb(&mesh, &place),
+            Format::Usdz => mesh_usdz(&mesh, &place),
+            Format::Html => {
+                let files = site::mesh_files(&title, mesh_glb(&mesh, &place)?, mesh_usdz(&mesh, &place)?);
+                let mut out = Vec::new();
+                site::write_zip(&folder, &files, std::io::Cursor::new(&mut out))?;
+                Ok(out)
+            }
+        }
     })
     .await?
     .map_err(ApiError::internal)?;
-    let (ext, content_type) = match format {
-        Format::Glb => ("glb", "model/gltf-binary"),
-        Format::Usdz => ("usdz", "model/vnd.usdz+zip"),
+    let (file, content_type) = match format {
+        Format::Glb => (format!("{id}.glb"), "model/gltf-binary"),
+        Format::Usdz => (format!("{id}.usdz"), "model/vnd.usdz+zip"),
+        Format::Html => (format!("{id}-mesh.zip"), "application/zip"),
     };
     Ok((
         [
             (CONTENT_TYPE, content_type.to_string()),
-            (CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.{ext}\"")),
+            (CONTENT_DISPOSITION, format!("attachment; filename=\"{file}\"")),
             (HeaderName::from_static(TRIANGLES_HEADER), triangles.to_string()),
         ],
         bytes,

@@ -118,6 +118,44 @@ pub fn files(title: &str, view: &ViewDefaults, spz: Vec<u8>) -> io::Result<Vec<(
     Ok(out)
 }
 
+/// A mesh's site: `index.html` showing `model.glb` in `<model-viewer>`
+/// (vendored, with its licence), the window filled, with its AR button
+/// (`model.usdz` for AR Quick Look), as the web app's mesh panel shows it.
+pub fn mesh_files(title: &str, glb: Vec<u8>, usdz: Vec<u8>) -> Vec<(String, Vec<u8>)> {
+    let title = title.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;");
+    let page = format!(
+        r#"<!doctype html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{title}</title>
+<link rel="icon" href="data:,">
+<script type="module" src="./vendor/model-viewer/model-viewer.min.js"></script>
+<style>html, body {{ margin: 0; height: 100%; background: #fff; }} model-viewer {{ width: 100%; height: 100%; }}</style>
+</head>
+<body>
+<model-viewer src="model.glb" ios-src="model.usdz" alt="{title}" camera-controls touch-action="pan-y"
+              tone-mapping="none" shadow-intensity="0" ar ar-modes="webxr scene-viewer quick-look"></model-viewer>
+<script>
+// Says when the mesh is shown (or cannot be), for scripts that wait on it.
+const viewer = document.querySelector('model-viewer');
+viewer.addEventListener('load', () => {{ document.body.dataset.ready = 'true'; }});
+viewer.addEventListener('error', () => {{ document.body.dataset.ready = 'error'; }});
+</script>
+</body>
+</html>
+"#
+    );
+    let mut out = vec![("index.html".to_string(), page.into_bytes())];
+    for a in ASSETS.iter().filter(|a| a.name.starts_with("vendor/model-viewer/")) {
+        out.push((a.name.to_string(), a.body.as_bytes().to_vec()));
+    }
+    out.push(("model.glb".to_string(), glb));
+    out.push(("model.usdz".to_string(), usdz));
+    out
+}
+
 /// The site as a zip of one folder, `folder/`.
 pub fn write_zip(folder: &str, files: &[(String, Vec<u8>)], out: impl Write + Seek) -> io::Result<()> {
     let mut zip = zip::ZipWriter::new(out);
@@ -125,9 +163,10 @@ pub fn write_zip(folder: &str, files: &[(String, Vec<u8>)], out: impl Write + Se
         .compression_method(zip::CompressionMethod::Deflated)
         .unix_permissions(0o644);
     for (name, bytes) in files {
-        // The splats barely compress: stored, they unzip faster.
+        // The splats and the GLB (its texture a JPEG) barely compress:
+        // stored, they unzip faster.
         let options = match name.as_str() {
-            SPLAT_FILE => options.compression_method(zip::CompressionMethod::Stored),
+            SPLAT_FILE | "model.glb" => options.compression_method(zip::CompressionMethod::Stored),
             _ => options,
         };
         zip.start_file(format!("{folder}/{name}"), options).map_err(io::Error::other)?;
@@ -171,5 +210,24 @@ mod tests {
         let mut splat = Vec::new();
         std::io::Read::read_to_end(&mut read.by_name("site/scene.spz").unwrap(), &mut splat).unwrap();
         assert_eq!(splat, [1, 2, 3]);
+    }
+
+    #[test]
+    fn the_mesh_site_has_the_page_model_viewer_with_its_licence_and_both_files() {
+        let files = mesh_files("a \"<mesh>\"", b"glTF".to_vec(), b"PK".to_vec());
+        let names: Vec<&str> = files.iter().map(|f| f.0.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "index.html",
+                "vendor/model-viewer/model-viewer.min.js",
+                "vendor/model-viewer/LICENSE",
+                "model.glb",
+                "model.usdz"
+            ]
+        );
+        let page = String::from_utf8(files[0].1.clone()).unwrap();
+        assert!(page.contains(r#"alt="a &quot;&lt;mesh&gt;&quot;""#), "{page}");
+        assert!(page.contains(r#"src="model.glb" ios-src="model.usdz""#));
     }
 }

@@ -6,7 +6,9 @@
 //!   WebGL2: the software renderer here) with its AR button and both files
 //!   to download; set to a known camera, its picture matches our own CPU
 //!   render of the same mesh (`engine::mesh::raster`, the GLB read back)
-//!   at that camera.
+//!   at that camera;
+//! - the mesh's static site (`format=html`), unzipped and served by a plain
+//!   static file server, shows it in model-viewer too.
 
 use std::time::Instant;
 
@@ -208,5 +210,44 @@ fn a_model_as_a_mesh_through_the_api_and_in_model_viewer_as_our_renderer_draws_i
     println!("model-viewer {w}x{h} against our render of the mesh: {psnr:.2} dB");
     assert!(psnr >= 25.0, "model-viewer's picture differs from ours: {psnr:.2} dB");
     assert!(page.errors.is_empty(), "the page reported JavaScript errors: {:#?}", page.errors);
+
+    // The panel's web-page download, then that site served by a plain
+    // static file server: model-viewer draws the mesh there too.
+    page.click("#mesh-site");
+    page.wait_for(&format!("document.getElementById('mesh-site').dataset.file === '{id}-mesh.zip'"), 60.0);
+    let zip = rt.block_on(async {
+        let r = reqwest::get(svc.url(&format!("/v1/models/{id}/mesh?format=html"))).await.unwrap();
+        assert_eq!(r.status(), 200);
+        assert_eq!(r.headers()["content-type"], "application/zip");
+        r.bytes().await.unwrap().to_vec()
+    });
+    let site = tempfile::tempdir().unwrap();
+    zip::ZipArchive::new(std::io::Cursor::new(zip)).unwrap().extract(site.path()).unwrap();
+    let root = site.path().join(format!("{id}-mesh"));
+    for f in ["index.html", "model.glb", "model.usdz", "vendor/model-viewer/LICENSE"] {
+        assert!(root.join(f).is_file(), "{f} missing from the site");
+    }
+    assert_eq!(std::fs::read(root.join("model.glb")).unwrap(), glb, "the site's GLB is the API's");
+    let server = crate::realtime::StaticServer::start(&root);
+    let mut page = browser.page();
+    page.goto(&format!("{}/index.html", server.url));
+    page.wait_for("document.querySelector('model-viewer').loaded", 60.0);
+    let drawn = page.eval(
+        "(async () => {
+           const mv = document.querySelector('model-viewer');
+           for (let i = 0; i < 10; i++) await new Promise((r) => requestAnimationFrame(r));
+           const img = new Image(); img.src = mv.toDataURL('image/png'); await img.decode();
+           const c = document.createElement('canvas'); c.width = img.width; c.height = img.height;
+           const g = c.getContext('2d'); g.drawImage(img, 0, 0);
+           const d = g.getImageData(0, 0, c.width, c.height).data;
+           let n = 0; for (let i = 3; i < d.length; i += 4) if (d[i] > 128) n++;
+           return n / (c.width * c.height);
+         })()",
+    );
+    println!("the mesh's site: {:.1}% of the window drawn", 100.0 * drawn.as_f64().unwrap());
+    assert!(drawn.as_f64().unwrap() > 0.02, "the site's model-viewer drew almost nothing: {drawn}");
+    assert_eq!(page.eval("document.querySelector('model-viewer').getAttribute('ios-src')"), "model.usdz");
+    screenshot(&mut page, "mesh-site", false);
+    assert!(page.errors.is_empty(), "the site reported JavaScript errors: {:#?}", page.errors);
     rt.block_on(svc.stop());
 }

@@ -69,13 +69,13 @@ fn frame_rate(page: &mut Page, view: &str, secs: f64) -> f64 {
 }
 
 /// `python3 -m http.server` over `dir` on a free port of 127.0.0.1.
-struct StaticServer {
+pub(crate) struct StaticServer {
     child: Child,
-    url: String,
+    pub url: String,
 }
 
 impl StaticServer {
-    fn start(dir: &std::path::Path) -> StaticServer {
+    pub fn start(dir: &std::path::Path) -> StaticServer {
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
         let child = Command::new("python3")
             .args(["-m", "http.server", "--bind", "127.0.0.1", &port.to_string()])
