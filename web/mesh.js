@@ -1,5 +1,6 @@
 // The mesh panel: a model of any kind as a textured mesh, made by the server
-// (`/v1/models/{id}/mesh`: tens of seconds the first time, kept after) and
+// (`/v1/models/{id}/mesh`: tens of seconds the first time, while the server
+// answers 202 with its progress; kept after) and
 // shown in Google's <model-viewer> (vendored, loaded when first needed) with
 // its AR button: the GLB for the page, WebXR and Android's Scene Viewer, the
 // USDZ for AR Quick Look on iPhone and iPad. Both can be downloaded, and a
@@ -15,8 +16,23 @@ let library = null;
 /** What is shown: the model's id, its object URLs, the fetch to stop. */
 let shown = null;
 
-async function fetchMesh(id, format, signal) {
-  const res = await api(`/v1/models/${id}/mesh?format=${format}`, { signal });
+const sleep = (ms, signal) => new Promise((resolve, reject) => {
+  const t = setTimeout(resolve, ms);
+  signal.addEventListener('abort', () => { clearTimeout(t); reject(new DOMException('stopped', 'AbortError')); }, { once: true });
+});
+
+/**
+ * The mesh as `format`: while the server makes it (202, its progress),
+ * asks again as it says, telling `onProgress`.
+ */
+async function fetchMesh(id, format, signal, onProgress = () => {}) {
+  let res;
+  for (;;) {
+    res = await api(`/v1/models/${id}/mesh?format=${format}`, { signal });
+    if (res.status !== 202) break;
+    onProgress(await res.json());
+    await sleep(1000 * Number(res.headers.get('retry-after') || 2), signal);
+  }
   const name = /filename="([^"]+)"/.exec(res.headers.get('content-disposition') || '')?.[1] || `${id}.${format}`;
   const blob = await res.blob();
   return { name, blob, url: URL.createObjectURL(blob), triangles: Number(res.headers.get('x-triangles')) };
@@ -40,13 +56,15 @@ export async function showMesh(model) {
   panel.scrollIntoView({ block: 'nearest' });
   const t0 = performance.now();
   const secs = () => ((performance.now() - t0) / 1000).toFixed(0);
-  const say = () => { state.textContent = `making the mesh: ${secs()} s (about a minute on two cores the first time)`; };
+  let doing = 'starting';
+  const say = () => { state.textContent = `making the mesh: ${doing}, ${secs()} s (about a minute on two cores the first time)`; };
   say();
   const tick = setInterval(say, 1000);
+  const onProgress = (p) => { doing = `${p.stage} (${Math.round(100 * p.progress)}%)`; say(); };
   try {
     library ??= import('/assets/vendor/model-viewer/model-viewer.min.js');
     await library;
-    const glb = await fetchMesh(model.id, 'glb', mine.controller.signal);
+    const glb = await fetchMesh(model.id, 'glb', mine.controller.signal, onProgress);
     mine.urls.push(glb.url);
     if (shown !== mine) return;
     const view = $('mesh-view');

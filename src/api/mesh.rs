@@ -2,28 +2,34 @@
 //! splats) as a textured mesh (`engine::mesh`), made inside the model's crop
 //! (else its scene box; a capture's automatic crop, found from its training
 //! cameras, since its scene reaches the horizon). Making one takes tens of
-//! seconds, so this node makes one at a time and keeps the last few: the
-//! GLB that `<model-viewer>` shows and the USDZ of AR Quick Look asked for
-//! after it come from the same mesh, and the second is quick. A client that
-//! goes away stops the work.
+//! seconds, so the first request starts it in the background and answers
+//! `202 Accepted` with its progress; asking again answers the same until
+//! the mesh is made, then the file. This node makes one mesh at a time (a
+//! request for another meanwhile is a 503 with `Retry-After`) and keeps the
+//! last two: the GLB that `<model-viewer>` shows and the USDZ of AR Quick
+//! Look asked for after it come from the same mesh, and the second is
+//! quick.
 
-use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
+use axum::Json;
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{Path, Query, State};
-use axum::http::HeaderName;
-use axum::http::header::{CONTENT_DISPOSITION, CONTENT_TYPE};
-use axum::response::IntoResponse;
+use axum::http::header::{CONTENT_DISPOSITION, CONTENT_TYPE, RETRY_AFTER};
+use axum::http::{HeaderName, StatusCode};
+use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
+use serde_json::json;
 
 use super::crop::invalid_field;
-use super::models::{CancelOnDrop, loaded};
-use super::{ApiError, ApiResult, AppState, site};
+use super::models::loaded;
+use super::{ApiError, ApiResult, AppState, Code, site};
 use crate::datadir::ScenePart;
 use crate::engine::front::{
-    CAPTURE_KIND, CropBox, MaskUse, MeshError, MeshOptions, Model, Placement, TexturedMesh, auto_crop_any, crop_model,
-    make_mesh, mesh_glb, mesh_usdz, scene_box,
+    CAPTURE_KIND, CropBox, MESH_STAGES, MaskUse, MeshError, MeshOptions, Model, Placement, TexturedMesh, auto_crop_any,
+    crop_model, make_mesh, mesh_glb, mesh_usdz, scene_box,
 };
 use crate::jobs::scoring::load_dataset;
 use crate::records::ModelInfo;
@@ -52,11 +58,16 @@ pub const MAX_TEXTURE: u32 = 4096;
 /// The triangles the mesh holds.
 pub const TRIANGLES_HEADER: &str = "x-triangles";
 
-/// Meshes made lately, most recent first, and the lock that lets this node
-/// make one at a time.
+/// Meshes made lately, most recent first, and the one being made.
 #[derive(Default)]
 pub struct MeshCache {
-    made: tokio::sync::Mutex<Vec<Made>>,
+    state: Mutex<CacheState>,
+}
+
+#[derive(Default)]
+struct CacheState {
+    made: Vec<Made>,
+    making: Option<Making>,
 }
 
 struct Made {
@@ -65,8 +76,21 @@ struct Made {
     place: Placement,
 }
 
+/// The mesh being made in the background, or why it could not be.
+struct Making {
+    key: String,
+    started: Instant,
+    /// The stage (`MESH_STAGES`) and the share done, as f32 bits.
+    stage: Arc<AtomicUsize>,
+    done: Arc<AtomicU32>,
+    failed: Option<ApiError>,
+}
+
 /// Meshes kept (each up to ~60 MB with a 2048-texel texture).
 const KEPT: usize = 2;
+
+/// How long a client is told to wait before asking again, seconds.
+const RETRY_SECS: u32 = 2;
 
 #[derive(Clone, Copy, PartialEq)]
 enum Format {
@@ -80,7 +104,7 @@ pub async fn get(
     State(s): State<AppState>,
     Path(id): Path<String>,
     q: Result<Query<MeshQuery>, QueryRejection>,
-) -> ApiResult<impl IntoResponse> {
+) -> ApiResult<Response> {
     let Query(q) = q?;
     let format = match q.format.as_deref().unwrap_or("glb") {
         "glb" => Format::Glb,
@@ -93,7 +117,13 @@ pub async fn get(
     };
     let options = options_of(&q)?;
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
-    let (mesh, place) = mesh_of(&s, &info, &options, q.crop.unwrap_or(true)).await?;
+    let (mesh, place) = match mesh_of(&s, &info, &options, q.crop.unwrap_or(true))? {
+        Ready::Made(mesh, place) => (mesh, place),
+        Ready::Making(progress) => {
+            let retry = [(RETRY_AFTER, RETRY_SECS.to_string())];
+            return Ok((StatusCode::ACCEPTED, retry, Json(progress)).into_response());
+        }
+    };
     let triangles = mesh.triangles.len();
     let folder = format!("{id}-mesh");
     let title = format!("{} ({} mesh)", info.id, info.scene_id);
@@ -123,7 +153,8 @@ pub async fn get(
             (HeaderName::from_static(TRIANGLES_HEADER), triangles.to_string()),
         ],
         bytes,
-    ))
+    )
+        .into_response())
 }
 
 /// The query's options, checked (400 naming the one out of range).
@@ -144,14 +175,16 @@ fn options_of(q: &MeshQuery) -> ApiResult<MeshOptions> {
     Ok(options)
 }
 
-/// The model's mesh with these options: kept from before, or made now
-/// (one at a time on this node).
-async fn mesh_of(
-    s: &AppState,
-    info: &ModelInfo,
-    options: &MeshOptions,
-    use_crop: bool,
-) -> ApiResult<(Arc<TexturedMesh>, Placement)> {
+/// A mesh asked for: made, or being made (its progress).
+enum Ready {
+    Made(Arc<TexturedMesh>, Placement),
+    Making(serde_json::Value),
+}
+
+/// The model's mesh with these options: kept from before, or being made
+/// (started now if nothing else is being made; a 503 if something is), or
+/// why it could not be made (said once, then forgotten).
+fn mesh_of(s: &AppState, info: &ModelInfo, options: &MeshOptions, use_crop: bool) -> ApiResult<Ready> {
     let record_crop = info.crop.filter(|_| use_crop);
     let key = format!(
         "{}/{}/{}/{}/{}",
@@ -161,22 +194,95 @@ async fn mesh_of(
         options.triangles,
         options.texture
     );
-    let mut made = s.meshes.made.lock().await;
-    if let Some(m) = made.iter().find(|m| m.key == key) {
-        return Ok((m.mesh.clone(), m.place));
+    let mut state = s.meshes.state.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(m) = state.made.iter().find(|m| m.key == key) {
+        return Ok(Ready::Made(m.mesh.clone(), m.place));
     }
+    match &mut state.making {
+        Some(m) if m.key == key => {
+            if let Some(e) = m.failed.take() {
+                state.making = None;
+                return Err(e);
+            }
+            return Ok(Ready::Making(progress(m)));
+        }
+        Some(m) if m.failed.is_none() => {
+            let stage = MESH_STAGES[m.stage.load(Ordering::Relaxed).min(MESH_STAGES.len() - 1)];
+            return Err(ApiError::new(
+                Code::Unavailable,
+                format!("this node is making another mesh ({stage}): ask again in a few seconds"),
+            )
+            .with_details(json!({ "retry_after": RETRY_SECS })));
+        }
+        _ => {}
+    }
+    let making = Making {
+        key: key.clone(),
+        started: Instant::now(),
+        stage: Arc::new(AtomicUsize::new(0)),
+        done: Arc::new(AtomicU32::new(0)),
+        failed: None,
+    };
+    let (stage, done) = (making.stage.clone(), making.done.clone());
+    let answer = progress(&making);
+    state.making = Some(making);
+    drop(state);
+    let (s, info, options) = (s.clone(), info.clone(), options.clone());
+    tokio::spawn(async move {
+        let made = make(&s, &info, record_crop, options, stage, done).await;
+        let mut state = s.meshes.state.lock().unwrap_or_else(|e| e.into_inner());
+        match made {
+            Ok((mesh, place)) => {
+                state.made.insert(0, Made { key, mesh: Arc::new(mesh), place });
+                state.made.truncate(KEPT);
+                state.making = None;
+            }
+            Err(e) => {
+                tracing::warn!(model = %info.id, error = %e.message, "no mesh");
+                if let Some(m) = state.making.as_mut().filter(|m| m.key == key) {
+                    m.failed = Some(e);
+                }
+            }
+        }
+    });
+    Ok(Ready::Making(answer))
+}
+
+/// The 202's body: what is being done, how far, for how long.
+fn progress(m: &Making) -> serde_json::Value {
+    let stage = m.stage.load(Ordering::Relaxed).min(MESH_STAGES.len() - 1);
+    let done = f32::from_bits(m.done.load(Ordering::Relaxed));
+    json!({
+        "status": "making",
+        "stage": MESH_STAGES[stage],
+        "progress": (done.clamp(0.0, 1.0) * 1000.0).round() / 1000.0,
+        "elapsed": (m.started.elapsed().as_secs_f64() * 10.0).round() / 10.0,
+    })
+}
+
+/// Makes the mesh: the model loaded, its crop found, then the engine.
+async fn make(
+    s: &AppState,
+    info: &ModelInfo,
+    record_crop: Option<CropBox>,
+    options: MeshOptions,
+    stage: Arc<AtomicUsize>,
+    done: Arc<AtomicU32>,
+) -> ApiResult<(TexturedMesh, Placement)> {
     let model = loaded(s, info).await?.model;
     let crop = match record_crop {
         Some(b) => b,
         None => default_crop(s, info, &model).await?,
     };
-    let cancel = CancelOnDrop(Arc::new(AtomicBool::new(false)));
-    let flag = cancel.0.clone();
-    let options = options.clone();
-    let (mesh, place) = tokio::task::spawn_blocking(move || -> ApiResult<(TexturedMesh, Placement)> {
+    tokio::task::spawn_blocking(move || -> ApiResult<(TexturedMesh, Placement)> {
         let cropped = crop_model(&*model, &crop).map_err(|e| invalid_field("crop", e.to_string()))?;
         let source: &dyn Model = cropped.as_ref().map_or(&*model, |m| m as &dyn Model);
-        let (mesh, _) = make_mesh(source, &crop, &options, &mut |_, _| {}, &flag).map_err(|e| match e {
+        let mut report = |k: usize, d: f32| {
+            stage.store(k, Ordering::Relaxed);
+            done.store(d.to_bits(), Ordering::Relaxed);
+        };
+        let never = AtomicBool::new(false);
+        let (mesh, _) = make_mesh(source, &crop, &options, &mut report, &never).map_err(|e| match e {
             MeshError::Empty => ApiError::conflict(format!("{e}: set another crop (PUT /v1/models/{{id}}/crop)")),
             e => ApiError::internal(e),
         })?;
@@ -184,12 +290,7 @@ async fn mesh_of(
         let place = Placement::new(&mesh, &crop, front, 0.5);
         Ok((mesh, place))
     })
-    .await??;
-    drop(cancel);
-    let mesh = Arc::new(mesh);
-    made.insert(0, Made { key, mesh: mesh.clone(), place });
-    made.truncate(KEPT);
-    Ok((mesh, place))
+    .await?
 }
 
 /// Without a crop: the scene's box, or for a capture (whose scene reaches

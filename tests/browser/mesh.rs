@@ -1,7 +1,9 @@
 //! The textured mesh through the API and in the web app: the demo scene
 //! (generated) trained briefly, then
-//! - `GET /v1/models/{id}/mesh` gives a GLB and a USDZ, named and typed, the
-//!   second from the mesh the first made; bad options are refused by name;
+//! - `GET /v1/models/{id}/mesh` answers 202 with its progress while it
+//!   makes the mesh (another mesh meanwhile: 503), then a GLB; a USDZ,
+//!   named and typed, comes from the same mesh at once; bad options are
+//!   refused by name;
 //! - the viewer's mesh button shows it in `<model-viewer>` (vendored, on
 //!   WebGL2: the software renderer here) with its AR button and both files
 //!   to download; set to a known camera, its picture matches our own CPU
@@ -107,22 +109,47 @@ fn a_model_as_a_mesh_through_the_api_and_in_model_viewer_as_our_renderer_draws_i
         assert_error(&v, "not_found");
     });
 
-    // The GLB, made now; the USDZ, from the same mesh: far quicker.
-    let get = |format: &str| {
+    // A small GLB: being made (202, its progress, asked again as it says),
+    // then the file; the USDZ, from the same mesh at once.
+    let get = |format: &str, query: &str, probe: bool| {
         rt.block_on(async {
             let t = Instant::now();
-            let r = reqwest::get(svc.url(&format!("/v1/models/{id}/mesh?format={format}"))).await.unwrap();
-            assert_eq!(r.status(), 200, "{format}");
+            let url = svc.url(&format!("/v1/models/{id}/mesh?format={format}{query}"));
+            let mut r = reqwest::get(&url).await.unwrap();
+            let mut waits = 0;
+            while r.status() == 202 {
+                let retry: u64 = r.headers()["retry-after"].to_str().unwrap().parse().unwrap();
+                let p: Value = r.json().await.unwrap();
+                assert_eq!(p["status"], "making", "{p}");
+                assert!((0.0..=1.0).contains(&p["progress"].as_f64().unwrap()) && p["stage"].is_string(), "{p}");
+                if probe && waits == 0 {
+                    // Another mesh meanwhile: refused until this one is made.
+                    let (s, v) = svc.get(&format!("/v1/models/{id}/mesh?triangles=1000")).await;
+                    assert_eq!(s, 503, "{v}");
+                    assert!(v["error"]["message"].as_str().unwrap().contains("another mesh"), "{v}");
+                }
+                waits += 1;
+                assert!(waits < 300, "the mesh is still being made");
+                tokio::time::sleep(std::time::Duration::from_secs(retry.min(2))).await;
+                r = reqwest::get(&url).await.unwrap();
+            }
+            if r.status() != 200 {
+                let v: Value = r.json().await.unwrap();
+                return Err(v);
+            }
             let header = |h: &str| r.headers()[h].to_str().unwrap().to_string();
             assert!(header("content-disposition").ends_with(&format!("{id}.{format}\"")), "{format}");
             let (kind, triangles) = (header("content-type"), header("x-triangles").parse::<usize>().unwrap());
-            (kind, triangles, r.bytes().await.unwrap().to_vec(), t.elapsed().as_secs_f64())
+            Ok((kind, triangles, r.bytes().await.unwrap().to_vec(), t.elapsed().as_secs_f64(), waits))
         })
     };
-    let (kind, triangles, glb, made) = get("glb");
+    let small = "&triangles=20000&texture=1024";
+    let (kind, triangles, glb, made, waits) = get("glb", small, true).unwrap();
+    assert!(waits > 0, "the first request for a mesh did not answer 202 while making it");
     assert_eq!(kind, "model/gltf-binary");
-    assert!(glb.starts_with(b"glTF") && (500..=200_000).contains(&triangles), "{triangles} triangles");
-    let (kind, again, usdz, kept) = get("usdz");
+    assert!(glb.starts_with(b"glTF") && (500..=20_000).contains(&triangles), "{triangles} triangles");
+    let (kind, again, usdz, kept, waits) = get("usdz", small, false).unwrap();
+    assert_eq!(waits, 0, "the USDZ was made again");
     assert_eq!((kind.as_str(), again), ("model/vnd.usdz+zip", triangles));
     assert!(usdz.starts_with(b"PK\x03\x04"), "a zip");
     println!(
@@ -130,12 +157,16 @@ fn a_model_as_a_mesh_through_the_api_and_in_model_viewer_as_our_renderer_draws_i
         glb.len(),
         usdz.len()
     );
-    assert!(kept < 0.5 * made, "the USDZ was made again ({kept:.1} s against {made:.1} s)");
 
-    // The mesh as the GLB holds it, for our own renderer.
-    let placed = read_glb(&glb);
-    assert_eq!(placed.triangles.len(), triangles);
-    let top = placed.positions.iter().map(|p| p[1]).fold(0.0f32, f32::max);
+    // Inside a crop that holds nothing: made in the background, then said.
+    let far = json!({ "centre": [50, 50, 50], "axes": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "half": [0.1, 0.1, 0.1] });
+    let (s, v) = rt.block_on(svc.put_json(&format!("/v1/models/{id}/crop"), far));
+    assert_eq!(s, 200, "{v}");
+    let e = get("glb", small, false).expect_err("a mesh of nothing");
+    assert_error(&e, "conflict");
+    assert!(e["error"]["message"].as_str().unwrap().contains("no surface inside the crop box"), "{e}");
+    let (s, v) = rt.block_on(svc.delete(&format!("/v1/models/{id}/crop")));
+    assert_eq!(s, 204, "{v}");
 
     // The web app: the viewer's mesh button, then model-viewer at a known
     // camera (its orbit: azimuth from +z towards +x, polar angle from +y).
@@ -157,6 +188,15 @@ fn a_model_as_a_mesh_through_the_api_and_in_model_viewer_as_our_renderer_draws_i
     let ar = page.eval("document.getElementById('mesh-view').getAttribute('ios-src')");
     assert!(ar.as_str().is_some_and(|u| u.starts_with("blob:")), "the AR button's USDZ: {ar}");
     screenshot(&mut page, "mesh", false);
+
+    // The page's mesh (the defaults), kept by the server: at once, as read
+    // back for our own renderer.
+    let (_, triangles, glb, _, waits) = get("glb", "", false).unwrap();
+    assert_eq!(waits, 0, "the page's mesh was not kept");
+    assert!((20_000..=200_000).contains(&triangles), "{triangles} triangles");
+    let placed = read_glb(&glb);
+    assert_eq!(placed.triangles.len(), triangles);
+    let top = placed.positions.iter().map(|p| p[1]).fold(0.0f32, f32::max);
 
     let (theta, phi, radius, fov_y) = (35.0f32, 62.0f32, 1.3f32, 30.0f32);
     let target = [0.0, 0.5 * top, 0.0];
