@@ -353,7 +353,7 @@ pub async fn export(
 }
 
 /// Sets its flag when dropped.
-pub(super) struct CancelOnDrop(pub(super) Arc<AtomicBool>);
+struct CancelOnDrop(Arc<AtomicBool>);
 
 impl Drop for CancelOnDrop {
     fn drop(&mut self) {
