@@ -18,8 +18,9 @@ use serde_json::json;
 use super::error::Code;
 use super::{ApiError, ApiResult, AppState, models};
 use crate::datadir::ScenePart;
-use crate::engine::front::{CropBox, CropError, MaskUse, auto_crop_for, crop_model, splats_of};
+use crate::engine::front::{CropBox, CropError, Dataset, MaskUse, auto_crop_for, crop_model, splats_of};
 use crate::jobs::scoring::load_dataset;
+use crate::records::ModelInfo;
 
 /// The body of `PUT /v1/models/{id}/crop`.
 enum CropRequest {
@@ -87,17 +88,9 @@ pub async fn put(
                     model.kind()
                 )));
             }
-            let scene = s.jobs.get_scene(&info.scene_id).await?.ok_or_else(|| {
-                ApiError::conflict(format!(
-                    "model '{id}''s scene '{}' is gone: its training cameras are needed to find the crop",
-                    info.scene_id
-                ))
-            })?;
-            let files = s.artifacts.scene_files(&scene, ScenePart::Data).await?;
+            let ds = training_set(&s, &info, "find the crop").await?;
             let model = model.clone();
             let found = tokio::task::spawn_blocking(move || -> ApiResult<Option<CropBox>> {
-                let ds = load_dataset(&files.path, &scene, MaskUse::Off)
-                    .map_err(|e| ApiError::internal(format!("loading the scene to find the crop: {e}")))?;
                 auto_crop_for(splats_of(&*model).expect("checked above"), &ds).map_err(invalid)
             })
             .await??;
@@ -115,6 +108,21 @@ pub async fn put(
     let info = s.jobs.set_crop(&id, Some(b)).await?;
     tracing::info!(model = %id, "crop set");
     Ok(Json(info.crop.expect("just set")))
+}
+
+/// The model's scene as it trained on it (no masks), loaded on the blocking
+/// threads, to find an automatic crop from its training cameras; `purpose`
+/// completes "needed to ..." and "loading the scene to ..." in the errors.
+pub(super) async fn training_set(s: &AppState, info: &ModelInfo, purpose: &str) -> ApiResult<Dataset> {
+    let scene = s.jobs.get_scene(&info.scene_id).await?.ok_or_else(|| {
+        ApiError::conflict(format!(
+            "model '{}''s scene '{}' is gone: its training cameras are needed to {purpose}",
+            info.id, info.scene_id
+        ))
+    })?;
+    let files = s.artifacts.scene_files(&scene, ScenePart::Data).await?;
+    let loaded = tokio::task::spawn_blocking(move || load_dataset(&files.path, &scene, MaskUse::Off)).await?;
+    loaded.map_err(|e| ApiError::internal(format!("loading the scene to {purpose}: {e}")))
 }
 
 /// `DELETE`: removes the crop (204; 404 when there was none).

@@ -23,15 +23,13 @@ use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 use serde_json::json;
 
-use super::crop::invalid_field;
+use super::crop::{invalid_field, training_set};
 use super::models::loaded;
 use super::{ApiError, ApiResult, AppState, Code, site};
-use crate::datadir::ScenePart;
 use crate::engine::front::{
-    CAPTURE_KIND, CropBox, MESH_STAGES, MaskUse, MeshError, MeshOptions, Model, Placement, TexturedMesh, auto_crop_any,
+    CAPTURE_KIND, CropBox, MESH_STAGES, MeshError, MeshOptions, Model, Placement, TexturedMesh, auto_crop_any,
     crop_model, make_mesh, mesh_glb, mesh_usdz, scene_box,
 };
-use crate::jobs::scoring::load_dataset;
 use crate::records::ModelInfo;
 
 /// Query of `GET /v1/models/{id}/mesh`.
@@ -207,10 +205,9 @@ fn mesh_of(s: &AppState, info: &ModelInfo, options: &MeshOptions, use_crop: bool
             return Ok(Ready::Making(progress(m)));
         }
         Some(m) if m.failed.is_none() => {
-            let stage = MESH_STAGES[m.stage.load(Ordering::Relaxed).min(MESH_STAGES.len() - 1)];
             return Err(ApiError::new(
                 Code::Unavailable,
-                format!("this node is making another mesh ({stage}): ask again in a few seconds"),
+                format!("this node is making another mesh ({}): ask again in a few seconds", m.stage()),
             )
             .with_details(json!({ "retry_after": RETRY_SECS })));
         }
@@ -248,13 +245,19 @@ fn mesh_of(s: &AppState, info: &ModelInfo, options: &MeshOptions, use_crop: bool
     Ok(Ready::Making(answer))
 }
 
+impl Making {
+    /// What is being done (one of `MESH_STAGES`).
+    fn stage(&self) -> &'static str {
+        MESH_STAGES[self.stage.load(Ordering::Relaxed).min(MESH_STAGES.len() - 1)]
+    }
+}
+
 /// The 202's body: what is being done, how far, for how long.
 fn progress(m: &Making) -> serde_json::Value {
-    let stage = m.stage.load(Ordering::Relaxed).min(MESH_STAGES.len() - 1);
     let done = f32::from_bits(m.done.load(Ordering::Relaxed));
     json!({
         "status": "making",
-        "stage": MESH_STAGES[stage],
+        "stage": m.stage(),
         "progress": (done.clamp(0.0, 1.0) * 1000.0).round() / 1000.0,
         "elapsed": (m.started.elapsed().as_secs_f64() * 10.0).round() / 10.0,
     })
@@ -299,18 +302,10 @@ async fn default_crop(s: &AppState, info: &ModelInfo, model: &Arc<dyn Model>) ->
     if model.kind() != CAPTURE_KIND {
         return Ok(scene_box(&**model));
     }
-    let scene = s.jobs.get_scene(&info.scene_id).await?.ok_or_else(|| {
-        ApiError::conflict(format!(
-            "model '{}''s scene '{}' is gone: its training cameras are needed to find the object; PUT a crop box",
-            info.id, info.scene_id
-        ))
-    })?;
-    let files = s.artifacts.scene_files(&scene, ScenePart::Data).await?;
+    let ds = training_set(s, info, "find the object (or PUT a crop box)").await?;
     let model = model.clone();
     let id = info.id.clone();
     tokio::task::spawn_blocking(move || -> ApiResult<CropBox> {
-        let ds = load_dataset(&files.path, &scene, MaskUse::Off)
-            .map_err(|e| ApiError::internal(format!("loading the scene to find the object: {e}")))?;
         auto_crop_any(&*model, &ds, &AtomicBool::new(false))
             .map_err(|e| ApiError::conflict(format!("finding the object: {e}")))?
             .ok_or_else(|| {

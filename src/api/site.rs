@@ -52,7 +52,7 @@ pub fn index_html(title: &str, camera: &Camera, view: &ViewDefaults) -> String {
         "near": (view.radius * 0.01).max(1e-4),
         "far": (view.far * 4.0).max(view.radius * 10.0),
     });
-    let title = title.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;");
+    let title = escape(title);
     format!(
         r#"<!doctype html>
 <html lang="en">
@@ -118,11 +118,16 @@ pub fn files(title: &str, view: &ViewDefaults, spz: Vec<u8>) -> io::Result<Vec<(
     Ok(out)
 }
 
+/// `text` for HTML, in an element or a quoted attribute.
+fn escape(text: &str) -> String {
+    text.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+}
+
 /// A mesh's site: `index.html` showing `model.glb` in `<model-viewer>`
 /// (vendored, with its licence), the window filled, with its AR button
 /// (`model.usdz` for AR Quick Look), as the web app's mesh panel shows it.
 pub fn mesh_files(title: &str, glb: Vec<u8>, usdz: Vec<u8>) -> Vec<(String, Vec<u8>)> {
-    let title = title.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;");
+    let title = escape(title);
     let page = format!(
         r#"<!doctype html>
 <html lang="en">
