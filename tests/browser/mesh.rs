@@ -20,22 +20,8 @@ use serde_json::{Value, json};
 
 use crate::common::psnr::rgb8_psnr;
 use crate::common::{Svc, assert_error, config};
+use crate::realtime::look_at;
 use crate::{runtime, screenshot};
-
-/// Camera rows looking from `eye` at `at`, world up +y (model-viewer's).
-fn look_at(eye: [f32; 3], at: [f32; 3]) -> [[f32; 4]; 3] {
-    let sub = |a: [f32; 3], b: [f32; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let cross =
-        |a: [f32; 3], b: [f32; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-    let unit = |a: [f32; 3]| {
-        let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
-        a.map(|x| x / n)
-    };
-    let back = unit(sub(eye, at));
-    let right = unit(cross([0.0, 1.0, 0.0], back));
-    let up = cross(back, right);
-    [0, 1, 2].map(|i| [right[i], up[i], back[i], eye[i]])
-}
 
 /// Our GLB's mesh (`engine::mesh::export::glb`: three corners a triangle,
 /// positions as 16-bit steps of the node's scale from its translation,
@@ -78,17 +64,8 @@ fn a_model_as_a_mesh_through_the_api_and_in_model_viewer_as_our_renderer_draws_i
     let data = tempfile::tempdir().unwrap();
     let svc = rt.block_on(Svc::start(config(data.path())));
     let t0 = Instant::now();
-    let id = rt.block_on(async {
-        let (s, scene) = svc.post_json("/v1/demo", json!({})).await;
-        assert_eq!(s, 201, "{scene}");
-        let body = json!({ "scene_id": scene["id"], "model": "instant-tiny", "budget": { "steps": 1200 }, "seed": 1 });
-        let (s, train) = svc.post_json("/v1/jobs", body).await;
-        assert_eq!(s, 202, "{train}");
-        let done = |v: &Value| !matches!(v["status"].as_str(), Some("queued" | "running"));
-        let train = svc.wait_job(train["id"].as_str().unwrap(), 300.0, done).await;
-        assert_eq!(train["status"], "succeeded", "{train}");
-        train["model_id"].as_str().unwrap().to_string()
-    });
+    let train = rt.block_on(svc.trained_demo(1200));
+    let id = train["model_id"].as_str().unwrap().to_string();
     println!("trained {id} in {:.1} s", t0.elapsed().as_secs_f64());
 
     // Bad requests, refused by name before any work.
@@ -232,7 +209,8 @@ fn a_model_as_a_mesh_through_the_api_and_in_model_viewer_as_our_renderer_draws_i
     let (t, p) = (theta.to_radians(), phi.to_radians());
     let eye = [radius * p.sin() * t.sin(), target[1] + radius * p.cos(), radius * p.sin() * t.cos()];
     let fov_x = 2.0 * ((0.5 * fov_y.to_radians()).tan() * w as f32 / h as f32).atan();
-    let camera = Camera::from_fov(w, h, fov_x, look_at(eye, target));
+    let c2w = look_at(eye.map(f64::from), target.map(f64::from), [0.0, 1.0, 0.0]).map(|r| r.map(|x| x as f32));
+    let camera = Camera::from_fov(w, h, fov_x, c2w);
     let ours = render_mesh(&placed, &camera, [1.0; 3], 3);
     let ours = RgbImage::from_fn(w, h, |x, y| {
         let i = (y * w + x) as usize * 3;

@@ -101,7 +101,7 @@ impl Drop for StaticServer {
 }
 
 /// Our camera: c2w rows looking from `eye` at `at` with world up `up`.
-fn look_at(eye: [f64; 3], at: [f64; 3], up: [f64; 3]) -> [[f64; 4]; 3] {
+pub(crate) fn look_at(eye: [f64; 3], at: [f64; 3], up: [f64; 3]) -> [[f64; 4]; 3] {
     let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
     let cross =
         |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
@@ -125,14 +125,8 @@ fn baked_splats_draw_in_the_browser_as_the_server_renders_them_and_the_exported_
 
     // A generated scene, a brief training, a small bake: all as jobs.
     let (model, splats_id) = rt.block_on(async {
-        let (s, scene) = svc.post_json("/v1/demo", json!({})).await;
-        assert_eq!(s, 201, "{scene}");
-        let body = json!({ "scene_id": scene["id"], "model": "instant-tiny", "budget": { "steps": 300 }, "seed": 1 });
-        let (s, train) = svc.post_json("/v1/jobs", body).await;
-        assert_eq!(s, 202, "{train}");
+        let train = svc.trained_demo(300).await;
         let done = |v: &Value| !matches!(v["status"].as_str(), Some("queued" | "running"));
-        let train = svc.wait_job(train["id"].as_str().unwrap(), 300.0, done).await;
-        assert_eq!(train["status"], "succeeded", "{train}");
         let source = train["model_id"].as_str().unwrap().to_string();
 
         // Not splats: no export, with a reason.

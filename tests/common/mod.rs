@@ -220,6 +220,20 @@ impl Svc {
         v["id"].as_str().unwrap().to_string()
     }
 
+    /// The demo scene (`POST /v1/demo`) trained for `steps` steps of
+    /// `instant-tiny` (seed 1): the finished training job.
+    pub async fn trained_demo(&self, steps: u64) -> Value {
+        let (s, scene) = self.post_json("/v1/demo", json!({})).await;
+        assert_eq!(s, StatusCode::CREATED, "{scene}");
+        let body = json!({ "scene_id": scene["id"], "model": "instant-tiny", "budget": { "steps": steps }, "seed": 1 });
+        let (s, train) = self.post_json("/v1/jobs", body).await;
+        assert_eq!(s, StatusCode::ACCEPTED, "{train}");
+        let done = |v: &Value| !matches!(v["status"].as_str(), Some("queued" | "running"));
+        let train = self.wait_job(train["id"].as_str().unwrap(), 300.0, done).await;
+        assert_eq!(train["status"], "succeeded", "{train}");
+        train
+    }
+
     /// Polls a job until `pred` holds. Panics once the job has not moved
     /// (its status, attempt, stage and step all as they were) for `secs`,
     /// or after [`MOVING_JOB_WAITS`] times `secs` in all: a job that keeps
