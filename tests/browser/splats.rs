@@ -16,6 +16,7 @@ use serde_json::Value;
 
 use crate::common::cdp::Browser;
 use crate::common::{Svc, config};
+use crate::realtime::look_at;
 use crate::{runtime, screenshot};
 
 /// One Gaussian: position, scale (linear), colour RGBA, rotation (w, x, y, z).
@@ -67,22 +68,6 @@ fn scene() -> Vec<Gaussian> {
         }
     }
     out
-}
-
-/// Our camera: c2w rows (OpenGL: x right, y up, looking down -z) looking
-/// from `eye` at `at` with world up +y.
-fn look_at(eye: [f64; 3], at: [f64; 3]) -> [[f64; 4]; 3] {
-    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let cross =
-        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-    let unit = |a: [f64; 3]| {
-        let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
-        [a[0] / n, a[1] / n, a[2] / n]
-    };
-    let back = unit(sub(eye, at));
-    let right = unit(cross([0.0, 1.0, 0.0], back));
-    let up = cross(back, right);
-    [0, 1, 2].map(|i| [right[i], up[i], back[i], eye[i]])
 }
 
 /// Where our pinhole camera sees world point `p`: pixel coordinates
@@ -166,7 +151,7 @@ fn the_splat_viewer_draws_where_our_camera_says_and_moves_without_the_server() {
     // An off-centre principal point, to check that it is honoured.
     let (width, height) = (320u32, 240u32);
     let k = [290.0, 290.0, 150.0, 130.0];
-    let c2w = look_at([0.9, 1.1, 2.6], [0.05, 0.1, 0.1]);
+    let c2w = look_at([0.9, 1.1, 2.6], [0.05, 0.1, 0.1], [0.0, 1.0, 0.0]);
     let setup = format!(
         "(async () => {{
            const m = await import('/assets/splats.js');
