@@ -285,9 +285,13 @@ print(json.dumps({'names': [p.name for p in v.properties], 'rows': [[float(x) fo
 
 /// `radiance train --model splats`: a field (auto's choice) trained for a
 /// third of `--seconds` and kept beside the output, then splats fitted for
-/// the rest; they render held-out views better than their field (the
-/// demo ball, 30 s on 2 threads, this test's build: field 29.02 dB, splats
-/// 34.82). It trains by time only, and is not resumed.
+/// the rest; they render held-out views nearly as well as their field (the
+/// demo object, 30 s on 2 threads, this test's build, 2-core EPYC: field
+/// 35.44 and 36.30 dB in two runs, splats 35.20 and 35.06; CI's run of
+/// bc6c19e: 35.93 and 35.03). The field gains with the machine's speed and
+/// the splats stay near 35 dB, so the bars are 32 dB and the field's score
+/// less 2 dB, which an unfitted placement (about 18 dB) or a broken fit
+/// does not reach. It trains by time only, and is not resumed.
 #[test]
 fn train_model_splats_fits_splats_from_a_field_it_trains_first() {
     let _alone = alone();
@@ -325,7 +329,10 @@ fn train_model_splats_fits_splats_from_a_field_it_trains_first() {
     };
     let (psnr_splats, psnr_field) = (eval(&out), eval(&field));
     println!("train --model splats --seconds 30: field {psnr_field:.2} dB, splats {psnr_splats:.2} dB");
-    assert!(psnr_splats > 25.0 && psnr_splats > psnr_field, "splats {psnr_splats:.2} dB, field {psnr_field:.2} dB");
+    assert!(
+        psnr_splats > 32.0 && psnr_splats > psnr_field - 2.0,
+        "splats {psnr_splats:.2} dB, field {psnr_field:.2} dB"
+    );
 
     for (args, says) in [
         (vec!["--steps", "10"], "--seconds"),
