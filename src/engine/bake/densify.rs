@@ -2,6 +2,7 @@
 //! Gaussians: those the loss wants to move on the image are cloned when
 //! small and split when large, and nearly transparent ones go.
 
+use super::clear::CameraBalls;
 use crate::engine::models::Model;
 use crate::engine::models::splats::SplatsModel;
 use crate::engine::models::splats::gaussians::{Layout, rotation_matrix, unit_quat};
@@ -22,13 +23,15 @@ pub(super) fn densify(
     adam: &Adam,
     grad_accum: &[(f32, u32)],
     max: usize,
+    balls: &CameraBalls,
     rng: &mut Rng,
 ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
     let l = model.layout();
     let p = model.params();
     let n = l.n;
     let sig = |x: f32| 1.0 / (1.0 + (-x).exp());
-    let keep: Vec<usize> = (0..n).filter(|&i| sig(p[10 * n + i]) >= PRUNE_OPACITY).collect();
+    let at = |i: usize| [p[3 * i], p[3 * i + 1], p[3 * i + 2]];
+    let keep: Vec<usize> = (0..n).filter(|&i| sig(p[10 * n + i]) >= PRUNE_OPACITY && balls.clear(at(i))).collect();
     let mut grow: Vec<usize> = keep
         .iter()
         .copied()
@@ -80,4 +83,45 @@ pub(super) fn densify(
         }
     }
     (params, m, v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::bake::Placed;
+    use crate::engine::bake::place::parameters;
+    use crate::engine::bake::testutil::facing_origin;
+    use crate::engine::geometry::camera::Camera;
+    use crate::engine::models::splats::SplatsConfig;
+    use crate::engine::models::splats::raster::RasterCamera;
+
+    #[test]
+    fn pruning_drops_what_is_near_a_camera_and_what_is_transparent() {
+        let (scene, c2w) = facing_origin();
+        let cam = RasterCamera::new(&Camera::from_fov(30, 30, 1.0, c2w), &scene);
+        let o = cam.origin;
+        // At the origin; half a unit beside the camera; a unit behind it.
+        let placed =
+            [[0.0; 3], [o[0] + 0.5, o[1], o[2]], [o[0], o[1] - 1.0, o[2]]].map(|at| Placed::ball(at, 0.1, [0.5; 3]));
+        let config = SplatsConfig { sh_degree: 0, ..Default::default() };
+        let model = SplatsModel::from_parts(config, scene, parameters(&placed, 0)).unwrap();
+        let adam = Adam::new(Default::default(), model.params().len());
+        let none = vec![(0.0, 0); 3];
+        let kept = |radius: f32, model: &SplatsModel| {
+            let balls = CameraBalls::new(&[cam], radius);
+            let (params, m, _) = densify(model, &adam, &none, 0, &balls, &mut Rng::new(1));
+            assert_eq!(m.len(), params.len());
+            let l = Layout::of_len(params.len(), 0).unwrap();
+            (0..l.n).map(|i| l.get(&params, i).mean).collect::<Vec<_>>()
+        };
+        assert_eq!(kept(0.0, &model).len(), 3);
+        assert_eq!(kept(0.8, &model), vec![placed[0].at, placed[2].at]);
+        assert_eq!(kept(1.5, &model), vec![placed[0].at]);
+        // A transparent one goes whatever the balls.
+        let mut params = model.params().to_vec();
+        let l = model.layout();
+        params[l.opacities().start] = -10.0;
+        let faded = SplatsModel::from_parts(model.config.clone(), model.scene().clone(), params).unwrap();
+        assert_eq!(kept(0.0, &faded), vec![placed[1].at, placed[2].at]);
+    }
 }

@@ -2,6 +2,7 @@
 //! `bake`, stage 2): the state between steps, one step, and Adam's rates
 //! per block.
 
+use super::clear::CameraBalls;
 use super::{BakeSettings, COARSE_SHARE, densify};
 use crate::engine::dataset::Dataset;
 use crate::engine::models::Model;
@@ -60,6 +61,8 @@ pub(super) struct Fit<'a> {
     pub step: u64,
     pub smoothed_psnr: f64,
     grads: Vec<f32>,
+    /// No Gaussian stays this near a training camera (`clear`).
+    balls: CameraBalls,
 }
 
 impl<'a> Fit<'a> {
@@ -93,8 +96,12 @@ impl<'a> Fit<'a> {
                 if camera.distortion.is_identity() { rgb } else { lens::undistort_photo(camera, &rgb) }
             })
             .collect();
+        let cams: Vec<RasterCamera> =
+            frames.iter().map(|&f| RasterCamera::new(&ds.frames[f].camera, model.scene())).collect();
+        let balls = CameraBalls::new(&cams, model.scene().near);
         let n = model.layout().n;
         Self {
+            balls,
             ds,
             frames,
             settings,
@@ -162,7 +169,8 @@ impl<'a> Fit<'a> {
 
     /// Densifies and prunes within `max` Gaussians (0: prunes only).
     pub fn densify(&mut self, max: usize) {
-        let (params, m, v) = densify::densify(&self.model, &self.adam, &self.grad_accum, max, &mut self.rng);
+        let (params, m, v) =
+            densify::densify(&self.model, &self.adam, &self.grad_accum, max, &self.balls, &mut self.rng);
         self.adam.m = m;
         self.adam.v = v;
         let scene = self.model.scene().clone();

@@ -8,6 +8,8 @@
 //!    with the field's colour. Then
 //!    every photo's rays carve: a Gaussian well in front of what another
 //!    photo saw along it is a floater in that photo's free space, and goes.
+//!    None is kept within the capture's near bound of a training camera
+//!    ([`clear`]), then or at any later pruning: no photo looks there.
 //! 2. **Fitting** ([`fit`], [`densify`]) against the training photos with
 //!    the differentiable rasteriser: one whole photo a step (at half size
 //!    first, for large photos), mean squared error, Adam with per-block
@@ -18,6 +20,7 @@
 //! `docs/design/splats.md`.
 
 mod carve;
+mod clear;
 mod densify;
 mod fit;
 mod place;

@@ -5,6 +5,7 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::carve::{self, DepthGrid};
+use super::clear::CameraBalls;
 use super::{BakeError, BakeSettings};
 use super::{Placed, in_frame};
 use crate::engine::batch::RayOutput;
@@ -106,6 +107,8 @@ fn place_at(
         grids.push(grid);
     }
     let mut placed = carve::carve(placed, &owners, &outside, &grids, &cams);
+    let balls = CameraBalls::new(&cams, scene.near);
+    placed.retain(|p| balls.clear(p.at));
     if placed.is_empty() {
         return Err(BakeError::Empty);
     }
