@@ -72,7 +72,7 @@ pub struct CreateBake {
     pub steps: Option<u64>,
     /// Spherical-harmonic degree of the colours, 0-3 (1).
     pub sh_degree: Option<u32>,
-    /// The most Gaussians (500000).
+    /// The most Gaussians (300000).
     pub max_gaussians: Option<usize>,
     #[serde(default)]
     pub seed: u64,
