@@ -28,13 +28,13 @@ const MIN_SAMPLES: f32 = 8.0;
 const NEAREST: usize = 4;
 const MAX_TURN_COS: f32 = 0.866;
 /// A cell is transient when its error is this many times the reference
-/// (the median over the neighbouring photos of the worst error in the
+/// (the median over the neighbouring photos of the mean error of the
 /// three by three cells around the same place)...
-const SEED_RATIO: f32 = 4.0;
+const SEED_RATIO: f32 = 6.0;
 /// ...with at least [`NEIGHBOURS`] of its eight neighbours this many times
 /// theirs, which also takes in the neighbours of a transient cell (an
 /// occluder's edge covers part of a cell).
-const GROW_RATIO: f32 = 2.0;
+const GROW_RATIO: f32 = 3.0;
 const NEIGHBOURS: usize = 2;
 /// A cell's mean squared error must also reach this (an RMS error of 0.1 a
 /// channel) to be transient: a capture fitted well everywhere has nothing
@@ -248,7 +248,7 @@ impl TransientMaps {
                     let o = &self.photos[q];
                     // The same place in photo q's grid.
                     let (qx, qy) = ((x * o.nx / c.nx) as i64, (y * o.ny / c.ny) as i64);
-                    let mut worst: Option<f32> = None;
+                    let (mut sum, mut cells) = (0.0f32, 0.0f32);
                     for b in qy - 1..=qy + 1 {
                         for a in qx - 1..=qx + 1 {
                             if a < 0 || b < 0 || a >= o.nx as i64 || b >= o.ny as i64 {
@@ -256,12 +256,14 @@ impl TransientMaps {
                             }
                             let m = (b * o.nx as i64 + a) as usize;
                             if o.count[m] >= MIN_SAMPLES {
-                                let e = o.sum[m] / o.count[m];
-                                worst = Some(worst.map_or(e, |w: f32| w.max(e)));
+                                sum += o.sum[m] / o.count[m];
+                                cells += 1.0;
                             }
                         }
                     }
-                    refs.extend(worst);
+                    if cells > 0.0 {
+                        refs.push(sum / cells);
+                    }
                 }
                 if refs.is_empty() {
                     return 0.0;
