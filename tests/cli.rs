@@ -366,9 +366,11 @@ fn a_served_log_in_a_file_has_no_colour_codes() {
     assert!(!text.contains('\u{1b}'), "colour codes in a log file: {text:?}");
 }
 
-/// `--drop-transients`: refused for a model that cannot find transients
-/// (nothing written); with `bench --occlude`, the masks found are scored
-/// against the pasted ones, printed and kept in the JSON report.
+/// Transients: a `capture` model drops them by default (`--keep-transients`
+/// trains on every pixel); `--drop-transients` is refused for a model that
+/// cannot find them (nothing written); with `bench --occlude`, the masks
+/// found are scored against the pasted ones, printed and kept in the JSON
+/// report.
 #[test]
 fn drop_transients_on_the_command_line() {
     let dir = tempfile::tempdir().unwrap();
@@ -384,7 +386,7 @@ fn drop_transients_on_the_command_line() {
     let json = dir.path().join("bench.json");
     let saved = dir.path().join("saved");
     let args = ["bench", "--data", d, "--model", "capture-tiny", "--budgets", "0.5", "--test-views", "1"];
-    let more = ["--occlude", "0.5", "--drop-transients", "--json", json.to_str().unwrap()];
+    let more = ["--occlude", "0.5", "--json", json.to_str().unwrap()];
     let out = ok(&radiance(&[&args[..], &more[..], &["--save", saved.to_str().unwrap()]].concat()));
     assert!(out.contains("transient masks: ") && out.contains("% of the static pixels"), "{out}");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
@@ -407,19 +409,24 @@ fn drop_transients_on_the_command_line() {
         let v = found[key].as_f64().unwrap_or(-1.0);
         assert!((0.0..=1.0).contains(&v), "{key}: {found}");
     }
-    // Without the flag, nothing is scored.
-    let out = ok(&radiance(&[&args[..], &["--occlude", "0.5"]].concat()));
+    // Trained on every pixel, nothing is scored.
+    let out = ok(&radiance(&[&args[..], &["--occlude", "0.5", "--keep-transients"]].concat()));
     assert!(!out.contains("transient masks"), "{out}");
+    let both = radiance(&[&args[..], &["--drop-transients", "--keep-transients"]].concat());
+    assert!(!both.status.success(), "{}", String::from_utf8_lossy(&both.stdout));
 
     // `train` reports what it dropped and writes one mask a training photo,
     // named by its stem, of its size, 0 or 255.
     let masks = dir.path().join("masks");
     let args = ["train", "--data", d, "--model", "capture-tiny", "--steps", "20", "--out", m];
-    let out = radiance(&[&args[..], &["--transient-masks", masks.to_str().unwrap()]].concat());
+    let instant = ["train", "--data", d, "--model", "instant", "--steps", "2", "--out", m];
+    let out = radiance(&[&instant[..], &["--transient-masks", masks.to_str().unwrap()]].concat());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("--drop-transients"), "{err}");
-    let out =
-        ok(&radiance(&[&args[..], &["--drop-transients", "--transient-masks", masks.to_str().unwrap()]].concat()));
+    assert!(!out.status.success() && err.contains("--transient-masks needs a capture model"), "{err}");
+    assert!(!model.exists() && !masks.exists());
+    let out = radiance(&[&args[..], &["--keep-transients", "--transient-masks", masks.to_str().unwrap()]].concat());
+    assert!(!out.status.success() && !masks.exists(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = ok(&radiance(&[&args[..], &["--transient-masks", masks.to_str().unwrap()]].concat()));
     assert!(out.contains("transients     ") && out.contains("% of the training pixels dropped, in "), "{out}");
     let mut stems: Vec<String> = std::fs::read_dir(data.join("train"))
         .unwrap()
@@ -441,7 +448,8 @@ fn drop_transients_on_the_command_line() {
     assert_eq!(maps.photos().len(), stems.len());
 
     // `train --model splats`: its field (a capture model for these opaque
-    // photos) drops transients, and its masks are written too.
+    // photos) drops transients, and its masks are written too (the flag
+    // asks for what is the default).
     let llff = dir.path().join("llff");
     BallScene { size: 16, views: 8, ..Default::default() }.write_llff(&llff).unwrap();
     let masks = dir.path().join("splat_masks");

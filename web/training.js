@@ -183,7 +183,9 @@ export function setupTraining() {
     try {
       const body = { scene_id: $('train-scene').value, model: $('train-model').value, budget };
       if ($('train-bake').checked) body.bake = { seconds: Number($('train-bake-seconds').value) || 60 };
-      if ($('train-transients').checked) body.drop_transients = true;
+      // Checked: the service's default (capture models drop transients,
+      // others do not); unchecked: every pixel is trained on.
+      if (!$('train-transients').checked) body.drop_transients = false;
       const job = await postJson('/v1/jobs', body);
       status(`job ${job.id} queued`);
       watchJob(job);

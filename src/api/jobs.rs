@@ -48,9 +48,10 @@ pub struct CreateJob {
     /// Bake the model into splats when training succeeds.
     pub bake: Option<BakeBudget>,
     /// Find transient occluders (a passer-by in a few photos) from the
-    /// training errors and stop training on them (`capture` models).
+    /// training errors and stop training on them: `capture` models do
+    /// unless this is `false`; other models refuse `true`.
     #[serde(default)]
-    pub drop_transients: bool,
+    pub drop_transients: Option<bool>,
 }
 
 /// A bake's budget: seconds (60 when neither is given) or optimisation steps.
@@ -163,7 +164,8 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
         return Err(ApiError::bad_field("batch_rays must be in 1..=65536", "batch_rays", batch_rays, "1..=65536"));
     }
     let masks = mask_use(r.masks)?;
-    if r.drop_transients && config.kind() != CAPTURE_KIND {
+    let capture = config.kind() == CAPTURE_KIND;
+    if r.drop_transients == Some(true) && !capture {
         let message = format!("drop_transients needs a capture model (this one is '{}')", config.kind());
         return Err(ApiError::bad_field(message, "drop_transients", true, CAPTURE_KIND));
     }
@@ -187,7 +189,7 @@ fn to_spec(r: CreateJob, choice: Option<ModelChoice>) -> ApiResult<TrainSpec> {
         batch_rays,
         masks,
         bake,
-        drop_transients: r.drop_transients,
+        drop_transients: r.drop_transients.unwrap_or(capture),
     })
 }
 

@@ -18,7 +18,7 @@ pub async fn get(State(s): State<AppState>, Path((id, photo)): Path<(String, Str
     let info = s.jobs.get_model(&id).await?.ok_or_else(|| ApiError::not_found("model", &id))?;
     if info.transients.is_none() {
         return Err(ApiError::conflict(format!(
-            "model '{id}' has no transient masks: it was not trained with drop_transients (or is still training)"
+            "model '{id}' has no transient masks: it did not drop transients (a model other than capture, or drop_transients false) or is still training"
         )));
     }
     let maps = models::loaded(&s, &info).await?.transients;

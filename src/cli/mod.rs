@@ -114,24 +114,30 @@ pub struct MaskArgs {
 pub struct TransientArgs {
     /// Find transient occluders (something in a few photos only: a
     /// passer-by, a hand) from the training errors and stop training on
-    /// them (`capture` models).
-    #[arg(long)]
+    /// them. The default for `capture` models; other models refuse it.
+    #[arg(long, conflicts_with = "keep_transients")]
     pub drop_transients: bool,
+    /// Train a `capture` model on every pixel: no transient occluders are
+    /// looked for.
+    #[arg(long)]
+    pub keep_transients: bool,
 }
 
 impl TransientArgs {
-    /// `config` (of a model of kind `kind`) as these arguments ask; a model
-    /// that cannot find transients is refused.
+    /// `config` (of a model of kind `kind`) as these arguments ask: a
+    /// `capture` model drops transients unless `--keep-transients` says
+    /// not to; another model asked to is refused.
     pub fn apply(
         &self,
         kind: &str,
         config: crate::engine::front::TrainConfig,
     ) -> anyhow::Result<crate::engine::front::TrainConfig> {
+        let capture = kind == crate::engine::front::CAPTURE_KIND;
         anyhow::ensure!(
-            !self.drop_transients || kind == crate::engine::front::CAPTURE_KIND,
+            !self.drop_transients || capture,
             "--drop-transients needs a capture model (this one is {kind})"
         );
-        Ok(crate::engine::front::TrainConfig { drop_transients: self.drop_transients, ..config })
+        Ok(crate::engine::front::TrainConfig { drop_transients: capture && !self.keep_transients, ..config })
     }
 }
 

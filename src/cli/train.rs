@@ -77,11 +77,12 @@ pub struct TrainArgs {
     pub masks: MaskArgs,
     #[command(flatten)]
     pub transients: TransientArgs,
-    /// With --drop-transients: write each training photo's mask into this
-    /// folder when training ends, as DIR/NAME.png (the photo's file stem):
-    /// 255 where the pixel was trained on, 0 where it was dropped, the
-    /// layout of a dataset's `masks/` folder.
-    #[arg(long, requires = "drop_transients", value_name = "DIR")]
+    /// A `capture` model (which drops transients unless --keep-transients):
+    /// write each training photo's mask into this folder when training
+    /// ends, as DIR/NAME.png (the photo's file stem): 255 where the pixel
+    /// was trained on, 0 where it was dropped, the layout of a dataset's
+    /// `masks/` folder.
+    #[arg(long, conflicts_with = "keep_transients", value_name = "DIR")]
     pub transient_masks: Option<PathBuf>,
     #[command(flatten)]
     pub common: Common,
@@ -297,6 +298,11 @@ fn open_session<'a>(
         config.kind(),
         TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) },
     )?;
+    anyhow::ensure!(
+        a.transient_masks.is_none() || train.drop_transients,
+        "--transient-masks needs a capture model, which finds transients (this one is {})",
+        config.kind()
+    );
     let start = match &a.resume {
         Some(p) => Start::Resume { from: p.clone(), kind: Some(config.kind().to_string()) },
         None => {

@@ -507,6 +507,11 @@ async fn jobs_drop_transients_and_serve_the_masks() {
     assert_eq!(s, StatusCode::BAD_REQUEST, "{v}");
     assert_eq!(v["error"]["details"]["field"], "drop_transients", "{v}");
     assert!(v["error"]["message"].as_str().unwrap().contains("needs a capture model"), "{v}");
+    // Unasked, another model trains on every pixel.
+    let nerf = accepted(&svc, json!({ "scene_id": scene, "model": "nerf-tiny", "budget": { "steps": 2 } })).await;
+    assert!(nerf.get("drop_transients").is_none(), "{nerf}");
+    let nerf = nerf["id"].as_str().unwrap().to_string();
+    svc.wait_job(&nerf, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
 
     let job = accepted(&svc, body("capture-tiny")).await;
     assert_eq!(job["drop_transients"], true, "{job}");
@@ -531,8 +536,15 @@ async fn jobs_drop_transients_and_serve_the_masks() {
     assert_eq!(s, StatusCode::NOT_FOUND, "{v}");
     assert!(v["error"]["message"].as_str().unwrap().contains("training photo 'nope' not found"), "{v}");
 
-    // A model trained on every pixel has no masks.
-    let job = accepted(&svc, json!({ "scene_id": scene, "model": "capture-tiny", "budget": { "steps": 2 } })).await;
+    // A capture model drops transients unless told not to; one trained on
+    // every pixel has no masks.
+    let default = accepted(&svc, json!({ "scene_id": scene, "model": "capture-tiny", "budget": { "steps": 2 } })).await;
+    assert_eq!(default["drop_transients"], true, "{default}");
+    let default = default["id"].as_str().unwrap().to_string();
+    svc.wait_job(&default, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
+    let body =
+        json!({ "scene_id": scene, "model": "capture-tiny", "budget": { "steps": 2 }, "drop_transients": false });
+    let job = accepted(&svc, body).await;
     assert!(job.get("drop_transients").is_none(), "{job}");
     let id = job["id"].as_str().unwrap().to_string();
     let job = svc.wait_job(&id, 120.0, |v| v["status"] != "queued" && v["status"] != "running").await;
@@ -541,6 +553,6 @@ async fn jobs_drop_transients_and_serve_the_masks() {
     assert!(m.get("transients").is_none(), "{m}");
     let (s, v) = svc.get(&format!("/v1/models/{plain}/transients/{name}")).await;
     assert_eq!(s, StatusCode::CONFLICT, "{v}");
-    assert!(v["error"]["message"].as_str().unwrap().contains("not trained with drop_transients"), "{v}");
+    assert!(v["error"]["message"].as_str().unwrap().contains("it did not drop transients"), "{v}");
     svc.stop().await;
 }

@@ -79,7 +79,7 @@ pub struct BenchArgs {
     /// Write what was scored into this folder, to look at: each scored
     /// view's render (MODEL_STEP_NAME.png: the model's kind, its steps, the
     /// view's name) and, with --occlude, each occluded training photo
-    /// (NAME.occluded.png) with, under --drop-transients, the mask training
+    /// (NAME.occluded.png) with, where training dropped transients, the mask training
     /// found for it (NAME.found.png: 255 trained on, 0 dropped).
     #[arg(long, value_name = "DIR")]
     pub save: Option<PathBuf>,
