@@ -459,4 +459,11 @@ fn drop_transients_on_the_command_line() {
     let out = ok(&radiance(&[&args[..], &more[..]].concat()));
     assert!(out.contains("transients     ") && out.contains("(the field's)"), "{out}");
     assert!(std::fs::read_dir(&masks).unwrap().count() > 0 && splats.exists(), "{out}");
+    // An `instant` field (the transparent ball) finds none: refused.
+    let (masks, splats) = (dir.path().join("no_masks"), dir.path().join("no.ckpt"));
+    let args = ["train", "--data", d, "--model", "splats", "--seconds", "4", "--out", splats.to_str().unwrap()];
+    let out = radiance(&[&args[..], &["--transient-masks", masks.to_str().unwrap()]].concat());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--transient-masks needs a capture field"), "{err}");
+    assert!(!masks.exists() && !splats.exists() && !dir.path().join("no.field.ckpt").exists());
 }

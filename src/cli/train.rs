@@ -210,6 +210,10 @@ fn train_splats(a: &TrainArgs, ds: &Dataset, threads: usize) -> anyhow::Result<(
         config.kind(),
         TrainConfig { model_choice: choice, ..config.train_config(a.seed, a.batch_rays, budget) },
     )?;
+    anyhow::ensure!(
+        a.transient_masks.is_none() || train.drop_transients,
+        "--transient-masks needs a capture field, which finds transients (this one is {field_kind})"
+    );
     let config = SessionConfig { train, out: field_out, checkpoint_every: a.checkpoint_every, held_out: None };
     let mut session = Session::new(Start::Fresh { model, adam }, config.clone(), ds)?;
     describe(a, &session, ds, threads);
