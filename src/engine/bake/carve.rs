@@ -83,16 +83,15 @@ pub(super) fn carve(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::bake::testutil::facing_origin;
-    use crate::engine::geometry::camera::Camera;
+    use crate::engine::bake::testutil::facing_camera;
 
     #[test]
     fn carving_drops_what_another_photo_sees_through_and_keeps_what_it_sees() {
-        let (scene, c2w) = facing_origin();
+        let (_, cam) = facing_camera();
         // Both photos look at the origin from 4 units away along -y; photo
         // 1 saw a wall 4 units away everywhere (3x3 cells of 10 px), photo
         // 0 is unsure of all its depths.
-        let cams = vec![RasterCamera::new(&Camera::from_fov(30, 30, 1.0, c2w), &scene); 2];
+        let cams = vec![cam; 2];
         let grid = |d: f32| DepthGrid { nx: 3, ny: 3, origin: [0.0; 2], spacing: 10.0, depth: vec![d; 9] };
         let grids = [grid(f32::NAN), grid(4.0)];
         let placed: Vec<Placed> = vec![

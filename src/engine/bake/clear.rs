@@ -7,6 +7,8 @@
 //! placed past the photos' edges) is never checked by the fit, and a new
 //! view between two photos looks straight into it.
 
+use crate::engine::dataset::Dataset;
+use crate::engine::geometry::scene::Scene;
 use crate::engine::models::splats::raster::RasterCamera;
 
 /// Balls around the training cameras' centres (model units).
@@ -21,6 +23,13 @@ impl CameraBalls {
         Self { origins: cams.iter().map(|c| c.origin).collect(), radius2: radius * radius }
     }
 
+    /// Balls of `scene`'s near bound around the cameras of `ds`'s `frames`
+    /// (in `scene`'s model units).
+    pub fn around(ds: &Dataset, frames: &[usize], scene: &Scene) -> Self {
+        let cams: Vec<RasterCamera> = frames.iter().map(|&f| RasterCamera::new(&ds.frames[f].camera, scene)).collect();
+        Self::new(&cams, scene.near)
+    }
+
     /// Whether `at` is outside every ball.
     pub fn clear(&self, at: [f32; 3]) -> bool {
         self.origins.iter().all(|o| {
@@ -33,13 +42,11 @@ impl CameraBalls {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::bake::testutil::facing_origin;
-    use crate::engine::geometry::camera::Camera;
+    use crate::engine::bake::testutil::facing_camera;
 
     #[test]
     fn a_point_within_the_radius_of_a_camera_is_not_clear() {
-        let (scene, c2w) = facing_origin();
-        let cam = RasterCamera::new(&Camera::from_fov(30, 30, 1.0, c2w), &scene);
+        let (_, cam) = facing_camera();
         let balls = CameraBalls::new(&[cam], 1.0);
         let o = cam.origin;
         assert!(!balls.clear(o));

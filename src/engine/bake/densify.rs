@@ -90,15 +90,12 @@ mod tests {
     use super::*;
     use crate::engine::bake::Placed;
     use crate::engine::bake::place::parameters;
-    use crate::engine::bake::testutil::facing_origin;
-    use crate::engine::geometry::camera::Camera;
+    use crate::engine::bake::testutil::facing_camera;
     use crate::engine::models::splats::SplatsConfig;
-    use crate::engine::models::splats::raster::RasterCamera;
 
     #[test]
     fn pruning_drops_what_is_near_a_camera_and_what_is_transparent() {
-        let (scene, c2w) = facing_origin();
-        let cam = RasterCamera::new(&Camera::from_fov(30, 30, 1.0, c2w), &scene);
+        let (scene, cam) = facing_camera();
         let o = cam.origin;
         // At the origin; half a unit beside the camera; a unit behind it.
         let placed =

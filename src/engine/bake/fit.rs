@@ -67,13 +67,15 @@ pub(super) struct Fit<'a> {
 
 impl<'a> Fit<'a> {
     /// `dropped`: the pixels training dropped as transient, which are not
-    /// fitted (their maps are of `frames`, in order).
+    /// fitted (their maps are of `frames`, in order); `balls`: where no
+    /// Gaussian is kept at a densification or pruning.
     pub fn new(
         ds: &'a Dataset,
         frames: Vec<usize>,
         settings: &'a BakeSettings,
         model: SplatsModel,
         dropped: Option<&TransientMaps>,
+        balls: CameraBalls,
     ) -> Self {
         let adam_config = AdamConfig { lr: BASE_LR, lr_end: BASE_LR, beta1: 0.9, beta2: 0.999, eps: 1e-15 };
         let adam = Adam::new(adam_config, model.params().len());
@@ -96,9 +98,6 @@ impl<'a> Fit<'a> {
                 if camera.distortion.is_identity() { rgb } else { lens::undistort_photo(camera, &rgb) }
             })
             .collect();
-        let cams: Vec<RasterCamera> =
-            frames.iter().map(|&f| RasterCamera::new(&ds.frames[f].camera, model.scene())).collect();
-        let balls = CameraBalls::new(&cams, model.scene().near);
         let n = model.layout().n;
         Self {
             balls,

@@ -174,13 +174,14 @@ pub fn bake(
     if dropped.is_some_and(|m| !m.fits(ds)) {
         return Err(BakeError::OtherPhotos);
     }
-    let params = place::place(source, ds, &frames, settings, cancel)?;
+    let balls = clear::CameraBalls::around(ds, &frames, source.scene());
+    let params = place::place(source, ds, &frames, settings, &balls, cancel)?;
     let model = SplatsModel::from_parts(settings.splats.clone(), source.scene().clone(), params)
         .map_err(|_| BakeError::Empty)?;
     if model.layout().n == 0 {
         return Err(BakeError::Empty);
     }
-    let mut fit = fit::Fit::new(ds, frames, settings, model, dropped);
+    let mut fit = fit::Fit::new(ds, frames, settings, model, dropped, balls);
     loop {
         let elapsed = started.elapsed().as_secs_f64();
         if budget.done(fit.step, elapsed) {
@@ -209,14 +210,23 @@ pub fn bake(
 
 #[cfg(test)]
 pub(crate) mod testutil {
-    use crate::engine::geometry::camera::look_at;
+    use crate::engine::geometry::camera::{Camera, look_at};
     use crate::engine::geometry::math::{Aabb, Vec3};
     use crate::engine::geometry::scene::Scene;
+    use crate::engine::models::splats::raster::RasterCamera;
 
     /// The unit box's scene, and a camera 4 units from its centre along
     /// -y, looking at it (z up).
     pub fn facing_origin() -> (Scene, [[f32; 4]; 3]) {
         let scene = Scene::from_bounds(Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }, 0.0, 10.0);
         (scene, look_at(Vec3::new(0.0, -4.0, 0.0), Vec3::splat(0.0), Vec3::new(0.0, 0.0, 1.0)).unwrap())
+    }
+
+    /// [`facing_origin`]'s scene and its camera, 30x30 pixels at a field of
+    /// view of 1 radian, as the rasteriser takes it.
+    pub fn facing_camera() -> (Scene, RasterCamera) {
+        let (scene, c2w) = facing_origin();
+        let cam = RasterCamera::new(&Camera::from_fov(30, 30, 1.0, c2w), &scene);
+        (scene, cam)
     }
 }

@@ -70,10 +70,11 @@ pub(super) fn place(
     ds: &Dataset,
     frames: &[usize],
     settings: &BakeSettings,
+    balls: &CameraBalls,
     cancel: &AtomicBool,
 ) -> Result<Vec<f32>, BakeError> {
     for hit_opacity in [MIN_HIT_OPACITY, YOUNG_HIT_OPACITY] {
-        match place_at(source, ds, frames, settings, hit_opacity, cancel) {
+        match place_at(source, ds, frames, settings, balls, hit_opacity, cancel) {
             Err(BakeError::Empty) => continue,
             placed => return placed,
         }
@@ -87,6 +88,7 @@ fn place_at(
     ds: &Dataset,
     frames: &[usize],
     settings: &BakeSettings,
+    balls: &CameraBalls,
     hit_opacity: f32,
     cancel: &AtomicBool,
 ) -> Result<Vec<f32>, BakeError> {
@@ -107,7 +109,6 @@ fn place_at(
         grids.push(grid);
     }
     let mut placed = carve::carve(placed, &owners, &outside, &grids, &cams);
-    let balls = CameraBalls::new(&cams, scene.near);
     placed.retain(|p| balls.clear(p.at));
     if placed.is_empty() {
         return Err(BakeError::Empty);

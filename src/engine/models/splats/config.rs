@@ -23,8 +23,7 @@ pub struct SplatsConfig {
     /// 28.40 and 28.33 dB against 29.40 and 29.29).
     pub sh_degree: u32,
     /// The most Gaussians baking may make (300k: a view of that many draws
-    /// in real time on a phone; gold_cape baked 1,000 steps, 20.62 dB held
-    /// out at 300k against 20.60 at its 416k uncapped,
+    /// in real time on a phone, and a longer bake gains nothing past it:
     /// `docs/design/splats.md`).
     pub max_gaussians: usize,
 }
