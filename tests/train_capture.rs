@@ -221,15 +221,14 @@ fn robust_run(ds: &Dataset, pasted: &[radiance::engine::dataset::occlude::Pasted
 
 /// Occluders pasted into a third of the training photos (one or two each,
 /// 5-20% of the frame: shapes of one colour, the held-out views clean) pull
-/// the field towards them; robust training finds part of their pixels and
-/// little of the static scene, and does not score worse on the clean
-/// held-out views than training on every pixel. On the clean photos it
-/// finds nothing to drop and scores as training on every pixel does.
-/// Observed (seed 1): every pixel 20.03 dB, robust 20.10 dB, 36.4% of the
-/// occluders' pixels found, 0.38% of the static ones; clean 24.10 dB both,
-/// nothing dropped. (The ring's neighbouring cameras are 10 degrees apart,
-/// so the 4-pixel cells of these 64x48 photos match their neighbours'
-/// loosely: the real captures find more, `docs/design/transients.md`.)
+/// the field towards them; robust training finds most of their pixels and
+/// little of the static scene, and scores better on the clean held-out
+/// views than training on every pixel. On the clean photos it ends with
+/// nothing dropped and scores no worse than training on every pixel.
+/// Observed (seed 1): every pixel 20.03 dB, robust 21.67 dB, 65.6% of the
+/// occluders' pixels found, 0.91% of the static ones; clean 24.10 dB every
+/// pixel, 24.23 robust (cells judged early and cleared later), nothing
+/// dropped at the end.
 #[test]
 fn robust_training_finds_pasted_occluders_and_leaves_a_clean_capture_alone() {
     use radiance::engine::dataset::occlude::{Occluders, occlude};
@@ -258,14 +257,14 @@ fn robust_training_finds_pasted_occluders_and_leaves_a_clean_capture_alone() {
         100.0 * clean_dropped.static_share
     );
     assert!(
-        dropped.recall > 0.25 && dropped.static_share < 0.01,
+        dropped.recall > 0.5 && dropped.static_share < 0.015,
         "recall {} static {}",
         dropped.recall,
         dropped.static_share
     );
-    assert!(dropped.psnr > kept.psnr - 0.1, "robust {} every pixel {}", dropped.psnr, kept.psnr);
+    assert!(dropped.psnr > kept.psnr + 0.8, "robust {} every pixel {}", dropped.psnr, kept.psnr);
     assert!(clean_dropped.static_share < 0.002, "{}", clean_dropped.static_share);
-    assert!((clean_dropped.psnr - clean_kept.psnr).abs() < 0.1, "{} {}", clean_dropped.psnr, clean_kept.psnr);
+    assert!(clean_dropped.psnr > clean_kept.psnr - 0.1, "{} {}", clean_dropped.psnr, clean_kept.psnr);
 }
 
 /// A run that drops transients saves its maps in its checkpoints: stopped

@@ -30,9 +30,7 @@ pub use super::models::auto::{AUTO, ModelChoice, SceneKind, choose as choose_mod
 pub use super::models::config::{ConfigError, DEFAULT_BATCH_RAYS, ModelConfig, presets, trainable_presets};
 pub use super::models::splats::SplatsConfig;
 pub use super::models::splats::cleanup::{CleanupSettings, Removed, cleanup};
-pub use super::models::splats::crop::{
-    CropBox, CropError, auto_crop, auto_crop_for, crop, crop_model, project, world_centres,
-};
+pub use super::models::splats::crop::{CropBox, CropError, auto_crop, auto_crop_for, crop, crop_model, world_centres};
 pub use super::models::splats::export::spz::{read_spz, write_spz};
 pub use super::models::splats::export::{Format as SplatsFormat, ply_len, splats_of, write as write_splats};
 pub use super::models::training::{Budget, TrainConfig};

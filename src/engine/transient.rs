@@ -1,15 +1,18 @@
 //! Transient occluders found from training's own residuals (RobustNeRF,
 //! SpotLessSplats), checked against the neighbouring photos: each training
 //! photo is cut into square cells, each cell keeps the mean squared error
-//! of the rays drawn from it, and a cell whose error is several times what
-//! the photos taken nearest to it show around the same place, in a region
-//! of such cells, stops pulling on the field. A surface the field draws
-//! badly (a thin edge, fur) is as bad in the neighbouring photos; something
-//! that was in one photo only is not. What was tried and measured:
+//! of the rays drawn from it and where they met a surface, and a cell
+//! whose error is several times what the photos taken nearest to it show
+//! where that surface falls in them, in a region of such cells, stops
+//! pulling on the field. A surface the field draws badly (a thin edge,
+//! fur) is as bad in the neighbouring photos; something that was in one
+//! photo only is not, and the field, fitting it, puts it where the other
+//! photos see through or do not look. What was tried and measured:
 //! `docs/design/transients.md`.
 
 use crate::engine::dataset::Dataset;
 use crate::engine::dataset::occlude::Pasted;
+use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::math::Vec3;
 
 /// The most pixels a cell's side has: about sixteen cells across the
@@ -17,9 +20,11 @@ use crate::engine::geometry::math::Vec3;
 pub const CELL: u32 = 16;
 /// Residuals are recorded from this share of the budget on: the first
 /// steps' errors are large everywhere.
-pub const RECORD_FROM: f64 = 0.1;
-/// Cells are judged from this share of the budget on.
-pub const JUDGE_FROM: f64 = 0.2;
+pub const RECORD_FROM: f64 = 0.03;
+/// Cells are judged from this share of the budget on: early, before the
+/// field makes an occluder into a floater in front of its photo's camera
+/// that no other photo sees, and that stays after its cells are dropped.
+pub const JUDGE_FROM: f64 = 0.06;
 /// Rays a cell needs before it is judged.
 const MIN_SAMPLES: f32 = 8.0;
 /// The neighbouring photos a cell is compared with: those whose cameras
@@ -29,7 +34,8 @@ const NEAREST: usize = 4;
 const MAX_TURN_COS: f32 = 0.866;
 /// A cell is transient when its error is this many times the reference
 /// (the median over the neighbouring photos of the mean error of the
-/// three by three cells around the same place)...
+/// three by three cells around where its surface falls in each, or the
+/// same place of the frame where it falls outside it)...
 const SEED_RATIO: f32 = 6.0;
 /// ...with at least [`NEIGHBOURS`] of its eight neighbours this many times
 /// theirs, which also takes in the neighbours of a transient cell (an
@@ -40,6 +46,13 @@ const NEIGHBOURS: usize = 2;
 /// channel) to be transient: a capture fitted well everywhere has nothing
 /// out of line worth dropping.
 const MIN_ERROR: f32 = 0.01;
+/// A cell whose surface the neighbouring photos do not see
+/// ([`TransientMaps::unseen`]) counts as this many times further out of
+/// line.
+const UNSEEN_WEIGHT: f32 = 3.0;
+/// A point nearer a camera than this share of the surface that camera sees
+/// in its direction lies in the camera's free space.
+const FREE_SPACE: f32 = 0.8;
 
 /// One training photo's cells.
 #[derive(Clone, Debug)]
@@ -53,8 +66,14 @@ struct Cells {
     sum: Vec<f32>,
     count: Vec<f32>,
     transient: Vec<bool>,
+    /// The sum of the world points where the cell's rays met a surface,
+    /// and how many did.
+    points: Vec<[f32; 3]>,
+    hits: Vec<f32>,
     /// The photos compared with, nearest first.
     nearest: Vec<usize>,
+    /// The photo's camera, to find where another photo's point falls in it.
+    camera: Option<Camera>,
 }
 
 /// A training photo as the maps see it: its name, its size, where its
@@ -66,6 +85,10 @@ pub struct Photo {
     pub height: u32,
     pub origin: [f32; 3],
     pub forward: [f32; 3],
+    /// Its camera, when known: another photo's cell is then compared with
+    /// the place its surface point falls in this photo, rather than the
+    /// same place of the frame.
+    pub camera: Option<Camera>,
 }
 
 /// The cells of every training photo.
@@ -89,6 +112,7 @@ impl TransientMaps {
                     height: c.height,
                     origin: c.origin().to_array(),
                     forward: c.rotate(Vec3::new(0.0, 0.0, -1.0)).to_array(),
+                    camera: Some(c.clone()),
                 }
             })
             .collect();
@@ -110,7 +134,7 @@ impl TransientMaps {
                     (0..photos.len()).filter(|&q| q != p && cos(ph, &photos[q]) >= MAX_TURN_COS).collect();
                 others.sort_by(|&a, &b| dist(ph, &photos[a]).total_cmp(&dist(ph, &photos[b])));
                 others.truncate(NEAREST);
-                Cells { nearest: others, ..Cells::empty(&ph.name, ph.width, ph.height) }
+                Cells { nearest: others, camera: ph.camera.clone(), ..Cells::empty(&ph.name, ph.width, ph.height) }
             })
             .collect();
         Self { photos }
@@ -129,6 +153,38 @@ impl TransientMaps {
         let count = self.photos.iter().flat_map(|c| c.count.iter().copied()).collect();
         let flags = self.photos.iter().flat_map(|c| c.transient.iter().map(|&t| t as u8)).collect();
         (sum, count, flags)
+    }
+
+    /// Every photo's cells one after the other: the sums of the surface
+    /// points their rays met (three values a cell) and how many met one, as
+    /// a checkpoint keeps them ([`TransientMaps::set_surfaces`] reads them
+    /// back).
+    pub fn surfaces(&self) -> (Vec<f32>, Vec<f32>) {
+        let points = self.photos.iter().flat_map(|c| c.points.iter().flatten().copied()).collect();
+        let hits = self.photos.iter().flat_map(|c| c.hits.iter().copied()).collect();
+        (points, hits)
+    }
+
+    /// Takes back the surfaces [`TransientMaps::surfaces`] gave.
+    pub fn set_surfaces(&mut self, points: &[f32], hits: &[f32]) -> Result<(), String> {
+        let n: usize = self.photos.iter().map(|c| c.hits.len()).sum();
+        if (points.len(), hits.len()) != (3 * n, n) {
+            return Err(format!(
+                "transient maps: {n} cells need {} surface values and {n} counts, but {} and {} were saved",
+                3 * n,
+                points.len(),
+                hits.len()
+            ));
+        }
+        let mut at = 0;
+        for c in &mut self.photos {
+            for k in 0..c.hits.len() {
+                c.points[k] = [points[3 * at], points[3 * at + 1], points[3 * at + 2]];
+                c.hits[k] = hits[at];
+                at += 1;
+            }
+        }
+        Ok(())
     }
 
     /// Maps as [`TransientMaps::photos`] and [`TransientMaps::cells`] gave
@@ -175,6 +231,7 @@ impl TransientMaps {
         }
         for (c, s) in self.photos.iter_mut().zip(&saved.photos) {
             (c.sum, c.count, c.transient) = (s.sum.clone(), s.count.clone(), s.transient.clone());
+            (c.points, c.hits) = (s.points.clone(), s.hits.clone());
         }
         Ok(())
     }
@@ -194,8 +251,9 @@ impl TransientMaps {
         }
     }
 
-    /// Adds a ray's mean squared error (non-finite ones are left out).
-    pub fn record(&mut self, photo: usize, i: u32, j: u32, err: f32) {
+    /// Adds a ray's mean squared error (non-finite ones are left out) and
+    /// the world point where it met a surface, if it did.
+    pub fn record(&mut self, photo: usize, i: u32, j: u32, err: f32, point: Option<[f32; 3]>) {
         if !err.is_finite() {
             return;
         }
@@ -203,6 +261,55 @@ impl TransientMaps {
         let c = &mut self.photos[photo];
         c.sum[k] += err;
         c.count[k] += 1.0;
+        if let Some(p) = point.filter(|p| p.iter().all(|v| v.is_finite())) {
+            (0..3).for_each(|a| c.points[k][a] += p[a]);
+            c.hits[k] += 1.0;
+        }
+    }
+
+    /// Photo `p`'s cell `k`'s mean surface point, once enough of its rays
+    /// met one.
+    fn surface(&self, p: usize, k: usize) -> Option<Vec3> {
+        let c = &self.photos[p];
+        (c.hits[k] >= MIN_SAMPLES).then(|| Vec3::from_array(c.points[k].map(|v| v / c.hits[k])))
+    }
+
+    /// Where photo `p`'s cell `k` lies in photo `q`'s grid: where its
+    /// surface point falls in `q`'s frame, or the same place of the frame
+    /// when either is unknown or the point falls outside it.
+    fn place_in(&self, p: usize, k: usize, q: usize) -> (i64, i64) {
+        let (c, o) = (&self.photos[p], &self.photos[q]);
+        let seen = o.camera.as_ref().zip(self.surface(p, k)).and_then(|(cam, point)| cam.project(point.to_array()));
+        match seen {
+            Some((u, v)) => ((u / o.cell as f32) as i64, (v / o.cell as f32) as i64),
+            None => {
+                let (x, y) = (k as u32 % c.nx, k as u32 / c.nx);
+                ((x * o.nx / c.nx) as i64, (y * o.ny / c.ny) as i64)
+            }
+        }
+    }
+
+    /// Whether photo `p`'s cell `k` shows a surface its neighbouring photos
+    /// do not see: its point lies outside all their frames, or in the free
+    /// space in front of what at least half of those that frame it see
+    /// there. What the field fitted to one photo alone (an occluder made
+    /// into a floater before its cells were judged) is so; a surface the
+    /// field draws badly in every photo is not.
+    fn unseen(&self, p: usize, k: usize) -> bool {
+        let Some(point) = self.surface(p, k) else { return false };
+        let (mut free, mut framed, mut cameras) = (0, 0, 0);
+        for &q in &self.photos[p].nearest {
+            let o = &self.photos[q];
+            let Some(cam) = &o.camera else { continue };
+            cameras += 1;
+            let Some((u, v)) = cam.project(point.to_array()) else { continue };
+            let m = ((v as u32 / o.cell).min(o.ny - 1) * o.nx + (u as u32 / o.cell).min(o.nx - 1)) as usize;
+            let Some(theirs) = self.surface(q, m) else { continue };
+            framed += 1;
+            let origin = cam.origin();
+            free += ((point - origin).norm() < FREE_SPACE * (theirs - origin).norm()) as u32;
+        }
+        cameras > 0 && 2 * free >= framed
     }
 
     /// Judges every cell again from the errors recorded so far.
@@ -242,12 +349,10 @@ impl TransientMaps {
                 if c.count[k] < MIN_SAMPLES {
                     return 0.0;
                 }
-                let (x, y) = (k as u32 % c.nx, k as u32 / c.nx);
                 refs.clear();
                 for &q in &c.nearest {
                     let o = &self.photos[q];
-                    // The same place in photo q's grid.
-                    let (qx, qy) = ((x * o.nx / c.nx) as i64, (y * o.ny / c.ny) as i64);
+                    let (qx, qy) = self.place_in(p, k, q);
                     let (mut sum, mut cells) = (0.0f32, 0.0f32);
                     for b in qy - 1..=qy + 1 {
                         for a in qx - 1..=qx + 1 {
@@ -269,7 +374,8 @@ impl TransientMaps {
                     return 0.0;
                 }
                 let reference = median(&refs).max(1e-6);
-                c.sum[k] / c.count[k] / reference
+                let unseen = if self.unseen(p, k) { UNSEEN_WEIGHT } else { 1.0 };
+                c.sum[k] / c.count[k] / reference * unseen
             })
             .collect()
     }
@@ -361,7 +467,10 @@ impl Cells {
             sum: vec![0.0; n],
             count: vec![0.0; n],
             transient: vec![false; n],
+            points: vec![[0.0; 3]; n],
+            hits: vec![0.0; n],
             nearest: Vec::new(),
+            camera: None,
         }
     }
 }
@@ -462,7 +571,7 @@ mod tests {
                 for i in (0..256).step_by(2) {
                     for _ in 0..5 {
                         let err = if bad_at(photo, i, j) { bad } else { base * (0.5 + rng.f32()) };
-                        t.record(photo, i, j, err);
+                        t.record(photo, i, j, err, None);
                     }
                 }
             }
@@ -478,6 +587,7 @@ mod tests {
             height: 256,
             origin: [x, 0.0, 0.0],
             forward: [0.0, 0.0, -1.0],
+            camera: None,
         };
         vec![photo(0.0), photo(0.1), photo(0.2)]
     }
@@ -591,11 +701,18 @@ mod tests {
         assert_eq!(t.share(0), 0.0);
         // Nothing is judged before errors are recorded, and non-finite
         // errors are not recorded.
-        let lone = Photo { name: String::new(), width: 256, height: 256, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
+        let lone = Photo {
+            name: String::new(),
+            width: 256,
+            height: 256,
+            origin: [0.0; 3],
+            forward: [0.0, 0.0, -1.0],
+            camera: None,
+        };
         let mut t = TransientMaps::new(&[lone.clone(), lone]);
         for _ in 0..100 {
-            t.record(0, 5, 5, f32::NAN);
-            t.record(0, 5, 5, f32::INFINITY);
+            t.record(0, 5, 5, f32::NAN, None);
+            t.record(0, 5, 5, f32::INFINITY, Some([0.0; 3]));
         }
         t.judge();
         assert_eq!(t.share(0), 0.0);
@@ -609,6 +726,7 @@ mod tests {
             height: 32,
             origin: [x, 0.0, 0.0],
             forward,
+            camera: None,
         };
         let ahead = [0.0, 0.0, -1.0];
         let photos =
@@ -619,13 +737,125 @@ mod tests {
         assert!(t.photos[3].nearest.is_empty());
     }
 
+    /// Three 256x256 photos from cameras 0.5 apart along x, looking down
+    /// -z at a wall at z = -2 (focal length 128 pixels: the wall moves 32
+    /// pixels, two cells, from one photo to the next), with the cameras
+    /// given to the maps when `cameras`.
+    fn wall_photos(cameras: bool) -> (Vec<Camera>, Vec<Photo>) {
+        let cams: Vec<Camera> = (0..3)
+            .map(|p| {
+                let c2w = [[1.0, 0.0, 0.0, 0.5 * p as f32], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]];
+                Camera { fx: 128.0, fy: 128.0, ..Camera::from_fov(256, 256, 1.0, c2w) }
+            })
+            .collect();
+        let photos = (0..3)
+            .map(|p| Photo {
+                name: format!("w{p}"),
+                width: 256,
+                height: 256,
+                origin: cams[p].origin().to_array(),
+                forward: [0.0, 0.0, -1.0],
+                camera: cameras.then(|| cams[p].clone()),
+            })
+            .collect();
+        (cams, photos)
+    }
+
+    /// [`wall_photos`]' photos, every other pixel of every other row drawn
+    /// 5 times: its squared error 0.004 times a random factor in [0.5,
+    /// 1.5), its ray meeting the wall; where `bad_at(photo, wall x, wall y)`
+    /// says, an error of `bad` and the ray meeting a surface at `floater`
+    /// along it if given (what the field made of something in one photo).
+    fn wall(cameras: bool, bad: f32, floater: Option<f32>, bad_at: impl Fn(usize, f32, f32) -> bool) -> TransientMaps {
+        let (cams, photos) = wall_photos(cameras);
+        let mut t = TransientMaps::new(&photos);
+        let mut rng = Rng::new(5);
+        for (p, cam) in cams.iter().enumerate() {
+            for j in (0..256).step_by(2) {
+                for i in (0..256).step_by(2) {
+                    let ray = cam.pixel_ray(i, j);
+                    let hit = ray.origin + ray.dir * (-2.0 / ray.dir.z);
+                    for _ in 0..5 {
+                        let (err, at) = match bad_at(p, hit.x, hit.y) {
+                            true => (bad, floater.map_or(hit, |d| ray.origin + ray.dir * d)),
+                            false => (0.004 * (0.5 + rng.f32()), hit),
+                        };
+                        t.record(p, i, j, err, Some(at.to_array()));
+                    }
+                }
+            }
+        }
+        t.judge();
+        t
+    }
+
+    #[test]
+    fn cells_are_compared_where_their_surface_falls_in_the_other_photos() {
+        // A patch of the wall every photo gets wrong (a thin edge the field
+        // draws badly), seen at a different place of each frame.
+        let patch = |x: f32, y: f32| (0.2..0.95).contains(&x) && (0.2..0.95).contains(&y);
+        let t = wall(true, 0.09, None, |_, x, y| patch(x, y));
+        assert_eq!((t.share(0), t.share(1), t.share(2)), (0.0, 0.0, 0.0));
+        // Compared with the same place of the frame, the patch is out of
+        // line in the outer photos: their neighbours see the wall beside it
+        // there.
+        let blind = wall(false, 0.09, None, |_, x, y| patch(x, y));
+        assert!(blind.share(0) > 0.0 && blind.share(2) > 0.0, "{:?}", [0, 1, 2].map(|p| blind.share(p)));
+        // Something in photo 1 alone is still found, and only there.
+        let t = wall(true, 0.09, None, |p, x, y| p == 1 && patch(x, y));
+        assert!(t.share(1) >= 9.0 / 256.0, "{}", t.share(1));
+        assert_eq!((t.share(0), t.share(2)), (0.0, 0.0));
+    }
+
+    #[test]
+    fn what_the_neighbouring_photos_see_through_needs_less_to_be_transient() {
+        // Photo 1's patch at 4 times the wall's error: under the seed's
+        // ratio while it lies on the wall...
+        let patch = |p: usize, x: f32, y: f32| p == 1 && (0.2..0.95).contains(&x) && (0.2..0.95).contains(&y);
+        let on_wall = wall(true, 0.016, None, patch);
+        assert_eq!([0, 1, 2].map(|p| on_wall.share(p)), [0.0; 3]);
+        // ...but found when its surface is a floater 0.8 in front of photo
+        // 1's camera, where photos 0 and 2 see the wall behind it or do not
+        // look.
+        let floater = wall(true, 0.016, Some(0.8), patch);
+        assert!(floater.share(1) >= 9.0 / 256.0, "{}", floater.share(1));
+        assert_eq!((floater.share(0), floater.share(2)), (0.0, 0.0));
+        // Without cameras nothing says where a surface lies.
+        let blind = wall(false, 0.016, Some(0.8), patch);
+        assert_eq!(blind.share(1), 0.0);
+    }
+
+    #[test]
+    fn surfaces_read_back_and_resume_to_the_same_verdicts() {
+        let patch = |p: usize, x: f32, y: f32| p == 1 && (0.2..0.95).contains(&x) && (0.2..0.95).contains(&y);
+        let t = wall(true, 0.016, Some(0.8), patch);
+        let (sum, count, flags) = t.cells();
+        let (points, hits) = t.surfaces();
+        let mut back = TransientMaps::from_saved(&t.photos(), &sum, &count, &flags).unwrap();
+        back.set_surfaces(&points, &hits).unwrap();
+        assert_eq!(back.surfaces(), t.surfaces());
+        let mut resumed = TransientMaps::new(&wall_photos(true).1);
+        resumed.resume_from(&back).unwrap();
+        resumed.judge();
+        assert_eq!(resumed.cells(), t.cells());
+        let e = back.set_surfaces(&points[1..], &hits).err().unwrap();
+        assert!(e.contains("768 cells need 2304 surface values and 768 counts, but 2303 and 768"), "{e}");
+    }
+
     #[test]
     fn pixels_off_the_maps_weigh_one() {
         let t = recorded(0.004, 0.09, |p, _, _| p == 0);
         // Photo 3 does not exist; (256, 0) is past photo 0's edge.
         assert_eq!((t.weight(3, 0, 0), t.weight(0, 256, 0)), (1.0, 1.0));
         // A photo smaller than a cell still has one.
-        let small = Photo { name: String::new(), width: 3, height: 2, origin: [0.0; 3], forward: [0.0, 0.0, -1.0] };
+        let small = Photo {
+            name: String::new(),
+            width: 3,
+            height: 2,
+            origin: [0.0; 3],
+            forward: [0.0, 0.0, -1.0],
+            camera: None,
+        };
         assert_eq!(TransientMaps::new(&[small]).mask(0, 3, 2), vec![false; 6]);
     }
 }

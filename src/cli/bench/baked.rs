@@ -10,7 +10,7 @@ use std::sync::atomic::AtomicBool;
 use super::{BenchArgs, BenchRow, SPLATS_LABEL, ViewScores, score_views, scored_row};
 use crate::engine::front::{
     BakeSettings, Budget, CleanupSettings, CropBox, Dataset, MaskUse, Model, SplatsModel, Split, TransientMaps,
-    auto_crop_for, bake, cleanup, crop, mask_inside, ply_len, project, read_spz, write_spz,
+    auto_crop_for, bake, cleanup, crop, mask_inside, ply_len, read_spz, write_spz,
 };
 
 /// What the crop kept of the Gaussians the masks call outside.
@@ -35,7 +35,7 @@ pub fn against_masks(model: &SplatsModel, ds: &Dataset, b: &CropBox) -> Option<M
     for p in crate::engine::front::world_centres(model) {
         let (mut out, mut seen) = (0, 0);
         for (f, ins) in frames.iter().zip(&inside) {
-            if let Some((u, v)) = project(&f.camera, p) {
+            if let Some((u, v)) = f.camera.project(p) {
                 seen += 1;
                 out += usize::from(!ins[v as usize * f.camera.width as usize + u as usize]);
             }

@@ -128,6 +128,23 @@ impl Camera {
         Ray { origin: self.origin(), dir }
     }
 
+    /// Where world point `p` falls in the frame (pixels), if in front of
+    /// the camera and inside it (lens distortion ignored: for finding
+    /// places, not for sub-pixel truth).
+    pub fn project(&self, p: [f32; 3]) -> Option<(f32, f32)> {
+        let m = &self.c2w;
+        let d = Vec3::from_array(p) - self.origin();
+        // Camera coordinates: the rotation's columns are the camera's axes.
+        let c = [0, 1, 2].map(|k| Vec3::new(m[0][k], m[1][k], m[2][k]).dot(d));
+        let depth = -c[2];
+        if depth <= 1e-6 {
+            return None;
+        }
+        let u = self.fx * c[0] / depth + self.cx;
+        let v = -self.fy * c[1] / depth + self.cy;
+        (u >= 0.0 && v >= 0.0 && u < self.width as f32 && v < self.height as f32).then_some((u, v))
+    }
+
     /// The ray through the centre of pixel `(i, j)`.
     pub fn pixel_ray(&self, i: u32, j: u32) -> Ray {
         self.ray(i as f32 + 0.5, j as f32 + 0.5)

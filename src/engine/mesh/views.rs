@@ -10,7 +10,7 @@ use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::{Ray, Vec3};
 use crate::engine::mesh::MeshError;
 use crate::engine::models::splats::SplatsModel;
-use crate::engine::models::splats::crop::{self, CropBox, crop_around, project};
+use crate::engine::models::splats::crop::{self, CropBox, crop_around};
 use crate::engine::models::{Model, RenderOptions};
 use crate::engine::view::{render_rays_until, render_view_until};
 
@@ -215,7 +215,7 @@ impl SurfaceView {
     /// Where world point `p` falls in this view (continuous pixels) and
     /// its distance from the camera, if in front and inside the frame.
     pub fn project(&self, p: Vec3) -> Option<(f32, f32, f32)> {
-        project(&self.camera, p.to_array()).map(|(u, v)| (u, v, (p - self.camera.origin()).norm()))
+        self.camera.project(p.to_array()).map(|(u, v)| (u, v, (p - self.camera.origin()).norm()))
     }
 
     /// The colour at continuous pixel `(u, v)`, bilinear between the

@@ -107,15 +107,15 @@ pub trait Model: Send + Sync {
     /// Accumulates the gradient of the batch loss over `rays` (one part of a
     /// batch) into `grads` and returns the part's statistics.
     fn train_rays(&self, rays: &[TrainRay], ctx: &StepCtx, grads: &mut [f32]) -> BatchStats;
-    /// [`Model::train_rays`], also writing each ray's mean squared colour
-    /// error into `errors` (as long as `rays`). The default, for a model
-    /// that does not measure them, leaves `errors` as it is.
+    /// [`Model::train_rays`], also writing what it measured of each ray
+    /// into `errors` (as long as `rays`). The default, for a model that
+    /// does not measure them, leaves `errors` as it is.
     fn train_rays_measured(
         &self,
         rays: &[TrainRay],
         ctx: &StepCtx,
         grads: &mut [f32],
-        errors: &mut [f32],
+        errors: &mut [RayMeasure],
     ) -> BatchStats {
         let _ = errors;
         self.train_rays(rays, ctx, grads)
@@ -225,18 +225,32 @@ pub trait DeferredGrid {
         grads: &mut [f32],
         record: &mut GridRecord,
     ) -> BatchStats {
-        self.train_rays_deferred_measured(rays, ctx, grads, record, &mut vec![0.0; rays.len()])
+        self.train_rays_deferred_measured(rays, ctx, grads, record, &mut vec![RayMeasure::UNKNOWN; rays.len()])
     }
-    /// [`DeferredGrid::train_rays_deferred`], also writing each ray's mean
-    /// squared colour error into `errors` (as long as `rays`).
+    /// [`DeferredGrid::train_rays_deferred`], also writing what it measured
+    /// of each ray into `errors` (as long as `rays`).
     fn train_rays_deferred_measured(
         &self,
         rays: &[TrainRay],
         ctx: &StepCtx,
         grads: &mut [f32],
         record: &mut GridRecord,
-        errors: &mut [f32],
+        errors: &mut [RayMeasure],
     ) -> BatchStats;
+}
+
+/// What a training pass measured of one ray: its mean squared colour
+/// error, and the distance along it at which its opacity reaches one half
+/// (where it meets a surface; NaN when it never does or was not drawn).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayMeasure {
+    pub sq_err: f32,
+    pub depth: f32,
+}
+
+impl RayMeasure {
+    /// Nothing measured.
+    pub const UNKNOWN: RayMeasure = RayMeasure { sq_err: f32::NAN, depth: f32::NAN };
 }
 
 /// The pose a held-out view of `model` is rendered from

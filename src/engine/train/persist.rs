@@ -45,6 +45,10 @@ pub struct Restored {
 /// The meta key and tensors of the transient maps.
 const TRANSIENT_PHOTOS: &str = "transient_photos";
 const TRANSIENT_TENSORS: [&str; 3] = ["transients.sum", "transients.count", "transients.flags"];
+/// The surface points the maps' cells saw, and how many rays met one
+/// (absent from checkpoints written before the maps kept them: the cells
+/// then gather them again).
+const SURFACE_TENSORS: [&str; 2] = ["transients.points", "transients.hits"];
 
 /// Builds the checkpoint of a training run, with its transient maps when it
 /// drops transients.
@@ -83,6 +87,9 @@ pub fn to_checkpoint(
         c.insert(TRANSIENT_TENSORS[0], Tensor::F32(sum));
         c.insert(TRANSIENT_TENSORS[1], Tensor::F32(count));
         c.insert(TRANSIENT_TENSORS[2], Tensor::U8(flags));
+        let (points, hits) = t.surfaces();
+        c.insert(SURFACE_TENSORS[0], Tensor::F32(points));
+        c.insert(SURFACE_TENSORS[1], Tensor::F32(hits));
     }
     c
 }
@@ -97,9 +104,14 @@ fn transients(c: &mut Checkpoint, path: &Path) -> Result<Option<TransientMaps>, 
     let sum = c.take_f32(TRANSIENT_TENSORS[0]).map_err(|e| e.with_path(path))?;
     let count = c.take_f32(TRANSIENT_TENSORS[1]).map_err(|e| e.with_path(path))?;
     let flags = c.u8(TRANSIENT_TENSORS[2]).map_err(|e| e.with_path(path))?;
-    TransientMaps::from_saved(&photos, &sum, &count, flags)
-        .map(Some)
-        .map_err(|message| CheckpointError::Header { path: Some(path.to_path_buf()), message })
+    let header = |message| CheckpointError::Header { path: Some(path.to_path_buf()), message };
+    let mut maps = TransientMaps::from_saved(&photos, &sum, &count, flags).map_err(header)?;
+    if c.tensor(SURFACE_TENSORS[0]).is_some() {
+        let points = c.take_f32(SURFACE_TENSORS[0]).map_err(|e| e.with_path(path))?;
+        let hits = c.take_f32(SURFACE_TENSORS[1]).map_err(|e| e.with_path(path))?;
+        maps.set_surfaces(&points, &hits).map_err(header)?;
+    }
+    Ok(Some(maps))
 }
 
 /// The meta key of the only time-dependent part of a checkpoint.

@@ -25,8 +25,8 @@ use rayon::prelude::*;
 
 use crate::engine::batch::{BatchStats, StepCtx, TrainRay};
 use crate::engine::dataset::Dataset;
-use crate::engine::models::Model;
 use crate::engine::models::training::TrainConfig;
+use crate::engine::models::{Model, RayMeasure};
 use crate::engine::nn::adam::{Adam, AdamUpdate};
 use crate::engine::nn::all_finite;
 use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
@@ -190,8 +190,8 @@ pub struct Trainer<'a> {
     diverged: Option<StopReason>,
     /// The training photos' transient cells (robust training only).
     pub transients: Option<TransientMaps>,
-    /// Each ray's mean squared colour error in the last step.
-    errors: Vec<f32>,
+    /// What the last step measured of each ray.
+    errors: Vec<RayMeasure>,
 }
 
 impl<'a> Trainer<'a> {
@@ -382,7 +382,7 @@ impl<'a> Trainer<'a> {
         // A chunk of errors for every part, the empty ones too (their
         // records must be cleared as well); those past the rays stay NaN.
         self.errors.clear();
-        self.errors.resize(parts * per, f32::NAN);
+        self.errors.resize(parts * per, RayMeasure::UNKNOWN);
         let ctx = StepCtx { seed: self.config.seed, step, batch_rays: rays.len() };
         let model = &*self.model;
         let stats: Vec<BatchStats> = self
@@ -414,8 +414,12 @@ impl<'a> Trainer<'a> {
         }
         let progress = self.config.budget.progress(step, self.state.elapsed);
         if let Some(t) = self.transients.as_mut().filter(|_| progress >= RECORD_FROM) {
-            for (&(k, i, j), &e) in at.iter().zip(&self.errors) {
-                t.record(k as usize, i, j, e);
+            let scene = self.model.scene();
+            for ((&(k, i, j), e), r) in at.iter().zip(&self.errors).zip(rays.iter()) {
+                // Where the ray met a surface, in world units.
+                let o = r.ray.origin + r.ray.dir * e.depth;
+                let point = e.depth.is_finite().then(|| scene.point_to_world(o.to_array()));
+                t.record(k as usize, i, j, e.sq_err, point);
             }
             if progress >= JUDGE_FROM && step.is_multiple_of(JUDGE_EVERY) {
                 t.judge();

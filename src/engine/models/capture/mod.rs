@@ -36,7 +36,7 @@ pub mod space;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, OnceLock};
 
-use super::{Appearance, DeferredGrid, Model, ModelError, PoseRefinement, RenderOptions, StateSource};
+use super::{Appearance, DeferredGrid, Model, ModelError, PoseRefinement, RayMeasure, RenderOptions, StateSource};
 use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::fields::capture::{CaptureField, CaptureFieldConfig};
 use crate::engine::fields::proposal::ProposalField;
@@ -416,7 +416,7 @@ impl CaptureModel {
         ctx: &StepCtx,
         grads: &mut [f32],
         mut record: Option<&mut GridRecord>,
-        mut errors: Option<&mut [f32]>,
+        mut errors: Option<&mut [RayMeasure]>,
     ) -> BatchStats {
         for r in rays {
             if let Some(flag) = self.seen.get(r.image as usize) {
@@ -479,7 +479,7 @@ impl Model for CaptureModel {
         rays: &[TrainRay],
         ctx: &StepCtx,
         grads: &mut [f32],
-        errors: &mut [f32],
+        errors: &mut [RayMeasure],
     ) -> BatchStats {
         self.train(rays, ctx, grads, None, Some(errors))
     }

@@ -34,6 +34,7 @@ use crate::engine::fields::capture::{CaptureField, Ctx};
 use crate::engine::fields::proposal::ProposalField;
 use crate::engine::fields::{Field, Points};
 use crate::engine::geometry::math::Ray;
+use crate::engine::models::RayMeasure;
 #[cfg(test)]
 use crate::engine::models::capture::levels::Drawn;
 use crate::engine::models::capture::levels::{LevelError, Levels, PROPOSAL_COMPOSITE, Placement};
@@ -127,8 +128,8 @@ pub struct CaptureBuffers {
     dsig_prop: Vec<f32>,
     drgb_prop: Vec<f32>,
     interlevel: Interlevel,
-    /// Each of the chunk's rays' mean squared colour error.
-    pub errors: Vec<f32>,
+    /// What the pass measured of each of the chunk's rays.
+    pub errors: Vec<RayMeasure>,
 }
 
 /// Where a model-space ray is sampled, training and rendering alike: from
@@ -208,7 +209,7 @@ fn run(
     buf.index.clear();
     buf.corrections.clear();
     buf.errors.clear();
-    buf.errors.resize(rays.len(), f32::NAN);
+    buf.errors.resize(rays.len(), RayMeasure::UNKNOWN);
     for (i, r) in rays.iter().enumerate() {
         if samplable(&r.ray) {
             buf.valid.push(i);
@@ -223,7 +224,7 @@ fn run(
             // The background alone: in the loss, without a gradient.
             let sq = l2(r.background, r.target, 0.0).0;
             stats.sq_err += sq;
-            buf.errors[i] = sq as f32;
+            buf.errors[i] = RayMeasure { sq_err: sq as f32, depth: f32::NAN };
         }
     }
     if buf.valid.is_empty() {
@@ -298,7 +299,8 @@ fn main_field(
         // A transient's ray (weight 0) still counts in the error reported.
         let (sq, g) = l2(comp.rgb, ray.target, scale * ray.weight);
         stats.sq_err += sq;
-        buf.errors[i] = sq as f32;
+        let depth = if comp.median > 0.0 { comp.median } else { f32::NAN };
+        buf.errors[i] = RayMeasure { sq_err: sq as f32, depth };
         let full = &mut buf.full[r * n..(r + 1) * n];
         full[..k].copy_from_slice(&buf.weights[o..o + k]);
         buf.dfull.fill(0.0);

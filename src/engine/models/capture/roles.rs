@@ -5,7 +5,7 @@
 use super::CaptureModel;
 use crate::engine::batch::{BatchStats, StepCtx, TrainRay};
 use crate::engine::geometry::so3;
-use crate::engine::models::{Appearance, DeferredGrid, PoseRefinement, RenderOptions};
+use crate::engine::models::{Appearance, DeferredGrid, PoseRefinement, RayMeasure, RenderOptions};
 use crate::engine::nn::hashgrid::{GridRecord, HashGrid};
 use crate::engine::nn::pose_report::PoseReport;
 
@@ -66,7 +66,7 @@ impl DeferredGrid for CaptureModel {
         ctx: &StepCtx,
         grads: &mut [f32],
         record: &mut GridRecord,
-        errors: &mut [f32],
+        errors: &mut [RayMeasure],
     ) -> BatchStats {
         record.clear();
         // A posed model records nothing (its passes need the grid's input

@@ -84,22 +84,6 @@ pub fn world_centres(model: &SplatsModel) -> Vec<[f32; 3]> {
     (0..l.n).map(|i| s.point_to_world(l.get(model.params(), i).mean)).collect()
 }
 
-/// Where world point `p` falls in `camera`'s frame (pixels), if in front
-/// of it (lens distortion ignored: a crop needs no sub-pixel truth).
-pub fn project(camera: &Camera, p: [f32; 3]) -> Option<(f32, f32)> {
-    let m = &camera.c2w;
-    let d = Vec3::from_array(p) - camera.origin();
-    // Camera coordinates: the rotation's columns are the camera's axes.
-    let c = [0, 1, 2].map(|k| Vec3::new(m[0][k], m[1][k], m[2][k]).dot(d));
-    let depth = -c[2];
-    if depth <= 1e-6 {
-        return None;
-    }
-    let u = camera.fx * c[0] / depth + camera.cx;
-    let v = -camera.fy * c[1] / depth + camera.cy;
-    (u >= 0.0 && v >= 0.0 && u < camera.width as f32 && v < camera.height as f32).then_some((u, v))
-}
-
 /// The box around what nearly every one of `cameras` sees, standing on `up`.
 pub fn auto_crop(model: &SplatsModel, cameras: &[Camera], up: [f32; 3]) -> Result<CropBox, CropError> {
     let l = model.layout();
@@ -119,7 +103,7 @@ pub fn crop_around(points: &[Vec3], cameras: &[Camera], up: [f32; 3]) -> Result<
     let need = (SEEN_BY * cameras.len() as f32).ceil() as usize;
     let object: Vec<Vec3> = points
         .iter()
-        .filter(|p| cameras.iter().filter(|c| project(c, p.to_array()).is_some()).count() >= need.max(1))
+        .filter(|p| cameras.iter().filter(|c| c.project(p.to_array()).is_some()).count() >= need.max(1))
         .copied()
         .collect();
     if object.is_empty() {
@@ -243,11 +227,11 @@ mod tests {
     #[test]
     fn the_focus_projects_to_the_frame_centre_and_what_is_behind_nowhere() {
         let cams = ring();
-        let (u, v) = project(&cams[0], [1.0, 1.0, 0.5]).unwrap();
+        let (u, v) = cams[0].project([1.0, 1.0, 0.5]).unwrap();
         assert!((u - 32.0).abs() < 1e-3 && (v - 24.0).abs() < 1e-3, "{u} {v}");
         // Above the focus is up in the photo (smaller v).
-        assert!(project(&cams[0], [1.0, 1.0, 0.8]).unwrap().1 < 24.0);
-        assert!(project(&cams[0], [1.0 + 8.0, 1.0, 1.5]).is_none(), "behind the camera");
+        assert!(cams[0].project([1.0, 1.0, 0.8]).unwrap().1 < 24.0);
+        assert!(cams[0].project([1.0 + 8.0, 1.0, 1.5]).is_none(), "behind the camera");
     }
 
     #[test]
