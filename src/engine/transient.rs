@@ -297,19 +297,25 @@ impl TransientMaps {
     /// field draws badly in every photo is not.
     fn unseen(&self, p: usize, k: usize) -> bool {
         let Some(point) = self.surface(p, k) else { return false };
-        let (mut free, mut framed, mut cameras) = (0, 0, 0);
+        // Neighbours with a camera, those whose frame holds the point, and
+        // of those, the ones whose surface there is known and which see
+        // through the point.
+        let (mut cameras, mut inside, mut known, mut free) = (0, 0, 0, 0);
         for &q in &self.photos[p].nearest {
             let o = &self.photos[q];
             let Some(cam) = &o.camera else { continue };
             cameras += 1;
             let Some((u, v)) = cam.project(point.to_array()) else { continue };
+            inside += 1;
             let m = ((v as u32 / o.cell).min(o.ny - 1) * o.nx + (u as u32 / o.cell).min(o.nx - 1)) as usize;
             let Some(theirs) = self.surface(q, m) else { continue };
-            framed += 1;
+            known += 1;
             let origin = cam.origin();
             free += ((point - origin).norm() < FREE_SPACE * (theirs - origin).norm()) as u32;
         }
-        cameras > 0 && 2 * free >= framed
+        // A neighbour that frames the point but has not yet met a surface
+        // there says nothing either way.
+        cameras > 0 && (inside == 0 || (known == inside && 2 * free >= known))
     }
 
     /// Judges every cell again from the errors recorded so far.
@@ -823,6 +829,25 @@ mod tests {
         // Without cameras nothing says where a surface lies.
         let blind = wall(false, 0.016, Some(0.8), patch);
         assert_eq!(blind.share(1), 0.0);
+        // Nor while the neighbours that frame the point have met no surface
+        // there yet.
+        let (cams, photos) = wall_photos(true);
+        let mut early = TransientMaps::new(&photos);
+        for (p, cam) in cams.iter().enumerate() {
+            for j in (0..256).step_by(2) {
+                for i in (0..256).step_by(2) {
+                    let ray = cam.pixel_ray(i, j);
+                    let hit = ray.origin + ray.dir * (-2.0 / ray.dir.z);
+                    let (err, at) = match patch(p, hit.x, hit.y) {
+                        true => (0.016, Some((ray.origin + ray.dir * 0.8).to_array())),
+                        false => (0.004, (p == 1).then(|| hit.to_array())),
+                    };
+                    (0..5).for_each(|_| early.record(p, i, j, err, at));
+                }
+            }
+        }
+        early.judge();
+        assert_eq!(early.share(1), 0.0);
     }
 
     #[test]

@@ -242,6 +242,14 @@ fn run(
     Ok(stats)
 }
 
+/// Where a ray met a surface: its median depth, unless that is none or the
+/// last of its samples `t` when the pass made that one opaque (`opaque_last`:
+/// the ray ran out there); NaN then.
+fn surface_depth(median: f32, t: &[f32], opaque_last: bool) -> f32 {
+    let ran_out = opaque_last && t.last() == Some(&median);
+    if median > 0.0 && !ran_out { median } else { f32::NAN }
+}
+
 /// The main field on the final level: densities, culling, colours,
 /// compositing, colour and distortion losses, backward. Leaves every final
 /// interval's weight in `buf.full` for the interlevel loss.
@@ -299,8 +307,7 @@ fn main_field(
         // A transient's ray (weight 0) still counts in the error reported.
         let (sq, g) = l2(comp.rgb, ray.target, scale * ray.weight);
         stats.sq_err += sq;
-        let depth = if comp.median > 0.0 { comp.median } else { f32::NAN };
-        buf.errors[i] = RayMeasure { sq_err: sq as f32, depth };
+        buf.errors[i] = RayMeasure { sq_err: sq as f32, depth: surface_depth(comp.median, &m.t[o..o + k], k == n) };
         let full = &mut buf.full[r * n..(r + 1) * n];
         full[..k].copy_from_slice(&buf.weights[o..o + k]);
         buf.dfull.fill(0.0);

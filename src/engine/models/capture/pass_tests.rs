@@ -442,3 +442,26 @@ fn rays_nearer_the_focus_start_nearer() {
     assert_eq!((w.to_s(0.2), w.to_s(1000.0)), (0.0, 1.0));
     assert!(w.to_s(0.21) > 0.0);
 }
+
+/// Each ray's measure: its squared error as the statistics count it, and a
+/// depth only where its opacity reaches one half before the last interval,
+/// which the pass makes opaque (a ray through an empty field ran out there;
+/// it met no surface).
+#[test]
+fn a_ray_reports_a_depth_only_where_it_meets_a_surface() {
+    for (density, meets) in [(1e-6, false), (1e3, true)] {
+        let n = nets(8, 0.5, density);
+        let cn = CaptureNets { proposals: &n.proposals, field: &n.field, params: &n.params };
+        let how = Resampling::new(1.0, 0.01).unwrap();
+        let mut g = vec![0.0f32; n.params.len()];
+        let mut buf = CaptureBuffers::default();
+        let s = settings(&[8, 8, 8], None);
+        let stats = capture_pass(cn, &s, &rays(4), &mut Drawn::jittered(how, 2, 0), &mut buf, &mut g);
+        let sq: f64 = buf.errors.iter().map(|e| e.sq_err as f64).sum();
+        assert!((sq - stats.sq_err).abs() < 1e-5, "{sq} {}", stats.sq_err);
+        for e in &buf.errors {
+            assert_eq!(e.depth.is_finite(), meets, "density {density}: {e:?}");
+            assert!(!meets || (e.depth > 0.0 && e.depth < 3.0), "{e:?}");
+        }
+    }
+}
