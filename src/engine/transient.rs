@@ -307,7 +307,8 @@ impl TransientMaps {
             cameras += 1;
             let Some((u, v)) = cam.project(point.to_array()) else { continue };
             inside += 1;
-            let m = ((v as u32 / o.cell).min(o.ny - 1) * o.nx + (u as u32 / o.cell).min(o.nx - 1)) as usize;
+            // In the frame, so in the grid.
+            let Some((_, m)) = self.cell(q, u as u32, v as u32) else { continue };
             let Some(theirs) = self.surface(q, m) else { continue };
             known += 1;
             let origin = cam.origin();
@@ -563,6 +564,7 @@ fn median(v: &[f32]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::geometry::math::Ray;
     use crate::engine::rng::Rng;
 
     /// Three 256x256 photos (16x16 cells of 16 pixels) from cameras side
@@ -586,16 +588,14 @@ mod tests {
         t
     }
 
+    /// A `width x height` photo named `name` from a camera at `(x, 0, 0)`
+    /// looking along `forward`, its camera not given to the maps.
+    fn photo(name: &str, width: u32, height: u32, x: f32, forward: [f32; 3]) -> Photo {
+        Photo { name: name.into(), width, height, origin: [x, 0.0, 0.0], forward, camera: None }
+    }
+
     fn three() -> Vec<Photo> {
-        let photo = |x: f32| Photo {
-            name: format!("p{x}"),
-            width: 256,
-            height: 256,
-            origin: [x, 0.0, 0.0],
-            forward: [0.0, 0.0, -1.0],
-            camera: None,
-        };
-        vec![photo(0.0), photo(0.1), photo(0.2)]
+        [0.0, 0.1, 0.2].map(|x| photo(&format!("p{x}"), 256, 256, x, [0.0, 0.0, -1.0])).to_vec()
     }
 
     #[test]
@@ -707,14 +707,7 @@ mod tests {
         assert_eq!(t.share(0), 0.0);
         // Nothing is judged before errors are recorded, and non-finite
         // errors are not recorded.
-        let lone = Photo {
-            name: String::new(),
-            width: 256,
-            height: 256,
-            origin: [0.0; 3],
-            forward: [0.0, 0.0, -1.0],
-            camera: None,
-        };
+        let lone = photo("", 256, 256, 0.0, [0.0, 0.0, -1.0]);
         let mut t = TransientMaps::new(&[lone.clone(), lone]);
         for _ in 0..100 {
             t.record(0, 5, 5, f32::NAN, None);
@@ -726,14 +719,7 @@ mod tests {
 
     #[test]
     fn photos_are_compared_with_the_nearest_that_look_the_same_way() {
-        let at = |x: f32, forward: [f32; 3]| Photo {
-            name: String::new(),
-            width: 32,
-            height: 32,
-            origin: [x, 0.0, 0.0],
-            forward,
-            camera: None,
-        };
+        let at = |x: f32, forward: [f32; 3]| photo("", 32, 32, x, forward);
         let ahead = [0.0, 0.0, -1.0];
         let photos =
             [at(0.0, ahead), at(5.0, ahead), at(1.0, ahead), at(0.5, [0.0, 1.0, 0.0]), at(2.0, ahead), at(3.0, ahead)];
@@ -768,31 +754,38 @@ mod tests {
     }
 
     /// [`wall_photos`]' photos, every other pixel of every other row drawn
-    /// 5 times: its squared error 0.004 times a random factor in [0.5,
-    /// 1.5), its ray meeting the wall; where `bad_at(photo, wall x, wall y)`
-    /// says, an error of `bad` and the ray meeting a surface at `floater`
-    /// along it if given (what the field made of something in one photo).
-    fn wall(cameras: bool, bad: f32, floater: Option<f32>, bad_at: impl Fn(usize, f32, f32) -> bool) -> TransientMaps {
+    /// 5 times, each draw's error and surface point what `draw(photo, ray,
+    /// where the ray meets the wall)` says; judged.
+    fn wall_drawn(cameras: bool, mut draw: impl FnMut(usize, &Ray, Vec3) -> (f32, Option<Vec3>)) -> TransientMaps {
         let (cams, photos) = wall_photos(cameras);
         let mut t = TransientMaps::new(&photos);
-        let mut rng = Rng::new(5);
         for (p, cam) in cams.iter().enumerate() {
             for j in (0..256).step_by(2) {
                 for i in (0..256).step_by(2) {
                     let ray = cam.pixel_ray(i, j);
                     let hit = ray.origin + ray.dir * (-2.0 / ray.dir.z);
                     for _ in 0..5 {
-                        let (err, at) = match bad_at(p, hit.x, hit.y) {
-                            true => (bad, floater.map_or(hit, |d| ray.origin + ray.dir * d)),
-                            false => (0.004 * (0.5 + rng.f32()), hit),
-                        };
-                        t.record(p, i, j, err, Some(at.to_array()));
+                        let (err, at) = draw(p, &ray, hit);
+                        t.record(p, i, j, err, at.map(|v| v.to_array()));
                     }
                 }
             }
         }
         t.judge();
         t
+    }
+
+    /// [`wall_drawn`] with a squared error of 0.004 times a random factor
+    /// in [0.5, 1.5), the ray meeting the wall; where `bad_at(photo, wall x,
+    /// wall y)` says, an error of `bad` and the ray meeting a surface at
+    /// `floater` along it if given (what the field made of something in one
+    /// photo).
+    fn wall(cameras: bool, bad: f32, floater: Option<f32>, bad_at: impl Fn(usize, f32, f32) -> bool) -> TransientMaps {
+        let mut rng = Rng::new(5);
+        wall_drawn(cameras, |p, ray, hit| match bad_at(p, hit.x, hit.y) {
+            true => (bad, Some(floater.map_or(hit, |d| ray.origin + ray.dir * d))),
+            false => (0.004 * (0.5 + rng.f32()), Some(hit)),
+        })
     }
 
     #[test]
@@ -831,22 +824,10 @@ mod tests {
         assert_eq!(blind.share(1), 0.0);
         // Nor while the neighbours that frame the point have met no surface
         // there yet.
-        let (cams, photos) = wall_photos(true);
-        let mut early = TransientMaps::new(&photos);
-        for (p, cam) in cams.iter().enumerate() {
-            for j in (0..256).step_by(2) {
-                for i in (0..256).step_by(2) {
-                    let ray = cam.pixel_ray(i, j);
-                    let hit = ray.origin + ray.dir * (-2.0 / ray.dir.z);
-                    let (err, at) = match patch(p, hit.x, hit.y) {
-                        true => (0.016, Some((ray.origin + ray.dir * 0.8).to_array())),
-                        false => (0.004, (p == 1).then(|| hit.to_array())),
-                    };
-                    (0..5).for_each(|_| early.record(p, i, j, err, at));
-                }
-            }
-        }
-        early.judge();
+        let early = wall_drawn(true, |p, ray, hit| match patch(p, hit.x, hit.y) {
+            true => (0.016, Some(ray.origin + ray.dir * 0.8)),
+            false => (0.004, (p == 1).then_some(hit)),
+        });
         assert_eq!(early.share(1), 0.0);
     }
 
@@ -873,14 +854,7 @@ mod tests {
         // Photo 3 does not exist; (256, 0) is past photo 0's edge.
         assert_eq!((t.weight(3, 0, 0), t.weight(0, 256, 0)), (1.0, 1.0));
         // A photo smaller than a cell still has one.
-        let small = Photo {
-            name: String::new(),
-            width: 3,
-            height: 2,
-            origin: [0.0; 3],
-            forward: [0.0, 0.0, -1.0],
-            camera: None,
-        };
+        let small = photo("", 3, 2, 0.0, [0.0, 0.0, -1.0]);
         assert_eq!(TransientMaps::new(&[small]).mask(0, 3, 2), vec![false; 6]);
     }
 }
