@@ -365,7 +365,9 @@ fn composite_lanes<const N: usize>(
     let (mut t, mut live, mut last): ([f32; N], [f32; N], [u32; N]) =
         (get(&st.t[lanes.clone()]), get(&st.live[lanes.clone()]), get(&st.last[lanes.clone()]));
     let mut depth: [f32; N] = get(&st.depth[lanes.clone()]);
-    let mut rgb: [[f32; N]; 3] = [0, 1, 2].map(|c| get(&st.rgb[c][lanes.clone()]));
+    // Spelt out: `[0, 1, 2].map(..)` here became calls to `memcpy`.
+    let mut rgb: [[f32; N]; 3] =
+        [get(&st.rgb[0][lanes.clone()]), get(&st.rgb[1][lanes.clone()]), get(&st.rgb[2][lanes.clone()])];
     // Arithmetic where it gives the same bits as a choice (colours and
     // depths only grow from 0, and `x (1 - 0) = x`), so that the loop
     // vectorises.
@@ -406,6 +408,9 @@ struct BackLanes {
     accum: [[f32; L]; 3],
     last_a: [f32; L],
     last_c: [[f32; L]; 3],
+    /// The most any of the chunk's pixels took (the walk passes it by
+    /// until then).
+    took: u32,
 }
 
 /// The states of the tile `[x0, x1) x [y0, y1)`'s chunks before the walk,
@@ -425,6 +430,7 @@ fn back_lanes(frame: &Frame, d_rgb: &[f32], [x0, x1, y0, y1]: [usize; 4]) -> (Ve
                 s.g[c][k] = g[c];
             }
             s.last[k] = last;
+            s.took = s.took.max(last);
             s.t_final[k] = frame.final_t[i];
             s.tr[k] = frame.final_t[i];
             s.bg_dot[k] = bg[0] * g[0] + bg[1] * g[1] + bg[2] * g[2];
@@ -495,6 +501,10 @@ pub(super) fn tile_backward_any(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
             let cols = (sx0.saturating_sub(x0), sx1.saturating_sub(x0));
             for (h, on_lanes) in chunks(cols) {
                 let s = &mut lanes[(y - y0) * CHUNKS + h];
+                if pos as u32 >= s.took {
+                    // Every pixel of the chunk stopped before this Gaussian.
+                    continue;
+                }
                 let [a, raw, dx] = lanes_alpha(p, &xs[h], dy, on_lanes, opt.min_alpha);
                 walk_back(p, pos as u32, s, [a, raw, dx], dy, &mut e);
             }
@@ -514,22 +524,26 @@ pub(super) fn tile_backward_any(job: BackwardTile<'_>, out: &mut [ScreenGrad]) {
 #[inline(always)]
 fn walk_back(p: &Splat2D, pos: u32, s: &mut BackLanes, [a, raw, dx]: [[f32; L]; 3], dy: f32, e: &mut [[f32; L]; 9]) {
     let [c0, c1, c2] = p.conic;
+    // The chunk's state in locals, chosen lane by lane and stored back
+    // whole: updated in place, a lane's "keep the old value" became masked
+    // loads and stores.
+    let (mut tr, mut accum, mut last_a, mut last_c) = (s.tr, s.accum, s.last_a, s.last_c);
     for k in 0..L {
         let on = (pos < s.last[k]) & (a[k] != 0.0);
         // One division for both transmittances divided back out.
         let inv = 1.0 / (1.0 - a[k]);
-        let tr = if on { s.tr[k] * inv } else { s.tr[k] };
-        s.tr[k] = tr;
+        let t = if on { tr[k] * inv } else { tr[k] };
+        tr[k] = t;
         let mut d_a = 0.0;
         for c in 0..3 {
-            let acc = s.last_a[k] * s.last_c[c][k] + (1.0 - s.last_a[k]) * s.accum[c][k];
-            s.accum[c][k] = if on { acc } else { s.accum[c][k] };
-            e[6 + c][k] += if on { a[k] * tr * s.g[c][k] } else { 0.0 };
+            let acc = last_a[k] * last_c[c][k] + (1.0 - last_a[k]) * accum[c][k];
+            accum[c][k] = if on { acc } else { accum[c][k] };
+            e[6 + c][k] += if on { a[k] * t * s.g[c][k] } else { 0.0 };
             d_a += (p.rgb[c] - acc) * s.g[c][k];
-            s.last_c[c][k] = if on { p.rgb[c] } else { s.last_c[c][k] };
+            last_c[c][k] = if on { p.rgb[c] } else { last_c[c][k] };
         }
-        let d_a = d_a * tr - s.t_final[k] * inv * s.bg_dot[k];
-        s.last_a[k] = if on { a[k] } else { s.last_a[k] };
+        let d_a = d_a * t - s.t_final[k] * inv * s.bg_dot[k];
+        last_a[k] = if on { a[k] } else { last_a[k] };
         // Where alpha is held at its maximum, it has no gradient;
         // a = o exp(power): da/do = a / o, da/dpower = a.
         let gp = if on & (raw[k] < MAX_ALPHA) { d_a * a[k] } else { 0.0 };
@@ -540,4 +554,5 @@ fn walk_back(p: &Splat2D, pos: u32, s: &mut BackLanes, [a, raw, dx]: [[f32; L]; 
         e[0][k] += gp * (c0 * dx[k] + c1 * dy);
         e[1][k] += gp * (c2 * dy + c1 * dx[k]);
     }
+    (s.tr, s.accum, s.last_a, s.last_c) = (tr, accum, last_a, last_c);
 }
