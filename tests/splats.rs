@@ -288,10 +288,12 @@ print(json.dumps({'names': [p.name for p in v.properties], 'rows': [[float(x) fo
 /// the rest; they render held-out views nearly as well as their field (the
 /// demo object, 30 s on 2 threads, this test's build, 2-core EPYC: field
 /// 35.44 and 36.30 dB in two runs, splats 35.20 and 35.06; CI's run of
-/// bc6c19e: 35.93 and 35.03). The field gains with the machine's speed and
-/// the splats stay near 35 dB, so the bars are 32 dB and the field's score
-/// less 2 dB, which an unfitted placement (about 18 dB) or a broken fit
-/// does not reach. It trains by time only, and is not resumed.
+/// bc6c19e: 35.93 and 35.03; a 2-core Xeon with AVX-512 at 42c41bf: 37.42
+/// and 35.33). The field gains with the machine's speed and the splats stay
+/// near 35 dB, so the bars are 32 dB and the field's score less 2 dB, the
+/// field's counted at most 36 dB (a faster machine's field is no reason for
+/// the splats to fall short), which an unfitted placement (about 18 dB) or
+/// a broken fit does not reach. It trains by time only, and is not resumed.
 #[test]
 fn train_model_splats_fits_splats_from_a_field_it_trains_first() {
     let _alone = alone();
@@ -330,7 +332,7 @@ fn train_model_splats_fits_splats_from_a_field_it_trains_first() {
     let (psnr_splats, psnr_field) = (eval(&out), eval(&field));
     println!("train --model splats --seconds 30: field {psnr_field:.2} dB, splats {psnr_splats:.2} dB");
     assert!(
-        psnr_splats > 32.0 && psnr_splats > psnr_field - 2.0,
+        psnr_splats > 32.0 && psnr_splats > psnr_field.min(36.0) - 2.0,
         "splats {psnr_splats:.2} dB, field {psnr_field:.2} dB"
     );
 
