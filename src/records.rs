@@ -39,6 +39,11 @@ pub struct ViewDefaults {
     pub radius: f32,
     /// Far plane in world units (depth images map it to white).
     pub far: f32,
+    /// The capture's near bound in world units: the field's rays start
+    /// there and splats are drawn from there on, so the web viewer's near
+    /// plane is there too. `None` in records from before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub near: Option<f32>,
     /// Mean elevation of the training cameras above the centre, degrees:
     /// the default of renders and orbit videos. (Records from before it
     /// existed: 30, the default then.)
@@ -103,6 +108,7 @@ impl ViewDefaults {
             up: rig.as_ref().map_or([0.0, 0.0, 1.0], |r| r.up),
             radius: rig.as_ref().map_or(1.0, |r| r.radius),
             far: ds.far,
+            near: Some(ds.near),
             elevation: rig.as_ref().map_or(Self::default_elevation(), |r| r.elevation_deg),
             front: rig.as_ref().map(|r| r.front),
             arc: rig.as_ref().and_then(|r| r.arc_deg),
@@ -298,6 +304,7 @@ pub(crate) fn sample_view() -> ViewDefaults {
         up: [0.0, 0.0, 1.0],
         radius: 1.0,
         far: 2.0,
+        near: None,
         elevation: 30.0,
         front: None,
         spiral: None,

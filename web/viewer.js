@@ -199,10 +199,17 @@ function splatIntrinsics() {
   return { fx: f, fy: f, cx: width / 2, cy: height / 2, width, height };
 }
 
+// The near plane: the capture's near bound, from which the field's rays
+// start and the server draws the splats (records before it: a hundredth
+// of the orbit's radius).
+function splatNear(v) {
+  return v.near > 0 ? v.near : Math.max(1e-4, viewer.radius * 0.01);
+}
+
 function placeSplatCamera() {
   const v = viewer.model.view;
   splats.camera.up.set(...v3.unit(v.up));
-  splats.setCamera(c2w(), splatIntrinsics(), { near: Math.max(1e-4, viewer.radius * 0.01), far: Math.max(v.far * 4, viewer.radius * 10), target: viewer.target });
+  splats.setCamera(c2w(), splatIntrinsics(), { near: splatNear(v), far: Math.max(v.far * 4, viewer.radius * 10), target: viewer.target });
   splats.controls.update();
   updateLink();
 }

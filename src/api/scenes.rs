@@ -461,6 +461,7 @@ fn posing(id: &str, size: u64, upload: PhotoUpload) -> Checked {
             up: [0.0, 0.0, 1.0],
             radius: 0.0,
             far: 0.0,
+            near: None,
             elevation: 0.0,
             front: None,
             spiral: None,

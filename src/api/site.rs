@@ -49,7 +49,7 @@ pub fn index_html(title: &str, camera: &Camera, view: &ViewDefaults) -> String {
         },
         "up": view.up,
         "target": view.centre,
-        "near": (view.radius * 0.01).max(1e-4),
+        "near": view.near.filter(|n| *n > 0.0).unwrap_or((view.radius * 0.01).max(1e-4)),
         "far": (view.far * 4.0).max(view.radius * 10.0),
     });
     let title = escape(title);

@@ -31,7 +31,7 @@ impl SplatsModel {
         background: [f32; 3],
         grads: &mut [f32],
     ) -> ViewFit {
-        let (l, opt) = (self.layout(), RasterOptions::default());
+        let (l, opt) = (self.layout(), RasterOptions::for_scene(self.scene()));
         let f = forward(&l, self.params(), cam, &opt, background);
         let n = valid.max(1) as f32;
         let mut squared_error = 0.0f64;

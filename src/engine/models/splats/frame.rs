@@ -34,6 +34,17 @@ impl Default for RasterOptions {
     }
 }
 
+impl RasterOptions {
+    /// The defaults, drawing nothing nearer than `scene`'s near bound, as
+    /// the field the splats come from draws nothing nearer (its rays start
+    /// there): a Gaussian just in front of a new view, which no photo saw
+    /// from that close, is not drawn over it.
+    pub fn for_scene(scene: &Scene) -> Self {
+        let default = Self::default();
+        Self { near: scene.near.max(default.near), ..default }
+    }
+}
+
 /// The largest alpha a Gaussian takes (the 3DGS paper's, which keeps the
 /// backward's division by `1 - alpha` finite).
 pub const MAX_ALPHA: f32 = 0.99;

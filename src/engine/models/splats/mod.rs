@@ -78,7 +78,14 @@ impl SplatsModel {
     pub fn rasterise(&self, camera: &Camera, background: [f32; 3]) -> raster::Frame {
         let cam = RasterCamera::new(camera, &self.scene);
         let pre = self.intrinsics.get_or_init(|| raster::Intrinsics::of(&self.layout, &self.params));
-        raster::forward_with(&self.layout, &self.params, Some(pre), &cam, &RasterOptions::default(), background)
+        raster::forward_with(
+            &self.layout,
+            &self.params,
+            Some(pre),
+            &cam,
+            &RasterOptions::for_scene(&self.scene),
+            background,
+        )
     }
 
     /// Renders `camera`'s colours, distances and opacities; a distorted

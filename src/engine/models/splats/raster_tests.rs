@@ -697,3 +697,32 @@ fn a_models_views_with_its_intrinsics_worked_out_once_are_the_same_bits() {
     assert_ne!(bits(&after), bits(&plain.rgb), "the change shows");
     assert_eq!(bits(&after), bits(&want));
 }
+
+#[test]
+fn a_models_views_draw_nothing_nearer_than_its_scenes_near_bound() {
+    // Its source's rays start at the near bound; a Gaussian just in front
+    // of a new view, nearer than that, is left out as the field leaves it.
+    use super::{SplatsConfig, SplatsModel};
+    let camera = camera([0.0, -4.0, 0.0], 32, 32, 40.0);
+    let (l, mut p) = random_gaussians(1, 0, 3, 0.9);
+    // One opaque grey Gaussian on the camera's axis, 2 units in front of it.
+    p[l.means()].copy_from_slice(&[0.0, -2.0, 0.0]);
+    p[l.log_scales()].fill(-2.0);
+    p[l.opacities()].fill(4.0);
+    p[l.sh_dc()].fill(0.0);
+    let centre = |near: f32| {
+        let scene = Scene::from_bounds(
+            crate::engine::geometry::math::Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) },
+            near,
+            10.0,
+        );
+        assert_eq!(scene.scale, 1.0, "model units are world units here");
+        let config = SplatsConfig { sh_degree: 0, ..SplatsConfig::default() };
+        let model = SplatsModel::from_parts(config, scene, p.clone()).unwrap();
+        let rgb = model.render_view(&camera, [0.0; 3]).0;
+        rgb[3 * (16 * 32 + 16)]
+    };
+    assert!(centre(0.0) > 0.4, "drawn with no near bound: {}", centre(0.0));
+    assert!(centre(1.9) > 0.4, "drawn from 1.9 units on: {}", centre(1.9));
+    assert_eq!(centre(2.1), 0.0, "not drawn from 2.1 units on");
+}
