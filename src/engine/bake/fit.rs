@@ -2,6 +2,7 @@
 //! `bake`, stage 2): the state between steps, one step, and Adam's rates
 //! per block.
 
+use super::background::{Background, zero_rest};
 use super::clear::CameraBalls;
 use super::{BakeSettings, COARSE_SHARE, densify};
 use crate::engine::dataset::Dataset;
@@ -63,6 +64,8 @@ pub(super) struct Fit<'a> {
     grads: Vec<f32>,
     /// No Gaussian stays this near a training camera (`clear`).
     balls: CameraBalls,
+    /// Where Gaussians keep a colour of degree 0 (`background`).
+    background: Option<Background>,
 }
 
 impl<'a> Fit<'a> {
@@ -100,6 +103,7 @@ impl<'a> Fit<'a> {
             .collect();
         let n = model.layout().n;
         Self {
+            background: Background::of(ds, model.scene()),
             balls,
             ds,
             frames,
@@ -161,7 +165,11 @@ impl<'a> Fit<'a> {
             }
         }
         let groups = groups(&l, progress);
+        let far = self.background.as_ref().map(|b| b.members(&l, self.model.params())).unwrap_or_default();
+        zero_rest(&l, &mut grads, &far);
         self.adam.step_groups(self.model.params_mut(), &mut grads, BASE_LR, &groups);
+        // Adam's momentum would move them still.
+        zero_rest(&l, self.model.params_mut(), &far);
         self.grads = grads;
         self.step += 1;
     }

@@ -14,11 +14,14 @@
 //!    the differentiable rasteriser: one whole photo a step (at half size
 //!    first, for large photos), mean squared error, Adam with per-block
 //!    rates, and the 3DGS paper's densification and pruning in the first
-//!    half, all on one [`Budget`] of steps or seconds as training's.
+//!    half, all on one [`Budget`] of steps or seconds as training's. The
+//!    background of a capture taken all around keeps a colour of degree 0
+//!    ([`background`]).
 //!
 //! What was tried, kept and dropped, with its figures:
 //! `docs/design/splats.md`.
 
+mod background;
 mod carve;
 mod clear;
 mod densify;
