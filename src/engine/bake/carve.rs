@@ -51,7 +51,7 @@ pub(super) fn carve(
                 if t[2] <= 0.0 {
                     continue;
                 }
-                let (u, v) = (cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy);
+                let [u, v] = cam.pixel(t);
                 let (gx, gy) = ((u - g.origin[0]) / g.spacing, (v - g.origin[1]) / g.spacing);
                 if !(gx >= 0.0 && gy >= 0.0 && gx < g.nx as f32 && gy < g.ny as f32) {
                     continue;

@@ -56,7 +56,7 @@ impl CameraBalls {
         if !(t[2] >= self.radius && t[2] > 0.0) {
             return false;
         }
-        let (u, v) = (c.fx * t[0] / t[2] + c.cx, c.fy * t[1] / t[2] + c.cy);
+        let [u, v] = c.pixel(t);
         super::in_frame(u, v, c.width as f32, c.height as f32)
     }
 }

@@ -108,6 +108,13 @@ impl RasterCamera {
         ]
     }
 
+    /// Where camera-space point `t` (in front: `t[2] > 0`) falls on the
+    /// image, in pixels.
+    #[inline(always)]
+    pub fn pixel(&self, t: [f32; 3]) -> [f32; 2] {
+        [self.fx * t[0] / t[2] + self.cx, self.fy * t[1] / t[2] + self.cy]
+    }
+
     pub fn tiles_x(&self) -> usize {
         (self.width as usize).div_ceil(TILE)
     }

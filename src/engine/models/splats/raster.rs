@@ -50,7 +50,7 @@ pub fn project(
     }
     let (j, clamp) = jacobian(cam, t);
     let r = reach(opacity, opt);
-    let mean = [cam.fx * t[0] / t[2] + cam.cx, cam.fy * t[1] / t[2] + cam.cy];
+    let mean = cam.pixel(t);
     let largest = pre.map_or_else(|| largest_scale(g.log_scale), |pre| pre.largest_scale[i]);
     if off_view(cam, &j, mean, r, largest) {
         return p;
