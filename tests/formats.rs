@@ -412,7 +412,7 @@ fn the_mesh_passes_gltf_validator_and_usd_and_looks_like_its_model() {
     let report: serde_json::Value = serde_json::from_slice(&out.stdout)
         .unwrap_or_else(|_| panic!("check-usdz.py: {}", String::from_utf8_lossy(&out.stderr)));
     assert!(out.status.success(), "USD finds problems: {report}");
-    assert_eq!(report["files"], serde_json::json!(["model.usda", "texture.jpg"]));
+    assert_eq!(report["files"], serde_json::json!(["model.usdc", "texture.jpg"]));
     assert_eq!((report["meshes"].as_u64(), report["textured"].as_u64()), (Some(1), Some(1)), "{report}");
     assert_eq!((report["up"].as_str(), report["metersPerUnit"].as_f64()), (Some("Y"), Some(1.0)));
     let tris = report["triangles"].as_u64().unwrap();
@@ -452,4 +452,67 @@ fn the_mesh_passes_gltf_validator_and_usd_and_looks_like_its_model() {
     }
     let out = run(&["mesh", "--model", &p("m.ckpt"), "--out", &p("m.obj")]);
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains(".glb or a .usdz"));
+}
+
+/// A mesh of a few thousand triangles, odd coordinates and all, as USDZ:
+/// USD itself reads back every point, index, count and texture
+/// coordinate exactly as written (the stage is our own binary writer's).
+#[test]
+fn usd_reads_back_every_value_of_the_usdz() {
+    use radiance::engine::front::{CropBox, Placement, TexturedMesh, mesh_usdz};
+    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let positions: Vec<[f32; 3]> = (0..2500).map(|_| [next() * 3.0 - 1.0, next() * 1e-3, next() * 7.0]).collect();
+    // Indices of every size, so that each of the integer coding's widths is used.
+    let triangles: Vec<[u32; 3]> =
+        (0..4000u32).map(|t| [t % 2500, (t * 7919 + 13) % 2500, ((next() * 2499.0) as u32 + t) % 2500]).collect();
+    let uvs: Vec<[[f32; 2]; 3]> =
+        triangles.iter().map(|_| [[next(), next()], [next(), next()], [next(), next()]]).collect();
+    let mesh = TexturedMesh { positions, triangles, uvs, texture: vec![[0.5, 0.2, 0.9]; 64 * 64], texture_size: 64 };
+    let crop = CropBox {
+        centre: [0.5, 0.0, 2.5],
+        axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        half: [2.0, 1.0, 4.0],
+    };
+    let place = Placement::new(&mesh, &crop, Some([0.0, -1.0, 0.0]), 0.5);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.usdz");
+    std::fs::write(&path, mesh_usdz(&mesh, &place).unwrap()).unwrap();
+
+    let check = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/readers/check-usdz.py");
+    let out = Command::new("python3").arg(&check).arg(&path).arg("--arrays").output().expect("python3 with usd-core");
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|_| panic!("check-usdz.py: {}", String::from_utf8_lossy(&out.stderr)));
+    assert!(out.status.success(), "USD finds problems: {}", report["problems"]);
+    assert_eq!(report["files"], serde_json::json!(["model.usdc", "texture.jpg"]));
+    let a = &report["arrays"];
+    let f32s = |v: &serde_json::Value| -> Vec<f32> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|p| p.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32))
+            .collect()
+    };
+    let ints =
+        |v: &serde_json::Value| -> Vec<i64> { v.as_array().unwrap().iter().map(|x| x.as_i64().unwrap()).collect() };
+    let want_points: Vec<f32> = mesh.positions.iter().flat_map(|p| place.apply(*p)).collect();
+    assert_eq!(f32s(&a["points"]), want_points, "points");
+    assert_eq!(ints(&a["faceVertexCounts"]), vec![3; 4000]);
+    let want_indices: Vec<i64> = mesh.triangles.iter().flatten().map(|&v| v as i64).collect();
+    assert_eq!(ints(&a["faceVertexIndices"]), want_indices, "faceVertexIndices");
+    let want_st: Vec<f32> = mesh.uvs.iter().flatten().flat_map(|uv| [uv[0], 1.0 - uv[1]]).collect();
+    assert_eq!(f32s(&a["st"]), want_st, "st (v up)");
+    assert_eq!(a["interpolation"], "faceVarying");
+    assert_eq!(a["texture"], serde_json::json!(["texture.jpg"]));
+    let extent = f32s(&a["extent"]);
+    for k in 0..3 {
+        let axis = want_points.iter().skip(k).step_by(3);
+        let (lo, hi) = axis.fold((f32::MAX, f32::MIN), |(l, h), &x| (l.min(x), h.max(x)));
+        assert_eq!((extent[k], extent[3 + k]), (lo, hi), "extent along axis {k}");
+    }
 }

@@ -12,8 +12,8 @@ use clap::Args;
 use super::{Common, MaskArgs};
 use crate::engine::front::{
     CAPTURE_KIND, CropBox, Dataset, LoadOptions, MESH_STAGES, MeshOptions, Model, Placement, RenderOptions, Split,
-    TexturedMesh, View, crop_model, heldout_pose, load_checkpoint, make_mesh, mesh_glb, mesh_usdz, render_heldout_view,
-    render_mesh, scene_box, write_atomic,
+    TexturedMesh, View, crop_model, heldout_pose, load_checkpoint, make_mesh, mesh_as_written, mesh_glb, mesh_usdz,
+    render_heldout_view, render_mesh, scene_box, write_atomic,
 };
 use crate::media::png;
 
@@ -131,7 +131,7 @@ pub fn run(a: MeshArgs) -> anyhow::Result<()> {
     if a.eval {
         let data = a.data.as_ref().expect("checked above");
         let opts = LoadOptions { masks: a.masks.masks, ..Default::default() };
-        evaluate(model, &mesh, &load(data, Split::Test, opts)?, a.renders.as_deref())?;
+        evaluate(model, &mesh_as_written(&mesh)?, &load(data, Split::Test, opts)?, a.renders.as_deref())?;
     }
     Ok(())
 }

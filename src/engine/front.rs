@@ -19,7 +19,7 @@ pub use super::geometry::path::{CameraPath, Keyframe, MAX_KEYFRAMES};
 pub use super::geometry::rig::Spiral;
 pub use super::io::checkpoint::CheckpointError;
 pub use super::io::fsio::write_atomic;
-pub use super::mesh::export::{glb as mesh_glb, usdz as mesh_usdz};
+pub use super::mesh::export::{as_written as mesh_as_written, glb as mesh_glb, usdz as mesh_usdz};
 pub use super::mesh::raster::{MeshView, render_antialiased as render_mesh};
 pub use super::mesh::views::{auto_crop_for as auto_crop_any, scene_box};
 pub use super::mesh::{

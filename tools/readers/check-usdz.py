@@ -3,7 +3,10 @@
 validator USD registers (UsdValidation: the usdz package rules, file types,
 material bindings, shader inputs, ...), and that the mesh's `st` is bound
 to a UsdUVTexture through the material. Prints a JSON report; exits 1 on
-any problem. Usage: python3 check-usdz.py FILE.usdz (tests/formats.rs)."""
+any problem. With --arrays, the report also holds the first mesh's arrays
+as USD reads them (points, faceVertexCounts, faceVertexIndices, st and its
+interpolation, extent) and the texture's asset path. Usage: python3
+check-usdz.py FILE.usdz [--arrays] (tests/formats.rs)."""
 import json
 import sys
 
@@ -57,5 +60,18 @@ report = {
     "metersPerUnit": UsdGeom.GetStageMetersPerUnit(stage),
     "problems": problems,
 }
+if "--arrays" in sys.argv[2:] and meshes:
+    mesh = UsdGeom.Mesh(meshes[0])
+    st = UsdGeom.PrimvarsAPI(meshes[0]).GetPrimvar("st")
+    textures = [p for p in stage.Traverse() if p.IsA(UsdShade.Shader) and UsdShade.Shader(p).GetIdAttr().Get() == "UsdUVTexture"]
+    report["arrays"] = {
+        "points": [list(p) for p in mesh.GetPointsAttr().Get()],
+        "faceVertexCounts": list(mesh.GetFaceVertexCountsAttr().Get()),
+        "faceVertexIndices": list(mesh.GetFaceVertexIndicesAttr().Get()),
+        "st": [list(v) for v in st.Get()],
+        "interpolation": st.GetInterpolation(),
+        "extent": [list(p) for p in mesh.GetExtentAttr().Get()],
+        "texture": [UsdShade.Shader(t).GetInput("file").Get().path for t in textures],
+    }
 print(json.dumps(report))
 sys.exit(1 if problems else 0)

@@ -9,11 +9,13 @@ use std::io::{self, Cursor, Write};
 
 use serde_json::json;
 
+use crate::engine::mesh::usdc::{self, Spec, SpecKind, Value};
 use crate::engine::mesh::{Placement, TexturedMesh};
 use crate::engine::models::splats::export::glb::write_container;
 
-/// JPEG quality of the texture.
-const QUALITY: u8 = 90;
+/// JPEG quality of the texture (docs/design/mesh.md: 85 keeps lego's
+/// 200k-triangle GLB under 10 MB for 0.01 dB).
+const QUALITY: u8 = 85;
 
 /// The texture as a JPEG.
 pub fn texture_jpeg(mesh: &TexturedMesh) -> io::Result<Vec<u8>> {
@@ -23,6 +25,15 @@ pub fn texture_jpeg(mesh: &TexturedMesh) -> io::Result<Vec<u8>> {
         .encode(&rgb, mesh.texture_size, mesh.texture_size, image::ExtendedColorType::Rgb8)
         .map_err(io::Error::other)?;
     Ok(out)
+}
+
+/// The mesh with its texture as the files hold it (the JPEG decoded), so
+/// that a score of the mesh counts what the compression loses.
+pub fn as_written(mesh: &TexturedMesh) -> io::Result<TexturedMesh> {
+    let jpeg = texture_jpeg(mesh)?;
+    let decoded = image::load_from_memory(&jpeg).map_err(io::Error::other)?.to_rgb8();
+    let texture = decoded.pixels().map(|p| p.0.map(|v| v as f32 / 255.0)).collect();
+    Ok(TexturedMesh { texture, ..mesh.clone() })
 }
 
 /// The mesh's corners where `place` puts them, and their bounds.
@@ -96,91 +107,172 @@ pub fn glb(mesh: &TexturedMesh, place: &Placement) -> io::Result<Vec<u8>> {
     Ok(out)
 }
 
-/// A number for USDA text: six significant digits at most, no trailing zeros.
-fn num(v: f32) -> String {
-    let s = format!("{:.6}", v);
-    let s = s.trim_end_matches('0').trim_end_matches('.');
-    if s == "-0" { "0".into() } else { s.into() }
-}
-
-/// The USD stage (text): the mesh (points shared, texture coordinates a
-/// triangle corner each, USD's `st` with v up) bound to a material that
-/// shows the texture unlit.
-pub fn usda(mesh: &TexturedMesh, place: &Placement, texture: &str) -> String {
-    let points: Vec<[f32; 3]> = mesh.positions.iter().map(|p| place.apply(*p)).collect();
-    let (_, lo, hi) = placed(mesh, place);
-    let mut s = String::with_capacity(64 * mesh.triangles.len() + 4096);
-    let tuple = |v: &[f32]| format!("({})", v.iter().map(|x| num(*x)).collect::<Vec<_>>().join(", "));
-    s.push_str("#usda 1.0\n(\n    defaultPrim = \"Model\"\n    metersPerUnit = 1\n    upAxis = \"Y\"\n)\n\n");
-    s.push_str("def Xform \"Model\" (\n    kind = \"component\"\n)\n{\n");
-    s.push_str("    def Mesh \"Mesh\" (\n        prepend apiSchemas = [\"MaterialBindingAPI\"]\n    )\n    {\n");
-    s.push_str("        uniform token subdivisionScheme = \"none\"\n        uniform bool doubleSided = 0\n");
-    s.push_str(&format!("        float3[] extent = [{}, {}]\n", tuple(&lo), tuple(&hi)));
-    s.push_str("        int[] faceVertexCounts = [");
-    s.push_str(&vec!["3"; mesh.triangles.len()].join(", "));
-    s.push_str("]\n        int[] faceVertexIndices = [");
-    s.push_str(&mesh.triangles.iter().flatten().map(|v| v.to_string()).collect::<Vec<_>>().join(", "));
-    s.push_str("]\n        point3f[] points = [");
-    s.push_str(&points.iter().map(|p| tuple(p)).collect::<Vec<_>>().join(", "));
-    s.push_str("]\n        texCoord2f[] primvars:st = [");
-    s.push_str(&mesh.uvs.iter().flatten().map(|uv| tuple(&[uv[0], 1.0 - uv[1]])).collect::<Vec<_>>().join(", "));
-    s.push_str("] (\n            interpolation = \"faceVarying\"\n        )\n");
-    s.push_str("        rel material:binding = </Model/Materials/Baked>\n    }\n\n");
-    s.push_str(&MATERIAL.replace("TEXTURE", texture));
-    s.push_str("}\n");
-    s
-}
-
-/// The material: the texture as emission over a black, rough, non-metal
-/// surface, so that AR Quick Look's lights leave its colours as they are.
-const MATERIAL: &str = r#"    def Scope "Materials"
-    {
-        def Material "Baked"
-        {
-            token outputs:surface.connect = </Model/Materials/Baked/Surface.outputs:surface>
-
-            def Shader "Surface"
-            {
-                uniform token info:id = "UsdPreviewSurface"
-                color3f inputs:diffuseColor = (0, 0, 0)
-                color3f inputs:emissiveColor.connect = </Model/Materials/Baked/Texture.outputs:rgb>
-                float inputs:roughness = 1
-                float inputs:metallic = 0
-                token outputs:surface
-            }
-
-            def Shader "Texture"
-            {
-                uniform token info:id = "UsdUVTexture"
-                asset inputs:file = @TEXTURE@
-                float2 inputs:st.connect = </Model/Materials/Baked/StReader.outputs:result>
-                token inputs:sourceColorSpace = "sRGB"
-                token inputs:wrapS = "clamp"
-                token inputs:wrapT = "clamp"
-                float3 outputs:rgb
-            }
-
-            def Shader "StReader"
-            {
-                uniform token info:id = "UsdPrimvarReader_float2"
-                string inputs:varname = "st"
-                float2 outputs:result
-            }
-        }
+/// A prim: `def`, its type, its fields, its children's names and its
+/// properties' names.
+fn prim(path: &str, type_name: &str, extra: Vec<(&'static str, Value)>, children: &[&str], props: &[&str]) -> Spec {
+    let names = |v: &[&str]| Value::Tokens(v.iter().map(|s| s.to_string()).collect());
+    let mut fields = vec![("specifier", Value::Def), ("typeName", Value::Token(type_name.into()))];
+    fields.extend(extra);
+    if !children.is_empty() {
+        fields.push(("primChildren", names(children)));
     }
-"#;
+    if !props.is_empty() {
+        fields.push(("properties", names(props)));
+    }
+    Spec { path: path.into(), kind: SpecKind::Prim, fields }
+}
+
+/// An attribute of type `type_name` (`uniform` or varying) and its fields
+/// (a `default` value, a `connectionPaths` source, metadata).
+fn attr(path: &str, type_name: &str, uniform: bool, extra: Vec<(&'static str, Value)>) -> Spec {
+    let mut fields = vec![
+        ("custom", Value::Bool(false)),
+        ("typeName", Value::Token(type_name.into())),
+        ("variability", Value::Uniform(uniform)),
+    ];
+    fields.extend(extra);
+    Spec { path: path.into(), kind: SpecKind::Attribute, fields }
+}
+
+fn token(t: &str) -> Value {
+    Value::Token(t.into())
+}
+
+/// A shader's (or material's) input or output: a value, a connection to
+/// another's output, or neither (an output).
+enum Port<'a> {
+    Set(Value),
+    From(&'a str),
+    Out,
+}
+
+/// A shader (`id` its `info:id`) or a material, its children and ports
+/// (name, type, port).
+fn node(path: &str, type_name: &str, id: Option<&str>, children: &[&str], ports: Vec<(&str, &str, Port)>) -> Vec<Spec> {
+    let mut names: Vec<&str> = id.map(|_| "info:id").into_iter().collect();
+    names.extend(ports.iter().map(|p| p.0));
+    let mut specs = vec![prim(path, type_name, vec![], children, &names)];
+    if let Some(id) = id {
+        specs.push(attr(&format!("{path}.info:id"), "token", true, vec![("default", token(id))]));
+    }
+    for (name, type_name, port) in ports {
+        let fields = match port {
+            Port::Set(v) => vec![("default", v)],
+            Port::From(source) => vec![("connectionPaths", Value::Paths(vec![source.into()]))],
+            Port::Out => vec![],
+        };
+        specs.push(attr(&format!("{path}.{name}"), type_name, false, fields));
+    }
+    specs
+}
+
+/// The USD stage: `/Model`, y up, in metres, holding the mesh bound to a
+/// material that shows the texture `texture` unlit.
+pub fn stage(mesh: &TexturedMesh, place: &Placement, texture: &str) -> Vec<Spec> {
+    let mut specs = vec![
+        Spec {
+            path: "/".into(),
+            kind: SpecKind::PseudoRoot,
+            fields: vec![
+                ("defaultPrim", token("Model")),
+                ("metersPerUnit", Value::Double(1.0)),
+                ("upAxis", token("Y")),
+                ("primChildren", Value::Tokens(vec!["Model".into()])),
+            ],
+        },
+        prim("/Model", "Xform", vec![("kind", token("component"))], &["Mesh", "Materials"], &[]),
+    ];
+    specs.extend(mesh_specs(mesh, place, "/Model/Materials/Baked"));
+    specs.extend(material_specs("/Model/Materials/Baked", texture));
+    specs
+}
+
+/// The mesh: points shared, texture coordinates a triangle corner each
+/// (USD's `st`, v up), bound to `material`.
+fn mesh_specs(mesh: &TexturedMesh, place: &Placement, material: &str) -> Vec<Spec> {
+    let (_, lo, hi) = placed(mesh, place);
+    let m = "/Model/Mesh";
+    let array =
+        |name: &str, type_name: &str, v: Value| attr(&format!("{m}.{name}"), type_name, false, vec![("default", v)]);
+    let props = [
+        "subdivisionScheme",
+        "doubleSided",
+        "extent",
+        "faceVertexCounts",
+        "faceVertexIndices",
+        "points",
+        "primvars:st",
+        "material:binding",
+    ];
+    let mut st = array(
+        "primvars:st",
+        "texCoord2f[]",
+        Value::Vec2fs(mesh.uvs.iter().flatten().map(|uv| [uv[0], 1.0 - uv[1]]).collect()),
+    );
+    st.fields.push(("interpolation", token("faceVarying")));
+    vec![
+        prim(m, "Mesh", vec![("apiSchemas", Value::PrependTokens(vec!["MaterialBindingAPI".into()]))], &[], &props),
+        attr(&format!("{m}.subdivisionScheme"), "token", true, vec![("default", token("none"))]),
+        attr(&format!("{m}.doubleSided"), "bool", true, vec![("default", Value::Bool(false))]),
+        array("extent", "float3[]", Value::Vec3fs(vec![lo, hi])),
+        array("faceVertexCounts", "int[]", Value::Ints(vec![3; mesh.triangles.len()])),
+        array("faceVertexIndices", "int[]", Value::Ints(mesh.triangles.iter().flatten().map(|&v| v as i32).collect())),
+        array("points", "point3f[]", Value::Vec3fs(mesh.positions.iter().map(|p| place.apply(*p)).collect())),
+        st,
+        Spec {
+            path: format!("{m}.material:binding"),
+            kind: SpecKind::Relationship,
+            fields: vec![("variability", Value::Uniform(true)), ("targetPaths", Value::Paths(vec![material.into()]))],
+        },
+    ]
+}
+
+/// The material at `m`: the texture as emission over a black, rough,
+/// non-metal surface, so that AR Quick Look's lights leave its colours as
+/// they are.
+fn material_specs(m: &str, texture: &str) -> Vec<Spec> {
+    let (surface, tex, reader) = (format!("{m}/Surface"), format!("{m}/Texture"), format!("{m}/StReader"));
+    let (surface_out, rgb, st) =
+        (format!("{surface}.outputs:surface"), format!("{tex}.outputs:rgb"), format!("{reader}.outputs:result"));
+    let mut specs = vec![prim("/Model/Materials", "Scope", vec![], &["Baked"], &[])];
+    let ports = vec![("outputs:surface", "token", Port::From(&surface_out))];
+    specs.extend(node(m, "Material", None, &["Surface", "Texture", "StReader"], ports));
+    let ports = vec![
+        ("inputs:diffuseColor", "color3f", Port::Set(Value::Vec3f([0.0; 3]))),
+        ("inputs:emissiveColor", "color3f", Port::From(&rgb)),
+        ("inputs:roughness", "float", Port::Set(Value::Float(1.0))),
+        ("inputs:metallic", "float", Port::Set(Value::Float(0.0))),
+        ("outputs:surface", "token", Port::Out),
+    ];
+    specs.extend(node(&surface, "Shader", Some("UsdPreviewSurface"), &[], ports));
+    let ports = vec![
+        ("inputs:file", "asset", Port::Set(Value::Asset(texture.into()))),
+        ("inputs:st", "float2", Port::From(&st)),
+        ("inputs:sourceColorSpace", "token", Port::Set(token("sRGB"))),
+        ("inputs:wrapS", "token", Port::Set(token("clamp"))),
+        ("inputs:wrapT", "token", Port::Set(token("clamp"))),
+        ("outputs:rgb", "float3", Port::Out),
+    ];
+    specs.extend(node(&tex, "Shader", Some("UsdUVTexture"), &[], ports));
+    let ports = vec![
+        ("inputs:varname", "string", Port::Set(Value::String("st".into()))),
+        ("outputs:result", "float2", Port::Out),
+    ];
+    specs.extend(node(&reader, "Shader", Some("UsdPrimvarReader_float2"), &[], ports));
+    specs
+}
 
 /// The mesh as USDZ: an uncompressed zip whose first file is the stage
-/// and each file's data on a 64-byte boundary (the USDZ rules).
+/// (binary USD) and each file's data on a 64-byte boundary (the USDZ rules).
 pub fn usdz(mesh: &TexturedMesh, place: &Placement) -> io::Result<Vec<u8>> {
-    let stage = usda(mesh, place, "texture.jpg");
+    let stage = usdc::write(&stage(mesh, place, "texture.jpg"));
     let jpeg = texture_jpeg(mesh)?;
     let mut zip = zip::ZipWriter::new(Cursor::new(Vec::new()));
     let options = zip::write::SimpleFileOptions::default()
         .compression_method(zip::CompressionMethod::Stored)
         .with_alignment(64)
         .large_file(false);
-    for (name, bytes) in [("model.usda", stage.as_bytes()), ("texture.jpg", jpeg.as_slice())] {
+    for (name, bytes) in [("model.usdc", stage.as_slice()), ("texture.jpg", jpeg.as_slice())] {
         zip.start_file(name, options).map_err(io::Error::other)?;
         zip.write_all(bytes)?;
     }
@@ -277,17 +369,9 @@ mod tests {
             let mut body = Vec::new();
             f.read_to_end(&mut body).unwrap();
             if i == 0 {
-                let text = String::from_utf8(body).unwrap();
-                assert!(text.starts_with("#usda 1.0"));
-                assert!(text.contains("int[] faceVertexIndices = [0, 1, 2, 0, 2, 3]"));
-                // st is v up: the first corner's (0.1, 0.2) is (0.1, 0.8).
-                assert!(text.contains("texCoord2f[] primvars:st = [(0.1, 0.8), "), "{text}");
-                assert!(text.contains("@texture.jpg@"));
+                assert_eq!(&body[..16], b"PXR-USDC\0\x08\0\0\0\0\0\0", "a crate file of version 0.8.0");
             }
         }
-        assert_eq!(names, ["model.usda", "texture.jpg"]);
-        assert_eq!(num(0.1), "0.1");
-        assert_eq!(num(-0.0000001), "0");
-        assert_eq!(num(2.0), "2");
+        assert_eq!(names, ["model.usdc", "texture.jpg"]);
     }
 }

@@ -12,6 +12,7 @@ pub mod export;
 pub mod fuse;
 pub mod isosurface;
 pub mod raster;
+pub mod usdc;
 pub mod views;
 
 use std::sync::atomic::{AtomicBool, Ordering};
