@@ -109,8 +109,9 @@ pub fn run(a: MeshArgs) -> anyhow::Result<()> {
     let (mesh, stats) = make_mesh(source, &crop, &options, &mut progress, &AtomicBool::new(false))?;
     let secs = started.elapsed().as_secs_f64();
     let [gx, gy, gz] = stats.grid;
+    let how = stats.level.map_or("depths fused".to_string(), |l| format!("density level {l:.3}"));
     eprintln!(
-        "{} views ({:.0}% of their pixels solid), a {gx}x{gy}x{gz} grid: {} triangles extracted, {} kept without the small pieces",
+        "{} views ({:.0}% of their pixels solid), a {gx}x{gy}x{gz} grid ({how}): {} triangles extracted, {} kept without the small pieces",
         stats.views,
         100.0 * stats.solid,
         stats.extracted,

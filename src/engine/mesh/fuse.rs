@@ -55,6 +55,12 @@ impl Volume {
         }
         p
     }
+
+    /// The same grid with one more point on every side (where a border
+    /// of outside goes).
+    pub fn padded(&self) -> Volume {
+        Volume { origin: self.world([-1.0; 3]), dims: self.dims.map(|d| d + 2), ..self.clone() }
+    }
 }
 
 /// What the views said about one grid point.
@@ -148,10 +154,7 @@ impl Fusion {
                 }
             }
         }
-        let mut padded = self.volume.clone();
-        padded.dims = dims;
-        padded.origin = self.volume.world([-1.0; 3]);
-        (Grid { dims, values }, padded)
+        (Grid { dims, values }, self.volume.padded())
     }
 }
 

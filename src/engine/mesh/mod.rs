@@ -1,7 +1,8 @@
 //! A textured triangle mesh from a trained model (field or splats), inside
-//! a crop box: the model rendered from where its training cameras stood,
-//! the depths fused into a truncated signed distance volume, its zero
-//! surface extracted, small pieces dropped, simplified to a triangle
+//! a crop box: the model rendered from where its training cameras stood;
+//! the surface a level set of the model's density where it exposes one,
+//! else the views' depths fused into a truncated signed distance volume;
+//! that surface extracted, small pieces dropped, simplified to a triangle
 //! budget, laid out in a texture atlas and coloured from the same views
 //! (the model's mean appearance). `export` writes it as GLB and USDZ.
 
@@ -11,6 +12,7 @@ pub mod clean;
 pub mod export;
 pub mod fuse;
 pub mod isosurface;
+pub mod level;
 pub mod raster;
 pub mod usdc;
 pub mod views;
@@ -117,7 +119,8 @@ impl MeshOptions {
 }
 
 /// The stages of [`make`], for progress.
-pub const STAGES: [&str; 4] = ["rendering views", "fusing depths", "extracting the surface", "baking the texture"];
+pub const STAGES: [&str; 4] =
+    ["rendering views", "finding the surface", "extracting the surface", "baking the texture"];
 
 /// A textured mesh of `model` inside `crop`, and what making it took. `progress(stage, done)`
 /// reports the stage (an index into [`STAGES`]) and the share of the
@@ -141,13 +144,21 @@ pub fn make(
     stop()?;
     progress(1, 0.7);
     let volume = fuse::Volume::over(crop, options.resolution);
-    let mut fusion = fuse::Fusion::new(volume.clone(), 4.0 * volume.spacing);
-    for v in &rendered {
-        fusion.add(&v.camera, &v.surface);
-    }
+    // A field's own density where it has one; else the views' depths fused.
+    let density = |p: &[[f32; 3]]| model.density(p);
+    let level = level::level(&density, &rendered);
+    let (grid, on) = match level.and_then(|l| level::grid(&density, &volume, l)) {
+        Some(grid) => (grid, volume.padded()),
+        None => {
+            let mut fusion = fuse::Fusion::new(volume.clone(), 4.0 * volume.spacing);
+            for v in &rendered {
+                fusion.add(&v.camera, &v.surface);
+            }
+            fusion.grid()
+        }
+    };
     stop()?;
     progress(2, 0.8);
-    let (grid, on) = fusion.grid();
     let raw = isosurface::extract(&grid);
     let world =
         isosurface::Mesh { positions: raw.positions.iter().map(|p| on.world(*p)).collect(), triangles: raw.triangles };
@@ -158,6 +169,7 @@ pub fn make(
         views: rendered.len(),
         solid: solid as f64 / rendered.iter().map(|v| v.surface.len()).sum::<usize>().max(1) as f64,
         grid: volume.dims,
+        level,
         extracted: world.triangles.len(),
         kept: kept.triangles.len(),
     };
@@ -186,8 +198,10 @@ pub struct MeshStats {
     /// Views rendered, and the share of their pixels that met a surface.
     pub views: usize,
     pub solid: f64,
-    /// The distance volume's grid points along each axis.
+    /// The volume's grid points along each axis.
     pub grid: [usize; 3],
+    /// The density level the surface was taken at (`None`: depths fused).
+    pub level: Option<f32>,
     /// Triangles extracted, and left once small pieces went (before simplifying).
     pub extracted: usize,
     pub kept: usize,

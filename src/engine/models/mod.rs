@@ -120,6 +120,13 @@ pub trait Model: Send + Sync {
         let _ = errors;
         self.train_rays(rays, ctx, grads)
     }
+    /// The density the model draws at world points, per world unit (a ray
+    /// through density `s` over length `d` keeps `exp(-s d)` of the light
+    /// behind); `None` for a model that does not expose one.
+    fn density(&self, world: &[[f32; 3]]) -> Option<Vec<f32>> {
+        let _ = world;
+        None
+    }
     /// Training with the main grid's table gradient deferred to the
     /// trainer ([`DeferredGrid`]); `None` (the default): every gradient
     /// goes into `grads`.

@@ -202,6 +202,16 @@ impl Model for InstantModel {
         self.set_state(density, spr.first().copied().unwrap_or(0.0) as f64, step)
     }
 
+    /// Zero where the occupancy grid calls the space empty: the renderer
+    /// never samples there, so neither does a surface taken from it.
+    fn density(&self, world: &[[f32; 3]]) -> Option<Vec<f32>> {
+        let pos: Vec<f32> = world.iter().flat_map(|p| self.scene.point_to_model(*p)).collect();
+        let sigma = densities(&self.field, &self.params, &pos, DENSITY_CHUNK);
+        let per_world = self.scene.scale;
+        let drawn = |p: &[f32]| self.grid.occupied(Vec3::new(p[0], p[1], p[2]));
+        Some(sigma.iter().zip(pos.chunks(3)).map(|(&s, p)| if drawn(p) { s * per_world } else { 0.0 }).collect())
+    }
+
     fn render_rays(
         &self,
         rays: &[Ray],
@@ -296,6 +306,32 @@ pub struct ReferenceRay {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `Model::density` is what the renderer integrates, in world units:
+    /// a ray's opacity from every lattice point of the field equals the one
+    /// summed from the densities at those points' world positions.
+    #[test]
+    fn density_at_world_points_is_what_a_ray_integrates() {
+        use crate::engine::dataset::synthetic::BallScene;
+        let scene = BallScene { size: 8, views: 2, ..Default::default() }.dataset().scene();
+        let model = InstantModel::new(InstantConfig::default(), scene.clone(), 3);
+        let aabb = scene.aabb();
+        let centre = (aabb.min + aabb.max) * 0.5;
+        let dir = Vec3::new(1.0, 0.3, -0.2).normalized().unwrap();
+        let ray = Ray { origin: centre - dir * 0.6 * (aabb.max - aabb.min).norm(), dir };
+        let want = model.reference_rays(&[ray], [0.0; 3])[0].out.opacity;
+        let (t0, t1) = scene.clip(&ray).unwrap();
+        let mut world = Vec::new();
+        let mut t = t0 + 0.5 * model.dt;
+        while t < t1 && world.len() < model.config.max_samples {
+            world.push(scene.point_to_world((ray.origin + ray.dir * t).to_array()));
+            t += model.dt;
+        }
+        let depth: f32 = model.density(&world).unwrap().iter().map(|s| s * model.dt / scene.scale).sum();
+        let got = 1.0 - (-depth).exp();
+        assert!(want > 0.05, "a ray through the box meets some density: {want}");
+        assert!((got - want).abs() < 1e-4 * want.max(1e-3) + 1e-5, "{got} against {want}");
+    }
 
     /// The preset leaves dilation to the scene: none behind transparent
     /// training pixels, dilated otherwise; explicit settings and configs

@@ -1,0 +1,164 @@
+//! The surface of a field as a level set of its own density, for a model
+//! that exposes one (`Model::density`): sharper than depths fused from
+//! views (thin parts and a turntable's crown survive; docs/design/mesh.md).
+//! The level is the density the views' own surfaces show: of the points
+//! where the views' rays become half opaque, all but [`QUANTILE`] are at a
+//! density at least this high, so the level set passes through (or just
+//! outside) the surfaces the views drew.
+
+use crate::engine::mesh::fuse::Volume;
+use crate::engine::mesh::isosurface::Grid;
+use crate::engine::mesh::views::SurfaceView;
+
+/// Densities at world points (per world unit), `None` when there are none.
+pub type Density<'a> = &'a dyn Fn(&[[f32; 3]]) -> Option<Vec<f32>>;
+
+/// The share of the views' surface points at a density below the level
+/// (0.07 to 0.16 tried on lego and ethiopian_head: docs/design/mesh.md).
+pub const QUANTILE: f32 = 0.13;
+/// Surface points sampled for the level, at most.
+const SAMPLES: usize = 200_000;
+
+/// The density level of the views' surfaces; `None` when the model has no
+/// density or the views met no surface.
+pub fn level(density: Density, views: &[SurfaceView]) -> Option<f32> {
+    let hits: usize = views.iter().map(|v| v.surface.iter().flatten().count()).sum();
+    let every = hits.div_ceil(SAMPLES).max(1);
+    let mut points = Vec::with_capacity(hits / every + 1);
+    let mut k = 0usize;
+    for v in views {
+        let w = v.camera.width;
+        for (i, s) in v.surface.iter().enumerate() {
+            let Some(t) = s else { continue };
+            k += 1;
+            if k.is_multiple_of(every) {
+                let r = v.camera.pixel_ray(i as u32 % w, i as u32 / w);
+                let dir = r.dir.normalized().unwrap_or(r.dir);
+                points.push((r.origin + dir * *t).to_array());
+            }
+        }
+    }
+    let mut d = density(&points)?;
+    if d.is_empty() {
+        return None;
+    }
+    d.sort_by(f32::total_cmp);
+    let at = d[((d.len() - 1) as f32 * QUANTILE) as usize];
+    (at > 0.0).then_some(at)
+}
+
+/// `(level - density) / level` on `volume`'s points (negative inside, as
+/// [`crate::engine::mesh::isosurface`] takes it), with a border of outside
+/// so that the surface closes at the box; queried a slab at a time.
+pub fn grid(density: Density, volume: &Volume, level: f32) -> Option<Grid> {
+    let [nx, ny, nz] = volume.dims;
+    let dims = [nx + 2, ny + 2, nz + 2];
+    let mut values = vec![1.0f32; dims.iter().product()];
+    for z in 0..nz {
+        let slab: Vec<[f32; 3]> =
+            (0..nx * ny).map(|i| volume.world([(i % nx) as f32, (i / nx) as f32, z as f32])).collect();
+        let d = density(&slab)?;
+        for (i, s) in d.into_iter().enumerate() {
+            let (x, y) = (i % nx, i / nx);
+            values[((z + 1) * dims[1] + y + 1) * dims[0] + x + 1] = (level - s) / level;
+        }
+    }
+    Some(Grid { dims, values })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::geometry::camera::{Camera, look_at};
+    use crate::engine::geometry::math::Vec3;
+    use crate::engine::mesh::isosurface::extract;
+    use crate::engine::models::splats::crop::CropBox;
+
+    /// A soft ball of radius `r`: dense inside, falling by e over a twentieth of the radius.
+    fn ball(r: f32) -> impl Fn(&[[f32; 3]]) -> Option<Vec<f32>> {
+        move |p: &[[f32; 3]]| {
+            let s =
+                |q: &[f32; 3]| 200.0 / (1.0 + ((q.iter().map(|x| x * x).sum::<f32>().sqrt() - r) / (0.05 * r)).exp());
+            Some(p.iter().map(s).collect())
+        }
+    }
+
+    /// Views of the ball, each ray's surface where its opacity reaches one
+    /// half (found by marching the density, as a field's render does).
+    fn views(density: Density, n: usize) -> Vec<SurfaceView> {
+        (0..n)
+            .map(|i| {
+                let (az, el) = (i as f32 * 1.3, ((i % 3) as f32 - 1.0) * 0.5);
+                let eye = Vec3::new(az.cos() * el.cos(), el.sin(), az.sin() * el.cos()) * 2.0;
+                let camera =
+                    Camera::from_fov(24, 24, 0.9, look_at(eye, Vec3::splat(0.0), Vec3::new(0.0, 1.0, 0.0)).unwrap());
+                let surface = (0..24 * 24)
+                    .map(|k| {
+                        let r = camera.pixel_ray(k % 24, k / 24);
+                        let d = r.dir.normalized().unwrap();
+                        let dt = 0.002;
+                        let ts: Vec<f32> = (0..2000).map(|j| (j as f32 + 0.5) * dt).collect();
+                        let pts: Vec<[f32; 3]> = ts.iter().map(|&t| (r.origin + d * t).to_array()).collect();
+                        let mut depth = 0.0;
+                        for (t, s) in ts.iter().zip(density(&pts).unwrap()) {
+                            depth += s * dt;
+                            if depth >= std::f32::consts::LN_2 {
+                                return Some(*t);
+                            }
+                        }
+                        None
+                    })
+                    .collect();
+                SurfaceView { camera, surface, rgb: vec![[0.5; 3]; 24 * 24] }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_soft_balls_level_set_is_where_its_views_see_it() {
+        let r = 0.5;
+        let density = ball(r);
+        let seen = views(&density, 6);
+        let level = level(&density, &seen).expect("the views see the ball");
+        // Within the soft edge's fall from 200 to 0 (rays that graze the
+        // ball reach half opacity further out, at lower densities).
+        assert!((5.0..195.0).contains(&level), "level {level}");
+        let crop =
+            CropBox { centre: [0.0; 3], axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], half: [0.8; 3] };
+        let volume = Volume::over(&crop, 64);
+        let g = grid(&density, &volume, level).unwrap();
+        let mesh = extract(&g);
+        assert!(mesh.is_closed());
+        // The level set is a ball (every vertex at one radius, within a
+        // grid step) between the ball a view sees head on (its centre
+        // pixel's surface, 2 from the centre) and the farthest out any ray
+        // of the views becomes half opaque.
+        let head_on = 2.0 - seen[0].surface[12 * 24 + 12].unwrap();
+        let mut outermost = 0.0f32;
+        for v in &seen {
+            for (k, t) in v.surface.iter().enumerate() {
+                if let Some(t) = t {
+                    let ray = v.camera.pixel_ray(k as u32 % 24, k as u32 / 24);
+                    outermost = outermost.max((ray.origin + ray.dir.normalized().unwrap() * *t).norm());
+                }
+            }
+        }
+        let on = volume.padded();
+        let radii: Vec<f32> = mesh.positions.iter().map(|p| Vec3::from_array(on.world(*p)).norm()).collect();
+        let (lo, hi) = radii.iter().fold((f32::MAX, f32::MIN), |(l, h), &d| (l.min(d), h.max(d)));
+        assert!(hi - lo < volume.spacing, "radii from {lo} to {hi}");
+        assert!(
+            lo > head_on - volume.spacing && hi < outermost + volume.spacing,
+            "{lo}..{hi}: seen {head_on}..{outermost}"
+        );
+    }
+
+    #[test]
+    fn no_density_or_no_surface_gives_no_level() {
+        let none = |_: &[[f32; 3]]| None;
+        let density = ball(0.5);
+        assert_eq!(level(&none, &views(&density, 2)), None);
+        let empty = |p: &[[f32; 3]]| Some(vec![0.0; p.len()]);
+        assert_eq!(level(&empty, &views(&empty, 2)), None);
+    }
+}
