@@ -1,8 +1,9 @@
 //! USD's binary layer format (the "crate" file, `.usdc`) at version 0.8.0,
 //! written from a list of specs: what a USDZ carries to AR Quick Look, a
 //! third the size of the same stage as text (USDA spells out every number).
-//! 0.8.0 is what USD itself writes for a stage like ours, so any reader
-//! from USD 19 on opens it. Only the parts our stages use are here: prims,
+//! 0.8.0 is what USD itself (26.11) writes for a stage like ours: no
+//! reader needs more than USD's own files ask. Only the parts our stages
+//! use are here: prims,
 //! attributes with a default or a connection, relationships, and the value
 //! types they hold (docs/design/mesh.md says why no crate on crates.io
 //! serves).
