@@ -13,8 +13,8 @@ use crate::engine::mesh::usdc::{self, Spec, SpecKind, Value};
 use crate::engine::mesh::{Placement, TexturedMesh};
 use crate::engine::models::splats::export::glb::write_container;
 
-/// JPEG quality of the texture (docs/design/mesh.md: 85 keeps lego's
-/// 200k-triangle GLB under 10 MB for 0.01 dB).
+/// JPEG quality of the texture: low enough to keep a 200k-triangle mesh's
+/// GLB under 10 MB, at a loss too small to see (docs/design/mesh.md).
 const QUALITY: u8 = 85;
 
 /// The texture as a JPEG.
@@ -36,17 +36,22 @@ pub fn as_written(mesh: &TexturedMesh) -> io::Result<TexturedMesh> {
     Ok(TexturedMesh { texture, ..mesh.clone() })
 }
 
+/// The bounds of `points` (zeros for none).
+fn bounds(points: impl IntoIterator<Item = [f32; 3]>) -> ([f32; 3], [f32; 3]) {
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    let mut any = false;
+    for p in points {
+        (0..3).for_each(|k| (lo[k], hi[k]) = (lo[k].min(p[k]), hi[k].max(p[k])));
+        any = true;
+    }
+    if any { (lo, hi) } else { ([0.0; 3], [0.0; 3]) }
+}
+
 /// The mesh's corners where `place` puts them, and their bounds.
 fn placed(mesh: &TexturedMesh, place: &Placement) -> (Vec<[f32; 3]>, [f32; 3], [f32; 3]) {
     let corners: Vec<[f32; 3]> =
         mesh.triangles.iter().flatten().map(|&v| place.apply(mesh.positions[v as usize])).collect();
-    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
-    for p in &corners {
-        (0..3).for_each(|k| (lo[k], hi[k]) = (lo[k].min(p[k]), hi[k].max(p[k])));
-    }
-    if corners.is_empty() {
-        (lo, hi) = ([0.0; 3], [0.0; 3]);
-    }
+    let (lo, hi) = bounds(corners.iter().copied());
     (corners, lo, hi)
 }
 
@@ -190,7 +195,9 @@ pub fn stage(mesh: &TexturedMesh, place: &Placement, texture: &str) -> Vec<Spec>
 /// The mesh: points shared, texture coordinates a triangle corner each
 /// (USD's `st`, v up), bound to `material`.
 fn mesh_specs(mesh: &TexturedMesh, place: &Placement, material: &str) -> Vec<Spec> {
-    let (_, lo, hi) = placed(mesh, place);
+    let points: Vec<[f32; 3]> = mesh.positions.iter().map(|p| place.apply(*p)).collect();
+    // The corners' bounds, as the GLB's.
+    let (lo, hi) = bounds(mesh.triangles.iter().flatten().map(|&v| points[v as usize]));
     let m = "/Model/Mesh";
     let array =
         |name: &str, type_name: &str, v: Value| attr(&format!("{m}.{name}"), type_name, false, vec![("default", v)]);
@@ -217,7 +224,7 @@ fn mesh_specs(mesh: &TexturedMesh, place: &Placement, material: &str) -> Vec<Spe
         array("extent", "float3[]", Value::Vec3fs(vec![lo, hi])),
         array("faceVertexCounts", "int[]", Value::Ints(vec![3; mesh.triangles.len()])),
         array("faceVertexIndices", "int[]", Value::Ints(mesh.triangles.iter().flatten().map(|&v| v as i32).collect())),
-        array("points", "point3f[]", Value::Vec3fs(mesh.positions.iter().map(|p| place.apply(*p)).collect())),
+        array("points", "point3f[]", Value::Vec3fs(points)),
         st,
         Spec {
             path: format!("{m}.material:binding"),

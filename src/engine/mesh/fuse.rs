@@ -137,8 +137,7 @@ impl Fusion {
     /// grid is on.
     pub fn grid(&self) -> (Grid, Volume) {
         let [nx, ny, nz] = self.volume.dims;
-        let dims = [nx + 2, ny + 2, nz + 2];
-        let mut values = vec![1.0f32; dims.iter().product()];
+        let mut grid = Grid::bordered(self.volume.dims);
         for z in 0..nz {
             for y in 0..ny {
                 for x in 0..nx {
@@ -150,11 +149,11 @@ impl Fusion {
                     } else {
                         1.0
                     };
-                    values[((z + 1) * dims[1] + y + 1) * dims[0] + x + 1] = v;
+                    grid.set_inner(x, y, z, v);
                 }
             }
         }
-        (Grid { dims, values }, self.volume.padded())
+        (grid, self.volume.padded())
     }
 }
 

@@ -29,6 +29,20 @@ pub struct Mesh {
 const TETS: [[usize; 4]; 6] = [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]];
 
 impl Grid {
+    /// A grid of `inner` points inside a border of outside (so that the
+    /// surface closes where it meets the grid's box), every point outside
+    /// until set with [`Grid::set_inner`].
+    pub fn bordered(inner: [usize; 3]) -> Self {
+        let dims = inner.map(|d| d + 2);
+        Self { dims, values: vec![1.0; dims.iter().product()] }
+    }
+
+    /// Sets inner point `(x, y, z)` of a [`Grid::bordered`] grid.
+    pub fn set_inner(&mut self, x: usize, y: usize, z: usize, v: f32) {
+        let i = self.index(x + 1, y + 1, z + 1);
+        self.values[i] = v;
+    }
+
     fn index(&self, x: usize, y: usize, z: usize) -> usize {
         (z * self.dims[1] + y) * self.dims[0] + x
     }

@@ -14,7 +14,7 @@ use crate::engine::mesh::views::SurfaceView;
 pub type Density<'a> = &'a dyn Fn(&[[f32; 3]]) -> Option<Vec<f32>>;
 
 /// The share of the views' surface points at a density below the level
-/// (0.07 to 0.16 tried on lego and ethiopian_head: docs/design/mesh.md).
+/// (chosen by a sweep: docs/design/mesh.md).
 pub const QUANTILE: f32 = 0.13;
 /// Surface points sampled for the level, at most.
 const SAMPLES: usize = 200_000;
@@ -24,20 +24,8 @@ const SAMPLES: usize = 200_000;
 pub fn level(density: Density, views: &[SurfaceView]) -> Option<f32> {
     let hits: usize = views.iter().map(|v| v.surface.iter().flatten().count()).sum();
     let every = hits.div_ceil(SAMPLES).max(1);
-    let mut points = Vec::with_capacity(hits / every + 1);
-    let mut k = 0usize;
-    for v in views {
-        let w = v.camera.width;
-        for (i, s) in v.surface.iter().enumerate() {
-            let Some(t) = s else { continue };
-            k += 1;
-            if k.is_multiple_of(every) {
-                let r = v.camera.pixel_ray(i as u32 % w, i as u32 / w);
-                let dir = r.dir.normalized().unwrap_or(r.dir);
-                points.push((r.origin + dir * *t).to_array());
-            }
-        }
-    }
+    let points: Vec<[f32; 3]> =
+        views.iter().flat_map(SurfaceView::points).skip(every - 1).step_by(every).map(|p| p.to_array()).collect();
     let mut d = density(&points)?;
     if d.is_empty() {
         return None;
@@ -52,18 +40,15 @@ pub fn level(density: Density, views: &[SurfaceView]) -> Option<f32> {
 /// so that the surface closes at the box; queried a slab at a time.
 pub fn grid(density: Density, volume: &Volume, level: f32) -> Option<Grid> {
     let [nx, ny, nz] = volume.dims;
-    let dims = [nx + 2, ny + 2, nz + 2];
-    let mut values = vec![1.0f32; dims.iter().product()];
+    let mut grid = Grid::bordered(volume.dims);
     for z in 0..nz {
         let slab: Vec<[f32; 3]> =
             (0..nx * ny).map(|i| volume.world([(i % nx) as f32, (i / nx) as f32, z as f32])).collect();
-        let d = density(&slab)?;
-        for (i, s) in d.into_iter().enumerate() {
-            let (x, y) = (i % nx, i / nx);
-            values[((z + 1) * dims[1] + y + 1) * dims[0] + x + 1] = (level - s) / level;
+        for (i, s) in density(&slab)?.into_iter().enumerate() {
+            grid.set_inner(i % nx, i / nx, z, (level - s) / level);
         }
     }
-    Some(Grid { dims, values })
+    Some(grid)
 }
 
 #[cfg(test)]
@@ -134,15 +119,7 @@ mod tests {
         // pixel's surface, 2 from the centre) and the farthest out any ray
         // of the views becomes half opaque.
         let head_on = 2.0 - seen[0].surface[12 * 24 + 12].unwrap();
-        let mut outermost = 0.0f32;
-        for v in &seen {
-            for (k, t) in v.surface.iter().enumerate() {
-                if let Some(t) = t {
-                    let ray = v.camera.pixel_ray(k as u32 % 24, k as u32 / 24);
-                    outermost = outermost.max((ray.origin + ray.dir.normalized().unwrap() * *t).norm());
-                }
-            }
-        }
+        let outermost = seen.iter().flat_map(SurfaceView::points).map(|p| p.norm()).fold(0.0f32, f32::max);
         let on = volume.padded();
         let radii: Vec<f32> = mesh.positions.iter().map(|p| Vec3::from_array(on.world(*p)).norm()).collect();
         let (lo, hi) = radii.iter().fold((f32::MAX, f32::MIN), |(l, h), &d| (l.min(d), h.max(d)));

@@ -157,13 +157,7 @@ pub fn auto_crop(
             c2w: c.c2w,
         };
         let view = render(model, &small, cancel).ok_or(MeshError::Cancelled)?;
-        for y in 0..small.height {
-            for x in 0..small.width {
-                if let Some(d) = view.surface[(y * small.width + x) as usize] {
-                    points.push(small.pixel_ray(x, y).at(d));
-                }
-            }
-        }
+        points.extend(view.points());
     }
     Ok(crop_around(&points, cameras, up)?)
 }
@@ -212,6 +206,15 @@ fn evenly<T>(items: &[T], n: usize) -> impl Iterator<Item = &T> {
 }
 
 impl SurfaceView {
+    /// The world points where its rays meet the surface, pixel by pixel.
+    pub fn points(&self) -> impl Iterator<Item = Vec3> + '_ {
+        let w = self.camera.width;
+        self.surface
+            .iter()
+            .enumerate()
+            .filter_map(move |(i, s)| s.map(|t| self.camera.pixel_ray(i as u32 % w, i as u32 / w).at(t)))
+    }
+
     /// Where world point `p` falls in this view (continuous pixels) and
     /// its distance from the camera, if in front and inside the frame.
     pub fn project(&self, p: Vec3) -> Option<(f32, f32, f32)> {
