@@ -117,6 +117,14 @@ pub fn run(a: MeshArgs) -> anyhow::Result<()> {
         stats.extracted,
         stats.kept
     );
+    if let Some(f) = &stats.fit {
+        eprintln!(
+            "texture fitted to {} view pixels: {:.2} dB -> {:.2} dB against the views",
+            f.pixels,
+            -20.0 * f.before.max(1e-6).log10(),
+            -20.0 * f.after.max(1e-6).log10()
+        );
+    }
     let front = model.scene().rig.as_ref().map(|r| r.front);
     let place = Placement::new(&mesh, &crop, front, a.size);
     let bytes = if ext.as_deref() == Some("glb") { mesh_glb(&mesh, &place)? } else { mesh_usdz(&mesh, &place)? };

@@ -47,14 +47,14 @@ impl Grid {
         (z * self.dims[1] + y) * self.dims[0] + x
     }
 
-    fn point(&self, i: usize) -> [f32; 3] {
+    pub(crate) fn point(&self, i: usize) -> [f32; 3] {
         let [nx, ny, _] = self.dims;
         [(i % nx) as f32, (i / nx % ny) as f32, (i / (nx * ny)) as f32]
     }
 
     /// A value as the surface sees it: exact zeros count as outside, a
     /// hair's breadth from the grid point, so that no edge is cut at its end.
-    fn value(&self, i: usize) -> f32 {
+    pub(crate) fn value(&self, i: usize) -> f32 {
         let v = self.values[i];
         if v == 0.0 { f32::MIN_POSITIVE } else { v }
     }
@@ -66,6 +66,8 @@ struct Vertices<'a> {
     grid: &'a Grid,
     ids: HashMap<u64, u32>,
     positions: Vec<[f32; 3]>,
+    /// Each vertex's grid edge (its ends' indices, lower first).
+    edges: Vec<[usize; 2]>,
 }
 
 impl Vertices<'_> {
@@ -79,6 +81,7 @@ impl Vertices<'_> {
             let t = va / (va - vb);
             let (pa, pb) = (self.grid.point(a), self.grid.point(b));
             self.positions.push([0, 1, 2].map(|k| pa[k] + t * (pb[k] - pa[k])));
+            self.edges.push([a, b]);
         }
         id
     }
@@ -87,9 +90,16 @@ impl Vertices<'_> {
 /// The surface where the grid's values cross zero, in grid coordinates
 /// (grid point `(x, y, z)` at `[x, y, z]`).
 pub fn extract(grid: &Grid) -> Mesh {
+    extract_on_edges(grid).0
+}
+
+/// [`extract`], and the grid edge each vertex lies on (its ends' indices
+/// into the grid's values, lower first), where it sits at the linear
+/// guess of the crossing.
+pub fn extract_on_edges(grid: &Grid) -> (Mesh, Vec<[usize; 2]>) {
     let [nx, ny, nz] = grid.dims;
     assert_eq!(grid.values.len(), nx * ny * nz, "grid values do not match its dims");
-    let mut verts = Vertices { grid, ids: HashMap::new(), positions: Vec::new() };
+    let mut verts = Vertices { grid, ids: HashMap::new(), positions: Vec::new(), edges: Vec::new() };
     let mut triangles = Vec::new();
     for z in 0..nz.saturating_sub(1) {
         for y in 0..ny.saturating_sub(1) {
@@ -106,7 +116,7 @@ pub fn extract(grid: &Grid) -> Mesh {
             }
         }
     }
-    Mesh { positions: verts.positions, triangles }
+    (Mesh { positions: verts.positions, triangles }, verts.edges)
 }
 
 /// The one or two triangles where a tetrahedron's values cross zero.

@@ -10,6 +10,7 @@ pub mod atlas;
 pub mod bake;
 pub mod clean;
 pub mod export;
+pub mod fit;
 pub mod fuse;
 pub mod isosurface;
 pub mod level;
@@ -38,17 +39,23 @@ pub struct TexturedMesh {
 impl TexturedMesh {
     /// The texture at `(u, v)`, bilinear, clamped to its edge (no mipmaps).
     pub fn sample(&self, u: f32, v: f32) -> [f32; 3] {
-        let n = self.texture_size as i64;
-        let (x, y) = (u * n as f32 - 0.5, v * n as f32 - 0.5);
-        let (x0, y0) = (x.floor(), y.floor());
-        let (fx, fy) = (x - x0, y - y0);
-        let at = |dx: i64, dy: i64| {
-            let (px, py) = ((x0 as i64 + dx).clamp(0, n - 1), (y0 as i64 + dy).clamp(0, n - 1));
-            self.texture[(py * n + px) as usize]
-        };
-        let (a, b, c, d) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
-        [0, 1, 2].map(|k| (1.0 - fy) * ((1.0 - fx) * a[k] + fx * b[k]) + fy * ((1.0 - fx) * c[k] + fx * d[k]))
+        let (at, w) = bilinear(self.texture_size, u, v);
+        [0, 1, 2].map(|k| (0..4).map(|i| w[i] * self.texture[at[i]][k]).sum())
     }
+}
+
+/// The four texels a bilinear read of a `size`-texel square texture at
+/// `(u, v)` blends, clamped to its edge, and their weights.
+pub fn bilinear(size: u32, u: f32, v: f32) -> ([usize; 4], [f32; 4]) {
+    let n = size as i64;
+    let (x, y) = (u * n as f32 - 0.5, v * n as f32 - 0.5);
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    let at = |dx: i64, dy: i64| {
+        let (px, py) = ((x0 as i64 + dx).clamp(0, n - 1), (y0 as i64 + dy).clamp(0, n - 1));
+        (py * n + px) as usize
+    };
+    ([at(0, 0), at(1, 0), at(0, 1), at(1, 1)], [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy])
 }
 
 /// How a mesh is made.
@@ -159,19 +166,23 @@ pub fn make(
     };
     stop()?;
     progress(2, 0.8);
-    let raw = isosurface::extract(&grid);
+    let (mut raw, edges) = isosurface::extract_on_edges(&grid);
+    if let Some(l) = level {
+        level::refine(&density, &volume, l, &grid, &mut raw, &edges, level::REFINE_STEPS);
+    }
     let world =
         isosurface::Mesh { positions: raw.positions.iter().map(|p| on.world(*p)).collect(), triangles: raw.triangles };
     let kept = clean::drop_small_pieces(&world, options.min_piece);
     let mesh = clean::simplify(&kept, options.triangles);
     let solid = rendered.iter().map(|v| v.surface.iter().filter(|s| s.is_some()).count()).sum::<usize>();
-    let stats = MeshStats {
+    let mut stats = MeshStats {
         views: rendered.len(),
         solid: solid as f64 / rendered.iter().map(|v| v.surface.len()).sum::<usize>().max(1) as f64,
         grid: volume.dims,
         level,
         extracted: world.triangles.len(),
         kept: kept.triangles.len(),
+        fit: None,
     };
     if mesh.triangles.is_empty() {
         return Err(MeshError::Empty);
@@ -181,14 +192,17 @@ pub fn make(
     let layout = atlas::layout(mesh.triangles.len(), options.texture)
         .map_err(|e| MeshError::Option("triangles", e.to_string()))?;
     let texture = bake::texture(&mesh, &layout, &rendered, 3.0 * volume.spacing);
-    progress(3, 1.0);
-    let textured = TexturedMesh {
+    stop()?;
+    progress(3, 0.95);
+    let mut textured = TexturedMesh {
         positions: mesh.positions,
         triangles: mesh.triangles,
         uvs: layout.uvs,
         texture,
         texture_size: options.texture,
     };
+    stats.fit = Some(fit::fit(&mut textured, &rendered, fit::PRIOR, fit::ITERATIONS));
+    progress(3, 1.0);
     Ok((textured, stats))
 }
 
@@ -205,6 +219,8 @@ pub struct MeshStats {
     /// Triangles extracted, and left once small pieces went (before simplifying).
     pub extracted: usize,
     pub kept: usize,
+    /// The texture's fit to the views.
+    pub fit: Option<fit::FitStats>,
 }
 
 /// How a mesh is placed in the files written for other tools: upright (the

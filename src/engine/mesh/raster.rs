@@ -47,11 +47,36 @@ pub fn render_antialiased(mesh: &TexturedMesh, camera: &Camera, background: [f32
 /// Renders `mesh` from `camera` (lens distortion ignored) over `background`.
 pub fn render(mesh: &TexturedMesh, camera: &Camera, background: [f32; 3]) -> MeshView {
     let (w, h) = (camera.width as usize, camera.height as usize);
+    let hit = hits(&mesh.positions, &mesh.triangles, camera);
+    let mut rgb = Vec::with_capacity(w * h * 3);
+    let mut coverage = Vec::with_capacity(w * h);
+    for px in &hit {
+        match px {
+            Some((t, l)) => {
+                let uv = mesh.uvs[*t];
+                let u = l[0] * uv[0][0] + l[1] * uv[1][0] + l[2] * uv[2][0];
+                let v = l[0] * uv[0][1] + l[1] * uv[1][1] + l[2] * uv[2][1];
+                rgb.extend(mesh.sample(u, v));
+                coverage.push(1.0);
+            }
+            None => {
+                rgb.extend(background);
+                coverage.push(0.0);
+            }
+        }
+    }
+    MeshView { rgb, coverage }
+}
+
+/// What each pixel centre of `camera` sees of the triangles (lens
+/// distortion ignored): the nearest triangle and the point's barycentric
+/// coordinates on it (perspective-correct), row-major.
+pub fn hits(positions: &[[f32; 3]], triangles: &[[u32; 3]], camera: &Camera) -> Vec<Option<(usize, [f32; 3])>> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
     let m = &camera.c2w;
     let o = camera.origin();
     // Each vertex in camera coordinates.
-    let cam: Vec<[f32; 3]> = mesh
-        .positions
+    let cam: Vec<[f32; 3]> = positions
         .iter()
         .map(|p| {
             let d = Vec3::from_array(*p) - o;
@@ -61,7 +86,7 @@ pub fn render(mesh: &TexturedMesh, camera: &Camera, background: [f32; 3]) -> Mes
     let mut depth = vec![f32::INFINITY; w * h];
     let mut hit: Vec<Option<(usize, [f32; 3])>> = vec![None; w * h];
     let near = 1e-4f32;
-    for (t, tri) in mesh.triangles.iter().enumerate() {
+    for (t, tri) in triangles.iter().enumerate() {
         let c = tri.map(|v| cam[v as usize]);
         if c.iter().any(|p| -p[2] <= near) {
             continue; // a triangle crossing the camera plane is left out
@@ -96,24 +121,7 @@ pub fn render(mesh: &TexturedMesh, camera: &Camera, background: [f32; 3]) -> Mes
             }
         }
     }
-    let mut rgb = Vec::with_capacity(w * h * 3);
-    let mut coverage = Vec::with_capacity(w * h);
-    for px in &hit {
-        match px {
-            Some((t, l)) => {
-                let uv = mesh.uvs[*t];
-                let u = l[0] * uv[0][0] + l[1] * uv[1][0] + l[2] * uv[2][0];
-                let v = l[0] * uv[0][1] + l[1] * uv[1][1] + l[2] * uv[2][1];
-                rgb.extend(mesh.sample(u, v));
-                coverage.push(1.0);
-            }
-            None => {
-                rgb.extend(background);
-                coverage.push(0.0);
-            }
-        }
-    }
-    MeshView { rgb, coverage }
+    hit
 }
 
 /// Twice the signed area of `(a, b, p)` on screen.
