@@ -28,7 +28,7 @@ use super::models::loaded;
 use super::{ApiError, ApiResult, AppState, Code, site};
 use crate::engine::front::{
     CAPTURE_KIND, CropBox, MESH_STAGES, MeshError, MeshOptions, Model, Placement, TexturedMesh, auto_crop_any,
-    crop_model, make_mesh, mesh_glb, mesh_usdz, scene_box,
+    crop_model, make_mesh, mesh_glb, mesh_photos, mesh_usdz, scene_box,
 };
 use crate::records::ModelInfo;
 
@@ -277,7 +277,10 @@ async fn make(
         Some(b) => b,
         None => default_crop(s, info, &model).await?,
     };
+    // The training photos sharpen the texture; a model whose scene is gone is coloured from itself alone.
+    let train = training_set(s, info, "fit the mesh's texture to its photos").await.ok();
     tokio::task::spawn_blocking(move || -> ApiResult<(TexturedMesh, Placement)> {
+        let photos = train.map(|ds| mesh_photos(&*model, &ds)).unwrap_or_default();
         let cropped = crop_model(&*model, &crop).map_err(|e| invalid_field("crop", e.to_string()))?;
         let source: &dyn Model = cropped.as_ref().map_or(&*model, |m| m as &dyn Model);
         let mut report = |k: usize, d: f32| {
@@ -285,7 +288,7 @@ async fn make(
             done.store(d.to_bits(), Ordering::Relaxed);
         };
         let never = AtomicBool::new(false);
-        let (mesh, _) = make_mesh(source, &crop, &options, &mut report, &never).map_err(|e| match e {
+        let (mesh, _) = make_mesh(source, &crop, &options, &photos, &mut report, &never).map_err(|e| match e {
             MeshError::Empty => ApiError::conflict(format!("{e}: set another crop (PUT /v1/models/{{id}}/crop)")),
             e => ApiError::internal(e),
         })?;

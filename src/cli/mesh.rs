@@ -11,9 +11,9 @@ use clap::Args;
 
 use super::{Common, MaskArgs};
 use crate::engine::front::{
-    CAPTURE_KIND, CropBox, Dataset, LoadOptions, MESH_STAGES, MeshOptions, Model, Placement, RenderOptions, Split,
-    TexturedMesh, View, crop_model, heldout_pose, load_checkpoint, make_mesh, mesh_as_written, mesh_glb, mesh_usdz,
-    render_heldout_view, render_mesh, scene_box, write_atomic,
+    CAPTURE_KIND, CropBox, Dataset, LoadOptions, MESH_STAGES, MeshOptions, MeshStats, Model, Placement, RenderOptions,
+    Split, TexturedMesh, View, crop_model, heldout_pose, load_checkpoint, make_mesh, mesh_as_written, mesh_glb,
+    mesh_photos, mesh_usdz, render_heldout_view, render_mesh, scene_box, write_atomic,
 };
 use crate::media::png;
 
@@ -49,9 +49,15 @@ pub struct MeshArgs {
     /// every kind but `capture` (whose scene reaches the horizon).
     #[arg(long)]
     pub crop: Option<String>,
-    /// The dataset the model was trained on (`--crop auto`, `--eval`).
+    /// The dataset the model was trained on: the texture is fitted to its
+    /// training photos (unless `--no-photos`), and `--crop auto` and
+    /// `--eval` need it.
     #[arg(long)]
     pub data: Option<PathBuf>,
+    /// With `--data`, colour the texture from the model alone, not fitted
+    /// to the training photos too.
+    #[arg(long)]
+    pub no_photos: bool,
     /// The mesh's longest side in the file, metres.
     #[arg(long, default_value_t = 0.5)]
     pub size: f32,
@@ -91,9 +97,13 @@ pub fn run(a: MeshArgs) -> anyhow::Result<()> {
     anyhow::ensure!(!a.eval || a.data.is_some(), "--eval needs --data DIR: the held-out views are the dataset's");
     let restored = load_checkpoint(&a.model).with_context(|| format!("loading {}", a.model.display()))?;
     let model = &*restored.model;
-    let train = match (&a.data, a.crop.as_deref() == Some("auto")) {
+    let train = match (&a.data, a.crop.as_deref() == Some("auto") || !a.no_photos) {
         (Some(d), true) => Some(load(d, Split::Train, Default::default())?),
         _ => None,
+    };
+    let photos = match (&train, a.no_photos) {
+        (Some(ds), false) => mesh_photos(model, ds),
+        _ => Vec::new(),
     };
     let crop = crop_for(&a, model, train.as_ref())?;
     let cropped = crop_model(model, &crop)?;
@@ -106,25 +116,9 @@ pub fn run(a: MeshArgs) -> anyhow::Result<()> {
             last = stage;
         }
     };
-    let (mesh, stats) = make_mesh(source, &crop, &options, &mut progress, &AtomicBool::new(false))?;
+    let (mesh, stats) = make_mesh(source, &crop, &options, &photos, &mut progress, &AtomicBool::new(false))?;
     let secs = started.elapsed().as_secs_f64();
-    let [gx, gy, gz] = stats.grid;
-    let how = stats.level.map_or("depths fused".to_string(), |l| format!("density level {l:.3}"));
-    eprintln!(
-        "{} views ({:.0}% of their pixels solid), a {gx}x{gy}x{gz} grid ({how}): {} triangles extracted, {} kept without the small pieces",
-        stats.views,
-        100.0 * stats.solid,
-        stats.extracted,
-        stats.kept
-    );
-    if let Some(f) = &stats.fit {
-        eprintln!(
-            "texture fitted to {} view pixels: {:.2} dB -> {:.2} dB against the views",
-            f.pixels,
-            -20.0 * f.before.max(1e-6).log10(),
-            -20.0 * f.after.max(1e-6).log10()
-        );
-    }
+    print_stats(&stats, photos.len(), a.data.is_some() && !a.no_photos);
     let front = model.scene().rig.as_ref().map(|r| r.front);
     let place = Placement::new(&mesh, &crop, front, a.size);
     let bytes = if ext.as_deref() == Some("glb") { mesh_glb(&mesh, &place)? } else { mesh_usdz(&mesh, &place)? };
@@ -143,6 +137,36 @@ pub fn run(a: MeshArgs) -> anyhow::Result<()> {
         evaluate(model, &mesh_as_written(&mesh)?, &load(data, Split::Test, opts)?, a.renders.as_deref())?;
     }
     Ok(())
+}
+
+/// What making the mesh did: the surface, and the texture's fits.
+fn print_stats(stats: &MeshStats, photos: usize, wanted: bool) {
+    let [gx, gy, gz] = stats.grid;
+    let how = stats.level.map_or("depths fused".to_string(), |l| format!("density level {l:.3}"));
+    eprintln!(
+        "{} views ({:.0}% of their pixels solid), a {gx}x{gy}x{gz} grid ({how}): {} triangles extracted, {} kept without the small pieces",
+        stats.views,
+        100.0 * stats.solid,
+        stats.extracted,
+        stats.kept
+    );
+    let db = |e: f32| -20.0 * e.max(1e-6).log10();
+    if let Some(f) = &stats.fit {
+        eprintln!("texture fitted to {} pixels of the views: {:.2} -> {:.2} dB", f.pixels, db(f.before), db(f.after));
+    }
+    match &stats.photos {
+        Some(f) => eprintln!(
+            "then to {} pixels of {} training photos: {:.2} -> {:.2} dB",
+            f.pixels,
+            photos,
+            db(f.before),
+            db(f.after)
+        ),
+        None if wanted => {
+            eprintln!("no training photo to fit the texture to (none without lens distortion)")
+        }
+        None => {}
+    }
 }
 
 fn load(data: &std::path::Path, split: Split, opts: LoadOptions) -> anyhow::Result<Dataset> {

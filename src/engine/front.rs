@@ -21,7 +21,7 @@ pub use super::io::checkpoint::CheckpointError;
 pub use super::io::fsio::write_atomic;
 pub use super::mesh::export::{as_written as mesh_as_written, glb as mesh_glb, usdz as mesh_usdz};
 pub use super::mesh::raster::{MeshView, render_antialiased as render_mesh};
-pub use super::mesh::views::{auto_crop_for as auto_crop_any, scene_box};
+pub use super::mesh::views::{auto_crop_for as auto_crop_any, photos as mesh_photos, scene_box};
 pub use super::mesh::{
     MeshError, MeshOptions, MeshStats, Placement, STAGES as MESH_STAGES, TexturedMesh, make as make_mesh,
 };

@@ -129,13 +129,17 @@ impl MeshOptions {
 pub const STAGES: [&str; 4] =
     ["rendering views", "finding the surface", "extracting the surface", "baking the texture"];
 
-/// A textured mesh of `model` inside `crop`, and what making it took. `progress(stage, done)`
+/// A textured mesh of `model` inside `crop`, and what making it took; its
+/// texture fitted to the model's views, then to `photos` where given (the
+/// training photos, [`views::photos`]: they hold the detail a field
+/// smooths; docs/design/mesh.md). `progress(stage, done)`
 /// reports the stage (an index into [`STAGES`]) and the share of the
 /// whole done; `cancel` stops it between views and stages.
 pub fn make(
     model: &dyn Model,
     crop: &CropBox,
     options: &MeshOptions,
+    photos: &[views::SurfaceView],
     progress: &mut dyn FnMut(usize, f32),
     cancel: &AtomicBool,
 ) -> Result<(TexturedMesh, MeshStats), MeshError> {
@@ -183,6 +187,7 @@ pub fn make(
         extracted: world.triangles.len(),
         kept: kept.triangles.len(),
         fit: None,
+        photos: None,
     };
     if mesh.triangles.is_empty() {
         return Err(MeshError::Empty);
@@ -201,7 +206,11 @@ pub fn make(
         texture,
         texture_size: options.texture,
     };
-    stats.fit = Some(fit::fit(&mut textured, &rendered, fit::PRIOR, fit::ITERATIONS));
+    stats.fit = Some(fit::fit(&mut textured, &rendered, 1, fit::PRIOR, fit::ITERATIONS));
+    if !photos.is_empty() {
+        stop()?;
+        stats.photos = Some(fit::fit(&mut textured, photos, fit::PHOTO_SAMPLES, fit::PRIOR, fit::ITERATIONS));
+    }
     progress(3, 1.0);
     Ok((textured, stats))
 }
@@ -219,8 +228,9 @@ pub struct MeshStats {
     /// Triangles extracted, and left once small pieces went (before simplifying).
     pub extracted: usize,
     pub kept: usize,
-    /// The texture's fit to the views.
+    /// The texture's fit to the model's views, then to the photos.
     pub fit: Option<fit::FitStats>,
+    pub photos: Option<fit::FitStats>,
 }
 
 /// How a mesh is placed in the files written for other tools: upright (the

@@ -21,16 +21,7 @@ pub struct MeshView {
 pub fn render_antialiased(mesh: &TexturedMesh, camera: &Camera, background: [f32; 3], k: u32) -> MeshView {
     let k = k.max(1);
     let (w, h) = (camera.width as usize, camera.height as usize);
-    let fine = Camera {
-        width: camera.width * k,
-        height: camera.height * k,
-        fx: camera.fx * k as f32,
-        fy: camera.fy * k as f32,
-        cx: camera.cx * k as f32,
-        cy: camera.cy * k as f32,
-        ..camera.clone()
-    };
-    let big = render(mesh, &fine, background);
+    let big = render(mesh, &finer(camera, k), background);
     let (fw, n) = (w * k as usize, (k * k) as f32);
     let mut rgb = vec![0.0f32; w * h * 3];
     let mut coverage = vec![0.0f32; w * h];
@@ -42,6 +33,20 @@ pub fn render_antialiased(mesh: &TexturedMesh, camera: &Camera, background: [f32
         }
     }
     MeshView { rgb, coverage }
+}
+
+/// `camera` with `k x k` pixels for each of its own: pixel `(x, y)`'s
+/// samples are the fine pixels `(k x + i, k y + j)`.
+pub fn finer(camera: &Camera, k: u32) -> Camera {
+    Camera {
+        width: camera.width * k,
+        height: camera.height * k,
+        fx: camera.fx * k as f32,
+        fy: camera.fy * k as f32,
+        cx: camera.cx * k as f32,
+        cy: camera.cy * k as f32,
+        ..camera.clone()
+    }
 }
 
 /// Renders `mesh` from `camera` (lens distortion ignored) over `background`.

@@ -5,7 +5,7 @@
 
 use std::sync::atomic::AtomicBool;
 
-use crate::engine::dataset::{Dataset, Split};
+use crate::engine::dataset::{Dataset, Frame, Split};
 use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::{Ray, Vec3};
 use crate::engine::mesh::MeshError;
@@ -18,10 +18,12 @@ use crate::engine::view::{render_rays_until, render_view_until};
 const SOLID: f32 = 0.5;
 
 /// A rendered view, as the mesh uses it.
+#[derive(Clone)]
 pub struct SurfaceView {
     pub camera: Camera,
     /// Per pixel, how far along its ray the surface is (world units), or
-    /// `None` where the ray meets none.
+    /// `None` where the ray meets none (a photo's: `Some(NaN)` where it
+    /// shows the object, at a distance not known).
     pub surface: Vec<Option<f32>>,
     /// Per pixel, the surface's colour (not darkened by partial opacity).
     pub rgb: Vec<[f32; 3]>,
@@ -205,6 +207,71 @@ fn evenly<T>(items: &[T], n: usize) -> impl Iterator<Item = &T> {
         .map(move |i| &items[i])
 }
 
+/// Photos wider or taller than this are box-averaged down for the fit.
+const PHOTO_SIDE: u32 = 512;
+/// Solid photo pixels fitted, at most (the fit's time grows with them).
+const PHOTO_PIXELS: usize = 2_000_000;
+
+/// The training photos of `ds` as views for the texture's fit
+/// ([`crate::engine::mesh::fit`]): each from its camera as the model
+/// places it, solid where its mask (or, without masks, its alpha) says
+/// the object is (its surface distance NaN: not known), everywhere in a
+/// photo with neither. A photo larger than
+/// 512 pixels is averaged down by a whole factor, which keeps each pixel
+/// the mean of an area, as the fit draws it. Photos with lens distortion
+/// are left out (the mesh's rasteriser draws a pinhole).
+pub fn photos(model: &dyn Model, ds: &Dataset) -> Vec<SurfaceView> {
+    let all: Vec<SurfaceView> = ds
+        .split_frames(Split::Train)
+        .filter(|f| f.camera.distortion == Default::default())
+        .map(|f| photo_view(f, crate::engine::models::heldout_pose(model, f.camera.c2w)))
+        .collect();
+    // As many as the budget of solid pixels holds, evenly chosen.
+    let solid: usize = all.iter().map(|v| v.surface.iter().flatten().count()).sum();
+    let keep = (PHOTO_PIXELS as f64 * all.len() as f64 / solid.max(1) as f64).floor() as usize;
+    evenly(&all, keep.clamp(1, all.len().max(1))).cloned().collect()
+}
+
+/// Training photo `f` as a view for the fit, seen from `c2w`, averaged
+/// down by a whole factor when larger than [`PHOTO_SIDE`].
+fn photo_view(f: &Frame, c2w: [[f32; 4]; 3]) -> SurfaceView {
+    let (w, h) = (f.image.width, f.image.height);
+    let k = w.max(h).div_ceil(PHOTO_SIDE).max(1);
+    let (sw, sh) = (w / k, h / k);
+    let scale = 1.0 / k as f32;
+    let c = &f.camera;
+    let camera = Camera {
+        width: sw,
+        height: sh,
+        fx: c.fx * scale,
+        fy: c.fy * scale,
+        cx: c.cx * scale,
+        cy: c.cy * scale,
+        distortion: Default::default(),
+        c2w,
+    };
+    let (mut surface, mut rgb) = (Vec::new(), Vec::new());
+    for y in 0..sh {
+        for x in 0..sw {
+            let (mut sum, mut inside) = ([0.0f32; 3], 0.0f32);
+            for (i, j) in (0..k * k).map(|n| (x * k + n % k, y * k + n / k)) {
+                let p = (j * w + i) as usize;
+                let px = &f.image.rgba[4 * p..4 * p + 4];
+                (0..3).for_each(|q| sum[q] += px[q] as f32 / 255.0);
+                inside += match &f.mask {
+                    Some(m) => (m[p] > 127) as u8 as f32,
+                    None if f.image.has_alpha => (px[3] > 127) as u8 as f32,
+                    None => 1.0,
+                };
+            }
+            let n = (k * k) as f32;
+            surface.push((inside / n > 0.5).then_some(f32::NAN));
+            rgb.push(sum.map(|s| s / n));
+        }
+    }
+    SurfaceView { camera, surface, rgb }
+}
+
 impl SurfaceView {
     /// The world points where its rays meet the surface, pixel by pixel.
     pub fn points(&self) -> impl Iterator<Item = Vec3> + '_ {
@@ -246,5 +313,57 @@ impl SurfaceView {
     /// The surface distance at the pixel holding continuous `(u, v)`.
     pub fn surface_at(&self, u: f32, v: f32) -> Option<f32> {
         self.surface[v as usize * self.camera.width as usize + u as usize]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::dataset::Image;
+
+    /// A `w x h` frame: red up to its middle column, blue after; its mask
+    /// (when `masked`) or alpha keeps the top half.
+    fn frame(w: u32, h: u32, masked: bool) -> Frame {
+        let pose = look_at(Vec3::new(0.0, 0.0, 3.0), Vec3::splat(0.0), Vec3::new(0.0, 1.0, 0.0)).unwrap();
+        let mut rgba = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let top = y < h / 2;
+                rgba.extend([if x <= w / 2 { 255 } else { 0 }, 0, if x <= w / 2 { 0 } else { 255 }]);
+                rgba.push(if top || masked { 255 } else { 0 });
+            }
+        }
+        let mask = masked.then(|| (0..w * h).map(|i| if i / w < h / 2 { 255 } else { 0 }).collect());
+        Frame {
+            name: "f".into(),
+            path: "f.png".into(),
+            camera: Camera::from_fov(w, h, 1.0, pose),
+            image: Image { width: w, height: h, rgba, has_alpha: !masked },
+            mask,
+        }
+    }
+
+    #[test]
+    fn a_large_photo_is_averaged_down_and_keeps_its_rays() {
+        for masked in [true, false] {
+            let f = frame(1200, 40, masked);
+            let v = photo_view(&f, f.camera.c2w);
+            // 1200 wide: averaged by 3, to 400 x 13.
+            assert_eq!((v.camera.width, v.camera.height), (400, 13));
+            // Pixel (x, y)'s centre is the centre of the photo's 3x3 block around (3x + 1, 3y + 1).
+            for (x, y) in [(0, 0), (123, 7), (399, 12)] {
+                let (a, b) = (v.camera.pixel_ray(x, y).dir, f.camera.pixel_ray(3 * x + 1, 3 * y + 1).dir);
+                assert!((a - b).norm() < 1e-5, "({x}, {y}): {a:?} against {b:?}");
+            }
+            let at = |x: usize, y: usize| (v.surface[y * 400 + x].is_some(), v.rgb[y * 400 + x]);
+            assert_eq!(at(10, 2), (true, [1.0, 0.0, 0.0]));
+            assert_eq!(at(390, 5), (true, [0.0, 0.0, 1.0]));
+            // Rows 18 to 20 of the photo: two of the three in its kept top half.
+            assert!(at(10, 6).0);
+            assert!(!at(10, 7).0 && !at(390, 12).0, "masked: {masked}");
+            // The block across the colours' border (photo columns 600 to 602): a third red.
+            let (_, c) = at(200, 0);
+            assert!((c[0] - 1.0 / 3.0).abs() < 1e-6 && (c[2] - 2.0 / 3.0).abs() < 1e-6, "{c:?}");
+        }
     }
 }
