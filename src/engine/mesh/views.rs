@@ -214,7 +214,7 @@ const PHOTO_PIXELS: usize = 2_000_000;
 
 /// The training photos of `ds` as views for the texture's fit
 /// ([`crate::engine::mesh::fit`]): each from its camera as the model
-/// places it, solid where its mask (or, without masks, its alpha) says
+/// places a held-out view, solid where its mask (or, without masks, its alpha) says
 /// the object is (its surface distance NaN: not known), everywhere in a
 /// photo with neither. A photo larger than
 /// 512 pixels is averaged down by a whole factor, which keeps each pixel
