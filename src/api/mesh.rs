@@ -278,7 +278,13 @@ async fn make(
         None => default_crop(s, info, &model).await?,
     };
     // The training photos sharpen the texture; a model whose scene is gone is coloured from itself alone.
-    let train = training_set(s, info, "fit the mesh's texture to its photos").await.ok();
+    let train = match training_set(s, info, "fit the mesh's texture to its photos").await {
+        Ok(ds) => Some(ds),
+        Err(e) => {
+            tracing::warn!(error = ?e, model = %info.id, "the mesh's texture comes from the model alone");
+            None
+        }
+    };
     tokio::task::spawn_blocking(move || -> ApiResult<(TexturedMesh, Placement)> {
         let photos = train.map(|ds| mesh_photos(&*model, &ds)).unwrap_or_default();
         let cropped = crop_model(&*model, &crop).map_err(|e| invalid_field("crop", e.to_string()))?;

@@ -81,7 +81,8 @@ pub fn refine(
         .collect();
     for _ in 0..steps {
         let points: Vec<[f32; 3]> = moving.iter().map(|c| on.world(c.point())).collect();
-        for (c, s) in moving.iter_mut().zip(density(&points)?) {
+        let d = density(&points).filter(|d| d.len() == points.len())?;
+        for (c, s) in moving.iter_mut().zip(d) {
             c.narrow((level - s) / level);
         }
     }
@@ -120,6 +121,10 @@ impl Crossing {
     /// curved field does not leave one end stuck far from the crossing.
     fn narrow(&mut self, v: f32) {
         let t = self.guess();
+        if !v.is_finite() {
+            // A density that is not a number says nothing: the bracket stays.
+            return;
+        }
         if v == 0.0 {
             (self.t, self.f) = ([t, t], [-f32::MIN_POSITIVE, f32::MIN_POSITIVE]);
             return;
@@ -249,6 +254,39 @@ mod tests {
                 && (0..3).all(|k| pa[k] != pb[k] || p[k] == pa[k]);
             assert!(on_edge, "{p:?} off the edge {pa:?} - {pb:?}");
         }
+    }
+
+    #[test]
+    fn a_density_that_is_not_a_number_leaves_its_vertices_on_their_edges() {
+        let ball = ball(0.5);
+        let density = |p: &[[f32; 3]]| {
+            // NaN on one side, infinite on another.
+            let d = ball(p)?;
+            Some(
+                p.iter()
+                    .zip(d)
+                    .map(|(q, s)| {
+                        if q[0] > 0.2 {
+                            f32::NAN
+                        } else if q[1] > 0.2 {
+                            f32::INFINITY
+                        } else {
+                            s
+                        }
+                    })
+                    .collect(),
+            )
+        };
+        let crop =
+            CropBox { centre: [0.0; 3], axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], half: [0.8; 3] };
+        let volume = Volume::over(&crop, 24);
+        let g = grid(&ball, &volume, 50.0).unwrap();
+        let (mut mesh, edges) = extract_on_edges(&g);
+        refine(&density, &volume, 50.0, &g, &mut mesh, &edges, REFINE_STEPS).unwrap();
+        assert!(mesh.positions.iter().flatten().all(|v| v.is_finite()));
+        // A density of the wrong length is no density.
+        let short = |p: &[[f32; 3]]| Some(vec![1.0; p.len() / 2]);
+        assert_eq!(refine(&short, &volume, 50.0, &g, &mut mesh, &edges, 1), None);
     }
 
     #[test]

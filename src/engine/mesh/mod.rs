@@ -158,20 +158,21 @@ pub fn make(
     // A field's own density where it has one; else the views' depths fused.
     let density = |p: &[[f32; 3]]| model.density(p);
     let level = level::level(&density, &rendered);
-    let (grid, on) = match level.and_then(|l| level::grid(&density, &volume, l)) {
-        Some(grid) => (grid, volume.padded()),
+    let (grid, on, refine) = match level.and_then(|l| level::grid(&density, &volume, l).map(|g| (g, l))) {
+        Some((grid, l)) => (grid, volume.padded(), Some(l)),
         None => {
             let mut fusion = fuse::Fusion::new(volume.clone(), 4.0 * volume.spacing);
             for v in &rendered {
                 fusion.add(&v.camera, &v.surface);
             }
-            fusion.grid()
+            let (grid, on) = fusion.grid();
+            (grid, on, None)
         }
     };
     stop()?;
     progress(2, 0.8);
     let (mut raw, edges) = isosurface::extract_on_edges(&grid);
-    if let Some(l) = level {
+    if let Some(l) = refine {
         level::refine(&density, &volume, l, &grid, &mut raw, &edges, level::REFINE_STEPS);
     }
     let world =

@@ -253,20 +253,22 @@ fn photo_view(f: &Frame, c2w: [[f32; 4]; 3]) -> SurfaceView {
     let (mut surface, mut rgb) = (Vec::new(), Vec::new());
     for y in 0..sh {
         for x in 0..sw {
-            let (mut sum, mut inside) = ([0.0f32; 3], 0.0f32);
+            // The mean over the block's samples on the object (the rest show what is behind it).
+            let (mut sum, mut inside) = ([0.0f32; 3], 0usize);
             for (i, j) in (0..k * k).map(|n| (x * k + n % k, y * k + n / k)) {
                 let p = (j * w + i) as usize;
                 let px = &f.image.rgba[4 * p..4 * p + 4];
-                (0..3).for_each(|q| sum[q] += px[q] as f32 / 255.0);
-                inside += match &f.mask {
-                    Some(m) => (m[p] > 127) as u8 as f32,
-                    None if f.image.has_alpha => (px[3] > 127) as u8 as f32,
-                    None => 1.0,
+                let on = match &f.mask {
+                    Some(m) => m[p] > 127,
+                    None => !f.image.has_alpha || px[3] > 127,
                 };
+                if on {
+                    (0..3).for_each(|q| sum[q] += px[q] as f32 / 255.0);
+                    inside += 1;
+                }
             }
-            let n = (k * k) as f32;
-            surface.push((inside / n > 0.5).then_some(f32::NAN));
-            rgb.push(sum.map(|s| s / n));
+            surface.push((2 * inside > (k * k) as usize).then_some(f32::NAN));
+            rgb.push(sum.map(|s| s / inside.max(1) as f32));
         }
     }
     SurfaceView { camera, surface, rgb }
@@ -321,7 +323,8 @@ mod tests {
     use super::*;
     use crate::engine::dataset::Image;
 
-    /// A `w x h` frame: red up to its middle column, blue after; its mask
+    /// A `w x h` frame: red up to its middle column, blue after, green added
+    /// in its bottom half; its mask
     /// (when `masked`) or alpha keeps the top half.
     fn frame(w: u32, h: u32, masked: bool) -> Frame {
         let pose = look_at(Vec3::new(0.0, 0.0, 3.0), Vec3::splat(0.0), Vec3::new(0.0, 1.0, 0.0)).unwrap();
@@ -329,7 +332,11 @@ mod tests {
         for y in 0..h {
             for x in 0..w {
                 let top = y < h / 2;
-                rgba.extend([if x <= w / 2 { 255 } else { 0 }, 0, if x <= w / 2 { 0 } else { 255 }]);
+                rgba.extend([
+                    if x <= w / 2 { 255 } else { 0 },
+                    if top { 0 } else { 255 },
+                    if x <= w / 2 { 0 } else { 255 },
+                ]);
                 rgba.push(if top || masked { 255 } else { 0 });
             }
         }
@@ -358,8 +365,9 @@ mod tests {
             let at = |x: usize, y: usize| (v.surface[y * 400 + x].is_some(), v.rgb[y * 400 + x]);
             assert_eq!(at(10, 2), (true, [1.0, 0.0, 0.0]));
             assert_eq!(at(390, 5), (true, [0.0, 0.0, 1.0]));
-            // Rows 18 to 20 of the photo: two of the three in its kept top half.
-            assert!(at(10, 6).0);
+            // Rows 18 to 20 of the photo: two of the three in its kept top
+            // half, whose colour alone it takes (no green from row 20).
+            assert_eq!(at(10, 6), (true, [1.0, 0.0, 0.0]));
             assert!(!at(10, 7).0 && !at(390, 12).0, "masked: {masked}");
             // The block across the colours' border (photo columns 600 to 602): a third red.
             let (_, c) = at(200, 0);
