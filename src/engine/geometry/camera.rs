@@ -101,6 +101,13 @@ impl Camera {
         }
     }
 
+    /// The same camera with a frame of `width x height` pixels and its
+    /// focal lengths and principal point scaled by `s` (the frame `s`
+    /// times as large, or a whole image averaged down by `1 / s`).
+    pub fn resized(&self, width: u32, height: u32, s: f32) -> Self {
+        Self { width, height, fx: self.fx * s, fy: self.fy * s, cx: self.cx * s, cy: self.cy * s, ..self.clone() }
+    }
+
     pub fn origin(&self) -> Vec3 {
         Vec3::new(self.c2w[0][3], self.c2w[1][3], self.c2w[2][3])
     }

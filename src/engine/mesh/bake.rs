@@ -74,16 +74,7 @@ mod tests {
     /// A view of the plane z = 0 coloured by `paint`, from `eye`.
     fn plane_view(eye: Vec3, paint: &dyn Fn(Vec3) -> [f32; 3]) -> SurfaceView {
         let camera = Camera::from_fov(48, 48, 1.2, look_at(eye, Vec3::splat(0.0), Vec3::new(0.0, 1.0, 0.0)).unwrap());
-        let (mut surface, mut rgb) = (Vec::new(), Vec::new());
-        for y in 0..48 {
-            for x in 0..48 {
-                let r = camera.pixel_ray(x, y);
-                let t = -r.origin.z / r.dir.z;
-                surface.push((t > 0.0).then_some(t));
-                rgb.push(paint(r.at(t)));
-            }
-        }
-        SurfaceView { camera, surface, rgb }
+        crate::engine::mesh::views::plane_view(camera, paint)
     }
 
     #[test]

@@ -8,7 +8,7 @@
 
 use rayon::prelude::*;
 
-use crate::engine::mesh::raster::{finer, hits};
+use crate::engine::mesh::raster::{finer, hits, uv_at};
 use crate::engine::mesh::views::SurfaceView;
 use crate::engine::mesh::{TexturedMesh, bilinear};
 
@@ -132,9 +132,7 @@ fn pixels(mesh: &TexturedMesh, views: &[SurfaceView], samples: u32) -> Pixels {
                     continue;
                 }
                 let entries = (0..k * k).filter_map(at).flat_map(|(t, l)| {
-                    let uv = mesh.uvs[t];
-                    let u = l[0] * uv[0][0] + l[1] * uv[1][0] + l[2] * uv[2][0];
-                    let v = l[0] * uv[0][1] + l[1] * uv[1][1] + l[2] * uv[2][1];
+                    let (u, v) = uv_at(mesh.uvs[t], l);
                     let (texels, weights) = bilinear(mesh.texture_size, u, v);
                     (0..4).map(move |n| (texels[n] as u32, weights[n] / (k * k) as f32))
                 });
@@ -258,17 +256,7 @@ mod tests {
 
     /// The plane's view from `eye`, solid and painted wherever its rays meet it.
     fn plane_view(eye: Vec3) -> SurfaceView {
-        let camera = camera(eye, 40);
-        let (mut surface, mut rgb) = (Vec::new(), Vec::new());
-        for y in 0..40 {
-            for x in 0..40 {
-                let r = camera.pixel_ray(x, y);
-                let t = -r.origin.z / r.dir.z;
-                surface.push((t > 0.0).then_some(t));
-                rgb.push(paint(r.at(t)));
-            }
-        }
-        SurfaceView { camera, surface, rgb }
+        crate::engine::mesh::views::plane_view(camera(eye, 40), &paint)
     }
 
     /// The square of side 2 at z = 0, two triangles, a grey `size` texture.

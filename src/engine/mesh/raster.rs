@@ -38,15 +38,7 @@ pub fn render_antialiased(mesh: &TexturedMesh, camera: &Camera, background: [f32
 /// `camera` with `k x k` pixels for each of its own: pixel `(x, y)`'s
 /// samples are the fine pixels `(k x + i, k y + j)`.
 pub fn finer(camera: &Camera, k: u32) -> Camera {
-    Camera {
-        width: camera.width * k,
-        height: camera.height * k,
-        fx: camera.fx * k as f32,
-        fy: camera.fy * k as f32,
-        cx: camera.cx * k as f32,
-        cy: camera.cy * k as f32,
-        ..camera.clone()
-    }
+    camera.resized(camera.width * k, camera.height * k, k as f32)
 }
 
 /// Renders `mesh` from `camera` (lens distortion ignored) over `background`.
@@ -58,9 +50,7 @@ pub fn render(mesh: &TexturedMesh, camera: &Camera, background: [f32; 3]) -> Mes
     for px in &hit {
         match px {
             Some((t, l)) => {
-                let uv = mesh.uvs[*t];
-                let u = l[0] * uv[0][0] + l[1] * uv[1][0] + l[2] * uv[2][0];
-                let v = l[0] * uv[0][1] + l[1] * uv[1][1] + l[2] * uv[2][1];
+                let (u, v) = uv_at(mesh.uvs[*t], *l);
                 rgb.extend(mesh.sample(u, v));
                 coverage.push(1.0);
             }
@@ -71,6 +61,11 @@ pub fn render(mesh: &TexturedMesh, camera: &Camera, background: [f32; 3]) -> Mes
         }
     }
     MeshView { rgb, coverage }
+}
+
+/// The texture coordinates at barycentric `l` on a triangle whose corners have `uv`.
+pub fn uv_at(uv: [[f32; 2]; 3], l: [f32; 3]) -> (f32, f32) {
+    (l[0] * uv[0][0] + l[1] * uv[1][0] + l[2] * uv[2][0], l[0] * uv[0][1] + l[1] * uv[1][1] + l[2] * uv[2][1])
 }
 
 /// What each pixel centre of `camera` sees of the triangles (lens

@@ -148,16 +148,8 @@ pub fn auto_crop(
     let mut points = Vec::new();
     for c in evenly(cameras, CROP_CAMERAS) {
         let k = (CROP_WIDTH as f32 / c.width as f32).min(1.0);
-        let small = Camera {
-            width: ((c.width as f32 * k).round() as u32).max(1),
-            height: ((c.height as f32 * k).round() as u32).max(1),
-            fx: c.fx * k,
-            fy: c.fy * k,
-            cx: c.cx * k,
-            cy: c.cy * k,
-            distortion: Default::default(),
-            c2w: c.c2w,
-        };
+        let (w, h) = [c.width, c.height].map(|n| ((n as f32 * k).round() as u32).max(1)).into();
+        let small = Camera { distortion: Default::default(), ..c.resized(w, h, k) };
         let view = render(model, &small, cancel).ok_or(MeshError::Cancelled)?;
         points.extend(view.points());
     }
@@ -238,18 +230,7 @@ fn photo_view(f: &Frame, c2w: [[f32; 4]; 3]) -> SurfaceView {
     let (w, h) = (f.image.width, f.image.height);
     let k = w.max(h).div_ceil(PHOTO_SIDE).max(1);
     let (sw, sh) = (w / k, h / k);
-    let scale = 1.0 / k as f32;
-    let c = &f.camera;
-    let camera = Camera {
-        width: sw,
-        height: sh,
-        fx: c.fx * scale,
-        fy: c.fy * scale,
-        cx: c.cx * scale,
-        cy: c.cy * scale,
-        distortion: Default::default(),
-        c2w,
-    };
+    let camera = Camera { distortion: Default::default(), c2w, ..f.camera.resized(sw, sh, 1.0 / k as f32) };
     let (mut surface, mut rgb) = (Vec::new(), Vec::new());
     for y in 0..sh {
         for x in 0..sw {
@@ -316,6 +297,22 @@ impl SurfaceView {
     pub fn surface_at(&self, u: f32, v: f32) -> Option<f32> {
         self.surface[v as usize * self.camera.width as usize + u as usize]
     }
+}
+
+/// A view of the plane z = 0 painted by `paint`, from `camera`: solid
+/// wherever its rays meet the plane (for tests).
+#[cfg(test)]
+pub(crate) fn plane_view(camera: Camera, paint: &dyn Fn(Vec3) -> [f32; 3]) -> SurfaceView {
+    let (mut surface, mut rgb) = (Vec::new(), Vec::new());
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let r = camera.pixel_ray(x, y);
+            let t = -r.origin.z / r.dir.z;
+            surface.push((t > 0.0).then_some(t));
+            rgb.push(paint(r.at(t)));
+        }
+    }
+    SurfaceView { camera, surface, rgb }
 }
 
 #[cfg(test)]
