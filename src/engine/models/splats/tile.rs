@@ -223,7 +223,7 @@ unsafe fn composite_tile_avx512(frame: &Frame, cam: &RasterCamera, opt: &RasterO
 pub(super) fn composite_tile_rows(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
     let [x0, x1, y0, _] = tile_rect(cam, t);
     let xs: [f32; TILE] = std::array::from_fn(|k| (x0 + k) as f32 + 0.5);
-    walk_tile(frame, cam, t, |st, p, [gx0, gx1, ry0, ry1], took| {
+    walk_tile(frame, cam, t, #[inline(always)] |st, p, [gx0, gx1, ry0, ry1], took| {
         let cols = (gx0.max(x0) - x0, gx1.min(x1).max(x0) - x0);
         if cols.1 - cols.0 <= L {
             // A narrow box: its columns of the tile fit a half vector.
@@ -249,7 +249,7 @@ pub(super) fn composite_tile_rows(frame: &Frame, cam: &RasterCamera, opt: &Raste
 pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
     let [x0, x1, y0, _] = tile_rect(cam, t);
     let half: [f32; L] = std::array::from_fn(|k| k as f32 + 0.5);
-    walk_tile(frame, cam, t, |st, p, [gx0, gx1, ry0, ry1], took| {
+    walk_tile(frame, cam, t, #[inline(always)] |st, p, [gx0, gx1, ry0, ry1], took| {
         for y in ry0..ry1 {
             let dy = y as f32 + 0.5 - p.mean[1];
             if dy.abs() > p.extent[1] {
