@@ -223,23 +223,29 @@ unsafe fn composite_tile_avx512(frame: &Frame, cam: &RasterCamera, opt: &RasterO
 pub(super) fn composite_tile_rows(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
     let [x0, x1, y0, _] = tile_rect(cam, t);
     let xs: [f32; TILE] = std::array::from_fn(|k| (x0 + k) as f32 + 0.5);
-    walk_tile(frame, cam, t, #[inline(always)] |st, p, [gx0, gx1, ry0, ry1], took| {
-        let cols = (gx0.max(x0) - x0, gx1.min(x1).max(x0) - x0);
-        if cols.1 - cols.0 <= L {
-            // A narrow box: its columns of the tile fit a half vector.
-            let narrow: [f32; L] = std::array::from_fn(|k| xs[cols.0] + k as f32);
-            for y in ry0..ry1 {
-                let dy = y as f32 + 0.5 - p.mean[1];
-                let base = (y - y0) * ROW + cols.0;
-                composite_lanes(p, st, base, &narrow, (0, cols.1 - cols.0), dy, took, opt);
+    walk_tile(
+        frame,
+        cam,
+        t,
+        #[inline(always)]
+        |st, p, [gx0, gx1, ry0, ry1], took| {
+            let cols = (gx0.max(x0) - x0, gx1.min(x1).max(x0) - x0);
+            if cols.1 - cols.0 <= L {
+                // A narrow box: its columns of the tile fit a half vector.
+                let narrow: [f32; L] = std::array::from_fn(|k| xs[cols.0] + k as f32);
+                for y in ry0..ry1 {
+                    let dy = y as f32 + 0.5 - p.mean[1];
+                    let base = (y - y0) * ROW + cols.0;
+                    composite_lanes(p, st, base, &narrow, (0, cols.1 - cols.0), dy, took, opt);
+                }
+            } else {
+                for y in ry0..ry1 {
+                    let dy = y as f32 + 0.5 - p.mean[1];
+                    composite_lanes(p, st, (y - y0) * ROW, &xs, cols, dy, took, opt);
+                }
             }
-        } else {
-            for y in ry0..ry1 {
-                let dy = y as f32 + 0.5 - p.mean[1];
-                composite_lanes(p, st, (y - y0) * ROW, &xs, cols, dy, took, opt);
-            }
-        }
-    })
+        },
+    )
 }
 
 /// The forward of tile `t`, walked a Gaussian at a time over the rows it
@@ -249,22 +255,28 @@ pub(super) fn composite_tile_rows(frame: &Frame, cam: &RasterCamera, opt: &Raste
 pub(super) fn composite_tile_any(frame: &Frame, cam: &RasterCamera, opt: &RasterOptions, t: usize) -> TileOut {
     let [x0, x1, y0, _] = tile_rect(cam, t);
     let half: [f32; L] = std::array::from_fn(|k| k as f32 + 0.5);
-    walk_tile(frame, cam, t, #[inline(always)] |st, p, [gx0, gx1, ry0, ry1], took| {
-        for y in ry0..ry1 {
-            let dy = y as f32 + 0.5 - p.mean[1];
-            if dy.abs() > p.extent[1] {
-                continue;
+    walk_tile(
+        frame,
+        cam,
+        t,
+        #[inline(always)]
+        |st, p, [gx0, gx1, ry0, ry1], took| {
+            for y in ry0..ry1 {
+                let dy = y as f32 + 0.5 - p.mean[1];
+                if dy.abs() > p.extent[1] {
+                    continue;
+                }
+                let (sx0, sx1) = p.row_span(dy, gx0.max(x0), gx1.min(x1));
+                let mut x = sx0;
+                while x < sx1 {
+                    let base = (y - y0) * ROW + (x - x0);
+                    let xs: [f32; L] = std::array::from_fn(|k| x as f32 + half[k]);
+                    composite_lanes(p, st, base, &xs, (0, sx1 - x), dy, took, opt);
+                    x += L;
+                }
             }
-            let (sx0, sx1) = p.row_span(dy, gx0.max(x0), gx1.min(x1));
-            let mut x = sx0;
-            while x < sx1 {
-                let base = (y - y0) * ROW + (x - x0);
-                let xs: [f32; L] = std::array::from_fn(|k| x as f32 + half[k]);
-                composite_lanes(p, st, base, &xs, (0, sx1 - x), dy, took, opt);
-                x += L;
-            }
-        }
-    })
+        },
+    )
 }
 
 /// The walk both forwards share: tile `t`'s list front to back, each
