@@ -165,7 +165,8 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/scenes", post(scenes::create).layer(DefaultBodyLimit::disable()).merge(quick(get(scenes::list))))
         .route("/v1/scenes/{id}", quick(get(scenes::get_one).delete(scenes::delete)))
         .route("/v1/scenes/{id}/thumbnail", get(thumbnails::get))
-        .route("/v1/demo", quick(post(demo::create)))
+        // The demo ray traces its scene on the first call: no `quick` timeout.
+        .route("/v1/demo", post(demo::create))
         .route("/v1/jobs", quick(post(jobs::create).get(jobs::list)))
         .route("/v1/jobs/{id}", quick(get(jobs::get_one).delete(jobs::delete)))
         .route("/v1/jobs/{id}/cancel", quick(post(jobs::cancel)))

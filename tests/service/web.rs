@@ -64,6 +64,13 @@ async fn the_page_layers_and_demo_scene() {
     assert_eq!(s, StatusCode::CREATED, "{v}");
     assert_eq!((v["format"].as_str(), v["images"]["train"].as_u64()), (Some("blender"), Some(32)));
     assert_eq!(v["resolution"], json!([96, 96]));
+    // A second demo is its own scene with the same files (generated once,
+    // copied after).
+    let (s2, v2) = svc.post_json("/v1/demo", json!({})).await;
+    assert_eq!(s2, StatusCode::CREATED, "{v2}");
+    assert_ne!(v2["id"], v["id"]);
+    assert_eq!((&v2["size_bytes"], &v2["images"]), (&v["size_bytes"], &v["images"]));
+    assert!(v["size_bytes"].as_u64().unwrap() > 36 * 1000, "{v}");
     svc.stop().await;
 
     // With an origin configured, that origin (only) may call the API.
