@@ -73,7 +73,7 @@ fn a_bakes_measured_peak_is_below_its_estimate() {
     BallScene { radius: 1.0, size: 256, views: 32, ..Default::default() }.write_blender(&data).unwrap();
     let (source, splats) = (dir.path().join("m.ckpt"), dir.path().join("s.ckpt"));
     let (d, m, s) = (data.to_str().unwrap(), source.to_str().unwrap(), splats.to_str().unwrap());
-    let full = ["--initial", "800000", "--max-gaussians", "100000"];
+    let full = ["--initial", "400000", "--max-gaussians", "100000"];
     let cases: [(&str, &[&str], &[&str], bool); 4] = [
         ("instant", &[], &[], false),
         ("instant", &[], &full, true),
