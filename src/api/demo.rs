@@ -5,12 +5,12 @@
 //! automatic crop and the compact exports.
 //!
 //! The scene is ray traced once per process (about a second on two cores,
-//! on threads of its own) and its files kept in memory: later calls,
-//! concurrent ones included, only copy them.
+//! on threads of its own) and kept in memory: later calls, concurrent ones
+//! included, only write its files.
 
 use std::io;
-use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::path::Path;
+use std::sync::OnceLock;
 
 use axum::Json;
 use axum::extract::State;
@@ -19,13 +19,11 @@ use axum::http::StatusCode;
 use super::scenes::{ingest, staging};
 use super::{ApiResult, AppState};
 use crate::datadir::tree_bytes;
-use crate::engine::front::ProductScene;
+use crate::engine::front::{Dataset, ProductScene, write_blender};
 use crate::records::SceneInfo;
 
-/// The demo's files, relative path and bytes, once generated.
-type Files = Arc<Vec<(PathBuf, Vec<u8>)>>;
-
-static GENERATED: Mutex<Option<Files>> = Mutex::new(None);
+/// The demo scene, once generated.
+static GENERATED: OnceLock<Dataset> = OnceLock::new();
 
 pub async fn create(State(s): State<AppState>) -> ApiResult<(StatusCode, Json<SceneInfo>)> {
     let (id, dir) = staging(&*s.artifacts);
@@ -38,42 +36,17 @@ pub async fn create(State(s): State<AppState>) -> ApiResult<(StatusCode, Json<Sc
     Ok((StatusCode::CREATED, Json(info)))
 }
 
-/// Writes the demo's files into `data`, generating them on the first call;
-/// concurrent first calls wait for one generation.
+/// Writes the demo's files into `data`, generating the scene on the first
+/// call; concurrent first calls wait for one generation.
 fn write_demo(data: &Path) -> io::Result<()> {
-    let mut cached = GENERATED.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-    if let Some(files) = cached.as_ref() {
-        let files = files.clone();
-        drop(cached);
-        for (rel, bytes) in files.iter() {
-            let path = data.join(rel);
-            if let Some(parent) = path.parent() {
-                std::fs::create_dir_all(parent)?;
-            }
-            std::fs::write(path, bytes)?;
+    let demo = match GENERATED.get() {
+        Some(demo) => demo,
+        None => {
+            // Its own two threads: renders and videos queued on the shared
+            // pool would otherwise hold the generation up behind them.
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().map_err(io::Error::other)?;
+            GENERATED.get_or_init(|| pool.install(|| ProductScene::default().dataset()))
         }
-        return Ok(());
-    }
-    // Its own two threads: renders and videos queued on the shared pool
-    // would otherwise hold the generation up behind them.
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().map_err(io::Error::other)?;
-    pool.install(|| ProductScene::default().write_blender(data))?;
-    let mut files = Vec::new();
-    read_tree(data, Path::new(""), &mut files)?;
-    *cached = Some(Arc::new(files));
-    Ok(())
-}
-
-/// Every file under `root/rel`, by its path relative to `root`.
-fn read_tree(root: &Path, rel: &Path, out: &mut Vec<(PathBuf, Vec<u8>)>) -> io::Result<()> {
-    for entry in std::fs::read_dir(root.join(rel))? {
-        let entry = entry?;
-        let rel = rel.join(entry.file_name());
-        if entry.file_type()?.is_dir() {
-            read_tree(root, &rel, out)?;
-        } else {
-            out.push((rel.clone(), std::fs::read(root.join(&rel))?));
-        }
-    }
-    Ok(())
+    };
+    write_blender(demo, data)
 }

@@ -12,7 +12,7 @@ use std::path::Path;
 
 pub use super::bake::{BakeError, BakeProgress, BakeSettings, bake};
 pub use super::dataset::product::ProductScene;
-pub use super::dataset::synthetic::BallScene;
+pub use super::dataset::synthetic::{BallScene, write_blender};
 pub use super::dataset::{Dataset, DatasetError, DatasetFormat, LoadOptions, MaskUse, Split, detect_format};
 pub use super::geometry::camera::Camera;
 pub use super::geometry::path::{CameraPath, Keyframe, MAX_KEYFRAMES};
