@@ -1,7 +1,8 @@
 //! Transient occluders found from training's own residuals (RobustNeRF,
 //! SpotLessSplats), checked against the neighbouring photos: each training
 //! photo is cut into square cells, each cell keeps the mean squared error
-//! of the rays drawn from it and where they met a surface, and a cell
+//! of the rays drawn from it and where they met a surface (taken over its
+//! three by three block while its own rays are few), and a cell
 //! whose error is several times what the photos taken nearest to it show
 //! where that surface falls in them, in a region of such cells, stops
 //! pulling on the field. A surface the field draws badly (a thin edge,
@@ -15,6 +16,9 @@ use crate::engine::dataset::occlude::Pasted;
 use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::math::Vec3;
 
+mod report;
+pub use report::{FoundMasks, MOSTLY_MASKED, PhotoShare, TransientReport};
+
 /// The most pixels a cell's side has: about sixteen cells across the
 /// shorter side of a photo, at least four pixels wide.
 pub const CELL: u32 = 16;
@@ -25,7 +29,8 @@ pub const RECORD_FROM: f64 = 0.03;
 /// field makes an occluder into a floater in front of its photo's camera
 /// that no other photo sees, and that stays after its cells are dropped.
 pub const JUDGE_FROM: f64 = 0.06;
-/// Rays a cell needs before it is judged.
+/// Rays a cell needs before it is judged: its own, or while they are
+/// fewer, its three by three block's together ([`TransientMaps::error`]).
 const MIN_SAMPLES: f32 = 8.0;
 /// The neighbouring photos a cell is compared with: those whose cameras
 /// are nearest, looking within [`MAX_TURN_COS`] (30 degrees) of its own
@@ -274,11 +279,31 @@ impl TransientMaps {
         }
     }
 
-    /// Photo `p`'s cell `k`'s mean surface point, once enough of its rays
-    /// met one.
+    /// Photo `p`'s cell `k`'s mean surface point, once enough rays met
+    /// one: its own, or while they are too few, its three by three block's
+    /// (as [`TransientMaps::error`]).
     fn surface(&self, p: usize, k: usize) -> Option<Vec3> {
         let c = &self.photos[p];
-        (c.hits[k] >= MIN_SAMPLES).then(|| Vec3::from_array(c.points[k].map(|v| v / c.hits[k])))
+        let (mut sum, mut hits) = ([0.0f32; 3], 0.0f32);
+        for m in c.pooled(k, c.hits[k]) {
+            (0..3).for_each(|a| sum[a] += c.points[m][a]);
+            hits += c.hits[m];
+        }
+        (hits >= MIN_SAMPLES).then(|| Vec3::from_array(sum.map(|v| v / hits)))
+    }
+
+    /// Photo `p`'s cell `k`'s mean squared error and the rays behind it:
+    /// its own once it has [`MIN_SAMPLES`], else its three by three
+    /// block's. A step draws about a ray per hundred cells of a capture of
+    /// a hundred photos, so a cell has its own few only after a third of
+    /// the budget, when the field has long fitted an occluder; its block
+    /// has them nine times as early. Each judging decides afresh, so a
+    /// cell beside an occluder that its block's error took in is given
+    /// back once its own rays say so.
+    fn error(&self, p: usize, k: usize) -> (f32, f32) {
+        let c = &self.photos[p];
+        let (sum, count) = c.pooled(k, c.count[k]).fold((0.0f32, 0.0f32), |(s, n), m| (s + c.sum[m], n + c.count[m]));
+        (sum / count.max(1.0), count)
     }
 
     /// Where photo `p`'s cell `k` lies in photo `q`'s grid: where its
@@ -328,17 +353,12 @@ impl TransientMaps {
 
     /// Judges every cell again from the errors recorded so far.
     pub fn judge(&mut self) {
-        let ratios: Vec<Vec<f32>> = (0..self.photos.len()).map(|p| self.ratios(p)).collect();
-        for (c, r) in self.photos.iter_mut().zip(ratios) {
-            let (nx, ny) = (c.nx as i64, c.ny as i64);
-            let neighbours = |k: usize| {
-                let (x, y) = ((k as i64) % nx, (k as i64) / nx);
-                (-1..=1i64)
-                    .flat_map(move |dy| (-1..=1i64).map(move |dx| (x + dx, y + dy)))
-                    .filter(move |&(a, b)| (a, b) != (x, y) && a >= 0 && b >= 0 && a < nx && b < ny)
-                    .map(move |(a, b)| (b * nx + a) as usize)
-            };
-            let mean = |k: usize| c.sum[k] / c.count[k].max(1.0);
+        let errors: Vec<Vec<(f32, f32)>> =
+            (0..self.photos.len()).map(|p| (0..self.photos[p].sum.len()).map(|k| self.error(p, k)).collect()).collect();
+        let ratios: Vec<Vec<f32>> = (0..self.photos.len()).map(|p| self.ratios(p, &errors[p])).collect();
+        for ((c, r), errors) in self.photos.iter_mut().zip(ratios).zip(errors) {
+            let neighbours = |k: usize| c.block(k).filter(move |&n| n != k);
+            let mean = |k: usize| errors[k].0;
             // Seeds: far out of line, large, among cells out of line.
             let seeds: Vec<bool> = (0..r.len())
                 .map(|k| {
@@ -367,25 +387,27 @@ impl TransientMaps {
 
     /// Each of photo `p`'s cells' error over its reference (0 where either
     /// is unknown).
-    fn ratios(&self, p: usize) -> Vec<f32> {
+    fn ratios(&self, p: usize, errors: &[(f32, f32)]) -> Vec<f32> {
         let c = &self.photos[p];
         let mut refs = Vec::with_capacity(NEAREST);
         (0..c.sum.len())
             .map(|k| {
-                if c.count[k] < MIN_SAMPLES {
+                let (own, count) = errors[k];
+                if count < MIN_SAMPLES {
                     return 0.0;
                 }
                 refs.clear();
                 for &q in &c.nearest {
                     let o = &self.photos[q];
                     let (qx, qy) = self.place_in(p, k, q);
-                    let (mut sum, mut cells) = (0.0f32, 0.0f32);
+                    let (mut sum, mut cells, mut pooled) = (0.0f32, 0.0f32, (0.0f32, 0.0f32));
                     for b in qy - 1..=qy + 1 {
                         for a in qx - 1..=qx + 1 {
                             if a < 0 || b < 0 || a >= o.nx as i64 || b >= o.ny as i64 {
                                 continue;
                             }
                             let m = (b * o.nx as i64 + a) as usize;
+                            pooled = (pooled.0 + o.sum[m], pooled.1 + o.count[m]);
                             if o.count[m] >= MIN_SAMPLES {
                                 sum += o.sum[m] / o.count[m];
                                 cells += 1.0;
@@ -394,6 +416,10 @@ impl TransientMaps {
                     }
                     if cells > 0.0 {
                         refs.push(sum / cells);
+                    } else if pooled.1 >= MIN_SAMPLES {
+                        // No cell there has its own few rays yet: their
+                        // block's together.
+                        refs.push(pooled.0 / pooled.1);
                     }
                 }
                 if refs.is_empty() {
@@ -401,7 +427,7 @@ impl TransientMaps {
                 }
                 let reference = median(&refs).max(1e-6);
                 let unseen = if self.unseen(p, k) { UNSEEN_WEIGHT } else { 1.0 };
-                c.sum[k] / c.count[k] / reference * unseen
+                own / reference * unseen
             })
             .collect()
     }
@@ -477,6 +503,23 @@ impl TransientMaps {
 }
 
 impl Cells {
+    /// Cell `k` and its neighbours within the grid (a three by three block).
+    fn block(&self, k: usize) -> impl Iterator<Item = usize> + use<> {
+        let (nx, ny) = (self.nx as i64, self.ny as i64);
+        let (x, y) = ((k as i64) % nx, (k as i64) / nx);
+        (-1..=1i64)
+            .flat_map(move |dy| (-1..=1i64).map(move |dx| (x + dx, y + dy)))
+            .filter(move |&(a, b)| a >= 0 && b >= 0 && a < nx && b < ny)
+            .map(move |(a, b)| (b * nx + a) as usize)
+    }
+
+    /// The cells whose rays stand for cell `k`'s, which has `own` of them:
+    /// itself once they reach [`MIN_SAMPLES`], else its block.
+    fn pooled(&self, k: usize, own: f32) -> impl Iterator<Item = usize> + use<> {
+        let alone = own >= MIN_SAMPLES;
+        self.block(k).filter(move |&m| !alone || m == k)
+    }
+
     /// A `width x height` photo's cells, nothing recorded: about sixteen
     /// across the shorter side.
     fn empty(name: &str, width: u32, height: u32) -> Self {
@@ -507,67 +550,6 @@ pub struct SavedPhoto {
     pub name: String,
     pub width: u32,
     pub height: u32,
-}
-
-/// A photo mostly masked: at least this share of its pixels dropped (the
-/// training report names it).
-pub const MOSTLY_MASKED: f64 = 0.5;
-
-/// What robust training dropped ([`TransientMaps::report`]).
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct TransientReport {
-    /// Share of all the training pixels dropped.
-    pub dropped: f64,
-    /// Each training photo's share of pixels dropped, in training order.
-    pub photos: Vec<PhotoShare>,
-}
-
-/// One training photo's share of pixels dropped.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct PhotoShare {
-    pub name: String,
-    pub share: f64,
-}
-
-impl TransientReport {
-    /// The photos mostly masked ([`MOSTLY_MASKED`]), most masked first.
-    pub fn mostly_masked(&self) -> Vec<&PhotoShare> {
-        let mut v: Vec<&PhotoShare> = self.photos.iter().filter(|p| p.share >= MOSTLY_MASKED).collect();
-        v.sort_by(|a, b| b.share.total_cmp(&a.share));
-        v
-    }
-
-    /// One line: the share dropped, the most masked photos.
-    pub fn summary(&self) -> String {
-        let mut by_share: Vec<&PhotoShare> = self.photos.iter().filter(|p| p.share > 0.0).collect();
-        by_share.sort_by(|a, b| b.share.total_cmp(&a.share));
-        let mut s = format!(
-            "{:.2}% of the training pixels dropped, in {} of {} photos",
-            100.0 * self.dropped,
-            by_share.len(),
-            self.photos.len()
-        );
-        if !by_share.is_empty() {
-            let most: Vec<String> =
-                by_share.iter().take(3).map(|p| format!("{} {:.0}%", p.name, 100.0 * p.share)).collect();
-            s += &format!(" (most: {})", most.join(", "));
-        }
-        let mostly = self.mostly_masked();
-        if !mostly.is_empty() {
-            let names: Vec<&str> = mostly.iter().map(|p| p.name.as_str()).collect();
-            s += &format!("; mostly masked, consider retaking: {}", names.join(", "));
-        }
-        s
-    }
-}
-
-/// Transient masks found, against known occluders ([`TransientMaps::score`]).
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct FoundMasks {
-    /// Share of the occluders' pixels found transient.
-    pub recall: f64,
-    /// Share of the other pixels (the static scene) found transient.
-    pub static_share: f64,
 }
 
 fn norm(v: [f32; 3]) -> f32 {
@@ -642,6 +624,52 @@ mod tests {
         other[2].width = 256;
         other[0].name = "elsewhere".into();
         assert!(TransientMaps::new(&other).resume_from(&back).is_err());
+    }
+
+    #[test]
+    fn cells_with_few_rays_are_judged_by_their_blocks_until_they_have_their_own() {
+        // Photo 1's 80x80 square at (64, 64): cells 4..=8 both ways, far out
+        // of line; `rays` drawn at the centre of every cell of each photo.
+        let square = |p: usize, i: u32, j: u32| p == 1 && (64..144).contains(&i) && (64..144).contains(&j);
+        let mut rng = Rng::new(4);
+        let mut draw = |t: &mut TransientMaps, rays: usize| {
+            for photo in 0..3 {
+                for (i, j) in (0..16).flat_map(|y| (0..16).map(move |x| (16 * x + 8, 16 * y + 8))) {
+                    for _ in 0..rays {
+                        let err = if square(photo, i, j) { 0.09 } else { 0.004 * (0.5 + rng.f32()) };
+                        t.record(photo, i, j, err, None);
+                    }
+                }
+            }
+        };
+        // Cells (x, y) of photo `p` that are transient.
+        let found = |t: &TransientMaps, p: usize| -> Vec<(u32, u32)> {
+            (0..16)
+                .flat_map(|y| (0..16).map(move |x| (x, y)))
+                .filter(|&(x, y)| t.weight(p, 16 * x, 16 * y) == 0.0)
+                .collect()
+        };
+        let within =
+            |lo: u32, hi: u32| -> Vec<(u32, u32)> { (lo..=hi).flat_map(|y| (lo..=hi).map(move |x| (x, y))).collect() };
+        // One ray a cell: none has enough of its own, a block inside the
+        // frame has nine. The square is found, with the ring of cells whose
+        // blocks reach into it: its sides surely (three of their block's
+        // nine cells in the square), its corners by chance (one of nine,
+        // about three times the reference), nothing beyond.
+        let mut t = TransientMaps::new(&three());
+        draw(&mut t, 1);
+        t.judge();
+        let f = found(&t, 1);
+        let corners = [(3, 3), (3, 9), (9, 3), (9, 9)];
+        let sides = within(3, 9).into_iter().filter(|c| !within(4, 8).contains(c) && !corners.contains(c));
+        assert!(within(4, 8).into_iter().chain(sides).all(|c| f.contains(&c)), "{f:?}");
+        assert!(f.iter().all(|c| within(3, 9).contains(c)), "{f:?}");
+        assert!(found(&t, 0).is_empty() && found(&t, 2).is_empty());
+        // With their own rays, the ring's cells are given back.
+        draw(&mut t, 8);
+        t.judge();
+        assert_eq!(found(&t, 1), within(4, 8));
+        assert!(found(&t, 0).is_empty() && found(&t, 2).is_empty());
     }
 
     #[test]
