@@ -392,8 +392,11 @@ impl TransientMaps {
         let mut refs = Vec::with_capacity(NEAREST);
         (0..c.sum.len())
             .map(|k| {
+                // A cell no ray of its own reached is not judged: its
+                // block's figures stand in only for a few rays of its own
+                // (outside a user's mask it never gets any).
                 let (own, count) = errors[k];
-                if count < MIN_SAMPLES {
+                if count < MIN_SAMPLES || c.count[k] == 0.0 {
                     return 0.0;
                 }
                 refs.clear();
