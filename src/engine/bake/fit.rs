@@ -23,6 +23,11 @@ const BASE_LR: f32 = 4e-3;
 /// The per-block learning rates as multiples of [`BASE_LR`]: the 3DGS
 /// paper's relative rates (positions in model units, whose scene box has
 /// half-extent 1: the paper's rate times its typical scene radius of 3).
+/// The weight of one minus the SSIM in the loss, beside the squared error
+/// (`SplatsModel::fit_view`): it keeps edges and texture the squared error
+/// alone blurs (docs/design/splats.md).
+const SSIM_WEIGHT: f32 = 0.05;
+
 fn groups(l: &Layout, progress: f64) -> Vec<LrGroup> {
     // Positions decay a hundredfold over the bake.
     let pos = 0.48 * (0.01f64).powf(progress) as f32;
@@ -154,7 +159,7 @@ impl<'a> Fit<'a> {
         let mut grads = std::mem::take(&mut self.grads);
         grads.clear();
         grads.resize(l.len(), 0.0);
-        let fit = self.model.fit_view(&cam, target, valid, self.ds.background, &mut grads);
+        let fit = self.model.fit_view(&cam, target, valid, self.ds.background, SSIM_WEIGHT, &mut grads);
         let psnr = -10.0 * (fit.squared_error / valid.max(1) as f64).max(1e-10).log10();
         self.smoothed_psnr = if self.step == 0 { psnr } else { 0.9 * self.smoothed_psnr + 0.1 * psnr };
         let (hw, hh) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);

@@ -5,6 +5,7 @@
 
 use super::SplatsModel;
 use super::backward::{ScreenGrad, backward};
+use super::dssim::ssim_and_gradient;
 use super::raster::{RasterCamera, RasterOptions, forward};
 use crate::engine::models::Model;
 
@@ -20,22 +21,25 @@ pub struct ViewFit {
 
 impl SplatsModel {
     /// Draws `cam` on `background` and adds to `grads` (laid out as the
-    /// parameters, of their length) the gradient of the mean squared error
-    /// against `target` (`[h x w x 3]`, NaN where there is no loss), taken
-    /// over `valid` values.
+    /// parameters, of their length) the gradient of the loss against
+    /// `target` (`[h x w x 3]`, NaN where there is no loss): the mean
+    /// squared error over `valid` values, weighted `1 - ssim_weight`, plus
+    /// `ssim_weight` times one minus the mean SSIM (`dssim`; none for a
+    /// view under 11 pixels either way).
     pub fn fit_view(
         &self,
         cam: &RasterCamera,
         target: &[f32],
         valid: usize,
         background: [f32; 3],
+        ssim_weight: f32,
         grads: &mut [f32],
     ) -> ViewFit {
         let (l, opt) = (self.layout(), RasterOptions::for_scene(self.scene()));
         let f = forward(&l, self.params(), cam, &opt, background);
         let n = valid.max(1) as f32;
         let mut squared_error = 0.0f64;
-        let d_rgb: Vec<f32> = f
+        let mut d_rgb: Vec<f32> = f
             .rgb
             .iter()
             .zip(target)
@@ -48,6 +52,12 @@ impl SplatsModel {
                 2.0 * e / n
             })
             .collect();
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        if let Some((_, g)) = (ssim_weight > 0.0).then(|| ssim_and_gradient(&f.rgb, target, w, h)).flatten() {
+            for (d, g) in d_rgb.iter_mut().zip(&g) {
+                *d = (1.0 - ssim_weight) * *d - ssim_weight * g;
+            }
+        }
         let screen = backward(&l, self.params(), cam, &opt, &f, &d_rgb, grads);
         ViewFit { squared_error, screen }
     }
@@ -57,6 +67,7 @@ impl SplatsModel {
 mod tests {
     use super::*;
     use crate::engine::models::splats::SplatsConfig;
+    use crate::engine::models::splats::dssim::ssim_f64;
     use crate::engine::models::splats::gaussians::Layout;
     use crate::engine::models::splats::raster_tests::{camera, random_gaussians, unit_scene};
     use crate::engine::rng::Rng;
@@ -95,7 +106,7 @@ mod tests {
         let bg = [0.2, 0.5, 0.9];
         let valid = target.iter().filter(|t| !t.is_nan()).count();
         let mut grads = vec![0.0f32; model.params().len()];
-        let fit = model.fit_view(&cam, &target, valid, bg, &mut grads);
+        let fit = model.fit_view(&cam, &target, valid, bg, 0.0, &mut grads);
         let want = mse(&model, &cam, &target, bg);
         assert!((fit.squared_error / valid as f64 - want).abs() <= 1e-6 * want, "{} against {want}", fit.squared_error);
         assert_eq!(fit.screen.len(), 4);
@@ -123,5 +134,43 @@ mod tests {
             }
         }
         assert!(checked > 10, "only {checked} gradients were away from zero");
+    }
+
+    #[test]
+    fn with_ssim_the_gradient_is_that_of_the_weighted_loss() {
+        let (model, cam, target) = case();
+        let (bg, weight) = ([0.2, 0.5, 0.9], 0.3f32);
+        let valid = target.iter().filter(|t| !t.is_nan()).count();
+        let mut grads = vec![0.0f32; model.params().len()];
+        model.fit_view(&cam, &target, valid, bg, weight, &mut grads);
+        // The photo's NaN values take the drawn view's, held where it is.
+        let drawn = forward(&model.layout(), model.params(), &cam, &RasterOptions::default(), bg).rgb;
+        let held: Vec<f64> = target.iter().zip(&drawn).map(|(&t, &d)| if t.is_nan() { d } else { t } as f64).collect();
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let loss = |m: &SplatsModel| {
+            let x = forward(&m.layout(), m.params(), &cam, &RasterOptions::default(), bg).rgb;
+            let x: Vec<f64> = x.iter().map(|&v| v as f64).collect();
+            (1.0 - weight as f64) * mse(m, &cam, &target, bg) + weight as f64 * (1.0 - ssim_f64(&x, &held, w, h))
+        };
+        let l = model.layout();
+        let mut checked = 0;
+        for range in [l.sh_dc(), l.opacities()] {
+            for i in range {
+                let step = 1e-2f32;
+                let at = |d: f32| {
+                    let mut p = model.params().to_vec();
+                    p[i] += d;
+                    loss(&SplatsModel::from_parts(model.config.clone(), model.scene().clone(), p).unwrap())
+                };
+                let fd = (at(step) - at(-step)) / (2.0 * step as f64);
+                let an = grads[i] as f64;
+                assert!(
+                    (an - fd).abs() <= 1e-2 * fd.abs().max(an.abs()) + 1e-5,
+                    "[{i}]: analytic {an}, differences {fd}"
+                );
+                checked += (fd.abs() > 1e-4) as usize;
+            }
+        }
+        assert!(checked > 6, "only {checked} gradients were away from zero");
     }
 }

@@ -9,6 +9,7 @@ pub mod backward;
 pub mod cleanup;
 pub mod config;
 pub mod crop;
+pub mod dssim;
 pub mod export;
 pub mod fit;
 pub mod frame;
