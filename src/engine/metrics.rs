@@ -28,8 +28,8 @@
 /// SSIM window size and Gaussian sigma.
 pub const SSIM_WINDOW: usize = 11;
 pub const SSIM_SIGMA: f64 = 1.5;
-const C1: f64 = 0.01 * 0.01;
-const C2: f64 = 0.03 * 0.03;
+pub(crate) const C1: f64 = 0.01 * 0.01;
+pub(crate) const C2: f64 = 0.03 * 0.03;
 
 /// Why a metric could not be computed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -106,7 +106,7 @@ pub fn psnr_inside(a: &[f32], b: &[f32], channels: usize, inside: &[bool]) -> Re
 
 /// The normalised 1-D Gaussian of the SSIM window, computed exactly as the
 /// reference does.
-fn gaussian_kernel() -> [f64; SSIM_WINDOW] {
+pub(crate) fn gaussian_kernel() -> [f64; SSIM_WINDOW] {
     let mut k = [0.0; SSIM_WINDOW];
     let half = (SSIM_WINDOW - 1) as f64 / 2.0;
     for (i, v) in k.iter_mut().enumerate() {

@@ -6,17 +6,14 @@
 
 use rayon::prelude::*;
 
-use crate::engine::metrics::{SSIM_SIGMA, SSIM_WINDOW};
+use crate::engine::metrics::{self, SSIM_WINDOW};
 
-const C1: f32 = 0.01 * 0.01;
-const C2: f32 = 0.03 * 0.03;
+const C1: f32 = metrics::C1 as f32;
+const C2: f32 = metrics::C2 as f32;
 
+/// The metric's window, in f32.
 fn window() -> [f32; SSIM_WINDOW] {
-    let r = (SSIM_WINDOW / 2) as f64;
-    let g: Vec<f64> =
-        (0..SSIM_WINDOW).map(|k| (-((k as f64 - r).powi(2)) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()).collect();
-    let sum: f64 = g.iter().sum();
-    std::array::from_fn(|k| (g[k] / sum) as f32)
+    metrics::gaussian_kernel().map(|v| v as f32)
 }
 
 /// `a` (`w x h`) correlated with the window both ways, 'valid': `(w-10) x (h-10)`.
@@ -111,8 +108,8 @@ pub fn ssim_and_gradient(x: &[f32], y: &[f32], w: usize, h: usize) -> Option<(f6
 /// photo's NaN value takes the drawn one): the tests' reference.
 #[cfg(test)]
 pub(crate) fn ssim_f64(x: &[f64], y: &[f64], w: usize, h: usize) -> f64 {
-    let g: Vec<f64> = window().iter().map(|&v| v as f64).collect();
-    let (c1, c2) = (C1 as f64, C2 as f64);
+    let g = metrics::gaussian_kernel();
+    let (c1, c2) = (metrics::C1, metrics::C2);
     let mut total = 0.0;
     let mut n = 0;
     for c in 0..3 {
@@ -143,7 +140,6 @@ pub(crate) fn ssim_f64(x: &[f64], y: &[f64], w: usize, h: usize) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::metrics;
     use crate::engine::rng::Rng;
 
     fn images(w: usize, h: usize, seed: u64) -> (Vec<f32>, Vec<f32>) {

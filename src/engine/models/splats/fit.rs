@@ -100,6 +100,32 @@ mod tests {
         sum / n as f64
     }
 
+    /// Checks `grads` on every parameter of `ranges` against central
+    /// differences (steps of 0.01) of the f64 `loss`, within `rel` of the
+    /// larger plus 1e-5; how many of them were away from zero.
+    fn checked_by_differences(
+        model: &SplatsModel,
+        grads: &[f32],
+        ranges: &[std::ops::Range<usize>],
+        rel: f64,
+        loss: impl Fn(&SplatsModel) -> f64,
+    ) -> usize {
+        let mut checked = 0;
+        for i in ranges.iter().cloned().flatten() {
+            let step = 1e-2f32;
+            let at = |d: f32| {
+                let mut p = model.params().to_vec();
+                p[i] += d;
+                loss(&SplatsModel::from_parts(model.config.clone(), model.scene().clone(), p).unwrap())
+            };
+            let fd = (at(step) - at(-step)) / (2.0 * step as f64);
+            let an = grads[i] as f64;
+            assert!((an - fd).abs() <= rel * fd.abs().max(an.abs()) + 1e-5, "[{i}]: analytic {an}, differences {fd}");
+            checked += (fd.abs() > 1e-4) as usize;
+        }
+        checked
+    }
+
     #[test]
     fn a_views_error_and_gradient_are_those_of_its_mean_squared_error() {
         let (model, cam, target) = case();
@@ -114,25 +140,8 @@ mod tests {
         // on every colour term (the error is quadratic in them) and the
         // opacities; masked values must pull on nothing.
         let l = model.layout();
-        let mut checked = 0;
-        for range in [l.sh_dc(), l.sh_rest(), l.opacities()] {
-            for i in range {
-                let h = 1e-2f32;
-                let at = |d: f32| {
-                    let mut p = model.params().to_vec();
-                    p[i] += d;
-                    let m = SplatsModel::from_parts(model.config.clone(), model.scene().clone(), p).unwrap();
-                    mse(&m, &cam, &target, bg)
-                };
-                let fd = (at(h) - at(-h)) / (2.0 * h as f64);
-                let an = grads[i] as f64;
-                assert!(
-                    (an - fd).abs() <= 2e-3 * fd.abs().max(an.abs()) + 1e-5,
-                    "[{i}]: analytic {an}, differences {fd}"
-                );
-                checked += (fd.abs() > 1e-4) as usize;
-            }
-        }
+        let ranges = [l.sh_dc(), l.sh_rest(), l.opacities()];
+        let checked = checked_by_differences(&model, &grads, &ranges, 2e-3, |m| mse(m, &cam, &target, bg));
         assert!(checked > 10, "only {checked} gradients were away from zero");
     }
 
@@ -153,24 +162,7 @@ mod tests {
             (1.0 - weight as f64) * mse(m, &cam, &target, bg) + weight as f64 * (1.0 - ssim_f64(&x, &held, w, h))
         };
         let l = model.layout();
-        let mut checked = 0;
-        for range in [l.sh_dc(), l.opacities()] {
-            for i in range {
-                let step = 1e-2f32;
-                let at = |d: f32| {
-                    let mut p = model.params().to_vec();
-                    p[i] += d;
-                    loss(&SplatsModel::from_parts(model.config.clone(), model.scene().clone(), p).unwrap())
-                };
-                let fd = (at(step) - at(-step)) / (2.0 * step as f64);
-                let an = grads[i] as f64;
-                assert!(
-                    (an - fd).abs() <= 1e-2 * fd.abs().max(an.abs()) + 1e-5,
-                    "[{i}]: analytic {an}, differences {fd}"
-                );
-                checked += (fd.abs() > 1e-4) as usize;
-            }
-        }
+        let checked = checked_by_differences(&model, &grads, &[l.sh_dc(), l.opacities()], 1e-2, loss);
         assert!(checked > 6, "only {checked} gradients were away from zero");
     }
 }
