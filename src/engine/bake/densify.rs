@@ -11,8 +11,10 @@ use crate::engine::rng::Rng;
 
 /// Screen-space gradient (per view, in units of the half image) above
 /// which a Gaussian is densified: the 3DGS paper's 0.0002 is for an L1
-/// loss; a squared error's gradients are about ten times smaller.
-const DENSIFY_GRAD: f32 = 2e-5;
+/// loss; a squared error's gradients are about ten times smaller, and with
+/// the D-SSIM term beside it fewer Gaussians grown leave more steps in a
+/// budget (docs/design/splats.md).
+const DENSIFY_GRAD: f32 = 5e-5;
 /// Opacity below which a Gaussian is pruned (the paper's 0.005).
 const PRUNE_OPACITY: f32 = 0.005;
 
