@@ -8,8 +8,10 @@ use super::{BakeSettings, COARSE_SHARE, densify};
 use crate::engine::dataset::Dataset;
 use crate::engine::models::Model;
 use crate::engine::models::splats::SplatsModel;
+use crate::engine::models::splats::fit::FitLoss;
 use crate::engine::models::splats::gaussians::Layout;
 use crate::engine::models::splats::lens;
+use crate::engine::models::splats::looks::{ColourCorrection, Looks};
 use crate::engine::models::splats::raster::RasterCamera;
 use crate::engine::nn::adam::{Adam, AdamConfig, LrGroup};
 use crate::engine::rng::Rng;
@@ -27,6 +29,15 @@ const BASE_LR: f32 = 4e-3;
 /// (`SplatsModel::fit_view`): it keeps edges and texture the squared error
 /// alone blurs (docs/design/splats.md).
 const SSIM_WEIGHT: f32 = 0.05;
+
+/// The ridge that draws each photo's colour correction towards the
+/// identity (`splats::looks`), per pixel of the photo.
+const LOOK_RIDGE: f64 = 0.1;
+
+/// With corrections, the share of the loss that is the view's as drawn
+/// (`FitLoss::own_weight`): it keeps the splats' own look, which the
+/// browser and the exports show, at the photos' common one.
+const OWN_WEIGHT: f32 = 0.4;
 
 fn groups(l: &Layout, progress: f64) -> Vec<LrGroup> {
     // Positions decay a hundredfold over the bake.
@@ -71,6 +82,9 @@ pub(super) struct Fit<'a> {
     balls: CameraBalls,
     /// Where Gaussians keep a colour of degree 0 (`background`).
     background: Option<Background>,
+    /// Each photo's colour correction, as last fitted; `None` when the
+    /// bake fits none.
+    corrections: Option<Vec<ColourCorrection>>,
 }
 
 impl<'a> Fit<'a> {
@@ -124,7 +138,24 @@ impl<'a> Fit<'a> {
             step: 0,
             smoothed_psnr: 0.0,
             grads: Vec::new(),
+            corrections: None,
         }
+    }
+
+    /// From now on, each photo is fitted through its own colour correction.
+    pub fn fit_looks(&mut self) {
+        self.corrections = Some(vec![ColourCorrection::IDENTITY; self.frames.len()]);
+    }
+
+    /// The photos' corrections as last fitted, by frame index (`None`
+    /// when the bake fits none).
+    pub fn looks(&self) -> Option<Looks> {
+        let corrections = self.corrections.as_ref()?;
+        let mut pairs: Vec<(u32, ColourCorrection)> =
+            self.frames.iter().map(|&f| f as u32).zip(corrections.iter().copied()).collect();
+        pairs.sort_by_key(|p| p.0);
+        let (images, corrections) = pairs.into_iter().unzip();
+        Some(Looks { images, corrections })
     }
 
     /// One step on the next photo of the epoch, `progress` into the budget.
@@ -159,7 +190,12 @@ impl<'a> Fit<'a> {
         let mut grads = std::mem::take(&mut self.grads);
         grads.clear();
         grads.resize(l.len(), 0.0);
-        let fit = self.model.fit_view(&cam, target, valid, self.ds.background, SSIM_WEIGHT, &mut grads);
+        let look_ridge = self.corrections.is_some().then_some(LOOK_RIDGE);
+        let loss = FitLoss { ssim_weight: SSIM_WEIGHT, look_ridge, own_weight: OWN_WEIGHT };
+        let fit = self.model.fit_view(&cam, target, valid, self.ds.background, loss, &mut grads);
+        if let Some(c) = &mut self.corrections {
+            c[which] = fit.correction;
+        }
         let psnr = -10.0 * (fit.squared_error / valid.max(1) as f64).max(1e-10).log10();
         self.smoothed_psnr = if self.step == 0 { psnr } else { 0.9 * self.smoothed_psnr + 0.1 * psnr };
         let (hw, hh) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);

@@ -12,9 +12,12 @@
 //!    ([`clear`]), then or at any later pruning: no photo looks there.
 //! 2. **Fitting** ([`fit`], [`densify`]) against the training photos with
 //!    the differentiable rasteriser: one whole photo a step (at half size
-//!    first, for large photos), mean squared error, Adam with per-block
-//!    rates, and the 3DGS paper's densification and pruning in the first
-//!    half, all on one [`Budget`] of steps or seconds as training's. The
+//!    first, for large photos), mean squared error and D-SSIM, Adam with
+//!    per-block rates, and the 3DGS paper's densification and pruning in
+//!    the first half, all on one [`Budget`] of steps or seconds as
+//!    training's. From a source with a per-photo appearance, each photo is
+//!    fitted through its own colour correction (`splats::looks`), kept
+//!    with the splats for views that take a photo's look. The
 //!    background of a capture taken all around keeps a colour of degree 0
 //!    ([`background`]).
 //!
@@ -121,7 +124,8 @@ pub struct BakeProgress {
     /// Fraction of the budget used.
     pub progress: f64,
     pub gaussians: usize,
-    /// PSNR of the last step's photo, smoothed.
+    /// PSNR of the last step's photo (through its colour correction, if
+    /// the bake fits them), smoothed.
     pub psnr: f64,
 }
 
@@ -185,6 +189,11 @@ pub fn bake(
         return Err(BakeError::Empty);
     }
     let mut fit = fit::Fit::new(ds, frames, settings, model, dropped, balls);
+    // The splats get what the source has: a photo's own look where the
+    // source learned one per photo.
+    if source.appearance().is_some() {
+        fit.fit_looks();
+    }
     loop {
         let elapsed = started.elapsed().as_secs_f64();
         if budget.done(fit.step, elapsed) {
@@ -208,6 +217,8 @@ pub fn bake(
     }
     // A last pruning: nothing nearly transparent is written.
     fit.prune();
+    let looks = fit.looks();
+    fit.model.set_looks(looks);
     Ok((fit.model, fit.adam, fit.step))
 }
 

@@ -89,7 +89,7 @@ pub fn render_view_until(
     if let Some(r) = model.rasteriser() {
         // Drawn whole, in a fraction of a ray-marched view's time: nothing
         // to cancel part-way.
-        let (rgb, depth, opacity) = r.render_view(camera, background);
+        let (rgb, depth, opacity) = r.render_view(camera, background, options);
         let stats = BatchStats { rays: (w * h) as u64, ..Default::default() };
         let depth = depth.iter().map(|d| d * inv).collect();
         return (!cancel.load(Ordering::Relaxed)).then_some(View {

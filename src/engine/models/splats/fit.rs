@@ -6,6 +6,7 @@
 use super::SplatsModel;
 use super::backward::{ScreenGrad, backward};
 use super::dssim::ssim_and_gradient;
+use super::looks::ColourCorrection;
 use super::raster::{RasterCamera, RasterOptions, forward};
 use crate::engine::models::Model;
 
@@ -17,50 +18,93 @@ pub struct ViewFit {
     /// much the loss wants it to move on the image, in units of the half
     /// image; zero for one the view does not draw).
     pub screen: Vec<ScreenGrad>,
+    /// The colour correction the view was fitted through (the identity
+    /// without [`FitLoss::look_ridge`]).
+    pub correction: ColourCorrection,
+}
+
+/// What a view is fitted by.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FitLoss {
+    /// The weight of one minus the mean SSIM beside the squared error's
+    /// `1 - ssim_weight` (`dssim`; none for a view under 11 pixels either
+    /// way).
+    pub ssim_weight: f32,
+    /// With a ridge: the drawn view is first mapped by the colour
+    /// correction that best fits the photo with that ridge
+    /// ([`ColourCorrection::fit`]), and the loss is the mapped view's (its
+    /// gradient taken with the correction held: the correction is fitted
+    /// afresh each view, not learned by gradient).
+    pub look_ridge: Option<f64>,
+    /// With a correction, the share of the loss that is the view's as
+    /// drawn, without it: it keeps the splats' own look at the photos'
+    /// common one, which the corrections alone leave free.
+    pub own_weight: f32,
 }
 
 impl SplatsModel {
     /// Draws `cam` on `background` and adds to `grads` (laid out as the
-    /// parameters, of their length) the gradient of the loss against
+    /// parameters, of their length) the gradient of `loss` against
     /// `target` (`[h x w x 3]`, NaN where there is no loss): the mean
     /// squared error over `valid` values, weighted `1 - ssim_weight`, plus
-    /// `ssim_weight` times one minus the mean SSIM (`dssim`; none for a
-    /// view under 11 pixels either way).
+    /// `ssim_weight` times one minus the mean SSIM, of the view as drawn or
+    /// through its fitted colour correction ([`FitLoss`]).
     pub fn fit_view(
         &self,
         cam: &RasterCamera,
         target: &[f32],
         valid: usize,
         background: [f32; 3],
-        ssim_weight: f32,
+        loss: FitLoss,
         grads: &mut [f32],
     ) -> ViewFit {
         let (l, opt) = (self.layout(), RasterOptions::for_scene(self.scene()));
         let f = forward(&l, self.params(), cam, &opt, background);
-        let n = valid.max(1) as f32;
-        let mut squared_error = 0.0f64;
-        let mut d_rgb: Vec<f32> = f
-            .rgb
-            .iter()
-            .zip(target)
-            .map(|(r, t)| {
-                if t.is_nan() {
-                    return 0.0;
-                }
-                let e = r - t;
-                squared_error += (e * e) as f64;
-                2.0 * e / n
-            })
-            .collect();
+        let correction =
+            loss.look_ridge.map_or(ColourCorrection::IDENTITY, |r| ColourCorrection::fit(&f.rgb, target, r));
         let (w, h) = (cam.width as usize, cam.height as usize);
-        if let Some((_, g)) = (ssim_weight > 0.0).then(|| ssim_and_gradient(&f.rgb, target, w, h)).flatten() {
-            for (d, g) in d_rgb.iter_mut().zip(&g) {
-                *d = (1.0 - ssim_weight) * *d - ssim_weight * g;
+        let mut drawn = f.rgb.clone();
+        correction.apply(&mut drawn);
+        let (squared_error, mut d_rgb) = loss_gradient(&drawn, target, valid, loss.ssim_weight, w, h);
+        correction.pull_back(&mut d_rgb);
+        if loss.look_ridge.is_some() && loss.own_weight > 0.0 {
+            // The view as drawn is fitted too, a little: it keeps the
+            // splats' own look at the photos' common one.
+            let (_, own) = loss_gradient(&f.rgb, target, valid, loss.ssim_weight, w, h);
+            for (d, o) in d_rgb.iter_mut().zip(&own) {
+                *d = (1.0 - loss.own_weight) * *d + loss.own_weight * o;
             }
         }
         let screen = backward(&l, self.params(), cam, &opt, &f, &d_rgb, grads);
-        ViewFit { squared_error, screen }
+        ViewFit { squared_error, screen, correction }
     }
+}
+
+/// The squared error of `drawn` against `target` over its `valid`
+/// values, and the gradient of `1 - ssim_weight` times their mean plus
+/// `ssim_weight` times one minus the mean SSIM with respect to `drawn`
+/// (`w x h x 3`).
+fn loss_gradient(drawn: &[f32], target: &[f32], valid: usize, ssim_weight: f32, w: usize, h: usize) -> (f64, Vec<f32>) {
+    let n = valid.max(1) as f32;
+    let mut squared_error = 0.0f64;
+    let mut d_rgb: Vec<f32> = drawn
+        .iter()
+        .zip(target)
+        .map(|(r, t)| {
+            if t.is_nan() {
+                return 0.0;
+            }
+            let e = r - t;
+            squared_error += (e * e) as f64;
+            2.0 * e / n
+        })
+        .collect();
+    if let Some((_, g)) = (ssim_weight > 0.0).then(|| ssim_and_gradient(drawn, target, w, h)).flatten() {
+        for (d, g) in d_rgb.iter_mut().zip(&g) {
+            *d = (1.0 - ssim_weight) * *d - ssim_weight * g;
+        }
+    }
+    (squared_error, d_rgb)
 }
 
 #[cfg(test)]
@@ -132,7 +176,7 @@ mod tests {
         let bg = [0.2, 0.5, 0.9];
         let valid = target.iter().filter(|t| !t.is_nan()).count();
         let mut grads = vec![0.0f32; model.params().len()];
-        let fit = model.fit_view(&cam, &target, valid, bg, 0.0, &mut grads);
+        let fit = model.fit_view(&cam, &target, valid, bg, FitLoss::default(), &mut grads);
         let want = mse(&model, &cam, &target, bg);
         assert!((fit.squared_error / valid as f64 - want).abs() <= 1e-6 * want, "{} against {want}", fit.squared_error);
         assert_eq!(fit.screen.len(), 4);
@@ -146,12 +190,66 @@ mod tests {
     }
 
     #[test]
+    fn through_a_fitted_correction_the_gradient_is_that_of_the_mapped_views_loss() {
+        // A target that is the drawn view's colours mapped and shifted, so
+        // the fitted correction is far from the identity; the gradient is
+        // the weighted loss's of the view mapped by the correction held,
+        // mixed with the view as drawn by `own_weight`.
+        let (model, cam, mut target) = case();
+        let (bg, weight, ridge) = ([0.2, 0.5, 0.9], 0.3f32, 0.01);
+        let drawn = forward(&model.layout(), model.params(), &cam, &RasterOptions::default(), bg).rgb;
+        let skew = ColourCorrection([[0.7, 0.2, 0.0, 0.1], [0.0, 1.3, -0.1, -0.05], [0.1, 0.0, 0.8, 0.2]]);
+        for (k, t) in target.iter_mut().enumerate() {
+            if !t.is_nan() {
+                let p = k / 3 * 3;
+                *t = 0.8 * skew.map([drawn[p], drawn[p + 1], drawn[p + 2]])[k % 3] + 0.2 * *t;
+            }
+        }
+        let valid = target.iter().filter(|t| !t.is_nan()).count();
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        // The weighted loss of the view mapped by `m`, in f64.
+        let mapped_loss = |model: &SplatsModel, m: ColourCorrection, base: &[f64]| {
+            let x = forward(&model.layout(), model.params(), &cam, &RasterOptions::default(), bg).rgb;
+            let x: Vec<f64> = x.chunks_exact(3).flat_map(|c| m.map([c[0], c[1], c[2]])).map(f64::from).collect();
+            let kept: Vec<f64> =
+                target.iter().zip(base).map(|(&t, &d)| if t.is_nan() { d } else { t as f64 }).collect();
+            let (sum, n) = x
+                .iter()
+                .zip(&target)
+                .filter(|(_, t)| !t.is_nan())
+                .fold((0.0, 0), |(s, n), (a, &t)| (s + (a - t as f64).powi(2), n + 1));
+            (1.0 - weight as f64) * sum / n as f64 + weight as f64 * (1.0 - ssim_f64(&x, &kept, w, h))
+        };
+        for own in [0.0f32, 0.4] {
+            let mut grads = vec![0.0f32; model.params().len()];
+            let loss = FitLoss { ssim_weight: weight, look_ridge: Some(ridge), own_weight: own };
+            let held = model.fit_view(&cam, &target, valid, bg, loss, &mut grads).correction;
+            assert_eq!(held, ColourCorrection::fit(&drawn, &target, ridge));
+            let off = held.0.iter().flatten().zip(ColourCorrection::IDENTITY.0.iter().flatten());
+            let off = off.map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            assert!(off > 0.1, "the correction is far from the identity: {held:?}");
+            // The drawn values the NaN targets take in the SSIM, held.
+            let base = |m: ColourCorrection| -> Vec<f64> {
+                drawn.chunks_exact(3).flat_map(|c| m.map([c[0], c[1], c[2]])).map(f64::from).collect()
+            };
+            let (base_mapped, base_own) = (base(held), base(ColourCorrection::IDENTITY));
+            let f64_loss = |m: &SplatsModel| {
+                (1.0 - own as f64) * mapped_loss(m, held, &base_mapped)
+                    + own as f64 * mapped_loss(m, ColourCorrection::IDENTITY, &base_own)
+            };
+            let l = model.layout();
+            let checked = checked_by_differences(&model, &grads, &[l.sh_dc(), l.opacities()], 1e-2, f64_loss);
+            assert!(checked > 6, "own weight {own}: only {checked} gradients were away from zero");
+        }
+    }
+
+    #[test]
     fn with_ssim_the_gradient_is_that_of_the_weighted_loss() {
         let (model, cam, target) = case();
         let (bg, weight) = ([0.2, 0.5, 0.9], 0.3f32);
         let valid = target.iter().filter(|t| !t.is_nan()).count();
         let mut grads = vec![0.0f32; model.params().len()];
-        model.fit_view(&cam, &target, valid, bg, weight, &mut grads);
+        model.fit_view(&cam, &target, valid, bg, FitLoss { ssim_weight: weight, ..FitLoss::default() }, &mut grads);
         // The photo's NaN values take the drawn view's, held where it is.
         let drawn = forward(&model.layout(), model.params(), &cam, &RasterOptions::default(), bg).rgb;
         let held: Vec<f64> = target.iter().zip(&drawn).map(|(&t, &d)| if t.is_nan() { d } else { t } as f64).collect();

@@ -15,6 +15,7 @@ pub mod fit;
 pub mod frame;
 pub mod gaussians;
 pub mod lens;
+pub mod looks;
 pub mod raster;
 pub mod tile;
 
@@ -22,13 +23,14 @@ pub use config::SplatsConfig;
 
 use std::sync::OnceLock;
 
-use super::{Model, ModelError, RenderOptions};
+use super::{Appearance, Model, ModelError, RenderOptions, StateSource};
 use crate::engine::batch::{BatchStats, RayOutput, StepCtx, TrainRay};
 use crate::engine::geometry::camera::Camera;
 use crate::engine::geometry::math::Ray;
 use crate::engine::geometry::scene::Scene;
 use crate::engine::render::composite::mark_median;
 use gaussians::{Layout, covariance, sh_colour, sigmoid};
+use looks::{ColourCorrection, Looks};
 use raster::{MAX_ALPHA, RasterCamera, RasterOptions};
 
 /// The kind's name in checkpoints, the API and `--model`.
@@ -45,6 +47,9 @@ pub struct SplatsModel {
     inverse: OnceLock<Vec<[f32; 6]>>,
     /// What every view's projection derives from the parameters alone.
     intrinsics: OnceLock<raster::Intrinsics>,
+    /// The training photos' colour corrections a bake fitted (`looks`);
+    /// `None` for splats with one look only.
+    looks: Option<Looks>,
 }
 
 impl SplatsModel {
@@ -62,7 +67,23 @@ impl SplatsModel {
                 ),
             });
         };
-        Ok(Self { config, scene, params, layout, inverse: OnceLock::new(), intrinsics: OnceLock::new() })
+        Ok(Self { config, scene, params, layout, inverse: OnceLock::new(), intrinsics: OnceLock::new(), looks: None })
+    }
+
+    /// The training photos' colour corrections (`None`: one look only).
+    pub fn looks(&self) -> Option<&Looks> {
+        self.looks.as_ref()
+    }
+
+    pub fn set_looks(&mut self, looks: Option<Looks>) {
+        self.looks = looks;
+    }
+
+    /// The correction a view under `options` takes: its image's, if the
+    /// splats have one for it; the identity (the splats' own look) else.
+    fn correction(&self, options: &RenderOptions) -> ColourCorrection {
+        let of = |i| self.looks.as_ref().and_then(|l| l.of(i)).copied();
+        options.image.and_then(of).unwrap_or(ColourCorrection::IDENTITY)
     }
 
     pub fn layout(&self) -> Layout {
@@ -72,7 +93,10 @@ impl SplatsModel {
     /// The splats of the Gaussians `keep` (in that order) alone: what the
     /// export's cleanup and crop leave.
     pub fn keeping(&self, keep: &[usize]) -> Result<Self, ModelError> {
-        Self::from_parts(self.config.clone(), self.scene.clone(), self.layout.select(&self.params, keep))
+        let mut kept =
+            Self::from_parts(self.config.clone(), self.scene.clone(), self.layout.select(&self.params, keep))?;
+        kept.looks = self.looks.clone();
+        Ok(kept)
     }
 
     /// Renders `camera` (world units).
@@ -91,30 +115,74 @@ impl SplatsModel {
 
     /// Renders `camera`'s colours, distances and opacities; a distorted
     /// camera through a pinhole camera around it, resampled
-    /// ([`lens`]).
-    pub fn render_view(&self, camera: &Camera, background: [f32; 3]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        if camera.distortion.is_identity() {
+    /// ([`lens`]). The colours take the correction of the training photo
+    /// `options` names, if the splats have one (their own look else).
+    pub fn render_view(
+        &self,
+        camera: &Camera,
+        background: [f32; 3],
+        options: &RenderOptions,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let (mut rgb, depth, opacity) = if camera.distortion.is_identity() {
             let f = self.rasterise(camera, background);
-            return (f.rgb, f.depth, f.opacity);
+            (f.rgb, f.depth, f.opacity)
+        } else {
+            let pin = lens::pinhole_around(camera);
+            let f = self.rasterise(&pin, background);
+            let at = lens::Resampling::new(camera, &pin);
+            (at.apply(&f.rgb, 3, &background), at.apply(&f.depth, 1, &[0.0]), at.apply(&f.opacity, 1, &[0.0]))
+        };
+        let correction = self.correction(options);
+        if correction != ColourCorrection::IDENTITY {
+            correction.apply(&mut rgb);
         }
-        let pin = lens::pinhole_around(camera);
-        let f = self.rasterise(&pin, background);
-        let at = lens::Resampling::new(camera, &pin);
-        (at.apply(&f.rgb, 3, &background), at.apply(&f.depth, 1, &[0.0]), at.apply(&f.opacity, 1, &[0.0]))
+        (rgb, depth, opacity)
     }
 }
 
 /// What a model that draws whole views itself offers
 /// ([`Model::rasteriser`]).
 pub trait Rasteriser {
-    /// Renders `camera` (world units): colours `[h x w x 3]` on
-    /// `background`, distances from the camera (model units) and opacities.
-    fn render_view(&self, camera: &Camera, background: [f32; 3]) -> (Vec<f32>, Vec<f32>, Vec<f32>);
+    /// Renders `camera` (world units) with `options`: colours `[h x w x
+    /// 3]` on `background`, distances from the camera (model units) and
+    /// opacities.
+    fn render_view(
+        &self,
+        camera: &Camera,
+        background: [f32; 3],
+        options: &RenderOptions,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>);
 }
 
 impl Rasteriser for SplatsModel {
-    fn render_view(&self, camera: &Camera, background: [f32; 3]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        SplatsModel::render_view(self, camera, background)
+    fn render_view(
+        &self,
+        camera: &Camera,
+        background: [f32; 3],
+        options: &RenderOptions,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        SplatsModel::render_view(self, camera, background, options)
+    }
+}
+
+/// Splats with looks offer them as a per-image appearance: a view takes a
+/// training photo's colour correction as a capture model's view takes its
+/// embedding. The corrections are not parameters (they are not trained by
+/// gradient), so there is no row.
+impl Appearance for SplatsModel {
+    fn images(&self) -> Vec<u32> {
+        self.looks.as_ref().map(|l| l.images.clone()).unwrap_or_default()
+    }
+
+    fn row(&self, _image: u32) -> Option<std::ops::Range<usize>> {
+        None
+    }
+
+    fn embedding(&self, options: &RenderOptions) -> Option<Vec<f32>> {
+        if options.image.is_some_and(|i| self.looks.as_ref().and_then(|l| l.of(i)).is_none()) {
+            return None;
+        }
+        Some(self.correction(options).0.iter().flatten().copied().collect())
     }
 }
 
@@ -132,6 +200,27 @@ impl Model for SplatsModel {
         Some(self)
     }
 
+    fn appearance(&self) -> Option<&dyn Appearance> {
+        self.looks.is_some().then_some(self as &dyn Appearance)
+    }
+
+    fn state_tensors(&self) -> Vec<(String, Vec<f32>)> {
+        self.looks.as_ref().map(Looks::tensors).unwrap_or_default()
+    }
+
+    /// Takes back the looks, if the checkpoint has them (splats baked
+    /// before looks were fitted have none).
+    fn restore_state(&mut self, state: StateSource<'_>, _step: u64) -> Result<(), ModelError> {
+        self.looks = match (state(looks::IMAGES), state(looks::CORRECTIONS)) {
+            (None, None) => None,
+            (Some(images), Some(values)) => Some(
+                Looks::from_tensors(&images, &values).map_err(|message| ModelError::Config { kind: KIND, message })?,
+            ),
+            _ => return Err(ModelError::MissingState(format!("{} and {}", looks::IMAGES, looks::CORRECTIONS))),
+        };
+        Ok(())
+    }
+
     /// Each ray on its own, through every Gaussian it passes near, at the
     /// point of the ray where the Gaussian is densest (slow: views are
     /// rasterised whole instead, `Model::rasteriser`; this serves callers
@@ -140,9 +229,10 @@ impl Model for SplatsModel {
         &self,
         rays: &[Ray],
         background: [f32; 3],
-        _options: &RenderOptions,
+        options: &RenderOptions,
         out: &mut [RayOutput],
     ) -> BatchStats {
+        let correction = self.correction(options);
         let inverse = self.inverse.get_or_init(|| inverse_covariances(&self.layout, &self.params));
         let mut basis = [0.0f32; crate::engine::nn::sh::WIDTH];
         let mut hits: Vec<(f32, f32, usize)> = Vec::new();
@@ -185,6 +275,7 @@ impl Model for SplatsModel {
             for k in 0..3 {
                 o.rgb[k] += tr * background[k];
             }
+            o.rgb = correction.map(o.rgb);
             o.opacity = 1.0 - tr;
         }
         BatchStats { rays: rays.len() as u64, ..Default::default() }

@@ -9,6 +9,7 @@ use super::raster::{DILATION, FRUSTUM_SLACK, Frame, MAX_ALPHA, RasterCamera, Ras
 use crate::engine::geometry::camera::{Camera, look_at};
 use crate::engine::geometry::math::Vec3;
 use crate::engine::geometry::scene::Scene;
+use crate::engine::models::RenderOptions;
 use crate::engine::rng::Rng;
 
 /// The f64 reference: every pixel, every Gaussian sorted by camera depth.
@@ -682,7 +683,7 @@ fn a_models_views_with_its_intrinsics_worked_out_once_are_the_same_bits() {
     assert_eq!(bits(&forward_with(&l, &p, Some(&pre), &cam, &opt, [0.0; 3]).rgb), bits(&plain.rgb));
     let config = SplatsConfig { sh_degree: 1, ..SplatsConfig::default() };
     let mut model = SplatsModel::from_parts(config.clone(), scene.clone(), p.clone()).unwrap();
-    assert_eq!(bits(&model.render_view(&camera, [0.0; 3]).0), bits(&plain.rgb));
+    assert_eq!(bits(&model.render_view(&camera, [0.0; 3], &RenderOptions::default()).0), bits(&plain.rgb));
     // Every Gaussian twice as opaque in logit, through `params_mut`.
     let ops = l.opacities();
     for v in &mut model.params_mut()[ops.clone()] {
@@ -693,7 +694,10 @@ fn a_models_views_with_its_intrinsics_worked_out_once_are_the_same_bits() {
         *v += 2.0;
     }
     let fresh = SplatsModel::from_parts(config, scene, q).unwrap();
-    let (after, want) = (model.render_view(&camera, [0.0; 3]).0, fresh.render_view(&camera, [0.0; 3]).0);
+    let (after, want) = (
+        model.render_view(&camera, [0.0; 3], &RenderOptions::default()).0,
+        fresh.render_view(&camera, [0.0; 3], &RenderOptions::default()).0,
+    );
     assert_ne!(bits(&after), bits(&plain.rgb), "the change shows");
     assert_eq!(bits(&after), bits(&want));
 }
@@ -719,7 +723,7 @@ fn a_models_views_draw_nothing_nearer_than_its_scenes_near_bound() {
         assert_eq!(scene.scale, 1.0, "model units are world units here");
         let config = SplatsConfig { sh_degree: 0, ..SplatsConfig::default() };
         let model = SplatsModel::from_parts(config, scene, p.clone()).unwrap();
-        let rgb = model.render_view(&camera, [0.0; 3]).0;
+        let rgb = model.render_view(&camera, [0.0; 3], &RenderOptions::default()).0;
         rgb[3 * (16 * 32 + 16)]
     };
     assert!(centre(0.0) > 0.4, "drawn with no near bound: {}", centre(0.0));
