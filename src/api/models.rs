@@ -84,9 +84,10 @@ pub struct RenderQuery {
     pub output: Option<String>,
     /// `white` (default), `black` or `transparent` (RGBA).
     pub background: Option<String>,
-    /// `mean` (default: the mean appearance of the images trained on) or a
-    /// training image's index (its appearance); models without per-image
-    /// appearance ignore it.
+    /// `mean` (default: the mean appearance of the images trained on; for
+    /// splats baked from a capture model, their own look) or a training
+    /// image's index (its appearance, or its colour correction); models
+    /// without per-image appearance ignore it.
     pub appearance: Option<String>,
     /// `false`: every Gaussian of a splats model with a crop (default true:
     /// only those inside it).

@@ -144,8 +144,10 @@ impl TransientArgs {
 /// The appearance of a capture model's views (`render`, `eval`, `bench`).
 #[derive(Args, Debug, Clone)]
 pub struct AppearanceArgs {
-    /// The appearance of a capture model's views: `mean` (of the images
-    /// trained on), a training image's index (its dataset frame number), or
+    /// The appearance of the views of a capture model, or of splats baked
+    /// from one (each training photo's colour correction): `mean` (of the
+    /// images trained on; for splats, their own look), a training image's
+    /// index (its dataset frame number), or
     /// `nearest` (each view takes the nearest training camera's). Default:
     /// as held-out views are scored, the nearest training camera's (the
     /// mean for a checkpoint that kept no training cameras). Other models

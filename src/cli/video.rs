@@ -46,8 +46,9 @@ pub struct VideoArgs {
     /// Horizontal field of view in degrees (default: the training cameras').
     #[arg(long)]
     pub fov: Option<f32>,
-    /// The appearance of a capture model's frames: `mean` (of the images
-    /// trained on), a training image's index (its dataset frame number), or
+    /// The appearance of the frames of a capture model, or of splats baked
+    /// from one: `mean` (of the images trained on; for splats, their own
+    /// look), a training image's index (its dataset frame number), or
     /// `nearest` (each frame takes the nearest training camera's). Other
     /// models ignore it.
     #[arg(long, default_value = "mean", value_name = "mean|N|nearest")]

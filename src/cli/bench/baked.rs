@@ -98,7 +98,10 @@ pub fn measure_bake(
     rows.push(row("cleaned", &cleaned, ply_len(l.n, l.k), &score_views(&cleaned, steps, ds, views, args)?));
     let mut spz = Vec::new();
     write_spz(&cleaned, &mut spz)?;
-    let back = read_spz(&spz, l.n)?.into_model(cleaned.scene().clone())?;
+    let mut back = read_spz(&spz, l.n)?.into_model(cleaned.scene().clone())?;
+    // The file has no looks: the splats' own are kept, so that the row
+    // differs from `cleaned` by the format alone.
+    back.set_looks(cleaned.looks().cloned());
     rows.push(row("spz", &back, spz.len() as u64, &score_views(&back, steps, ds, views, args)?));
     if let Some(b) = auto_crop_for(&cleaned, ds)? {
         println!("crop: centre {:?}, half extents {:?}, axes {:?}", b.centre, b.half, b.axes);

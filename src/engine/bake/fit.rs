@@ -82,9 +82,9 @@ pub(super) struct Fit<'a> {
     balls: CameraBalls,
     /// Where Gaussians keep a colour of degree 0 (`background`).
     background: Option<Background>,
-    /// Each photo's colour correction, as last fitted; `None` when the
-    /// bake fits none.
-    corrections: Option<Vec<ColourCorrection>>,
+    /// Each photo's colour correction, as last fitted (`None` for a photo
+    /// not yet taken); `None` when the bake fits none.
+    corrections: Option<Vec<Option<ColourCorrection>>>,
 }
 
 impl<'a> Fit<'a> {
@@ -144,18 +144,19 @@ impl<'a> Fit<'a> {
 
     /// From now on, each photo is fitted through its own colour correction.
     pub fn fit_looks(&mut self) {
-        self.corrections = Some(vec![ColourCorrection::IDENTITY; self.frames.len()]);
+        self.corrections = Some(vec![None; self.frames.len()]);
     }
 
-    /// The photos' corrections as last fitted, by frame index (`None`
-    /// when the bake fits none).
+    /// The corrections of the photos taken, as last fitted, by frame index
+    /// (`None` when the bake fits none): a photo never taken has no look of
+    /// its own to give a view.
     pub fn looks(&self) -> Option<Looks> {
         let corrections = self.corrections.as_ref()?;
         let mut pairs: Vec<(u32, ColourCorrection)> =
-            self.frames.iter().map(|&f| f as u32).zip(corrections.iter().copied()).collect();
+            self.frames.iter().zip(corrections).filter_map(|(&f, c)| c.map(|c| (f as u32, c))).collect();
         pairs.sort_by_key(|p| p.0);
         let (images, corrections) = pairs.into_iter().unzip();
-        Some(Looks { images, corrections })
+        Some(Looks { images, corrections, background: self.ds.background })
     }
 
     /// One step on the next photo of the epoch, `progress` into the budget.
@@ -194,7 +195,7 @@ impl<'a> Fit<'a> {
         let loss = FitLoss { ssim_weight: SSIM_WEIGHT, look_ridge, own_weight: OWN_WEIGHT };
         let fit = self.model.fit_view(&cam, target, valid, self.ds.background, loss, &mut grads);
         if let Some(c) = &mut self.corrections {
-            c[which] = fit.correction;
+            c[which] = Some(fit.correction);
         }
         let psnr = -10.0 * (fit.squared_error / valid.max(1) as f64).max(1e-10).log10();
         self.smoothed_psnr = if self.step == 0 { psnr } else { 0.9 * self.smoothed_psnr + 0.1 * psnr };

@@ -63,10 +63,15 @@ impl SplatsModel {
         let correction =
             loss.look_ridge.map_or(ColourCorrection::IDENTITY, |r| ColourCorrection::fit(&f.rgb, target, r));
         let (w, h) = (cam.width as usize, cam.height as usize);
-        let mut drawn = f.rgb.clone();
-        correction.apply(&mut drawn);
-        let (squared_error, mut d_rgb) = loss_gradient(&drawn, target, valid, loss.ssim_weight, w, h);
-        correction.pull_back(&mut d_rgb);
+        let (squared_error, mut d_rgb) = if loss.look_ridge.is_some() {
+            let mut drawn = f.rgb.clone();
+            correction.apply(&mut drawn);
+            let (e, mut d) = loss_gradient(&drawn, target, valid, loss.ssim_weight, w, h);
+            correction.pull_back(&mut d);
+            (e, d)
+        } else {
+            loss_gradient(&f.rgb, target, valid, loss.ssim_weight, w, h)
+        };
         if loss.look_ridge.is_some() && loss.own_weight > 0.0 {
             // The view as drawn is fitted too, a little: it keeps the
             // splats' own look at the photos' common one.

@@ -4,12 +4,15 @@
 //! auto-exposure); fitted with one look, the splats average them. So a bake
 //! fits, at each photo it takes, the affine map `M c + b` of the drawn
 //! colours that best matches that photo, drawn towards the identity by a
-//! ridge, and fits the splats to the mapped view. The splats alone (no
-//! correction) keep the look that needs the least correction over the
-//! photos: the ridge pulls every photo's map towards the identity, so the
-//! splats are pulled towards the photos' common look. A new view takes the
-//! nearest training camera's correction (`view::appearance`'s `nearest`),
-//! or none (`mean`: what the exports and the browser draw).
+//! ridge, and fits the splats to the mapped view, and a share of the view
+//! as drawn (`fit::FitLoss::own_weight`): the ridge alone lets the splats'
+//! own look drift, the share keeps it at the photos' common one. A new
+//! view takes the nearest training camera's correction
+//! (`view::appearance`'s `nearest`), or none (`mean`: what the exports and
+//! the browser draw). The bake maps the view composited on the dataset's
+//! background; a render on that background is mapped the same way, one on
+//! any other (or a transparent one) maps its foreground alone, so that the
+//! background stays as asked.
 
 /// An affine colour map, `c' = M c + b`: rows `[m0 m1 m2 b]` per channel.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -21,6 +24,21 @@ impl ColourCorrection {
     /// Maps one colour.
     pub fn map(&self, c: [f32; 3]) -> [f32; 3] {
         self.0.map(|r| r[0] * c[0] + r[1] * c[1] + r[2] * c[2] + r[3])
+    }
+
+    /// Maps the foreground of a view composited on `background` (`rgb`,
+    /// `[.. x 3]`, with each pixel's `opacity`) in place, leaving the
+    /// background as it is: `M f + α b + (1 - α) bg` for the foreground
+    /// `f = c - (1 - α) bg`, which is the map of the composited colour where
+    /// the view is opaque, and keeps a transparent view premultiplied.
+    pub fn apply_foreground(&self, rgb: &mut [f32], opacity: &[f32], background: [f32; 3]) {
+        for (px, &a) in rgb.chunks_exact_mut(3).zip(opacity) {
+            let fg: [f32; 3] = std::array::from_fn(|k| px[k] - (1.0 - a) * background[k]);
+            let m = self.0.map(|r| r[0] * fg[0] + r[1] * fg[1] + r[2] * fg[2] + a * r[3]);
+            for k in 0..3 {
+                px[k] = m[k] + (1.0 - a) * background[k];
+            }
+        }
     }
 
     /// Maps every colour of `rgb` (`[.. x 3]`) in place.
@@ -116,11 +134,15 @@ fn solve4(mut a: [[f64; 4]; 4], mut b: [[f64; 3]; 4]) -> [[f64; 3]; 4] {
 pub struct Looks {
     pub images: Vec<u32>,
     pub corrections: Vec<ColourCorrection>,
+    /// The background the photos were fitted on: a view on it is mapped
+    /// whole, as the bake mapped it ([`Looks::correct`]).
+    pub background: [f32; 3],
 }
 
 /// The names of a splats checkpoint's looks.
 pub const IMAGES: &str = "looks.images";
 pub const CORRECTIONS: &str = "looks.corrections";
+pub const BACKGROUND: &str = "looks.background";
 
 impl Looks {
     /// Photo `image`'s correction, if it has one.
@@ -132,11 +154,33 @@ impl Looks {
     /// twelve values each.
     pub fn tensors(&self) -> Vec<(String, Vec<f32>)> {
         let values = self.corrections.iter().flat_map(|c| c.0.iter().flatten().copied()).collect();
-        vec![(IMAGES.into(), self.images.iter().map(|&i| i as f32).collect()), (CORRECTIONS.into(), values)]
+        vec![
+            (IMAGES.into(), self.images.iter().map(|&i| i as f32).collect()),
+            (CORRECTIONS.into(), values),
+            (BACKGROUND.into(), self.background.to_vec()),
+        ]
+    }
+
+    /// Maps a view (`rgb`, with its `opacity`) drawn on `background` by
+    /// `correction`: whole on the background the bake fitted on (as it was
+    /// fitted), its foreground alone on any other
+    /// ([`ColourCorrection::apply_foreground`]: a transparent view stays
+    /// premultiplied, another colour stays that colour).
+    pub fn correct(&self, correction: &ColourCorrection, rgb: &mut [f32], opacity: &[f32], background: [f32; 3]) {
+        if background == self.background {
+            correction.apply(rgb);
+        } else {
+            correction.apply_foreground(rgb, opacity, background);
+        }
     }
 
     /// Read back from [`Looks::tensors`]; an error names what does not fit.
-    pub fn from_tensors(images: &[f32], values: &[f32]) -> Result<Self, String> {
+    pub fn from_tensors(images: &[f32], values: &[f32], background: &[f32]) -> Result<Self, String> {
+        let background: [f32; 3] = background
+            .try_into()
+            .ok()
+            .filter(|b: &[f32; 3]| b.iter().all(|v| v.is_finite()))
+            .ok_or("the corrections' background is not three finite values")?;
         if values.len() != 12 * images.len() {
             return Err(format!("{} corrections' values for {} images (12 each)", values.len(), images.len()));
         }
@@ -151,7 +195,7 @@ impl Looks {
             .chunks_exact(12)
             .map(|v| ColourCorrection(std::array::from_fn(|k| std::array::from_fn(|i| v[4 * k + i]))))
             .collect();
-        Ok(Self { images: images.iter().map(|&i| i as u32).collect(), corrections })
+        Ok(Self { images: images.iter().map(|&i| i as u32).collect(), corrections, background })
     }
 }
 
@@ -254,6 +298,42 @@ mod tests {
     }
 
     #[test]
+    fn a_render_maps_its_foreground_and_keeps_its_background() {
+        let m = ColourCorrection([[1.2, 0.1, 0.0, 0.05], [0.0, 0.9, 0.05, -0.02], [0.03, -0.1, 1.1, 0.1]]);
+        let bg = [0.2, 0.7, 0.4];
+        let c = [0.3f32, 0.5, 0.8];
+        // Opaque: the map of the colour; empty: the background as it was.
+        let mut rgb = [c, bg].concat();
+        m.apply_foreground(&mut rgb, &[1.0, 0.0], bg);
+        let want = [m.map(c), bg].concat();
+        assert!(rgb.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-6), "{rgb:?} against {want:?}");
+        // Half transparent on no background (premultiplied): half the map
+        // of the colour the foreground has unpremultiplied.
+        let mut half: Vec<f32> = c.iter().map(|v| 0.5 * v).collect();
+        m.apply_foreground(&mut half, &[0.5], [0.0; 3]);
+        let want: Vec<f32> = m.map(c).iter().map(|v| 0.5 * v).collect();
+        assert!(half.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-6), "{half:?} against {want:?}");
+    }
+
+    #[test]
+    fn a_view_on_the_bakes_background_is_mapped_whole_and_on_another_its_foreground() {
+        let m = ColourCorrection([[1.2, 0.1, 0.0, 0.05], [0.0, 0.9, 0.05, -0.02], [0.03, -0.1, 1.1, 0.1]]);
+        let looks = Looks { images: vec![0], corrections: vec![m], background: [1.0; 3] };
+        let (rgb, opacity) = ([0.9f32, 0.8, 0.95, 0.4, 0.5, 0.6], [0.3f32, 1.0]);
+        let mut on_bake = rgb;
+        looks.correct(&m, &mut on_bake, &opacity, [1.0; 3]);
+        let mut whole = rgb;
+        m.apply(&mut whole);
+        assert_eq!(on_bake, whole);
+        let mut other = rgb;
+        looks.correct(&m, &mut other, &opacity, [0.0; 3]);
+        let mut fg = rgb;
+        m.apply_foreground(&mut fg, &opacity, [0.0; 3]);
+        assert_eq!(other, fg);
+        assert!(other != whole);
+    }
+
+    #[test]
     fn looks_come_back_from_their_tensors_and_bad_ones_are_named() {
         let looks = Looks {
             images: vec![0, 3, 9],
@@ -262,16 +342,18 @@ mod tests {
                 ColourCorrection([[2.0; 4]; 3]),
                 ColourCorrection([[0.5; 4]; 3]),
             ],
+            background: [1.0, 0.5, 0.0],
         };
         let t = looks.tensors();
-        assert_eq!(Looks::from_tensors(&t[0].1, &t[1].1).unwrap(), looks);
+        assert_eq!(Looks::from_tensors(&t[0].1, &t[1].1, &t[2].1).unwrap(), looks);
         assert_eq!(looks.of(3), Some(&ColourCorrection([[2.0; 4]; 3])));
         assert!(looks.of(4).is_none());
-        let short = Looks::from_tensors(&t[0].1, &t[1].1[..30]).unwrap_err();
+        let short = Looks::from_tensors(&t[0].1, &t[1].1[..30], &t[2].1).unwrap_err();
         assert!(short.contains("30 corrections' values for 3 images"), "{short}");
-        assert!(Looks::from_tensors(&[3.0, 0.0, 9.0], &t[1].1).unwrap_err().contains("ascending"));
+        assert!(Looks::from_tensors(&[3.0, 0.0, 9.0], &t[1].1, &t[2].1).unwrap_err().contains("ascending"));
         let mut nan = t[1].1.clone();
         nan[5] = f32::NAN;
-        assert!(Looks::from_tensors(&t[0].1, &nan).unwrap_err().contains("not finite"));
+        assert!(Looks::from_tensors(&t[0].1, &nan, &t[2].1).unwrap_err().contains("not finite"));
+        assert!(Looks::from_tensors(&t[0].1, &t[1].1, &[1.0, 1.0]).unwrap_err().contains("background"));
     }
 }

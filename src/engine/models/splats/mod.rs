@@ -133,8 +133,8 @@ impl SplatsModel {
             (at.apply(&f.rgb, 3, &background), at.apply(&f.depth, 1, &[0.0]), at.apply(&f.opacity, 1, &[0.0]))
         };
         let correction = self.correction(options);
-        if correction != ColourCorrection::IDENTITY {
-            correction.apply(&mut rgb);
+        if let Some(looks) = self.looks.as_ref().filter(|_| correction != ColourCorrection::IDENTITY) {
+            looks.correct(&correction, &mut rgb, &opacity, background);
         }
         (rgb, depth, opacity)
     }
@@ -211,12 +211,16 @@ impl Model for SplatsModel {
     /// Takes back the looks, if the checkpoint has them (splats baked
     /// before looks were fitted have none).
     fn restore_state(&mut self, state: StateSource<'_>, _step: u64) -> Result<(), ModelError> {
-        self.looks = match (state(looks::IMAGES), state(looks::CORRECTIONS)) {
-            (None, None) => None,
-            (Some(images), Some(values)) => Some(
-                Looks::from_tensors(&images, &values).map_err(|message| ModelError::Config { kind: KIND, message })?,
+        self.looks = match (state(looks::IMAGES), state(looks::CORRECTIONS), state(looks::BACKGROUND)) {
+            (None, None, None) => None,
+            (Some(images), Some(values), Some(background)) => Some(
+                Looks::from_tensors(&images, &values, &background)
+                    .map_err(|message| ModelError::Config { kind: KIND, message })?,
             ),
-            _ => return Err(ModelError::MissingState(format!("{} and {}", looks::IMAGES, looks::CORRECTIONS))),
+            _ => {
+                let names = [looks::IMAGES, looks::CORRECTIONS, looks::BACKGROUND].join(", ");
+                return Err(ModelError::MissingState(names));
+            }
         };
         Ok(())
     }
@@ -275,8 +279,10 @@ impl Model for SplatsModel {
             for k in 0..3 {
                 o.rgb[k] += tr * background[k];
             }
-            o.rgb = correction.map(o.rgb);
             o.opacity = 1.0 - tr;
+            if let Some(looks) = &self.looks {
+                looks.correct(&correction, &mut o.rgb, &[o.opacity], background);
+            }
         }
         BatchStats { rays: rays.len() as u64, ..Default::default() }
     }
