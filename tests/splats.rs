@@ -20,12 +20,14 @@ use radiance::engine::bake::{BakeSettings, bake};
 use radiance::engine::dataset::Dataset;
 use radiance::engine::dataset::synthetic::BallScene;
 use radiance::engine::dataset::textured::TexturedScene;
+use radiance::engine::geometry::camera::Camera;
 use radiance::engine::metrics::psnr;
 use radiance::engine::models::Model;
+use radiance::engine::models::RenderOptions;
 use radiance::engine::models::config::ModelConfig;
 use radiance::engine::models::splats::export::{self, Format};
 use radiance::engine::models::training::Budget;
-use radiance::engine::view::render_view;
+use radiance::engine::view::{render_view, render_view_with};
 
 /// A textured ball on a textured ground from a ring of 24 cameras at 64x48.
 fn dataset() -> Dataset {
@@ -43,11 +45,17 @@ fn alone() -> std::sync::MutexGuard<'static, ()> {
 
 /// Mean held-out PSNR of `model` on `ds`'s test views.
 fn heldout_psnr(model: &dyn Model, ds: &Dataset) -> f64 {
+    heldout_psnr_with(model, ds, |_| RenderOptions::default())
+}
+
+/// [`heldout_psnr`], each view rendered with the options `options` gives
+/// its camera.
+fn heldout_psnr_with(model: &dyn Model, ds: &Dataset, options: impl Fn(&Camera) -> RenderOptions) -> f64 {
     let views = ds.split(radiance::engine::dataset::Split::Test);
     let mut sum = 0.0;
     for &i in views {
         let f = &ds.frames[i];
-        let v = render_view(model, &f.camera, ds.background);
+        let v = render_view_with(model, &f.camera, ds.background, &options(&f.camera));
         let truth: Vec<f32> = (0..f.image.height)
             .flat_map(|j| (0..f.image.width).flat_map(move |i| f.image.rgb_on(i, j, ds.background)))
             .collect();
@@ -114,7 +122,6 @@ fn baking_a_trained_scene_keeps_its_heldout_psnr() {
 #[test]
 fn splats_from_a_capture_take_each_photos_look() {
     use radiance::engine::view::appearance::held_out_options;
-    use radiance::engine::view::render_view_with;
     let _alone = alone();
     let mut ds = dataset();
     let n = ds.frames.len();
@@ -146,20 +153,8 @@ fn splats_from_a_capture_take_each_photos_look() {
         let (splats, _, _) = bake(t.model.as_ref(), &ds, &settings, None, &AtomicBool::new(false), |_| {}).unwrap();
         let looks = splats.looks().expect("a capture source's splats have looks");
         assert_eq!(looks.images, ds.train.iter().map(|&k| k as u32).collect::<Vec<_>>());
-        let score = |options: bool| {
-            let mut sum = 0.0;
-            for &k in &ds.test {
-                let f = &ds.frames[k];
-                let o = if options { held_out_options(&splats, &f.camera) } else { Default::default() };
-                let v = render_view_with(&splats, &f.camera, ds.background, &o);
-                let truth: Vec<f32> = (0..f.image.height)
-                    .flat_map(|j| (0..f.image.width).flat_map(move |i| f.image.rgb_on(i, j, ds.background)))
-                    .collect();
-                sum += psnr(&v.rgb, &truth);
-            }
-            sum / ds.test.len() as f64
-        };
-        let (nearest, own) = (score(true), score(false));
+        let nearest = heldout_psnr_with(&splats, &ds, |camera| held_out_options(&splats, camera));
+        let own = heldout_psnr(&splats, &ds);
         println!("held out: the nearest photo's look {nearest:.2} dB, the splats' own {own:.2} dB");
 
         // Measured: 13.53 dB against 13.14 (the splats fit each photo's

@@ -191,7 +191,7 @@ pub fn bake(
     let mut fit = fit::Fit::new(ds, frames, settings, model, dropped, balls);
     // The splats get what the source has: a photo's own look where the
     // source learned one per photo.
-    if source.appearance().and_then(|a| a.row(0)).is_some_and(|r| !r.is_empty()) {
+    if crate::engine::models::learns_appearance(source) {
         fit.fit_looks();
     }
     loop {

@@ -260,6 +260,12 @@ impl RayMeasure {
     pub const UNKNOWN: RayMeasure = RayMeasure { sq_err: f32::NAN, depth: f32::NAN };
 }
 
+/// Whether `model` learned a per-image appearance embedding with values in
+/// its parameters (a capture model whose embedding is not empty).
+pub fn learns_appearance(model: &dyn Model) -> bool {
+    model.appearance().and_then(|a| a.row(0)).is_some_and(|r| !r.is_empty())
+}
+
 /// The pose a held-out view of `model` is rendered from
 /// ([`PoseRefinement::heldout_pose`]; the pose itself for a model that
 /// refines no cameras).

@@ -110,7 +110,7 @@ impl AppearanceFit {
     /// appearance (or with an embedding of no values).
     pub fn new(model: &dyn Model, step: u64, settings: FitSettings) -> Result<Option<Self>, FitError> {
         let Some(images) = model.appearance().map(|a| a.images()) else { return Ok(None) };
-        if model.appearance().and_then(|a| a.row(0)).is_none_or(|r| r.is_empty()) {
+        if !crate::engine::models::learns_appearance(model) {
             return Ok(None);
         }
         let row = (0u32..)

@@ -60,26 +60,29 @@ impl SplatsModel {
     ) -> ViewFit {
         let (l, opt) = (self.layout(), RasterOptions::for_scene(self.scene()));
         let f = forward(&l, self.params(), cam, &opt, background);
-        let correction =
-            loss.look_ridge.map_or(ColourCorrection::IDENTITY, |r| ColourCorrection::fit(&f.rgb, target, r));
         let (w, h) = (cam.width as usize, cam.height as usize);
-        let (squared_error, mut d_rgb) = if loss.look_ridge.is_some() {
-            let mut drawn = f.rgb.clone();
-            correction.apply(&mut drawn);
-            let (e, mut d) = loss_gradient(&drawn, target, valid, loss.ssim_weight, w, h);
-            correction.pull_back(&mut d);
-            (e, d)
-        } else {
-            loss_gradient(&f.rgb, target, valid, loss.ssim_weight, w, h)
-        };
-        if loss.look_ridge.is_some() && loss.own_weight > 0.0 {
-            // The view as drawn is fitted too, a little: it keeps the
-            // splats' own look at the photos' common one.
-            let (_, own) = loss_gradient(&f.rgb, target, valid, loss.ssim_weight, w, h);
-            for (d, o) in d_rgb.iter_mut().zip(&own) {
-                *d = (1.0 - loss.own_weight) * *d + loss.own_weight * o;
+        let (squared_error, d_rgb, correction) = match loss.look_ridge {
+            None => {
+                let (e, d) = loss_gradient(&f.rgb, target, valid, loss.ssim_weight, w, h);
+                (e, d, ColourCorrection::IDENTITY)
             }
-        }
+            Some(ridge) => {
+                let correction = ColourCorrection::fit(&f.rgb, target, ridge);
+                let mut drawn = f.rgb.clone();
+                correction.apply(&mut drawn);
+                let (e, mut d) = loss_gradient(&drawn, target, valid, loss.ssim_weight, w, h);
+                correction.pull_back(&mut d);
+                if loss.own_weight > 0.0 {
+                    // The view as drawn is fitted too, a little: it keeps
+                    // the splats' own look at the photos' common one.
+                    let (_, own) = loss_gradient(&f.rgb, target, valid, loss.ssim_weight, w, h);
+                    for (d, o) in d.iter_mut().zip(&own) {
+                        *d = (1.0 - loss.own_weight) * *d + loss.own_weight * o;
+                    }
+                }
+                (e, d, correction)
+            }
+        };
         let screen = backward(&l, self.params(), cam, &opt, &f, &d_rgb, grads);
         ViewFit { squared_error, screen, correction }
     }

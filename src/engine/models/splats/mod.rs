@@ -79,11 +79,11 @@ impl SplatsModel {
         self.looks = looks;
     }
 
-    /// The correction a view under `options` takes: its image's, if the
-    /// splats have one for it; the identity (the splats' own look) else.
-    fn correction(&self, options: &RenderOptions) -> ColourCorrection {
-        let of = |i| self.looks.as_ref().and_then(|l| l.of(i)).copied();
-        options.image.and_then(of).unwrap_or(ColourCorrection::IDENTITY)
+    /// The looks and the correction a view under `options` takes: its
+    /// image's, if the splats have one for it (`None`: their own look).
+    fn look(&self, options: &RenderOptions) -> Option<(&Looks, &ColourCorrection)> {
+        let looks = self.looks.as_ref()?;
+        Some((looks, looks.of(options.image?)?))
     }
 
     pub fn layout(&self) -> Layout {
@@ -132,9 +132,8 @@ impl SplatsModel {
             let at = lens::Resampling::new(camera, &pin);
             (at.apply(&f.rgb, 3, &background), at.apply(&f.depth, 1, &[0.0]), at.apply(&f.opacity, 1, &[0.0]))
         };
-        let correction = self.correction(options);
-        if let Some(looks) = self.looks.as_ref().filter(|_| correction != ColourCorrection::IDENTITY) {
-            looks.correct(&correction, &mut rgb, &opacity, background);
+        if let Some((looks, correction)) = self.look(options) {
+            looks.correct(correction, &mut rgb, &opacity, background);
         }
         (rgb, depth, opacity)
     }
@@ -179,10 +178,11 @@ impl Appearance for SplatsModel {
     }
 
     fn embedding(&self, options: &RenderOptions) -> Option<Vec<f32>> {
-        if options.image.is_some_and(|i| self.looks.as_ref().and_then(|l| l.of(i)).is_none()) {
-            return None;
-        }
-        Some(self.correction(options).0.iter().flatten().copied().collect())
+        let correction = match (options.image, self.look(options)) {
+            (None, _) => &ColourCorrection::IDENTITY,
+            (Some(_), look) => look?.1,
+        };
+        Some(correction.0.iter().flatten().copied().collect())
     }
 }
 
@@ -236,7 +236,7 @@ impl Model for SplatsModel {
         options: &RenderOptions,
         out: &mut [RayOutput],
     ) -> BatchStats {
-        let correction = self.correction(options);
+        let look = self.look(options);
         let inverse = self.inverse.get_or_init(|| inverse_covariances(&self.layout, &self.params));
         let mut basis = [0.0f32; crate::engine::nn::sh::WIDTH];
         let mut hits: Vec<(f32, f32, usize)> = Vec::new();
@@ -280,8 +280,8 @@ impl Model for SplatsModel {
                 o.rgb[k] += tr * background[k];
             }
             o.opacity = 1.0 - tr;
-            if let Some(looks) = &self.looks {
-                looks.correct(&correction, &mut o.rgb, &[o.opacity], background);
+            if let Some((looks, correction)) = look {
+                looks.correct(correction, &mut o.rgb, &[o.opacity], background);
             }
         }
         BatchStats { rays: rays.len() as u64, ..Default::default() }
