@@ -22,9 +22,19 @@ use crate::engine::transient::TransientMaps;
 /// 30k.
 const BASE_LR: f32 = 4e-3;
 
-/// The per-block learning rates as multiples of [`BASE_LR`]: the 3DGS
-/// paper's relative rates (positions in model units, whose scene box has
-/// half-extent 1: the paper's rate times its typical scene radius of 3).
+/// The first coarse step's rate as a share of [`BASE_LR`], rising to all
+/// of it by the last ([`coarse_rate`]).
+const COARSE_RATE: f32 = 0.5;
+
+/// A coarse step's rate as a share of [`BASE_LR`], `progress` into the
+/// budget: the placed splats start near the field, and a photo at half
+/// size, taken once or twice in the coarse steps, pulls them about more
+/// than it tells them; the rate rises to the whole by the full-size steps
+/// (docs/design/splats.md).
+fn coarse_rate(progress: f64) -> f32 {
+    COARSE_RATE + (1.0 - COARSE_RATE) * (progress / COARSE_SHARE).clamp(0.0, 1.0) as f32
+}
+
 /// The weight of one minus the SSIM in the loss, beside the squared error
 /// (`SplatsModel::fit_view`): it keeps edges and texture the squared error
 /// alone blurs (docs/design/splats.md).
@@ -39,6 +49,9 @@ const LOOK_RIDGE: f64 = 0.1;
 /// browser and the exports show, at the photos' common one.
 const OWN_WEIGHT: f32 = 0.4;
 
+/// The per-block learning rates as multiples of [`BASE_LR`]: the 3DGS
+/// paper's relative rates (positions in model units, whose scene box has
+/// half-extent 1: the paper's rate times its typical scene radius of 3).
 fn groups(l: &Layout, progress: f64) -> Vec<LrGroup> {
     // Positions decay a hundredfold over the bake.
     let pos = 0.48 * (0.01f64).powf(progress) as f32;
@@ -209,7 +222,8 @@ impl<'a> Fit<'a> {
         let groups = groups(&l, progress);
         let far = self.background.as_ref().map(|b| b.members(&l, self.model.params())).unwrap_or_default();
         zero_rest(&l, &mut grads, &far);
-        self.adam.step_groups(self.model.params_mut(), &mut grads, BASE_LR, &groups);
+        let lr = if coarse { coarse_rate(progress) * BASE_LR } else { BASE_LR };
+        self.adam.step_groups(self.model.params_mut(), &mut grads, lr, &groups);
         // Adam's momentum would move them still.
         zero_rest(&l, self.model.params_mut(), &far);
         self.grads = grads;
@@ -278,6 +292,14 @@ mod tests {
     use crate::engine::bake::testutil::facing_origin;
     use crate::engine::geometry::camera::Camera;
     use crate::engine::models::splats::raster::{RasterOptions, forward};
+
+    #[test]
+    fn a_coarse_steps_rate_rises_from_half_to_the_whole() {
+        assert_eq!(coarse_rate(0.0), 0.5);
+        assert_eq!(coarse_rate(0.5 * COARSE_SHARE), 0.75);
+        assert_eq!(coarse_rate(COARSE_SHARE), 1.0);
+        assert_eq!(coarse_rate(0.9), 1.0);
+    }
 
     #[test]
     fn a_halved_photo_is_the_mean_of_each_two_by_two_and_nan_where_any_is() {

@@ -12,8 +12,8 @@
 //!    ([`clear`]), then or at any later pruning: no photo looks there.
 //! 2. **Fitting** ([`fit`], [`densify`]) against the training photos with
 //!    the differentiable rasteriser: one whole photo a step (at half size
-//!    first, for large photos), mean squared error and D-SSIM, Adam with
-//!    per-block rates, and the 3DGS paper's densification and pruning in
+//!    first, for large photos, at a rate rising from half), mean squared
+//!    error and D-SSIM, Adam with per-block rates, and the 3DGS paper's densification and pruning in
 //!    the first half, all on one [`Budget`] of steps or seconds as
 //!    training's. From a source with a per-photo appearance, each photo is
 //!    fitted through its own colour correction (`splats::looks`), kept
