@@ -13,9 +13,9 @@
 //! 2. **Fitting** ([`fit`], [`densify`]) against the training photos with
 //!    the differentiable rasteriser: one whole photo a step (at half size
 //!    first, for large photos, at a rate rising from half), mean squared
-//!    error and D-SSIM, Adam with per-block rates, and the 3DGS paper's densification and pruning in
-//!    the first half, all on one [`Budget`] of steps or seconds as
-//!    training's. From a source with a per-photo appearance, each photo is
+//!    error and D-SSIM, Adam with per-block rates, and the 3DGS paper's
+//!    densification and pruning in the first half, all on one [`Budget`]
+//!    of steps or seconds as training's. From a source with a per-photo appearance, each photo is
 //!    fitted through its own colour correction (`splats::looks`), kept
 //!    with the splats for views that take a photo's look. The
 //!    background of a capture taken all around keeps a colour of degree 0

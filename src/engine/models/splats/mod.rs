@@ -178,10 +178,8 @@ impl Appearance for SplatsModel {
     }
 
     fn embedding(&self, options: &RenderOptions) -> Option<Vec<f32>> {
-        let correction = match (options.image, self.look(options)) {
-            (None, _) => &ColourCorrection::IDENTITY,
-            (Some(_), look) => look?.1,
-        };
+        // A photo the splats have no look for has no embedding.
+        let correction = if options.image.is_some() { self.look(options)?.1 } else { &ColourCorrection::IDENTITY };
         Some(correction.0.iter().flatten().copied().collect())
     }
 }
